@@ -1,0 +1,20 @@
+"""Progress reporting through a plain callback (no Qt, no terminal assumptions).
+
+Long-running Logic functions accept ``progress: ProgressCallback | None`` and call it
+as ``progress(stage, done, total)``; the CLI turns that into a bar on stderr, the
+Slicer module into its progress dialog.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+__all__ = ["ProgressCallback", "report"]
+
+ProgressCallback = Callable[[str, int, int], None]
+
+
+def report(progress: ProgressCallback | None, stage: str, done: int, total: int) -> None:
+    """Call ``progress`` if one was given."""
+    if progress is not None:
+        progress(stage, done, total)

@@ -1,0 +1,62 @@
+"""The ``bone-us-recon`` command line: a thin shell over :mod:`BoneUSRecon.Logic`.
+
+Each sub-command lives in its own module of this package and exposes
+``register(subparsers)``, which adds its parser and sets ``func`` to a function
+``run(args) -> int``. :func:`main` provides what every command shares: ``--quiet``,
+``--debug``, one-line errors with exit status 2, and clean interruption.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from BoneUSRecon import __version__
+from BoneUSRecon.cli.common import run_guarded
+
+__all__ = ["main", "build_parser"]
+
+# Order is the order shown in --help.
+COMMANDS = (
+    "demo",
+    "info",
+    "simulate",
+    "segment",
+    "reconstruct",
+    "evaluate",
+    "table",
+    "view",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser (all sub-commands)."""
+    parser = argparse.ArgumentParser(
+        prog="bone-us-recon",
+        description="Bone surface reconstruction from tracked freehand ultrasound.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"BoneUSRecon.cli.{name}")
+        except ModuleNotFoundError as exc:  # command not built in this checkout
+            if exc.name == f"BoneUSRecon.cli.{name}":
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    return run_guarded(args.func, args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,160 @@
+"""What every sub-command shares: options, error style, progress bar, summaries.
+
+Error contract: a problem with the user's input is one line on stderr,
+``bone-us-recon: error: <file>: <problem>``, exit status 2, no traceback and no
+output file (writers go through :func:`BoneUSRecon.Logic.fileio.atomic_path`).
+Ctrl-C prints ``bone-us-recon: interrupted`` and exits with 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import traceback
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.progress import ProgressCallback
+
+__all__ = [
+    "PROG",
+    "add_common_options",
+    "add_calibration_option",
+    "error",
+    "run_guarded",
+    "ProgressBar",
+    "print_summary",
+    "print_json",
+]
+
+PROG = "bone-us-recon"
+
+
+def add_common_options(parser: argparse.ArgumentParser) -> None:
+    """``--quiet`` and ``--debug``, on every sub-command."""
+    parser.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress bar on stderr"
+    )
+    parser.add_argument(
+        "--debug", action="store_true", help="show a traceback on internal errors"
+    )
+
+
+def add_calibration_option(parser: argparse.ArgumentParser) -> None:
+    """``--calibration XML`` and ``--transform NAME`` for commands that read a sweep."""
+    parser.add_argument(
+        "--calibration",
+        metavar="XML",
+        help="PLUS device-set XML holding the ImageToProbe calibration "
+        "(needed when the sweep has no ImageToReference transform)",
+    )
+    parser.add_argument(
+        "--transform",
+        metavar="NAME",
+        help="name of the per-frame pose to use, e.g. ImageToReference or "
+        "ProbeToTracker (default: ImageToReference when present)",
+    )
+
+
+def error(message: str) -> int:
+    """Print a one-line error and return exit status 2."""
+    print(f"{PROG}: error: {' '.join(str(message).split())}", file=sys.stderr)
+    return 2
+
+
+def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    """Run a sub-command, turning every failure into a one-line message and a status."""
+    try:
+        return int(func(args) or 0)
+    except BoneUSReconError as exc:
+        return error(str(exc))
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted; no output was written", file=sys.stderr)
+        return 130
+    except (OSError, MemoryError) as exc:
+        name = getattr(exc, "filename", None)
+        msg = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+        return error(f"{name}: {msg}" if name else msg)
+    except Exception as exc:  # an internal bug: still one line unless --debug
+        if getattr(args, "debug", False):
+            traceback.print_exc()
+        else:
+            print(
+                f"{PROG}: internal error: {type(exc).__name__}: {' '.join(str(exc).split())} "
+                "(run with --debug for a traceback)",
+                file=sys.stderr,
+            )
+        return 1
+
+
+class ProgressBar:
+    """A :data:`ProgressCallback` drawing one tqdm bar per stage on stderr.
+
+    Use as a context manager; ``quiet=True`` makes it silent.
+    """
+
+    def __init__(self, quiet: bool = False) -> None:
+        self.quiet = quiet
+        self._bar: Any = None
+        self._stage: str | None = None
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if self.quiet:
+            return
+        from tqdm import tqdm
+
+        if stage != self._stage or self._bar is None:
+            self.close()
+            self._stage = stage
+            self._bar = tqdm(
+                total=total, desc=stage, file=sys.stderr, leave=False, unit="", dynamic_ncols=True
+            )
+        self._bar.total = total
+        self._bar.n = done
+        self._bar.refresh()
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+            self._stage = None
+
+    def __enter__(self) -> ProgressCallback:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        return " ".join(_fmt(v) for v in value)
+    return str(value)
+
+
+def print_summary(title: str, rows: Iterable[tuple[str, Any]]) -> None:
+    """Print ``title`` then aligned ``key: value`` lines on stdout."""
+    rows = list(rows)
+    width = max((len(k) for k, _ in rows), default=0)
+    print(title)
+    for key, value in rows:
+        print(f"  {key:<{width}} : {_fmt(value)}")
+
+
+def print_json(obj: Any) -> None:
+    """Print ``obj`` as one JSON document on stdout (numpy values converted)."""
+
+    def default(o: Any) -> Any:
+        import numpy as np
+
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        if isinstance(o, np.generic):
+            return o.item()
+        return str(o)
+
+    print(json.dumps(obj, default=default, indent=2))
