@@ -64,8 +64,12 @@ def check_output_path(
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise BoneUSReconError(f"output folder {str(parent)!r} does not exist", p)
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise BoneUSReconError(f"output folder {str(parent)!r} is not writable", p)
+    # Probe by creating a file: os.access() says yes to root on read-only mounts.
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError:
+        raise BoneUSReconError(f"output folder {str(parent)!r} is not writable", p) from None
     if p.is_dir():
         raise BoneUSReconError("output path is a directory", p)
     return p

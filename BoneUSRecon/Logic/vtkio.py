@@ -58,9 +58,11 @@ def points_to_polydata(
     vp.SetData(numpy_support.numpy_to_vtk(pts, deep=True))
     pd.SetPoints(vp)
     k = pts.shape[0]
-    conn = np.column_stack([np.ones(k, np.int64), np.arange(k, dtype=np.int64)]).reshape(-1)
     verts = vtkCellArray()
-    verts.SetCells(k, numpy_support.numpy_to_vtkIdTypeArray(conn, deep=True))
+    verts.SetData(
+        numpy_support.numpy_to_vtkIdTypeArray(np.arange(k + 1, dtype=np.int64), deep=True),
+        numpy_support.numpy_to_vtkIdTypeArray(np.arange(k, dtype=np.int64), deep=True),
+    )
     pd.SetVerts(verts)
     for name, values in (arrays or {}).items():
         a = np.ascontiguousarray(np.asarray(values))
