@@ -626,7 +626,10 @@ def sweep_transforms(
     if a == "Image":
         steps = _find_path(edges, "Image", b)
     elif target_name in edges:
-        head = _find_path(edges, "Image", a)
+        # The image must reach frame A without the named transform itself, otherwise
+        # "StylusToTracker" would be reached by going out and back along it.
+        others = {k: v for k, v in edges.items() if k != target_name}
+        head = _find_path(others, "Image", a)
         steps = None if head is None else head + [(target_name, False)]
     else:
         raise BoneUSReconError(
@@ -734,10 +737,8 @@ def read_sweep(
         Any malformed input (one line naming the file and the problem), or when no
         frame is usable.
     """
-    report(progress, "read", 0, 3)
     hdr = read_header(path)
     mats, problems, name = sweep_transforms(hdr, calibration=calibration, transform=transform)
-    report(progress, "read", 1, 3)
     n = hdr.n_frames
 
     for k, status in _frame_values(hdr, "ImageStatus").items():
@@ -761,10 +762,11 @@ def read_sweep(
             f"every frame is invalid ({n} of {n}; frame {first[0]}: {first[1]})", hdr.path
         )
 
+    report(progress, "read", 0, 2)
     pixels = _read_pixels(hdr)
-    report(progress, "read", 2, 3)
+    report(progress, "read", 1, 2)
     frames = pixels if pixels.dtype == np.uint8 else to_uint8(pixels)
-    report(progress, "read", 3, 3)
+    report(progress, "read", 2, 2)
     meta: dict[str, Any] = {
         "element_type": hdr.element_type,
         "orientation": hdr.orientation,

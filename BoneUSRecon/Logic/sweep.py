@@ -3,8 +3,9 @@
 Conventions (used everywhere in BoneUSRecon):
 
 * ``frames`` has shape ``(N, H, W)``: frame ``k``, row ``j`` (depth, 0 nearest the
-  transducer), column ``i`` (lateral, 0 on the probe's marked side): the PLUS ``MF``
-  orientation. Frames are ``uint8`` (see :mod:`BoneUSRecon.Logic.sequence_io` for how
+  transducer), column ``i`` (lateral, along the transducer): the PLUS ``MF``
+  orientation (image x along the marked side of the transducer, image y pointing
+  away from it), which is the one PLUS calibrations and poses refer to. Frames are ``uint8`` (see :mod:`BoneUSRecon.Logic.sequence_io` for how
   other pixel types are brought to 0..255). The array may be a read-only memory map;
   code must never modify it in place nor copy it whole into floating point.
 * ``image_to_reference[k]`` is a 4x4 matrix mapping the homogeneous pixel index
@@ -99,7 +100,7 @@ class Sweep:
     image_to_reference : ndarray of float64, shape (N, 4, 4)
         Pixel ``(i, j, 0, 1)`` -> reference mm, per frame.
     timestamps : ndarray of float64, shape (N,)
-        Seconds. Zeros when the file has none.
+        Seconds. Zeros when the file has none; NaN for single frames without one.
     valid : ndarray of bool, shape (N,)
         Frames usable for reconstruction.
     source : Path, optional
@@ -206,6 +207,7 @@ class Sweep:
     def duration_s(self) -> float:
         """Time between the first and last valid frame, in seconds."""
         t = self.timestamps[self.valid]
+        t = t[np.isfinite(t)]  # frames without a timestamp field read as NaN
         return float(t.max() - t.min()) if t.size else 0.0
 
     def replace(self, **changes: Any) -> Sweep:
