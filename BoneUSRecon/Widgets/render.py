@@ -1,0 +1,392 @@
+"""Off-screen rendering shared by the viewer and the report (pyvista on VTK).
+
+This is the only place in BoneUSRecon that imports VTK's rendering modules (through
+pyvista); :mod:`BoneUSRecon.Logic` never does. On a Linux machine without a display the
+render window is VTK's EGL one (needs ``libegl1`` and ``libgl1-mesa-dri``), chosen
+before VTK would first try X and print a warning about it.
+
+Conventions of every picture: the surface coloured by its ``Distance`` point array (mm)
+with a scalar bar, segmented points in red (the paper's Fig. 4 draws them in yellow,
+which vanishes against the upper end of most colour maps), gold points in black,
+the sweep's frames as grey outlines (invalid frames in orange).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pyvista as pv
+    from vtkmodules.vtkCommonDataModel import vtkPolyData
+
+    from BoneUSRecon.Logic.sweep import Sweep
+
+__all__ = [
+    "Style",
+    "has_display",
+    "use_offscreen_backend",
+    "as_pyvista",
+    "distance_array",
+    "sweep_outlines",
+    "view_directions",
+    "make_plotter",
+    "render_views",
+    "png_bytes",
+    "save_png",
+]
+
+
+@dataclass(frozen=True)
+class Style:
+    """Colours and sizes of every BoneUSRecon picture."""
+
+    #: matplotlib colour map for the surface's ``Distance`` (sequential: 0 mm is dark).
+    cmap: str = "viridis"
+    #: Colour of the segmented (contour) points, as in the paper's Fig. 4 overlay.
+    points_color: str = "#ff3b30"
+    #: Colour of the gold-standard points.
+    gold_color: str = "black"
+    #: Colour of valid frame outlines, and of invalid ones.
+    outline_color: str = "#8a8a8a"
+    invalid_outline_color: str = "#ff9500"
+    #: On-screen size of points, in pixels.
+    point_size: float = 5.0
+    background: str = "white"
+    #: Text colour (scalar bar, labels); must contrast with ``background``.
+    text_color: str = "black"
+
+
+DEFAULT_STYLE = Style()
+
+
+def has_display() -> bool:
+    """True when an interactive window can be opened (always on macOS/Windows)."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def use_offscreen_backend() -> None:
+    """On a display-less Linux, make VTK create EGL render windows (no X attempt).
+
+    VTK's default factory tries X first and prints ``bad X server connection`` on
+    stderr before falling back to EGL; the CLI's output must stay clean.
+    """
+    if not has_display():
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+def as_pyvista(data: Any) -> pv.PolyData:
+    """Wrap a ``vtkPolyData`` (or an ``(K, 3)`` array of points) as ``pyvista.PolyData``."""
+    import pyvista as pv
+
+    if isinstance(data, pv.PolyData):
+        return data
+    if isinstance(data, np.ndarray):
+        return pv.PolyData(np.asarray(data, dtype=float).reshape(-1, 3))
+    return pv.wrap(data)
+
+
+def distance_array(surface: Any) -> np.ndarray | None:
+    """The surface's ``Distance`` point array (mm) as numpy, or None when it has none."""
+    mesh = as_pyvista(surface)
+    if "Distance" not in mesh.point_data:
+        return None
+    return np.asarray(mesh.point_data["Distance"], dtype=float)
+
+
+def sweep_outlines(sweep: Sweep, max_frames: int = 60) -> tuple[pv.PolyData, pv.PolyData]:
+    """Rectangles of the sweep's image planes in reference mm.
+
+    Parameters
+    ----------
+    sweep : Sweep
+    max_frames : int
+        At most this many outlines (evenly spaced, first and last kept), so that a
+        250-frame sweep stays readable.
+
+    Returns
+    -------
+    valid, invalid : pyvista.PolyData
+        Closed line loops, one per frame, for valid and for invalid frames.
+    """
+    import pyvista as pv
+
+    idx = np.arange(sweep.n_frames)
+    if idx.size > max_frames:
+        idx = np.unique(np.linspace(0, idx.size - 1, max_frames).round().astype(int))
+    out = []
+    for frames in (idx[sweep.valid[idx]], idx[~sweep.valid[idx]]):
+        if frames.size == 0:
+            out.append(pv.PolyData())
+            continue
+        corners = sweep.corners_mm(frames).reshape(-1, 3)
+        base = 4 * np.arange(frames.size)[:, None]
+        loops = np.column_stack([np.full(frames.size, 5), base + [0, 1, 2, 3, 0]])
+        out.append(pv.PolyData(corners, lines=loops.reshape(-1)))
+    return out[0], out[1]
+
+
+def view_directions(
+    points: np.ndarray, toward_viewer: np.ndarray | None = None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Two camera directions that show a partial bone surface well.
+
+    The bone's long axis (first principal axis of ``points``) is laid horizontally.
+    ``top`` looks down on the surface from ``toward_viewer`` (the side the probe was
+    on: it is the side the upper bone surface faces); ``oblique`` turns 55 degrees
+    about the long axis and 25 degrees along it, to show the relief.
+
+    Parameters
+    ----------
+    points : ndarray, shape (K, 3)
+        Surface points.
+    toward_viewer : ndarray, shape (3,), optional
+        Direction from the surface toward the viewer; the third principal axis when
+        not given (its sign chosen arbitrarily).
+
+    Returns
+    -------
+    dict
+        ``name -> (direction from focal point to camera (unit), view-up (unit))``.
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    centred = p - p.mean(axis=0)
+    # SVD of a (K, 3) array: cheap and robust principal axes.
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    long_axis = vt[0]
+    n = vt[2] if toward_viewer is None else np.asarray(toward_viewer, dtype=float)
+    n = n - long_axis * (n @ long_axis)  # make it orthogonal to the long axis
+    if np.linalg.norm(n) < 1e-9:
+        n = vt[2]
+    n /= np.linalg.norm(n)
+    up = np.cross(n, long_axis)
+    up /= np.linalg.norm(up)
+
+    def turn(v: np.ndarray, axis: np.ndarray, deg: float) -> np.ndarray:
+        # Rodrigues' rotation of v about a unit axis.
+        a = np.radians(deg)
+        return v * np.cos(a) + np.cross(axis, v) * np.sin(a) + axis * (axis @ v) * (1 - np.cos(a))
+
+    # Elevate 55 degrees about the long axis, then lean 25 degrees along it; the view-up
+    # stays orthogonal to the long axis so the bone still lies horizontally.
+    d1 = turn(n, long_axis, 55.0)
+    up1 = turn(up, long_axis, 55.0)
+    d2 = np.cos(np.radians(25.0)) * d1 + np.sin(np.radians(25.0)) * long_axis
+    return {"top": (n, up), "oblique": (d2 / np.linalg.norm(d2), up1)}
+
+
+def make_plotter(
+    surface: Any,
+    *,
+    points: Any = None,
+    gold: Any = None,
+    sweep: Sweep | None = None,
+    off_screen: bool = True,
+    window_size: Sequence[int] = (900, 600),
+    style: Style = DEFAULT_STYLE,
+    clim: Sequence[float] | None = None,
+    scalar_bar: bool = True,
+    title: str | None = None,
+) -> tuple[pv.Plotter, dict[str, Any]]:
+    """A plotter showing the surface, its points, the gold points and the sweep.
+
+    Parameters
+    ----------
+    surface : vtkPolyData or pyvista.PolyData
+        Coloured by its ``Distance`` point array when it has one.
+    points, gold : vtkPolyData, pyvista.PolyData or ndarray (K, 3), optional
+        Segmented points and gold-standard points.
+    sweep : Sweep, optional
+        Its frames are drawn as outlines.
+    off_screen : bool
+        Render without a window (for screenshots).
+    clim : (float, float), optional
+        Colour range in mm; ``[0, max Distance]`` by default.
+
+    Returns
+    -------
+    plotter : pyvista.Plotter
+    actors : dict
+        ``"surface"``, ``"points"``, ``"gold"``, ``"frames"``, ``"invalid_frames"``
+        (absent when not drawn), for the viewer's toggles.
+    """
+    if off_screen:
+        use_offscreen_backend()
+    import pyvista as pv
+
+    mesh = as_pyvista(surface)
+    if mesh.n_points == 0:
+        raise BoneUSReconError("the surface has no points")
+    pl = pv.Plotter(off_screen=off_screen, window_size=list(window_size))
+    pl.set_background(style.background)
+    actors: dict[str, Any] = {}
+    dist = distance_array(mesh)
+    if dist is not None and np.isfinite(dist).any():
+        lo, hi = (0.0, float(np.nanmax(dist))) if clim is None else map(float, clim)
+        hi = max(hi, lo + 1e-6)
+        actors["surface"] = pl.add_mesh(
+            mesh,
+            scalars="Distance",
+            cmap=style.cmap,
+            clim=(lo, hi),
+            nan_color="lightgrey",
+            smooth_shading=True,
+            show_scalar_bar=scalar_bar,
+            scalar_bar_args={
+                "title": "Distance (mm)",
+                "color": style.text_color,
+                # Horizontal, below the data: bones are long and lie horizontally.
+                "vertical": False,
+                "position_x": 0.25,
+                "position_y": 0.03,
+                "height": 0.09,
+                "width": 0.5,
+                "fmt": "%.2f",
+                "n_labels": 5,
+            }
+            if scalar_bar
+            else None,
+        )
+    else:
+        actors["surface"] = pl.add_mesh(mesh, color="#d9c8a9", smooth_shading=True)
+    if points is not None:
+        pts = as_pyvista(points)
+        if pts.n_points:
+            actors["points"] = pl.add_mesh(
+                pv.PolyData(np.asarray(pts.points)),
+                color=style.points_color,
+                point_size=style.point_size,
+                render_points_as_spheres=True,
+            )
+    if gold is not None:
+        g = as_pyvista(gold)
+        if g.n_points:
+            actors["gold"] = pl.add_mesh(
+                pv.PolyData(np.asarray(g.points)),
+                color=style.gold_color,
+                point_size=style.point_size + 1,
+                render_points_as_spheres=True,
+            )
+    if sweep is not None:
+        valid, invalid = sweep_outlines(sweep)
+        if valid.n_points:
+            actors["frames"] = pl.add_mesh(valid, color=style.outline_color, line_width=1)
+        if invalid.n_points:
+            actors["invalid_frames"] = pl.add_mesh(
+                invalid, color=style.invalid_outline_color, line_width=1.5
+            )
+    if title:
+        pl.add_text(title, position="upper_left", font_size=10, color=style.text_color)
+    return pl, actors
+
+
+def _toward_probe(sweep: Sweep | None) -> np.ndarray | None:
+    """Mean direction from depth toward the transducer (minus the image row axis)."""
+    if sweep is None or sweep.n_valid == 0:
+        return None
+    from BoneUSRecon.Logic.sweep import frame_planes
+
+    _, axes, _ = frame_planes(sweep.image_to_reference[sweep.valid_indices])
+    d = -axes[:, :, 1].mean(axis=0)
+    n = np.linalg.norm(d)
+    return d / n if n > 1e-9 else None
+
+
+def set_camera(pl: pv.Plotter, focus: np.ndarray, radius: float,
+               direction: np.ndarray, up: np.ndarray) -> None:
+    """Point the camera at ``focus`` from ``direction`` so a ``radius`` sphere fits."""
+    # Setting camera_position (not the camera's fields) also tells pyvista the camera
+    # is set, so its first render does not replace it with the default view.
+    pl.camera_position = [
+        tuple(focus + direction * radius * 4.0),
+        tuple(focus),
+        tuple(up),
+    ]
+    # Fit the view to the data, then zoom in: VTK's reset leaves wide margins.
+    pl.reset_camera()
+    pl.camera.zoom(1.3)
+
+
+def render_views(
+    surface: Any,
+    *,
+    points: Any = None,
+    gold: Any = None,
+    sweep: Sweep | None = None,
+    views: Sequence[str] = ("top", "oblique"),
+    window_size: Sequence[int] = (900, 600),
+    style: Style = DEFAULT_STYLE,
+    show_frames: bool = False,
+) -> dict[str, np.ndarray]:
+    """Render the surface off-screen from named viewpoints (see :func:`view_directions`).
+
+    Parameters
+    ----------
+    surface, points, gold
+        As in :func:`make_plotter`.
+    sweep : Sweep, optional
+        Used to orient the ``top`` view toward the probe; drawn only when
+        ``show_frames``.
+    views : sequence of str
+        Names among ``"top"``, ``"oblique"``.
+
+    Returns
+    -------
+    dict
+        ``view name -> RGB image (H, W, 3) uint8``.
+    """
+    mesh = as_pyvista(surface)
+    pl, _ = make_plotter(
+        mesh,
+        points=points,
+        gold=gold,
+        sweep=sweep if show_frames else None,
+        off_screen=True,
+        window_size=window_size,
+        style=style,
+    )
+    try:
+        pts = np.asarray(mesh.points, dtype=float)
+        dirs = view_directions(pts, _toward_probe(sweep))
+        focus = pts.mean(axis=0)
+        radius = float(np.linalg.norm(pts - focus, axis=1).max()) or 1.0
+        out = {}
+        for name in views:
+            if name not in dirs:
+                raise ValueError(f"unknown view {name!r}; use one of {', '.join(dirs)}")
+            d, up = dirs[name]
+            set_camera(pl, focus, radius, d, up)
+            out[name] = np.asarray(pl.screenshot(None, return_img=True))[..., :3].copy()
+        return out
+    finally:
+        pl.close()
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    """Encode an ``(H, W, 3|4)`` uint8 image as PNG bytes (Pillow)."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG", optimize=True)
+    return buf.getvalue()
+
+
+def save_png(image: np.ndarray, path: str | os.PathLike[str]) -> Path:
+    """Write an image as PNG atomically (via :func:`~BoneUSRecon.Logic.fileio.atomic_path`)."""
+    from BoneUSRecon.Logic.fileio import atomic_path, check_output_path
+
+    p = check_output_path(path, (".png",))
+    with atomic_path(p) as tmp:
+        tmp.write_bytes(png_bytes(image))
+    return p
