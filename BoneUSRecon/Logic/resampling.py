@@ -1,0 +1,432 @@
+"""Ray resampling of the segmented contours into an m x n grid (paper section II.C).
+
+The segmented points are dense within a slice (~0.1 mm apart) but sparse between
+slices (0.2-2 mm, up to 20 mm in the paper), so they are put on a regular grid first:
+
+1. **Slice centre** ``c(i)``: the centre of an algebraic (Kasa) circle fit to the
+   slice's contour, in the slice plane. The imaged upper bone surface is an arc of a
+   roughly round cross-section, so that centre sits inside the bone, which is where
+   rays should start. When the fit is degenerate (a flat contour, radius outside
+   ``[min_radius_mm, max_radius_mm]``) the centre is put half a chord below the
+   chord's midpoint instead.
+2. **Central axis**: a *robust smoothing spline* through the centres, parameterised by
+   the frames' position along the sweep (projection of the image centres, which come
+   from tracking and so do not suffer from segmentation failures, on their principal
+   direction). A straight line, as in the paper, cannot follow the S-shaped clavicle
+   (its axis bends by several millimetres over the sweep), so rays from a line would
+   start off-centre and hit the contour at inconsistent angles; the spline follows
+   the bend while its bandwidth (``axis_bandwidth_mm``, 5 mm) keeps it
+   smooth. Frames whose centres come from false contours are down-weighted by
+   iteratively reweighted fitting (Huber, then Tukey) so they do not pull the axis.
+3. ``c(i)`` is **updated** to where the axis crosses slice ``i``'s plane (Newton on
+   the spline parameter, all slices at once).
+4. **Rays**: ``n`` rays in the slice plane from ``c(i)`` at regular angles. Angles
+   are measured in the slice plane from the image's "up" direction (toward the
+   transducer, minus the row axis), positive toward the column axis, so the same
+   ray index means the same direction in every slice. A grid vertex is the first
+   intersection of the ray with the polyline joining consecutive contour points
+   (segments longer than ``max_gap_mm`` are gaps, not bridged). A ray that misses is
+   a NaN entry: never an invented point.
+
+The mean resampling distance (paper: 0.14 mm) is the mean, over grid vertices, of the
+distance from the vertex to the nearest original contour point of its slice.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import make_smoothing_spline
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.sweep import Sweep, frame_planes
+
+__all__ = ["ResamplingParams", "ResampledGrid", "resample", "robust_weights"]
+
+
+@dataclass(frozen=True)
+class ResamplingParams:
+    """Parameters of the ray resampling.
+
+    Attributes
+    ----------
+    n_rays : int
+        Rays per slice (paper II.C: 15). Count.
+    angle_span_deg : float or None
+        Angle between the first and last ray (degrees). ``None``: chosen from the data
+        as the median angular extent of the contours seen from their centres, so the
+        rays cover what the probe saw (ours, not the paper's, which gives no value).
+    angle_step_deg : float or None
+        Angle between consecutive rays (degrees); when given it overrides
+        ``angle_span_deg`` (span = step x (n_rays - 1)). The paper calls it theta.
+    angle_centre_deg : float or None
+        Direction of the middle ray, degrees from "up" toward the column axis.
+        ``None``: the middle of the data's median angular extent.
+    axis : str
+        ``"spline"`` (robust smoothing spline, default, follows curved bones) or
+        ``"line"`` (robust straight line, the paper's choice).
+    axis_bandwidth_mm : float
+        Smoothing bandwidth of the spline axis (mm along the sweep): bends shorter than
+        this are smoothed out. 5 mm: bones bend over several centimetres (a 3 mm bend
+        over 60 mm is followed to 0.1 mm), while centre noise and false contours change
+        from one frame to the next (our choice).
+    min_radius_mm, max_radius_mm : float
+        Accepted range of the circle fit's radius (mm); outside it the chord fallback
+        is used. 1-40 mm spans the cross-sections of the long bones in question.
+    max_gap_mm : float
+        Contour segments longer than this (mm) are treated as gaps (our choice; the
+        segmentation joins points closer than 10 pixels, about 2-3 mm).
+    """
+
+    n_rays: int = 15
+    angle_span_deg: float | None = None
+    angle_step_deg: float | None = None
+    angle_centre_deg: float | None = None
+    axis: str = "spline"
+    axis_bandwidth_mm: float = 5.0
+    min_radius_mm: float = 1.0
+    max_radius_mm: float = 40.0
+    max_gap_mm: float = 3.0
+
+    def __post_init__(self) -> None:
+        if int(self.n_rays) < 2:
+            raise BoneUSReconError(f"need at least 2 rays per slice, got {self.n_rays}")
+        if self.axis not in ("spline", "line"):
+            raise BoneUSReconError(f"unknown axis model {self.axis!r}; use 'spline' or 'line'")
+        if self.angle_span_deg is not None and not 0 < self.angle_span_deg < 360:
+            raise BoneUSReconError(f"angle span must be in (0, 360) degrees, got {self.angle_span_deg}")
+        if self.angle_step_deg is not None and not (
+            0 < self.angle_step_deg * (self.n_rays - 1) < 360
+        ):
+            raise BoneUSReconError(f"angle step {self.angle_step_deg} degrees is out of range")
+        if self.axis_bandwidth_mm <= 0 or self.max_gap_mm <= 0:
+            raise BoneUSReconError("axis bandwidth and maximum gap must be positive (mm)")
+
+
+@dataclass(frozen=True, eq=False)
+class ResampledGrid:
+    """The m x n grid of resampled points (rows = slices in sweep order along the axis).
+
+    Attributes
+    ----------
+    points : ndarray, shape (m, n, 3)
+        Grid vertices in reference mm; NaN where the ray missed the contour.
+    frames : ndarray of int, shape (m,)
+        Frame index (in the sweep file) of each row.
+    centres : ndarray, shape (m, 3)
+        Updated slice centres ``c(i)`` (on the axis), mm.
+    raw_centres : ndarray, shape (m, 3)
+        Centres from the per-slice circle fits, before the axis update, mm.
+    angles : ndarray, shape (n,)
+        Ray angles (radians from "up", toward the column axis).
+    up, lateral : ndarray, shape (m, 3)
+        Unit in-plane directions defining the angles (minus row axis, column axis).
+    axis_position : ndarray, shape (m,)
+        Arc length (mm) of the centres along the axis: the natural u parameter.
+    axis_weights : ndarray, shape (m,)
+        Robust weight of each slice's raw centre in the axis fit (0 = outlier).
+    mean_resampling_distance_mm : float
+        Mean distance from the grid vertices to the nearest original contour point.
+    """
+
+    points: np.ndarray
+    frames: np.ndarray
+    centres: np.ndarray
+    raw_centres: np.ndarray
+    angles: np.ndarray
+    up: np.ndarray
+    lateral: np.ndarray
+    axis_position: np.ndarray
+    axis_weights: np.ndarray
+    mean_resampling_distance_mm: float
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(m, n) bool: entries where the ray hit the contour."""
+        return np.isfinite(self.points).all(axis=-1)
+
+    @property
+    def coverage(self) -> float:
+        """Share of grid entries that hold a point (0..1)."""
+        return float(self.valid.mean()) if self.valid.size else 0.0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(m, n)``."""
+        return int(self.points.shape[0]), int(self.points.shape[1])
+
+
+def robust_weights(r: np.ndarray, scale: float, kind: str) -> np.ndarray:
+    """Huber or Tukey biweight weights of non-negative residuals ``r`` at ``scale``.
+
+    Tuning constants give 95% efficiency on Gaussian residuals (Huber 1.345, Tukey
+    4.685 times ``scale``).
+    """
+    r = np.abs(np.asarray(r, dtype=float))
+    if kind == "huber":
+        k = 1.345 * scale
+        return np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
+    if kind == "tukey":
+        c = 4.685 * scale
+        return np.where(r < c, (1.0 - (r / c) ** 2) ** 2, 0.0)
+    raise ValueError(f"unknown robust weight {kind!r}")
+
+
+def _mad_scale(r: np.ndarray, w: np.ndarray | None = None, floor: float = 0.0) -> float:
+    """1.4826 x median absolute residual (residuals are distances, already >= 0)."""
+    r = np.abs(r[np.isfinite(r)] if w is None else r[(w > 0) & np.isfinite(r)])
+    if r.size == 0:
+        return max(floor, 1.0)
+    return max(float(1.4826 * np.median(r)), floor)
+
+
+def _pad(contours: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Stack ragged (K_i, d) arrays into (m, Kmax, d) with NaN padding and a mask."""
+    kmax = max(c.shape[0] for c in contours)
+    d = contours[0].shape[1]
+    out = np.full((len(contours), kmax, d), np.nan)
+    for r, c in enumerate(contours):  # one copy per slice; the hot work below is batched
+        out[r, : c.shape[0]] = c
+    return out, np.isfinite(out).all(axis=-1)
+
+
+def _circle_centres(
+    xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float
+) -> np.ndarray:
+    """Batched Kasa circle fit; chord fallback where degenerate. Returns (m, 2)."""
+    x = np.where(mask, xy[..., 0], 0.0)
+    y = np.where(mask, xy[..., 1], 0.0)
+    one = mask.astype(float)
+    # Normal equations of  min sum (x^2 + y^2 + D x + E y + F)^2, one 3x3 per slice.
+    cols = np.stack([x, y, one], axis=-1)  # (m, K, 3)
+    a = np.einsum("mki,mkj->mij", cols, cols)
+    b = -np.einsum("mki,mk->mi", cols, x * x + y * y)
+    det = np.linalg.det(a)
+    scale = np.einsum("mii->m", a) ** 3 + 1e-300
+    ok = np.abs(det) > 1e-12 * scale
+    sol = np.zeros_like(b)
+    if ok.any():
+        sol[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
+    cx, cy = -sol[:, 0] / 2, -sol[:, 1] / 2
+    r2 = cx**2 + cy**2 - sol[:, 2]
+    radius = np.sqrt(np.maximum(r2, 0.0))
+    # Chord fallback: half a chord below the chord's midpoint (y is "up").
+    first = xy[:, 0]
+    last_idx = mask.sum(axis=1) - 1
+    last = xy[np.arange(xy.shape[0]), last_idx]
+    mid = (first + last) / 2
+    half = np.linalg.norm(last - first, axis=1) / 2
+    fallback = mid - np.stack([np.zeros_like(half), np.maximum(half, rmin)], axis=1)
+    good = ok & (r2 > 0) & (radius >= rmin) & (radius <= rmax)
+    # A circle whose centre lies above the arc means a concave contour: not a bone top.
+    mean_y = np.nanmean(np.where(mask, xy[..., 1], np.nan), axis=1)
+    good &= cy < mean_y
+    return np.where(good[:, None], np.stack([cx, cy], axis=1), fallback)
+
+
+def _fit_axis(
+    t: np.ndarray, c: np.ndarray, params: ResamplingParams
+) -> tuple[object, np.ndarray]:
+    """Robust axis c(t): smoothing spline or line, IRLS Huber then Tukey.
+
+    Returns a callable ``f(t, nu=0) -> (m, 3)`` and the final per-slice weights.
+    """
+    m = t.size
+    w = np.ones(m)
+    length = max(float(t[-1] - t[0]), 1e-6)
+    use_line = params.axis == "line" or m < 5
+    # Smoothing-spline penalty from a bandwidth h: the equivalent kernel of a cubic
+    # smoothing spline with point density rho has width (lam / rho)^(1/4).
+    lam = (m / length) * params.axis_bandwidth_mm**4
+    f = None
+    for it in range(6):
+        if use_line:
+            sw = w.sum()
+            t0 = (w * t).sum() / sw
+            c0 = (w[:, None] * c).sum(0) / sw
+            dt = t - t0
+            slope = ((w * dt)[:, None] * (c - c0)).sum(0) / max((w * dt * dt).sum(), 1e-12)
+
+            def f(tt, nu=0, c0=c0, t0=t0, slope=slope):
+                tt = np.asarray(tt, float)
+                if nu == 0:
+                    return c0 + (tt - t0)[:, None] * slope
+                return np.broadcast_to(slope, (tt.size, 3)).copy()
+
+        else:
+            f = make_smoothing_spline(t, c, w=np.maximum(w, 1e-6) * m / w.sum(), lam=lam)
+        r = np.linalg.norm(c - f(t), axis=1)
+        scale = _mad_scale(r, w, floor=0.3)  # 0.3 mm: below that, centres are "exact"
+        w = robust_weights(r, scale, "huber" if it < 2 else "tukey")
+        if (w > 0).sum() < max(3, m // 4):  # never let the fit reject most slices
+            w = np.maximum(w, 1e-3)
+    assert f is not None
+    return f, w
+
+
+def resample(
+    contours_mm: Sequence[tuple[int, np.ndarray]],
+    sweep: Sweep,
+    params: ResamplingParams = ResamplingParams(),
+) -> ResampledGrid:
+    """Resample per-slice bone contours onto an m x n grid of ray intersections.
+
+    Parameters
+    ----------
+    contours_mm : sequence of (frame, ndarray (K, 3))
+        Accepted contours in reference mm, points ordered along the contour (as given
+        by ``SegmentationResult.contours_mm``); slices with fewer than 2 points are
+        skipped.
+    sweep : Sweep
+        The sweep the frames belong to (slice planes come from its poses).
+    params : ResamplingParams
+
+    Returns
+    -------
+    ResampledGrid
+        Rows ordered along the sweep direction; rows in which no ray hit the contour
+        are dropped.
+
+    Raises
+    ------
+    BoneUSReconError
+        Fewer than 3 usable slices.
+    """
+    items = [
+        (int(k), np.asarray(p, float).reshape(-1, 3))
+        for k, p in contours_mm
+        if np.asarray(p).reshape(-1, 3).shape[0] >= 2
+    ]
+    if len(items) < 3:
+        raise BoneUSReconError(
+            f"only {len(items)} slices with a bone contour; at least 3 are needed to "
+            "resample a surface",
+            sweep.source,
+        )
+    frames = np.array([k for k, _ in items])
+    origin, axes, normal = frame_planes(sweep.image_to_reference[frames])
+    lateral = axes[:, :, 0]
+    up = -axes[:, :, 1]
+
+    # Order slices along the sweep by the tracked image centres (independent of the
+    # segmentation, so a false contour cannot reorder slices).
+    hw = np.array([(sweep.width - 1) / 2, (sweep.height - 1) / 2, 0.0, 1.0])
+    img_centre = np.einsum("mab,b->ma", sweep.image_to_reference[frames, :3, :], hw)
+    mean = img_centre.mean(0)
+    direction = np.linalg.svd(img_centre - mean, full_matrices=False)[2][0]
+    # Orient the direction with the mean plane normal so u increases consistently.
+    if direction @ normal.mean(0) < 0:
+        direction = -direction
+    t = (img_centre - mean) @ direction
+    order = np.argsort(t, kind="stable")
+    frames, origin, lateral, up, normal, t = (
+        frames[order], origin[order], lateral[order], up[order], normal[order], t[order]
+    )
+    pts3, mask = _pad([items[o][1] for o in order])
+    # Strictly increasing t for the spline (frames at the same position happen when
+    # the probe pauses): add a negligible ramp.
+    t = t + np.arange(t.size) * 1e-6
+
+    # In-plane 2D coordinates (x = lateral, y = up) relative to each frame's origin.
+    rel = pts3 - origin[:, None, :]
+    xy = np.stack(
+        [np.einsum("mkd,md->mk", rel, lateral), np.einsum("mkd,md->mk", rel, up)], axis=-1
+    )
+    c2 = _circle_centres(xy, mask, params.min_radius_mm, params.max_radius_mm)
+    raw_centres = origin + c2[:, :1] * lateral + c2[:, 1:] * up
+
+    axis_fn, axis_w = _fit_axis(t, raw_centres, params)
+    # Where the axis crosses each slice plane: g(s) = (a(s) - o_i) . n_i = 0, Newton
+    # from s = t_i, all slices at once.
+    s = t.copy()
+    for _ in range(4):
+        a = axis_fn(s)
+        da = axis_fn(s, 1)
+        g = np.einsum("md,md->m", a - origin, normal)
+        dg = np.einsum("md,md->m", da, normal)
+        step = np.where(np.abs(dg) > 1e-9, g / np.where(dg == 0, 1, dg), 0.0)
+        s = s - np.clip(step, -20.0, 20.0)
+    centres = axis_fn(s)
+    # Guard: project onto the plane exactly (Newton leaves ~1e-9 mm).
+    centres = centres - np.einsum("md,md->m", centres - origin, normal)[:, None] * normal
+    crel = centres - origin
+    cxy = np.stack([np.einsum("md,md->m", crel, lateral), np.einsum("md,md->m", crel, up)], 1)
+    q = xy - cxy[:, None, :]  # contour points relative to the updated centre
+
+    angles = _ray_angles(q, mask, params)
+    # Ray r(t) = t d, t > 0, against segments a + s (b - a), s in [0, 1].
+    pa, pb = q[:, :-1], q[:, 1:]
+    seg_ok = mask[:, :-1] & mask[:, 1:]
+    seg_ok &= np.linalg.norm(pb - pa, axis=-1) <= params.max_gap_mm
+    d = np.stack([np.sin(angles), np.cos(angles)], axis=1)  # (n, 2)
+    e = pb - pa  # (m, S, 2)
+    # Solve t d - s e = a  by Cramer's rule, for every (slice, segment, ray).
+    den = d[None, None, :, 0] * (-e[..., 1:2]) - d[None, None, :, 1] * (-e[..., 0:1])
+    ax, ay = pa[..., 0:1], pa[..., 1:2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tt = (ax * (-e[..., 1:2]) - ay * (-e[..., 0:1])) / den
+        ss = (d[None, None, :, 0] * ay - d[None, None, :, 1] * ax) / den
+    hit = seg_ok[..., None] & (np.abs(den) > 1e-12) & (tt > 0) & (ss >= 0) & (ss <= 1)
+    tt = np.where(hit, tt, np.inf)
+    radius = tt.min(axis=1)  # (m, n): first crossing along the ray
+    radius[~np.isfinite(radius)] = np.nan
+    pts2 = radius[..., None] * d[None]  # (m, n, 2) relative to centre
+    grid = (
+        centres[:, None, :]
+        + pts2[..., 0:1] * lateral[:, None, :]
+        + pts2[..., 1:2] * up[:, None, :]
+    )
+    # Drop slices no ray hit: they carry no information for the fit.
+    keep = np.isfinite(radius).any(axis=1)
+    if keep.sum() < 3:
+        raise BoneUSReconError(
+            f"the rays hit the contours in only {int(keep.sum())} slices; at least 3 are "
+            "needed (check the angle span)",
+            sweep.source,
+        )
+    # Mean resampling distance: vertex to the nearest original point of its slice.
+    dist = np.linalg.norm(pts2[:, :, None, :] - q[:, None, :, :], axis=-1)
+    dist = np.where(mask[:, None, :], dist, np.inf).min(axis=2)
+    mean_dist = float(np.nanmean(np.where(np.isfinite(radius), dist, np.nan)))
+
+    centres_k = centres[keep]
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centres_k, axis=0), axis=1))]
+    return ResampledGrid(
+        points=grid[keep],
+        frames=frames[keep],
+        centres=centres_k,
+        raw_centres=raw_centres[keep],
+        angles=angles,
+        up=up[keep],
+        lateral=lateral[keep],
+        axis_position=arc,
+        axis_weights=axis_w[keep],
+        mean_resampling_distance_mm=mean_dist,
+    )
+
+
+def _ray_angles(q: np.ndarray, mask: np.ndarray, params: ResamplingParams) -> np.ndarray:
+    """Regularly spaced ray angles (radians), from the parameters or the data."""
+    n = int(params.n_rays)
+    if params.angle_centre_deg is None or (
+        params.angle_span_deg is None and params.angle_step_deg is None
+    ):
+        ang = np.arctan2(q[..., 0], q[..., 1])  # from "up" toward lateral
+        ang = np.where(mask, ang, np.nan)
+        lo = float(np.nanmedian(np.nanmin(ang, axis=1)))
+        hi = float(np.nanmedian(np.nanmax(ang, axis=1)))
+    if params.angle_step_deg is not None:
+        span = np.deg2rad(params.angle_step_deg) * (n - 1)
+    elif params.angle_span_deg is not None:
+        span = np.deg2rad(params.angle_span_deg)
+    else:
+        # Slightly inside the median extent so the end rays hit in most slices.
+        span = 0.9 * (hi - lo)
+    centre = (
+        np.deg2rad(params.angle_centre_deg)
+        if params.angle_centre_deg is not None
+        else (lo + hi) / 2
+    )
+    return centre + np.linspace(-span / 2, span / 2, n)
