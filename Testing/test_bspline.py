@@ -1,0 +1,163 @@
+"""Tensor-product least-squares B-spline surface (paper II.D): exactness, oracles, robustness."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.interpolate import LSQBivariateSpline, make_lsq_spline
+
+from BoneUSRecon.Logic.bspline import (
+    BSplineSurface,
+    FitParams,
+    averaging_knots,
+    fit_curve,
+    fit_surface,
+)
+from BoneUSRecon.Logic.errors import BoneUSReconError
+
+
+def known_surface(m=40, n=15, e=15, f=5, seed=0, p=2, q=2):
+    rng = np.random.default_rng(seed)
+    u = np.r_[0.0, np.sort(rng.uniform(0, 1, m - 2)), 1.0]
+    v = np.linspace(0, 1, n)
+    ku, kv = averaging_knots(u, e, p), averaging_knots(v, f, q)
+    ctrl = rng.normal(scale=10.0, size=(e, f, 3))
+    surf = BSplineSurface(ctrl, ku, kv, (p, q))
+    return surf, u, v, surf.evaluate(u, v), rng
+
+
+def test_averaging_knots_are_clamped_and_average_the_data():
+    u = np.linspace(0, 1, 11)
+    k = averaging_knots(u, 5, 2)
+    assert k.size == 5 + 2 + 1
+    assert np.all(k[:3] == 0) and np.all(k[-3:] == 1)
+    # NURBS Book 9.69: d = 11/3, interior knots at ub[2] + 2/3 (ub[3]-ub[2]) etc.
+    d = 11 / 3
+    i = int(d)
+    assert np.isclose(k[3], (1 - (d - i)) * u[i - 1] + (d - i) * u[i])
+    assert np.all(np.diff(k) >= 0)
+
+
+@pytest.mark.parametrize("method", ["direct", "separable"])
+@pytest.mark.parametrize("degree", [(1, 1), (2, 2), (3, 2)])
+def test_known_surface_recovered_to_round_off(method, degree):
+    surf, u, v, pts, _ = known_surface(p=degree[0], q=degree[1])
+    fit = fit_surface(pts, FitParams(degree=degree, method=method, robust="none", smoothing=0.0), u=u, v=v)
+    assert np.abs(fit.surface.control_points - surf.control_points).max() < 1e-9
+    assert fit.rms_mm < 1e-10
+    # evaluate agrees with scipy's own tensor-product evaluator
+    uu, vv = np.meshgrid(np.linspace(0, 1, 7), np.linspace(0, 1, 5), indexing="ij")
+    ours = fit.surface.evaluate(uu[:, 0], vv[0])
+    for k, s in enumerate(fit.surface.to_scipy()):
+        assert np.allclose(s(np.stack([uu, vv], -1)), ours[..., k], atol=1e-10)
+
+
+def test_known_surface_recovered_with_missing_entries():
+    surf, u, v, pts, rng = known_surface(seed=3)
+    pts = pts.copy()
+    pts[rng.random(pts.shape[:2]) < 0.25] = np.nan
+    pts[10:13] = np.nan  # three whole slices missing (rejected frames)
+    fit = fit_surface(pts, FitParams(robust="none", smoothing=0.0), u=u, v=v)
+    assert np.abs(fit.surface.control_points - surf.control_points).max() < 1e-8
+    assert np.isnan(fit.residuals[10:13]).all() and (fit.weights[10:13] == 0).all()
+
+
+def test_direct_fit_matches_fitpack_weighted_lsq_oracle():
+    # Noisy data, random per-point weights, 10% missing: the exact weighted LSQ problem.
+    surf, u, v, pts, rng = known_surface(seed=5)
+    noisy = pts + rng.normal(scale=0.2, size=pts.shape)
+    noisy[rng.random(pts.shape[:2]) < 0.1] = np.nan
+    w = rng.uniform(0.2, 1.0, pts.shape[:2])
+    fit = fit_surface(noisy, FitParams(robust="none", smoothing=0.0), u=u, v=v, weights=w)
+    uu, vv = np.meshgrid(u, v, indexing="ij")
+    ok = np.isfinite(noisy).all(-1)
+    ku, kv = fit.surface.knots_u, fit.surface.knots_v
+    ours = fit.surface.evaluate(u, v)
+    for k in range(3):
+        # FITPACK minimises sum (w_i r_i)^2, so it gets sqrt of our weights.
+        oracle = LSQBivariateSpline(
+            uu[ok], vv[ok], noisy[ok][:, k], ku[3:-3], kv[3:-3], w=np.sqrt(w[ok]),
+            kx=2, ky=2, bbox=[0, 1, 0, 1],
+        )
+        assert np.abs(oracle(u, v) - ours[..., k]).max() < 1e-9
+
+
+def test_separable_equals_direct_for_complete_grid_and_separable_weights():
+    surf, u, v, pts, rng = known_surface(seed=7)
+    noisy = pts + rng.normal(scale=0.3, size=pts.shape)
+    w = np.outer(rng.uniform(0.3, 1, u.size), rng.uniform(0.3, 1, v.size))  # a_i b_j
+    d = fit_surface(noisy, FitParams(robust="none", smoothing=0.0), u=u, v=v, weights=w)
+    s = fit_surface(noisy, FitParams(method="separable", robust="none", smoothing=0.0), u=u, v=v, weights=w)
+    assert np.abs(d.surface.control_points - s.surface.control_points).max() < 1e-9
+
+
+def test_fit_curve_matches_scipy_make_lsq_spline():
+    rng = np.random.default_rng(2)
+    x = np.sort(rng.uniform(0, 1, 30))
+    x[0], x[-1] = 0, 1
+    y = np.sin(4 * x)[:, None, None] + rng.normal(scale=0.05, size=(30, 1, 1))
+    w = rng.uniform(0.5, 1, (30, 1))
+    t = averaging_knots(x, 8, 3)
+    ours = fit_curve(x, y, w, t, 3)[:, 0, 0]
+    oracle = make_lsq_spline(x, y[:, 0, 0], t, k=3, w=np.sqrt(w[:, 0]))
+    assert np.allclose(ours, oracle.c, atol=1e-10)
+
+
+def test_robust_fit_ignores_false_frames_and_outlier_points():
+    # A gently curved "bone top" sampled on a 60 x 15 grid, 0.1 mm noise.
+    rng = np.random.default_rng(11)
+    m, n = 60, 15
+    s = np.linspace(0, 80, m)
+    a = np.linspace(-1.1, 1.1, n)
+    ss, aa = np.meshgrid(s, a, indexing="ij")
+    r = 6 + 0.5 * np.sin(ss / 15)
+    truth = np.stack([ss, r * np.sin(aa) + 2 * np.sin(ss / 25), r * np.cos(aa)], -1)
+    pts = truth + rng.normal(scale=0.1, size=truth.shape)
+    bad_frames = [7, 8, 30, 45, 52, 53]
+    pts[bad_frames, :, 2] -= 5.0  # whole false contours, 5 mm too deep
+    pts[rng.random((m, n)) < 0.03, 1] += 3.0  # scattered single-point outliers
+    plain = fit_surface(pts, FitParams(robust="none"), u=s, v=a)
+    robust = fit_surface(pts, FitParams(), u=s, v=a)
+    good = np.setdiff1d(np.arange(m), bad_frames)
+    err_plain = np.linalg.norm(plain.surface.evaluate(plain.u, plain.v) - truth, axis=-1)[good]
+    err_rob = np.linalg.norm(robust.surface.evaluate(robust.u, robust.v) - truth, axis=-1)[good]
+    assert err_plain.mean() > 0.3  # least squares is bent by the false frames
+    assert err_rob.mean() < 0.12  # robust fit stays at the noise level
+    assert np.all(robust.frame_weights[bad_frames] == 0)
+    assert robust.frame_weights[good].min() > 0.5
+    assert robust.n_outliers >= len(bad_frames) * n
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"degree": (0, 2)}, "degree must be at least 1"),
+        ({"control_points": (2, 5)}, "too few for degree"),
+        ({"method": "magic"}, "unknown fit method"),
+        ({"robust": "cauchy"}, "unknown robust"),
+    ],
+)
+def test_bad_parameters_refused(kwargs, match):
+    with pytest.raises(BoneUSReconError, match=match):
+        FitParams(**kwargs)
+
+
+def test_more_control_points_than_data_refused():
+    _, u, v, pts, _ = known_surface(m=12, n=6, e=5, f=3)
+    with pytest.raises(BoneUSReconError, match="too few valid grid points for 20 x 5"):
+        fit_surface(pts, FitParams(control_points=(20, 5)))
+    sparse = np.full_like(pts, np.nan)
+    sparse[:, :2] = pts[:, :2]  # only 2 rays hit anywhere
+    with pytest.raises(BoneUSReconError, match="2 rays"):
+        fit_surface(sparse, FitParams(control_points=(5, 3)))
+
+
+def test_unsupported_control_points_refused_without_smoothing_and_held_with_it():
+    _, u, v, pts, _ = known_surface(m=40, n=15, seed=4)
+    holed = pts.copy()
+    holed[15:25] = np.nan  # a long gap: some control points have no data under them
+    with pytest.raises(BoneUSReconError, match="do not determine"):
+        fit_surface(holed, FitParams(robust="none", smoothing=0.0), u=u, v=v)
+    fit = fit_surface(holed, FitParams(robust="none"), u=u, v=v)
+    ok = np.isfinite(holed).all(-1)
+    assert np.abs(fit.surface.evaluate(u, v)[ok] - pts[ok]).max() < 1e-3
