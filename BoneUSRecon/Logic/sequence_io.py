@@ -543,9 +543,10 @@ def _find_path(edges: dict[str, tuple[str, str]], start: str, goal: str) -> list
         node = queue.popleft()
         if node == goal:
             break
-        # Prefer forward use of a transform over inverting one: PLUS names transforms
-        # so that the chain to the reference is mostly forward.
-        for nxt, name, inverted in sorted(adj[node], key=lambda t: t[2]):
+        # Prefer forward use of a transform over inverting one (PLUS names transforms
+        # so that the chain to the reference is mostly forward); ties by name, so the
+        # choice never depends on header order.
+        for nxt, name, inverted in sorted(adj[node], key=lambda t: (t[2], t[1])):
             if nxt not in seen:
                 seen.add(nxt)
                 prev[nxt] = (node, name, inverted)
