@@ -1,0 +1,159 @@
+"""Segment a whole sweep: per-frame segmenter, temporal prior, confidence, rejection."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.progress import ProgressCallback, report
+from BoneUSRecon.Logic.segmentation.detection import Detection
+from BoneUSRecon.Logic.segmentation.params import SegmentationParams
+from BoneUSRecon.Logic.segmentation.rejection import (
+    frame_evidence,
+    frame_verdict,
+    neighbour_jumps,
+)
+from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
+from BoneUSRecon.Logic.segmentation.shadowpath import shadowpath_frame
+from BoneUSRecon.Logic.segmentation.snake import snake_frame
+from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
+
+__all__ = ["SEGMENTERS", "FrameSegmenter", "segment_frame", "segment_sweep"]
+
+#: ``(image uint8 (H, W), spacing (sx, sy), params, prior_px or None) -> Detection``
+FrameSegmenter = Callable[
+    [np.ndarray, tuple[float, float], SegmentationParams, "np.ndarray | None"], Detection
+]
+
+
+def _snake(image, spacing, params, prior):  # type: ignore[no-untyped-def]
+    return snake_frame(image, spacing, params.snake, params.posterior, prior)
+
+
+def _shadowpath(image, spacing, params, prior):  # type: ignore[no-untyped-def]
+    return shadowpath_frame(image, spacing, params.shadowpath, prior)
+
+
+#: Segmenters by name. "shadowpath" (default) is the more accurate; "snake" is the paper's.
+SEGMENTERS: dict[str, FrameSegmenter] = {"shadowpath": _shadowpath, "snake": _snake}
+
+
+def segment_frame(
+    image: np.ndarray,
+    spacing: tuple[float, float],
+    params: SegmentationParams = SegmentationParams(),
+    prior_px: np.ndarray | None = None,
+) -> Detection:
+    """Run the segmenter named by ``params.method`` on one frame (no rejection)."""
+    try:
+        fn = SEGMENTERS[params.method]
+    except KeyError:
+        raise BoneUSReconError(
+            f"unknown segmenter {params.method!r}; use one of {', '.join(sorted(SEGMENTERS))}"
+        ) from None
+    return fn(np.asarray(image), spacing, params, prior_px)
+
+
+def segment_sweep(
+    sweep: Sweep,
+    params: SegmentationParams = SegmentationParams(),
+    progress: ProgressCallback | None = None,
+) -> SegmentationResult:
+    """Segment every valid frame of ``sweep`` and reject implausible contours.
+
+    Frames are processed in file order; each frame's segmenter is seeded by the last
+    *accepted* contour (the paper's initialisation rule for the snake, a temporal prior
+    for shadowpath), so a failed frame does not lead the next one astray. After all
+    frames, contours that jump away from their neighbours are rejected too.
+
+    Parameters
+    ----------
+    sweep : Sweep
+    params : SegmentationParams
+    progress : callable, optional
+        ``progress("segment", done, total)``.
+
+    Returns
+    -------
+    SegmentationResult
+
+    Raises
+    ------
+    BoneUSReconError
+        Unknown segmenter, or no bone contour in any frame.
+    """
+    if params.method not in SEGMENTERS:
+        raise BoneUSReconError(
+            f"unknown segmenter {params.method!r}; use one of {', '.join(sorted(SEGMENTERS))}",
+            sweep.source,
+        )
+    idx = sweep.valid_indices
+    if idx.size == 0:
+        raise BoneUSReconError("no valid frame to segment", sweep.source)
+    spacing_all = pixel_spacing(sweep.image_to_reference)
+    rej = params.rejection
+    t0 = time.perf_counter()
+    dets: dict[int, Detection] = {}
+    verdicts: dict[int, tuple[float, str]] = {}
+    prior: np.ndarray | None = None
+    for n, k in enumerate(idx):
+        k = int(k)
+        sp = (float(spacing_all[k, 0]), float(spacing_all[k, 1]))
+        image = np.asarray(sweep.frames[k])
+        det = segment_frame(image, sp, params, prior)
+        ev = frame_evidence(image, det.points_px, sp)
+        conf, reason = frame_verdict(ev, rej)
+        if det.empty:
+            reason = str(det.extras.get("reason", "no bone found"))
+        dets[k], verdicts[k] = det, (conf, reason)
+        if not reason:
+            prior = det.points_px
+        report(progress, "segment", n + 1, int(idx.size))
+    t_seg = time.perf_counter() - t0
+
+    # Neighbour consistency, twice: the second pass no longer sees the first's rejects.
+    sy = float(np.median(spacing_all[idx, 1]))
+    for _ in range(2):
+        order = [k for k in dets if not verdicts[k][1]]
+        jumps = neighbour_jumps({k: dets[k].points_px for k in order}, order, sy, rej.jump_window)
+        changed = False
+        for k, dev in jumps.items():
+            if np.isfinite(dev) and dev > rej.jump_mm:
+                conf = verdicts[k][0] * float(np.exp(-((dev / rej.jump_mm) ** 2)))
+                verdicts[k] = (conf, f"jump of {dev:.1f} mm from neighbouring frames")
+                changed = True
+        if not changed:
+            break
+
+    contours = []
+    for k, det in dets.items():
+        conf, reason = verdicts[k]
+        contours.append(
+            FrameContour(
+                frame=k,
+                points_px=det.points_px,
+                intensity=det.intensity,
+                confidence=float(np.clip(conf, 0.0, 1.0)),
+                accepted=not reason,
+                reason=reason,
+                extras=det.extras,
+            )
+        )
+    result = SegmentationResult(
+        tuple(contours),
+        params.method,
+        params,
+        {"segment_s": t_seg, "frames_per_s": idx.size / max(t_seg, 1e-9)},
+    )
+    if not result.accepted:
+        raise BoneUSReconError("no bone contour found in any frame", sweep.source)
+    return result
+
+
+def with_method(params: SegmentationParams, method: str) -> SegmentationParams:
+    """``params`` with another segmenter name."""
+    return dataclasses.replace(params, method=method)

@@ -1,0 +1,91 @@
+"""Image features shared by the segmenters: the paper's regional contrast ``Dif``.
+
+``Dif(j) = 2 M_mid - M_up - M_down`` (paper eq. 3) where the three means are taken,
+in each column, over the band centred on row ``j``, the region right above it and the
+shadow region right below it (paper Fig. 1). Column means over sliding windows are
+differences of one cumulative sum, so the whole map costs a few passes over the
+image whatever the region sizes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["column_window_mean", "region_means", "dif_map", "block_mean", "mm_to_px"]
+
+
+def mm_to_px(mm: float, spacing: float, minimum: int = 1) -> int:
+    """``mm`` as a whole number of pixels of size ``spacing`` (at least ``minimum``)."""
+    return max(minimum, int(round(mm / spacing)))
+
+
+def column_window_mean(csum: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """Mean over rows ``[start[j], stop[j])`` of every column, from a cumulative sum.
+
+    Parameters
+    ----------
+    csum : ndarray, shape (H + 1, W)
+        ``csum[k] = image[:k].sum(0)``.
+    start, stop : ndarray of int, shape (H,)
+        Window per output row; clipped to the image. Empty windows give 0.
+
+    Returns
+    -------
+    ndarray, shape (H, W)
+    """
+    h = csum.shape[0] - 1
+    a = np.clip(start, 0, h)
+    b = np.clip(stop, 0, h)
+    n = np.maximum(b - a, 1).astype(csum.dtype)
+    return (csum[b] - csum[a]) / n[:, None]
+
+
+def region_means(
+    image: np.ndarray, mid_px: int, up_px: int, down_px: int, *, gap_px: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``M_up``, ``M_mid``, ``M_down`` (paper Fig. 1) at every pixel.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W), float
+    mid_px : int
+        Height of the band centred on the pixel (rows ``j - mid//2 .. j + mid - mid//2 - 1``).
+    up_px, down_px : int
+        Heights of the regions right above and right below the band.
+    gap_px : int
+        Rows skipped between the band and the region below (0 in the paper).
+
+    Returns
+    -------
+    m_up, m_mid, m_down : ndarray, shape (H, W)
+    """
+    h = image.shape[0]
+    csum = np.zeros((h + 1, image.shape[1]), dtype=np.float32)
+    np.cumsum(image, axis=0, dtype=np.float32, out=csum[1:])
+    j = np.arange(h)
+    top = j - mid_px // 2
+    bot = top + mid_px
+    m_mid = column_window_mean(csum, top, bot)
+    m_up = column_window_mean(csum, top - up_px, top)
+    m_down = column_window_mean(csum, bot + gap_px, bot + gap_px + down_px)
+    return m_up, m_mid, m_down
+
+
+def dif_map(image: np.ndarray, mid_px: int, up_px: int, down_px: int) -> np.ndarray:
+    """The paper's regional contrast ``2 M_mid - M_up - M_down`` at every pixel."""
+    m_up, m_mid, m_down = region_means(image, mid_px, up_px, down_px)
+    return 2.0 * m_mid - m_up - m_down
+
+
+def block_mean(image: np.ndarray, fy: int, fx: int) -> np.ndarray:
+    """Average non-overlapping ``fy x fx`` blocks (trailing partial blocks dropped).
+
+    Returns float32 in the units of ``image``. Used to build the working image of the
+    default segmenter: averaging (not sub-sampling) also averages out speckle.
+    """
+    h, w = image.shape
+    hh, ww = h // fy, w // fx
+    a = np.asarray(image[: hh * fy, : ww * fx], dtype=np.float32)
+    if fy == 1 and fx == 1:
+        return a
+    return a.reshape(hh, fy, ww, fx).mean(axis=(1, 3), dtype=np.float32)

@@ -1,0 +1,171 @@
+"""Parameters of the segmenters, the posterior choice and the frame rejection.
+
+Every length is in millimetres or in *reference pixels* (see
+:data:`REFERENCE_PIXEL_MM`), never in image pixels, so that a 0.05 mm/px and a
+0.15 mm/px recording of the same anatomy are segmented the same way.
+
+How the paper's numbers are read
+--------------------------------
+The paper (section II.B) states its sizes in pixels of its own images without giving
+their size; a 7.5 MHz probe at the depths of the forearm gives about 0.1 mm/px, so one
+paper pixel is taken as one reference pixel of 0.1 mm. "50 px below", "3 px" and
+"10 px" thus become 5 mm, 0.3 mm and 1 mm on any image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+__all__ = [
+    "REFERENCE_PIXEL_MM",
+    "SnakeParams",
+    "PosteriorParams",
+    "ShadowPathParams",
+    "RejectionParams",
+    "SegmentationParams",
+]
+
+#: Size (mm) of one "pixel" of the paper. All pixel-valued parameters below are in
+#: these reference pixels and are converted with the image's own spacing.
+REFERENCE_PIXEL_MM = 0.1
+
+
+@dataclass(frozen=True)
+class SnakeParams:
+    """The paper's open active contour (section II.B, eqs. 1-3).
+
+    The snake is a graph over the lateral axis: its 100 points keep their column and
+    move along the depth axis (the bone contours of the paper's figures are graphs over
+    the probe's lateral axis; letting points slide laterally makes an open snake with
+    tension shrink). Positions, derivatives and forces are in reference pixels.
+    Intensities are the 8-bit grey values divided by 255, so ``Dif`` lies in [-2, 2].
+    """
+
+    n_points: int = 100
+    """Number of snake points (paper: "the number of points in the snake is 100")."""
+    w1: float = 1.0
+    """Tension weight on ``|v'|^2`` per point index, reference px (paper: w1 = 1)."""
+    w2: float = 2.5
+    """Rigidity weight on ``|v''|^2`` per point index, reference px (paper: w2 = 2.5)."""
+    k1: float = 500.0
+    """Balloon pressure along the normal, in ``force_unit`` (paper: k1 = 500)."""
+    k2: float = 0.5
+    """Weight of the unit potential-gradient ``grad P/|grad P|``, in ``force_unit`` (paper: k2 = 0.5)."""
+    force_unit: float = 1e-3
+    """Reference px per iteration per unit of k1, k2 (ours: keeps the paper's k1:k2 = 1000:1 ratio; balloon = 0.5 px)."""
+    k_regional: float = 24.0
+    """Weight of the regional energy ``-P`` (ours: the paper gives none; the bone band out-pulls the balloon without oscillating at tau = 12)."""
+    tau: float = 12.0
+    """Time step of ``(I + tau A) y' = y + tau F`` (ours: the balloon then moves 6 px per iteration, so the 3 px rule means "held")."""
+    mid_mm: float = 0.6
+    """Height of the bright band ``M_mid`` centred on the point, mm (Fig. 1; ours: typical bone echo thickness)."""
+    up_mm: float = 1.5
+    """Height of the region above the band ``M_up``, mm (Fig. 1; ours)."""
+    down_mm: float = 3.0
+    """Height of the shadow region below the band ``M_down``, mm (Fig. 1; ours)."""
+    smooth_mm: float = 0.6
+    """Gaussian sigma of the potential ``P`` (positive part of Dif), mm (ours: the bone band's basin of attraction)."""
+    max_step_px: float = 5.0
+    """Largest move of a point in one iteration, reference px (ours, as skimage's max_px_move)."""
+    stop_px: float = 3.0
+    """Stop when no point moved more than this many reference px in one iteration (paper: 3 px)."""
+    max_iterations: int = 300
+    """Iteration cap (paper: "typically set to 300")."""
+    min_iterations: int = 3
+    """Iterations always done before the stopping rule is tested (ours: lets the balloon start)."""
+    init_below_px: float = 50.0
+    """Next frame starts this many reference px below the previous contour's deepest kept point (paper: 50 px)."""
+    margin_mm: float = 0.5
+    """Lateral margin left free at each image side, mm (ours: avoids the edge columns)."""
+
+
+@dataclass(frozen=True)
+class PosteriorParams:
+    """The paper's posterior choice of the snake points (section II.B, end)."""
+
+    k_intensity: float = 0.005
+    """Keep points with intensity > I_mean + k_intensity * I_var (paper: 0.005; 8-bit grey values)."""
+    neighbour_px: float = 10.0
+    """Points closer than this are connected, reference px (paper: 10 px = 1 mm)."""
+
+
+@dataclass(frozen=True)
+class ShadowPathParams:
+    """The default segmenter: a shadow-aware bone map and an optimal path across columns.
+
+    The bone is a bright band with an acoustic shadow under it. The score of a pixel is
+    the paper's ``Dif`` contrast gated by how dark the region below is relative to the
+    band (attenuation-aware: a ratio, not a difference, so deep bones with weaker echoes
+    still score). Dynamic programming then finds the best path over the columns of a
+    down-sampled score image with a smoothness penalty and a "no bone" state, and the
+    path is refined to sub-pixel depth on the full-resolution image.
+    """
+
+    work_mm: float = 0.2
+    """Pixel size of the down-sampled working image, mm (ours: half a bone echo; sets the speed)."""
+    mid_mm: float = 0.6
+    """Height of the bright band, mm (as the snake's M_mid)."""
+    up_mm: float = 1.5
+    """Height of the region above the band, mm."""
+    down_mm: float = 3.0
+    """Height of the shadow region right below the band, mm."""
+    shadow_mm: float = 6.0
+    """Depth of the region (below the band) whose darkness gates the score, mm (ours)."""
+    min_score: float = 0.12
+    """Score (Dif in [0, 2] times the shadow gate) a pixel needs to pay off over "no bone" (ours)."""
+    slope_penalty: float = 0.5
+    """Cost per (mm of depth change per mm of lateral step)^2 between neighbouring columns (ours)."""
+    max_slope: float = 1.5
+    """Largest depth change per lateral mm the path may take (ours: ~56 degrees)."""
+    switch_cost: float = 0.6
+    """Cost of entering or leaving the "no bone" state (ours: ignores specks shorter than ~2 mm)."""
+    merge_gap_mm: float = 3.0
+    """Bone runs separated by a gap shorter than this (and a depth step < merge_step_mm) are one contour (ours)."""
+    merge_step_mm: float = 1.5
+    """Largest depth step across a merged gap, mm (ours)."""
+    temporal_sigma_mm: float = 4.0
+    """Width of the prior around the previous accepted contour's depth, mm (ours)."""
+    temporal_weight: float = 0.25
+    """Strength of that prior: scores far from the previous contour are scaled by 1 - weight (ours)."""
+    refine_mm: float = 0.4
+    """Half-height of the window searched at full resolution around the path, mm (ours)."""
+    refine_sigma_mm: float = 0.15
+    """Gaussian sigma along depth of the full-resolution profile before the peak fit, mm (ours)."""
+    surface_offset_mm: float = 0.0
+    """Added to the echo's peak depth to give the surface depth, mm (ours: the peak of the echo is the surface)."""
+
+
+@dataclass(frozen=True)
+class RejectionParams:
+    """Per-frame confidence and rejection of implausible contours (ours; the paper had none)."""
+
+    min_length_mm: float = 3.0
+    """Contours shorter than this laterally are rejected ("contour too short")."""
+    min_points: int = 5
+    """Contours with fewer points are rejected."""
+    max_shadow_ratio: float = 0.45
+    """Reject when the mean shadow intensity (1-5 mm below) exceeds this fraction of the echo's ("no acoustic shadow")."""
+    min_contrast: float = 0.12
+    """Reject when the mean Dif (grey/255 units) along the contour is below this ("low contrast")."""
+    jump_mm: float = 2.5
+    """Reject when the contour's depth differs from the neighbouring frames' median by more than this (mm)."""
+    jump_window: int = 3
+    """Number of frames on each side used for the neighbour median."""
+    min_confidence: float = 0.0
+    """Frames whose confidence is below this are rejected as well (0 disables)."""
+
+
+@dataclass(frozen=True)
+class SegmentationParams:
+    """Everything :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` needs."""
+
+    method: str = "shadowpath"
+    """Segmenter name, a key of ``SEGMENTERS`` (default: "shadowpath", the more accurate one; "snake" is the paper's)."""
+    snake: SnakeParams = field(default_factory=SnakeParams)
+    """The paper's snake."""
+    posterior: PosteriorParams = field(default_factory=PosteriorParams)
+    """The paper's posterior choice (used by the snake)."""
+    shadowpath: ShadowPathParams = field(default_factory=ShadowPathParams)
+    """The default segmenter."""
+    rejection: RejectionParams = field(default_factory=RejectionParams)
+    """Confidence and rejection, applied to every segmenter's output."""

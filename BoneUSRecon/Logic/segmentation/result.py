@@ -1,0 +1,107 @@
+"""Per-frame contours and the sweep's segmentation result."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from BoneUSRecon.Logic.segmentation.params import SegmentationParams
+from BoneUSRecon.Logic.sweep import Sweep
+
+__all__ = ["FrameContour", "SegmentationResult"]
+
+
+@dataclass(frozen=True, eq=False)
+class FrameContour:
+    """The bone contour of one frame.
+
+    Parameters
+    ----------
+    frame : int
+        Index of the frame in the sweep (file order).
+    points_px : ndarray, shape (K, 2)
+        ``(i, j)`` = (column, row), sub-pixel, ordered by increasing ``i``. Kept even
+        when the frame is rejected, so overlays can show what was refused.
+    intensity : ndarray, shape (K,)
+        Grey value (0..255) at each point.
+    confidence : float
+        In [0, 1]; see :mod:`BoneUSRecon.Logic.segmentation.rejection`.
+    accepted : bool
+        False when the frame was rejected; its points never reach the surface fit.
+    reason : str
+        Why it was rejected ("" when accepted).
+    """
+
+    frame: int
+    points_px: np.ndarray
+    intensity: np.ndarray
+    confidence: float
+    accepted: bool
+    reason: str = ""
+    extras: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def points_mm(self, sweep: Sweep) -> np.ndarray:
+        """The points in reference mm through the frame's ``ImageToReference``, (K, 3)."""
+        return sweep.to_reference(self.frame, self.points_px)
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentationResult:
+    """The contours of a sweep, one per valid frame in file order."""
+
+    contours: tuple[FrameContour, ...]
+    method: str
+    params: SegmentationParams
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def accepted(self) -> tuple[FrameContour, ...]:
+        """The accepted contours, in frame order."""
+        return tuple(c for c in self.contours if c.accepted)
+
+    @property
+    def rejected(self) -> dict[int, str]:
+        """``{frame: reason}`` of the rejected frames."""
+        return {c.frame: c.reason for c in self.contours if not c.accepted}
+
+    @property
+    def n_points(self) -> int:
+        """Number of kept points (accepted frames only)."""
+        return int(sum(c.points_px.shape[0] for c in self.accepted))
+
+    def contours_mm(self, sweep: Sweep) -> list[tuple[int, np.ndarray]]:
+        """``[(frame, points (K, 3) mm)]`` of the accepted frames, ordered along each contour."""
+        return [(c.frame, c.points_mm(sweep)) for c in self.accepted]
+
+    def points_mm(
+        self, sweep: Sweep
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """All kept points: ``(points (K, 3) mm, frame (K,), intensity (K,), confidence (K,))``."""
+        acc = self.accepted
+        if not acc:
+            return np.empty((0, 3)), np.empty(0, np.int64), np.empty(0), np.empty(0)
+        pts = np.concatenate([c.points_mm(sweep) for c in acc])
+        frame = np.concatenate([np.full(c.points_px.shape[0], c.frame, np.int64) for c in acc])
+        inten = np.concatenate([c.intensity for c in acc])
+        conf = np.concatenate([np.full(c.points_px.shape[0], c.confidence) for c in acc])
+        return pts, frame, inten, conf
+
+    def summary(self) -> dict[str, Any]:
+        """Counts and rejection reasons, for the CLI and the report."""
+        reasons: dict[str, int] = {}
+        for r in self.rejected.values():
+            key = r.split(" (")[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        return {
+            "method": self.method,
+            "frames": len(self.contours),
+            "accepted": len(self.accepted),
+            "rejected": len(self.contours) - len(self.accepted),
+            "points": self.n_points,
+            "rejection_reasons": reasons,
+            "mean_confidence": float(np.mean([c.confidence for c in self.accepted]))
+            if self.accepted
+            else 0.0,
+        }
