@@ -1,0 +1,123 @@
+"""``bone-us-recon segment SWEEP -o POINTS.vtp``: bone contour points of a sweep."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from BoneUSRecon.cli.common import (
+    ProgressBar,
+    add_calibration_option,
+    add_common_options,
+    print_json,
+    print_summary,
+)
+
+__all__ = ["register", "run"]
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``segment`` sub-command."""
+    from BoneUSRecon.Logic.segmentation import SEGMENTERS
+
+    p = subparsers.add_parser(
+        "segment",
+        help="segment the bone contour in every frame and write the kept points",
+        description="Segment the bone surface echo in every valid frame, reject "
+        "implausible frames (no shadow, jump, no bone), and write the kept points in "
+        "reference millimetres with point arrays Frame, Intensity and Confidence.",
+    )
+    p.add_argument("sweep", metavar="SWEEP", help="PLUS sequence file (.mha or .mhd)")
+    p.add_argument(
+        "-o", "--output", required=True, metavar="POINTS",
+        help="output points (.vtp, .vtk, .ply, .stl, .obj)",
+    )
+    add_calibration_option(p)
+    p.add_argument(
+        "--segmenter", default="shadowpath", choices=sorted(SEGMENTERS),
+        help="segmenter (default: shadowpath; 'snake' is the paper's active contour)",
+    )
+    p.add_argument(
+        "--overlay", metavar="DIR",
+        help="also write PNG overlays of the contours (rejected frames marked) into DIR",
+    )
+    p.add_argument(
+        "--overlay-every", type=int, default=1, metavar="N",
+        help="write one accepted frame's overlay in N (rejected frames always; default 1)",
+    )
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_common_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Read, segment, write points (and overlays), print a summary."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+    from BoneUSRecon.Logic.fileio import check_input_file, check_output_path
+    from BoneUSRecon.Logic.segmentation import (
+        SegmentationParams,
+        points_polydata,
+        segment_sweep,
+    )
+    from BoneUSRecon.Logic.sequence_io import read_sweep
+    from BoneUSRecon.Logic.vtkio import SURFACE_EXTENSIONS, write_polydata
+
+    # Check everything the user gave before any work.
+    check_input_file(args.sweep)
+    if args.calibration:
+        check_input_file(args.calibration)
+    out = check_output_path(args.output, SURFACE_EXTENSIONS)
+    if args.overlay:
+        odir = Path(args.overlay)
+        if odir.exists() and not odir.is_dir():
+            raise BoneUSReconError("overlay path exists and is not a folder", odir)
+        if not odir.parent.is_dir() and str(odir.parent):
+            raise BoneUSReconError(f"folder {str(odir.parent)!r} does not exist", odir)
+    if args.overlay_every < 1:
+        raise BoneUSReconError(f"--overlay-every must be >= 1, got {args.overlay_every}")
+
+    params = dataclasses.replace(SegmentationParams(), method=args.segmenter)
+    with ProgressBar(quiet=args.quiet or args.json) as bar:
+        sweep = read_sweep(
+            args.sweep, calibration=args.calibration, transform=args.transform, progress=bar
+        )
+        result = segment_sweep(sweep, params, progress=bar)
+    write_polydata(points_polydata(result, sweep), out)
+    overlays = []
+    if args.overlay:
+        from BoneUSRecon.Widgets.overlay import write_overlays
+
+        overlays = write_overlays(
+            sweep.frames, result.contours, args.overlay, every=args.overlay_every
+        )
+    summary = result.summary()
+    summary.update(
+        {
+            "output": str(out),
+            "rejected_frames": {str(k): v for k, v in result.rejected.items()},
+            "segment_s": result.timings.get("segment_s"),
+            "frames_per_s": result.timings.get("frames_per_s"),
+            "overlays": len(overlays),
+        }
+    )
+    if args.json:
+        print_json(summary)
+        return 0
+    rows = [
+        ("segmenter", summary["method"]),
+        ("frames", summary["frames"]),
+        ("accepted", summary["accepted"]),
+        ("rejected", summary["rejected"]),
+        ("points", summary["points"]),
+        ("mean confidence", summary["mean_confidence"]),
+        ("frames/s", summary["frames_per_s"]),
+        ("output", summary["output"]),
+    ]
+    for reason, n in summary["rejection_reasons"].items():
+        rows.append((f"  {reason}", n))
+    if args.overlay:
+        rows.append(("overlays", f"{len(overlays)} PNG in {args.overlay}"))
+    print_summary(f"{Path(args.sweep).name}: bone contours", rows)
+    return 0
