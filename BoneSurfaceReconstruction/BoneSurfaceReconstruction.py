@@ -1,0 +1,392 @@
+"""Bone Surface Reconstruction: 3D Slicer scripted module over the BoneUSRecon library.
+
+Layout after Slicer's scripted-module template: module metadata, parameter node,
+Widget, Logic, Test. The Logic is a thin adapter: the scene <-> library conversion
+lives in ``BoneUSRecon.Widgets.mrml`` and the computation in ``BoneUSRecon.Logic``;
+helpers live in ``BoneSurfaceReconstructionLib`` (never beside this file: Slicer would
+load each ``.py`` there as a module).
+"""
+
+import logging
+import os
+import pathlib
+from typing import Annotated, Optional, Union
+
+import vtk
+
+import slicer
+from slicer.i18n import tr as _
+from slicer.i18n import translate
+from slicer.parameterNodeWrapper import Choice, WithinRange, parameterNodeWrapper
+from slicer.ScriptedLoadableModule import (
+    ScriptedLoadableModule,
+    ScriptedLoadableModuleLogic,
+    ScriptedLoadableModuleTest,
+    ScriptedLoadableModuleWidget,
+)
+from slicer.util import VTKObservationMixin
+from slicer import (
+    vtkMRMLMarkupsFiducialNode,
+    vtkMRMLModelNode,
+    vtkMRMLSequenceBrowserNode,
+    vtkMRMLSequenceNode,
+)
+
+from BoneSurfaceReconstructionLib import dependencies
+from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, segmenterNames
+
+# Developer mode: the BoneUSRecon package is in the repository root, one folder up.
+dependencies.ensureBoneUSReconImportable()
+
+_SEGMENTERS = segmenterNames()
+
+
+# Defaults and ranges come from one table (BoneSurfaceReconstructionLib.parameters).
+_DEFAULT = {name: v[0] for name, v in INT_PARAMETERS.items()}
+_RANGE = {name: (v[1], v[2]) for name, v in INT_PARAMETERS.items()}
+
+
+#
+# BoneSurfaceReconstruction
+#
+
+
+class BoneSurfaceReconstruction(ScriptedLoadableModule):
+    """Module metadata (see ScriptedLoadableModule in Slicer's Base/Python)."""
+
+    def __init__(self, parent):
+        ScriptedLoadableModule.__init__(self, parent)
+        self.parent.title = _("Bone Surface Reconstruction")
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", "Ultrasound")]
+        self.parent.dependencies = ["Sequences"]
+        self.parent.contributors = ["BoneUSRecon developers"]
+        self.parent.helpText = _(
+            "Reconstructs the imaged bone surface from a tracked freehand ultrasound sweep "
+            "(a sequence browser, or a volume sequence with its transform sequence): bone "
+            "contours are segmented in each frame, resampled along rays, and approximated "
+            "by a tensor-product B-spline surface, after Lopez-Perez et al., 'Bone Surface "
+            "Reconstruction Using Localized Freehand Ultrasound Imaging'. The output model "
+            "is coloured by its distance (mm) to the nearest segmented point."
+        )
+        self.parent.acknowledgementText = _(
+            "Built on the BoneUSRecon library. Layout after Slicer's scripted-module "
+            "template (Jean-Christophe Fillion-Robin, Kitware; Andras Lasso, PerkLab; "
+            "Steve Pieper, Isomics)."
+        )
+
+
+#
+# BoneSurfaceReconstructionParameterNode
+#
+
+@parameterNodeWrapper
+class BoneSurfaceReconstructionParameterNode:
+    """The module's parameters, saved with the scene.
+
+    inputNode - the sweep: a sequence browser (frames and their transforms as Slicer
+        shows them), or a volume sequence.
+    transformSequence - with a volume sequence outside any browser: its per-frame
+        ImageToReference transforms (optional).
+    calibrationFile - optional PLUS configuration XML whose Image->Probe transform maps
+        pixels to probe mm (then the frames must sit under the probe's transform).
+    segmenter - bone contour segmenter ("snake" is the paper's).
+    controlPointsU/V, degreeU/V - the B-spline surface (paper: 15 x 5, quadratic).
+    rays - rays per frame when resampling (paper: 15).
+    outputSurface, outputPoints - where the results go (created if empty).
+    """
+
+    inputNode: Union[vtkMRMLSequenceBrowserNode, vtkMRMLSequenceNode]
+    transformSequence: vtkMRMLSequenceNode
+    calibrationFile: pathlib.Path
+    segmenter: Annotated[str, Choice(list(_SEGMENTERS))] = _SEGMENTERS[0]
+    controlPointsU: Annotated[int, WithinRange(*_RANGE["controlPointsU"])] = _DEFAULT["controlPointsU"]
+    controlPointsV: Annotated[int, WithinRange(*_RANGE["controlPointsV"])] = _DEFAULT["controlPointsV"]
+    degreeU: Annotated[int, WithinRange(*_RANGE["degreeU"])] = _DEFAULT["degreeU"]
+    degreeV: Annotated[int, WithinRange(*_RANGE["degreeV"])] = _DEFAULT["degreeV"]
+    rays: Annotated[int, WithinRange(*_RANGE["rays"])] = _DEFAULT["rays"]
+    outputSurface: vtkMRMLModelNode
+    outputPoints: Union[vtkMRMLModelNode, vtkMRMLMarkupsFiducialNode]
+
+
+#
+# BoneSurfaceReconstructionWidget
+#
+
+
+class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
+    """The module panel: binds the .ui to the parameter node; Apply calls the logic."""
+
+    def __init__(self, parent=None) -> None:
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        VTKObservationMixin.__init__(self)
+        self.logic = None
+        self._parameterNode = None
+        self._parameterNodeGuiTag = None
+
+    def setup(self) -> None:
+        ScriptedLoadableModuleWidget.setup(self)
+        uiWidget = slicer.util.loadUI(self.resourcePath("UI/BoneSurfaceReconstruction.ui"))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        uiWidget.setMRMLScene(slicer.mrmlScene)
+        for name, (_default, _lo, _hi, tip) in INT_PARAMETERS.items():
+            getattr(self.ui, name + "SpinBox").toolTip = tip
+
+        self.logic = BoneSurfaceReconstructionLogic()
+
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+        self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+        self.initializeParameterNode()
+
+    def cleanup(self) -> None:
+        self.removeObservers()
+
+    def enter(self) -> None:
+        self.initializeParameterNode()
+
+    def exit(self) -> None:
+        if self._parameterNode:
+            self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+            self._parameterNodeGuiTag = None
+            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+
+    def onSceneStartClose(self, caller, event) -> None:
+        self.setParameterNode(None)
+
+    def onSceneEndClose(self, caller, event) -> None:
+        if self.parent.isEntered:
+            self.initializeParameterNode()
+
+    def initializeParameterNode(self) -> None:
+        self.setParameterNode(self.logic.getParameterNode())
+        # Save the user a click: pick the first sequence browser in the scene.
+        if not self._parameterNode.inputNode:
+            browser = slicer.mrmlScene.GetFirstNodeByClass("vtkMRMLSequenceBrowserNode")
+            if browser:
+                self._parameterNode.inputNode = browser
+
+    def setParameterNode(self, inputParameterNode: Optional[BoneSurfaceReconstructionParameterNode]) -> None:
+        if self._parameterNode:
+            self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+        self._parameterNode = inputParameterNode
+        if self._parameterNode:
+            self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+            self.addObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+            self._checkCanApply()
+
+    def _checkCanApply(self, caller=None, event=None) -> None:
+        if self._parameterNode and self._parameterNode.inputNode:
+            self.ui.applyButton.toolTip = _("Reconstruct the bone surface")
+            self.ui.applyButton.enabled = True
+        else:
+            self.ui.applyButton.toolTip = _("Select an input sweep (sequence browser or volume sequence)")
+            self.ui.applyButton.enabled = False
+
+    def onApplyButton(self) -> None:
+        """Install missing packages (once, if the user agrees), then run the logic."""
+        with slicer.util.tryWithErrorDisplay(_("Failed to reconstruct the bone surface."), waitCursor=True):
+            dependencies.installRequirements(confirm=slicer.util.confirmOkCancelDisplay)
+            dialog = slicer.util.createProgressDialog(
+                labelText=_("Reconstructing the bone surface..."), maximum=100
+            )
+            try:
+                result = self.logic.processParameterNode(
+                    self._parameterNode, progress=self._progressCallback(dialog)
+                )
+            finally:
+                dialog.close()
+            self.ui.resultLabel.text = self.logic.summaryText(result)
+
+    @staticmethod
+    def _progressCallback(dialog):
+        """A plain ``progress(stage, done, total)`` callback driving a Qt progress dialog."""
+
+        def progress(stage, done, total):
+            if dialog.wasCanceled:
+                raise RuntimeError(_("Cancelled by the user."))
+            dialog.labelText = f"{stage}: {done}/{total}"
+            dialog.value = int(100 * done / total) if total else 0
+            slicer.app.processEvents()
+
+        return progress
+
+
+#
+# BoneSurfaceReconstructionLogic
+#
+
+
+class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
+    """Scene nodes -> BoneUSRecon -> scene nodes. Usable without the Widget; raises, never
+    shows dialogs (BoneUSReconError is a ValueError with a one-line message).
+    """
+
+    def __init__(self) -> None:
+        ScriptedLoadableModuleLogic.__init__(self)
+
+    def getParameterNode(self):
+        return BoneSurfaceReconstructionParameterNode(super().getParameterNode())
+
+    def process(
+        self,
+        inputNode,
+        transformSequence=None,
+        calibration=None,
+        segmenter=None,
+        controlPoints=(_DEFAULT["controlPointsU"], _DEFAULT["controlPointsV"]),
+        degrees=(_DEFAULT["degreeU"], _DEFAULT["degreeV"]),
+        rays=_DEFAULT["rays"],
+        outputSurface=None,
+        outputPoints=None,
+        progress=None,
+    ):
+        """Reconstruct the bone surface of a sweep in the scene (explicit arguments).
+
+        :param inputNode: sequence browser, volume sequence, or a browser's image proxy.
+        :param transformSequence: per-frame transforms, for a volume sequence outside any browser.
+        :param calibration: PLUS configuration XML path, 4x4 ImageToProbe array, or
+            linear transform node; None to use the frames' own geometry.
+        :param segmenter: a name of BoneUSRecon.Logic.segmentation.SEGMENTERS (None: default).
+        :param controlPoints: (e, f) B-spline control points.
+        :param degrees: (p, q) B-spline degrees.
+        :param rays: rays per frame.
+        :param outputSurface: model node to fill (new if None).
+        :param outputPoints: model or markups fiducial node to fill (new if None).
+        :param progress: callable(stage, done, total).
+        :return: BoneUSRecon.Widgets.mrml.MRMLReconstruction
+        """
+        import time
+
+        from BoneSurfaceReconstructionLib.parameters import calibrationMatrix, reconstructionParams
+        from BoneUSRecon.Widgets import mrml
+
+        if not inputNode:
+            raise ValueError(_("Input sweep is invalid."))
+        if isinstance(calibration, (str, os.PathLike)):
+            calibration = calibrationMatrix(calibration)
+        params = reconstructionParams(
+            segmenter=segmenter,
+            controlPointsU=controlPoints[0],
+            controlPointsV=controlPoints[1],
+            degreeU=degrees[0],
+            degreeV=degrees[1],
+            rays=rays,
+        )
+        startTime = time.time()
+        logging.info("Bone surface reconstruction started")
+        result = mrml.reconstruct_from_scene(
+            inputNode,
+            transform_sequence=transformSequence,
+            calibration=calibration,
+            params=params,
+            surface_node=outputSurface,
+            points_node=outputPoints,
+            progress=progress,
+        )
+        logging.info(f"Bone surface reconstruction completed in {time.time() - startTime:.2f} seconds")
+        return result
+
+    def processParameterNode(self, parameterNode, progress=None):
+        """Same as :meth:`process`, reading every argument from the parameter node and
+        storing the created output nodes back into it."""
+        p = parameterNode
+        result = self.process(
+            p.inputNode,
+            transformSequence=p.transformSequence,
+            calibration=p.calibrationFile,
+            segmenter=p.segmenter,
+            controlPoints=(p.controlPointsU, p.controlPointsV),
+            degrees=(p.degreeU, p.degreeV),
+            rays=p.rays,
+            outputSurface=p.outputSurface,
+            outputPoints=p.outputPoints,
+            progress=progress,
+        )
+        p.outputSurface = result.surface_node
+        p.outputPoints = result.points_node
+        return result
+
+    @staticmethod
+    def summaryText(result) -> str:
+        """One line for the panel: frames used, points, fit residual."""
+        sweep = result.sweep
+        points = result.points_node
+        nPoints = (
+            points.GetNumberOfControlPoints()
+            if points.IsA("vtkMRMLMarkupsNode")
+            else points.GetPolyData().GetNumberOfPoints()
+        )
+        rms = getattr(result.reconstruction.fit, "rms_mm", float("nan"))
+        return _("{frames} frames, {points} segmented points, fit RMS {rms:.2f} mm").format(
+            frames=sweep.n_valid, points=nPoints, rms=rms
+        )
+
+
+#
+# BoneSurfaceReconstructionTest
+#
+
+
+class BoneSurfaceReconstructionTest(ScriptedLoadableModuleTest):
+    """Self-test: a simulated clavicle sweep through the scene, checked in millimetres.
+
+    Run it from the module panel (Reload & Test, developer mode) or with
+    ``slicer.util.selectModule("BoneSurfaceReconstruction"); slicer.modules.BoneSurfaceReconstructionWidget.onReloadAndTest()``.
+    """
+
+    def setUp(self):
+        slicer.mrmlScene.Clear()
+
+    def runTest(self):
+        self.setUp()
+        self.test_SimulatedSweepAccuracy()
+        self.setUp()
+        self.test_ParameterNodeEntryPoint()
+        self.setUp()
+        self.test_BadInputRaises()
+
+    def test_SimulatedSweepAccuracy(self):
+        """Reconstruct a simulated sweep through the scene; check the surface against the truth."""
+        from BoneSurfaceReconstructionLib import selftest
+
+        dependencies.installRequirements(confirm=None if slicer.app.testingEnabled() else slicer.util.confirmOkCancelDisplay)
+        self.delayDisplay("Simulating a clavicle sweep and reconstructing it")
+        result = selftest.runSelfTest(slicer.mrmlScene)
+        logging.info(f"Self-test: {result}")
+        self.assertEqual(result.failures(), [])
+        self.assertGreater(result.nodes.surface_node.GetPolyData().GetNumberOfCells(), 0)
+        self.assertEqual(result.nodes.surface_node.GetDisplayNode().GetActiveScalarName(), "Distance")
+        self.delayDisplay(
+            f"Surface to truth {result.surface_to_truth_mean_mm:.2f} mm (mean), "
+            f"gold to surface {result.gold_to_surface_mean_mm:.2f} mm: passed"
+        )
+
+    def test_ParameterNodeEntryPoint(self):
+        """The parameter-node entry point gives the same surface as the explicit one."""
+        from BoneSurfaceReconstructionLib import selftest
+        from BoneUSRecon.Widgets import mrml
+
+        sim = selftest.simulatedSweep(n_frames=30)
+        nodes = mrml.sweep_to_scene(sim.sweep, slicer.mrmlScene, name="Sweep")
+        logic = BoneSurfaceReconstructionLogic()
+        p = logic.getParameterNode()
+        p.inputNode = nodes.browser
+        p.controlPointsU = 10
+        viaNode = logic.processParameterNode(p)
+        self.assertIs(p.outputSurface, viaNode.surface_node)
+        explicit = logic.process(nodes.browser, controlPoints=(10, _DEFAULT["controlPointsV"]))
+        a = slicer.util.arrayFromModelPoints(viaNode.surface_node)
+        b = slicer.util.arrayFromModelPoints(explicit.surface_node)
+        self.assertEqual(a.shape, b.shape)
+        self.assertLess(float(abs(a - b).max()), 1e-9)
+
+    def test_BadInputRaises(self):
+        """The logic raises a one-line ValueError (no dialog) on unusable input."""
+        volume = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "NotASweep")
+        logic = BoneSurfaceReconstructionLogic()
+        with self.assertRaises(ValueError):
+            logic.process(None)
+        with self.assertRaises(ValueError):
+            logic.process(volume)

@@ -1,0 +1,104 @@
+"""The module's user-facing parameters: defaults, ranges, and what they become.
+
+One table (:data:`INT_PARAMETERS`) feeds the ``@parameterNodeWrapper`` class of the
+module file (its ``WithinRange`` bounds and defaults) and the tests that check the
+``.ui`` file, so the three cannot drift apart. The defaults are the paper's
+(Lopez-Perez et al., Sect. II-C/D): quadratic splines (p = q = 2), e = 15 by f = 5
+control points for elongated bones, 15 rays per frame.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+__all__ = [
+    "INT_PARAMETERS",
+    "NODE_PARAMETERS",
+    "PATH_PARAMETERS",
+    "CHOICE_PARAMETERS",
+    "SEGMENTER_FALLBACK",
+    "segmenterNames",
+    "reconstructionParams",
+    "calibrationMatrix",
+]
+
+#: name -> (default, minimum, maximum, tooltip) for the integer parameters.
+INT_PARAMETERS: dict[str, tuple[int, int, int, str]] = {
+    "controlPointsU": (15, 4, 60, "B-spline control points along the sweep (e; paper: 15 for ulna/radius, 10-15 best)."),
+    "controlPointsV": (5, 3, 30, "B-spline control points across the bone (f; paper: 5)."),
+    "degreeU": (2, 1, 5, "B-spline degree along the sweep (p; paper: 2, quadratic)."),
+    "degreeV": (2, 1, 5, "B-spline degree across the bone (q; paper: 2, quadratic)."),
+    "rays": (15, 3, 90, "Rays cast per frame when resampling the contours (n; paper: 15)."),
+}
+
+#: node parameters -> MRML class names offered in their selector.
+NODE_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "inputNode": ("vtkMRMLSequenceBrowserNode", "vtkMRMLSequenceNode"),
+    "transformSequence": ("vtkMRMLSequenceNode",),
+    "outputSurface": ("vtkMRMLModelNode",),
+    "outputPoints": ("vtkMRMLModelNode", "vtkMRMLMarkupsFiducialNode"),
+}
+
+#: path parameters (a ctkPathLineEdit each).
+PATH_PARAMETERS = ("calibrationFile",)
+
+#: choice parameters (a QComboBox each).
+CHOICE_PARAMETERS = ("segmenter",)
+
+#: Used when BoneUSRecon cannot be imported yet (dependencies not installed):
+#: the better default first, then the paper's snake.
+SEGMENTER_FALLBACK = ("shadowpath", "snake")
+
+
+def segmenterNames() -> tuple[str, ...]:
+    """Names of ``BoneUSRecon.Logic.segmentation.SEGMENTERS``, the default first."""
+    try:
+        from BoneUSRecon.Logic.segmentation import SEGMENTERS, SegmentationParams
+    except ImportError:  # dependencies not installed yet: offer the known names
+        return SEGMENTER_FALLBACK
+    default = SegmentationParams().method
+    return (default,) + tuple(sorted(n for n in SEGMENTERS if n != default))
+
+
+def calibrationMatrix(path: Any) -> Any:
+    """The PLUS ``ImageToProbe`` matrix from a configuration XML, or None if no file is set."""
+    text = "" if path is None else os.fspath(path)
+    if text.strip() in ("", "."):
+        return None
+    from BoneUSRecon.Logic.sequence_io import read_calibration
+
+    return read_calibration(text)
+
+
+def reconstructionParams(
+    segmenter: str | None = None,
+    controlPointsU: int | None = None,
+    controlPointsV: int | None = None,
+    degreeU: int | None = None,
+    degreeV: int | None = None,
+    rays: int | None = None,
+) -> Any:
+    """The :class:`~BoneUSRecon.Logic.pipeline.ReconstructionParams` for these choices.
+
+    ``None`` keeps the library's default. Raises ``BoneUSReconError`` (a ValueError) for
+    combinations the fit cannot use (fewer control points than degree + 1).
+    """
+    from BoneUSRecon.Widgets.mrml import make_params
+
+    return make_params(
+        segmenter=segmenter,
+        control_points=_pair(controlPointsU, controlPointsV, "controlPoints"),
+        degrees=_pair(degreeU, degreeV, "degree"),
+        rays=rays,
+    )
+
+
+def _pair(u: int | None, v: int | None, key: str) -> tuple[int, int] | None:
+    """``(u, v)``, a missing half taken from the defaults; None if both are missing."""
+    if u is None and v is None:
+        return None
+    return (
+        int(u) if u is not None else INT_PARAMETERS[key + "U"][0],
+        int(v) if v is not None else INT_PARAMETERS[key + "V"][0],
+    )
