@@ -41,6 +41,9 @@ __all__ = [
     "view_directions",
     "make_plotter",
     "render_views",
+    "set_camera",
+    "scene_points",
+    "screenshot",
     "png_bytes",
     "save_png",
 ]
@@ -303,19 +306,67 @@ def _toward_probe(sweep: Sweep | None) -> np.ndarray | None:
     return d / n if n > 1e-9 else None
 
 
-def set_camera(pl: pv.Plotter, focus: np.ndarray, radius: float,
-               direction: np.ndarray, up: np.ndarray) -> None:
-    """Point the camera at ``focus`` from ``direction`` so a ``radius`` sphere fits."""
+def set_camera(pl: pv.Plotter, points: np.ndarray, direction: np.ndarray, up: np.ndarray,
+               *, margin: float = 1.08, reserve_bottom: float = 0.15,
+               reserve_top: float = 0.0) -> None:
+    """Look at ``points`` from ``direction`` (parallel projection), filling the window.
+
+    Parameters
+    ----------
+    pl : pyvista.Plotter
+    points : ndarray, shape (K, 3)
+        What must fit in the view.
+    direction : ndarray, shape (3,)
+        Unit vector from the data toward the camera.
+    up : ndarray, shape (3,)
+        Unit view-up, orthogonal to ``direction``.
+    margin : float
+        Extra room around the data (1 = touching the edges).
+    reserve_bottom : float
+        Fraction of the window height kept free at the bottom (for the scalar bar).
+    reserve_top : float
+        Fraction kept free at the top (for a title or legend).
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    d = np.asarray(direction, dtype=float)
+    up = np.asarray(up, dtype=float)
+    right = np.cross(up, d)
+    # Extent of the data in the view plane: VTK's own reset fits a bounding sphere,
+    # which leaves a long bone small in a wide window.
+    x, y = p @ right, p @ up
+    w, h = float(np.ptp(x)) or 1.0, float(np.ptp(y)) or 1.0
+    centre = p.mean(axis=0)
+    centre = centre + right * ((x.max() + x.min()) / 2 - centre @ right) \
+        + up * ((y.max() + y.min()) / 2 - centre @ up)
+    width, height = pl.window_size
+    aspect = width / max(height, 1)
+    usable = 1.0 - reserve_bottom - reserve_top
+    scale = max(h * margin / (2 * usable), w * margin / (2 * aspect))
+    focus = centre - up * ((reserve_bottom - reserve_top) * scale)
+    depth = float(np.ptp(p @ d)) + 10.0 * max(w, h)
     # Setting camera_position (not the camera's fields) also tells pyvista the camera
     # is set, so its first render does not replace it with the default view.
-    pl.camera_position = [
-        tuple(focus + direction * radius * 4.0),
-        tuple(focus),
-        tuple(up),
-    ]
-    # Fit the view to the data, then zoom in: VTK's reset leaves wide margins.
-    pl.reset_camera()
-    pl.camera.zoom(1.3)
+    pl.camera_position = [tuple(focus + d * depth), tuple(focus), tuple(up)]
+    pl.camera.parallel_projection = True
+    pl.camera.parallel_scale = scale
+    pl.reset_camera_clipping_range()
+
+
+def scene_points(actors: dict[str, Any], max_points: int = 20000) -> np.ndarray:
+    """Points of everything drawn (subsampled), to fit the view to the visible data."""
+    from vtkmodules.util import numpy_support
+
+    chunks = []
+    for actor in actors.values():
+        data = actor.GetMapper().GetInput() if actor.GetMapper() is not None else None
+        if data is None or data.GetNumberOfPoints() == 0:
+            continue
+        chunks.append(numpy_support.vtk_to_numpy(data.GetPoints().GetData()))
+    if not chunks:
+        return np.zeros((1, 3))
+    pts = np.concatenate(chunks).astype(float)
+    step = max(1, pts.shape[0] // max_points)
+    return pts[::step]
 
 
 def render_views(
@@ -347,7 +398,7 @@ def render_views(
         ``view name -> RGB image (H, W, 3) uint8``.
     """
     mesh = as_pyvista(surface)
-    pl, _ = make_plotter(
+    pl, actors = make_plotter(
         mesh,
         points=points,
         gold=gold,
@@ -359,18 +410,25 @@ def render_views(
     try:
         pts = np.asarray(mesh.points, dtype=float)
         dirs = view_directions(pts, _toward_probe(sweep))
-        focus = pts.mean(axis=0)
-        radius = float(np.linalg.norm(pts - focus, axis=1).max()) or 1.0
+        fit = scene_points(actors)
         out = {}
         for name in views:
             if name not in dirs:
                 raise ValueError(f"unknown view {name!r}; use one of {', '.join(dirs)}")
             d, up = dirs[name]
-            set_camera(pl, focus, radius, d, up)
-            out[name] = np.asarray(pl.screenshot(None, return_img=True))[..., :3].copy()
+            set_camera(pl, fit, d, up)
+            out[name] = screenshot(pl)
         return out
     finally:
         pl.close()
+
+
+def screenshot(pl: pv.Plotter) -> np.ndarray:
+    """Render the plotter now and return its image as ``(H, W, 3)`` uint8."""
+    # pyvista's screenshot() renders only the first time; later camera changes need an
+    # explicit render (which, conversely, does nothing before the first one).
+    pl.render()
+    return np.asarray(pl.screenshot(None, return_img=True))[..., :3].copy()
 
 
 def png_bytes(image: np.ndarray) -> bytes:

@@ -131,16 +131,14 @@ def show_surface(
     try:
         _legend(pl, actors, style)
         pts = np.asarray(mesh.points, dtype=float)
-        toward = render._toward_probe(sweep)
-        d, up = render.view_directions(pts, toward)[view]
-        focus = pts.mean(axis=0)
-        radius = float(np.linalg.norm(pts - focus, axis=1).max()) or 1.0
+        d, up = render.view_directions(pts, render._toward_probe(sweep))[view]
+        fit = render.scene_points(actors)
         if out is not None:
-            render.set_camera(pl, focus, radius, d, up)
-            image = np.asarray(pl.screenshot(None, return_img=True))[..., :3]
+            render.set_camera(pl, fit, d, up, reserve_top=0.12)
+            image = render.screenshot(pl)
             return render.save_png(image, out)
         _add_interaction(pl, mesh, actors, gold, style)
-        render.set_camera(pl, focus, radius, d, up)
+        render.set_camera(pl, fit, d, up, reserve_top=0.12)
         pl.show(title=title)
         return None
     finally:

@@ -1,0 +1,661 @@
+"""A self-contained HTML report of one reconstruction (the pictures of the paper, and more).
+
+:func:`write_report` writes a folder holding ``index.html`` (every picture embedded as a
+base64 PNG, so the page alone can be mailed or archived), the same pictures as PNG files
+in ``figures/`` for reuse, and ``report.json`` with every number shown on the page. The
+folder is built in a temporary folder beside the destination and renamed into place, so
+an error or Ctrl-C never leaves a half-written report.
+
+The page holds: a sweep summary (frames used and rejected, spacing, sweep length, tilt
+between slices), contour overlays for a sample of frames (rejected ones marked), the
+surface rendered off-screen and coloured by ``Distance`` with the segmented points on it
+(the paper's Fig. 4) from two viewpoints, with gold points a histogram of the
+gold-to-surface distances and the accuracy table, the Table I curve when given, the
+parameters and the software versions.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import dataclasses
+import datetime as _dt
+import html
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from BoneUSRecon import __version__
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.progress import ProgressCallback, report
+
+__all__ = [
+    "write_report",
+    "sweep_summary",
+    "software_versions",
+    "histogram_png",
+    "table_png",
+    "contour_overlay",
+    "sample_frames",
+    "REPORT_MARKER",
+    "PAPER_TABLE_I",
+]
+
+#: File that marks a folder as a BoneUSRecon report: only such (or empty) folders are
+#: replaced by :func:`write_report`.
+REPORT_MARKER = ".bone-us-recon-report"
+
+#: The paper's Table I: mean distance from the surface to the 1145 digitised points of the
+#: clavicle phantom, for 5, 10, 15 and 20 control points. The table header says cm; the
+#: text (Sect. IV, "an error of 1,16mm") shows the values are millimetres.
+PAPER_TABLE_I: dict[int, float] = {5: 1.71, 10: 1.32, 15: 1.26, 20: 1.16}
+
+# Accuracy table rows: key of Evaluation.as_dict(), label, unit ("%" for fractions).
+_ACCURACY_ROWS = (
+    ("n", "gold points", ""),
+    ("mean", "mean distance", "mm"),
+    ("rms", "RMS distance", "mm"),
+    ("median", "median distance", "mm"),
+    ("p95", "95th percentile", "mm"),
+    ("max", "maximum distance", "mm"),
+    ("within_0_5", "within 0.5 mm", "%"),
+    ("within_1", "within 1 mm", "%"),
+    ("within_2", "within 2 mm", "%"),
+)
+
+
+# -- numbers -------------------------------------------------------------------------
+def _stats(x: np.ndarray) -> dict[str, float]:
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {"min": float("nan"), "median": float("nan"), "max": float("nan")}
+    return {"min": float(x.min()), "median": float(np.median(x)), "max": float(x.max())}
+
+
+def sweep_summary(sweep: Any, segmentation: Any = None) -> dict[str, Any]:
+    """Facts about a sweep (and its segmentation) for the report, JSON-ready.
+
+    Parameters
+    ----------
+    sweep : Sweep
+    segmentation : SegmentationResult, optional
+
+    Returns
+    -------
+    dict
+        ``frames``, ``valid_frames``, ``invalid_frames`` (tracking/image status),
+        ``invalid_reasons`` ({reason: count}), ``width``/``height`` (px),
+        ``spacing_mm`` ([sx, sy]), ``image_size_mm`` ([width, depth]),
+        ``sweep_length_mm``, ``duration_s``, ``slice_gap_mm`` and ``slice_tilt_deg``
+        (min/median/max between consecutive valid frames: distance between image
+        centres, angle between image planes), ``tilt_range_deg`` (largest angle of a
+        frame's plane to the mean plane); with a segmentation also
+        ``frames_used``, ``frames_rejected`` and ``rejected_reasons`` ({reason: count}).
+    """
+    from BoneUSRecon.Logic.sweep import frame_planes
+
+    idx = sweep.valid_indices
+    sx, sy = (float(v) for v in sweep.spacing_mm)
+    out: dict[str, Any] = {
+        "source": str(sweep.source) if getattr(sweep, "source", None) else None,
+        "frames": sweep.n_frames,
+        "valid_frames": sweep.n_valid,
+        "invalid_frames": sweep.n_frames - sweep.n_valid,
+        "invalid_reasons": dict(Counter(_short_reason(r) for r in sweep.invalid_reasons.values())),
+        "width": sweep.width,
+        "height": sweep.height,
+        "spacing_mm": [sx, sy],
+        "image_size_mm": [sx * (sweep.width - 1), sy * (sweep.height - 1)],
+        "sweep_length_mm": sweep.sweep_length_mm(),
+        "duration_s": sweep.duration_s(),
+        "transform": getattr(sweep, "transform_name", ""),
+    }
+    if idx.size >= 2:
+        m = sweep.image_to_reference[idx]
+        centre = np.array([(sweep.width - 1) / 2, (sweep.height - 1) / 2, 0.0, 1.0])
+        c = m[:, :3, :] @ centre
+        _, _, normal = frame_planes(m)
+        # Planes, not oriented normals: a flipped frame is not tilted by 180 degrees.
+        cos_pair = np.abs(np.sum(normal[1:] * normal[:-1], axis=1)).clip(0.0, 1.0)
+        mean_n = normal * np.sign(normal @ normal[0])[:, None]
+        mean_n = mean_n.mean(axis=0)
+        mean_n /= np.linalg.norm(mean_n)
+        cos_mean = np.abs(normal @ mean_n).clip(0.0, 1.0)
+        out["slice_gap_mm"] = _stats(np.linalg.norm(np.diff(c, axis=0), axis=1))
+        out["slice_tilt_deg"] = _stats(np.degrees(np.arccos(cos_pair)))
+        out["tilt_range_deg"] = float(np.degrees(np.arccos(cos_mean.min())))
+    if segmentation is not None:
+        contours = tuple(getattr(segmentation, "contours", ()))
+        rejected = {c.frame: c.reason for c in contours if not c.accepted}
+        out["segmentation_method"] = getattr(segmentation, "method", "")
+        out["frames_used"] = sum(1 for c in contours if c.accepted)
+        out["frames_rejected"] = len(rejected)
+        out["rejected_reasons"] = dict(Counter(_short_reason(r) for r in rejected.values()))
+    return out
+
+
+def _short_reason(reason: str) -> str:
+    """A reason without its frame-specific numbers, so that reasons can be counted."""
+    text = str(reason) or "unspecified"
+    for sep in (":", "(", ";"):
+        text = text.split(sep)[0]
+    return text.strip() or "unspecified"
+
+
+def software_versions() -> dict[str, str]:
+    """Versions of Python, the platform and every library the result depends on."""
+    from importlib import metadata
+
+    out = {"BoneUSRecon": __version__, "Python": sys.version.split()[0],
+           "platform": platform.platform()}
+    for dist in ("numpy", "scipy", "scikit-image", "SimpleITK", "vtk", "pyvista",
+                 "matplotlib", "pillow"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "not installed"
+    return out
+
+
+# -- pictures ------------------------------------------------------------------------
+def _figure(size: tuple[float, float]) -> Any:
+    # A bare Figure on the Agg canvas: no pyplot, so no global backend state is touched.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size, dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _fig_png(fig: Any) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", facecolor="white")
+    return buf.getvalue()
+
+
+def histogram_png(distances: np.ndarray, evaluation: dict[str, Any] | None = None) -> bytes:
+    """Histogram of gold-to-surface distances (mm) as PNG bytes, mean and p95 marked."""
+    d = np.asarray(distances, dtype=float)
+    d = d[np.isfinite(d)]
+    fig = _figure((7.0, 3.6))
+    ax = fig.add_subplot()
+    hi = float(d.max()) if d.size else 1.0
+    bins = np.linspace(0.0, max(hi, 1e-3) * 1.0001, 41)
+    ax.hist(d, bins=bins, color="#4a78b5", edgecolor="white", linewidth=0.5)
+    if d.size:
+        mean = float(np.mean(d)) if evaluation is None else float(evaluation["mean"])
+        p95 = float(np.percentile(d, 95)) if evaluation is None else float(evaluation["p95"])
+        ax.axvline(mean, color="#d62728", lw=1.5, label=f"mean {mean:.2f} mm")
+        ax.axvline(p95, color="#ff7f0e", lw=1.5, ls="--", label=f"95th percentile {p95:.2f} mm")
+        ax.legend(frameon=False)
+    ax.set_xlabel("distance from gold point to surface (mm)")
+    ax.set_ylabel("gold points")
+    ax.set_title(f"Gold-to-surface distances (n = {d.size})")
+    return _fig_png(fig)
+
+
+def table_png(table: Sequence[tuple[int, float]]) -> bytes:
+    """The Table I curve (mean distance against control points) with the paper's values."""
+    counts = np.array([c for c, _ in table], dtype=float)
+    means = np.array([m for _, m in table], dtype=float)
+    fig = _figure((6.0, 3.6))
+    ax = fig.add_subplot()
+    ax.plot(counts, means, "o-", color="#4a78b5", label="this reconstruction")
+    pc = sorted(PAPER_TABLE_I)
+    ax.plot(pc, [PAPER_TABLE_I[c] for c in pc], "s--", color="#888888",
+            label="paper, Table I (clavicle phantom)")
+    ax.set_xlabel("control points along the bone (e)")
+    ax.set_ylabel("mean distance (mm)")
+    ax.set_ylim(bottom=0.0)
+    ax.set_xticks(sorted(set(counts.astype(int).tolist()) | set(pc)))
+    ax.grid(alpha=0.3)
+    ax.legend(frameon=False)
+    ax.set_title("Table I: mean distance against the number of control points")
+    return _fig_png(fig)
+
+
+def sample_frames(segmentation: Any, n_accepted: int = 6, n_rejected: int = 4) -> list[int]:
+    """Frames to show as overlays: accepted ones evenly spread, plus rejected ones.
+
+    Returns frame indices in file order.
+    """
+    contours = tuple(getattr(segmentation, "contours", ()))
+    acc = [c.frame for c in contours if c.accepted]
+    rej = [c.frame for c in contours if not c.accepted]
+    pick = []
+    for frames, n in ((acc, n_accepted), (rej, n_rejected)):
+        if frames and n > 0:
+            k = np.unique(np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int))
+            pick += [frames[i] for i in k]
+    return sorted(pick)
+
+
+def contour_overlay(frame: np.ndarray, contour_px: np.ndarray, *, accepted: bool,
+                    label: str, min_width: int = 320) -> np.ndarray:
+    """A B-mode frame with its contour drawn on it, as an RGB array.
+
+    Accepted contours are green; rejected ones red, with the frame outlined in red and
+    ``label`` (e.g. the rejection reason) on a banner. Small frames are enlarged
+    (nearest neighbour) to ``min_width`` so the picture stays readable.
+    """
+    from PIL import Image, ImageDraw
+
+    img = Image.fromarray(np.ascontiguousarray(frame, dtype=np.uint8)).convert("RGB")
+    scale = max(1, int(np.ceil(min_width / max(img.width, 1))))
+    if scale > 1:
+        img = img.resize((img.width * scale, img.height * scale), Image.Resampling.NEAREST)
+    draw = ImageDraw.Draw(img)
+    colour = (60, 220, 90) if accepted else (255, 59, 48)
+    pts = np.asarray(contour_px, dtype=float).reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts):
+        # Pixel centres: pixel (i, j) covers [i, i+1) before scaling.
+        xy = [(float(x), float(y)) for x, y in (pts + 0.5) * scale]
+        if len(xy) > 1:
+            draw.line(xy, fill=colour, width=max(2, scale))
+        r = max(1.5, scale * 0.8)
+        for x, y in xy:
+            draw.ellipse((x - r, y - r, x + r, y + r), fill=colour)
+    w = max(2, scale)
+    if not accepted:
+        draw.rectangle((0, 0, img.width - 1, img.height - 1), outline=colour, width=w)
+    draw.rectangle((0, 0, img.width, 16), fill=(0, 0, 0))
+    draw.text((4, 2), label, fill=colour)
+    return np.asarray(img)
+
+
+def _overlay_image(sweep: Any, contour: Any) -> np.ndarray:
+    """One overlay; uses the segmentation's own overlay drawer when it provides one."""
+    label = f"frame {contour.frame}: " + ("accepted" if contour.accepted
+                                          else f"REJECTED ({contour.reason or 'no reason'})")
+    return contour_overlay(sweep.frames[contour.frame], contour.points_px,
+                           accepted=bool(contour.accepted), label=label)
+
+
+def _png(image: np.ndarray) -> bytes:
+    from BoneUSRecon.Widgets.render import png_bytes
+
+    return png_bytes(image)
+
+
+# -- the page ------------------------------------------------------------------------
+_CSS = """
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0 auto;
+max-width:1120px;padding:1.5em;color:#222;line-height:1.4}
+h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:1px solid #ddd;padding-bottom:.2em;
+margin-top:1.8em}.sub{color:#666;margin-top:0}table{border-collapse:collapse;margin:.6em 0}
+td,th{border:1px solid #ddd;padding:.25em .7em;text-align:left;vertical-align:top}
+th{background:#f4f4f4}td.num{text-align:right;font-variant-numeric:tabular-nums}
+figure{margin:.6em 0;display:inline-block;vertical-align:top}figcaption{color:#555;
+font-size:.9em;max-width:1000px}img{max-width:100%;border:1px solid #eee}
+.grid{display:flex;flex-wrap:wrap;gap:10px}.grid figure{width:32%;margin:0}
+.rejected figcaption{color:#c0392b;font-weight:bold}pre{background:#f7f7f7;padding:.8em;
+overflow-x:auto;font-size:.85em}.big{font-size:1.25em}
+"""
+
+
+def _num(value: Any, digits: int = 2) -> str:
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return html.escape(str(value))
+    return "n/a" if not np.isfinite(v) else f"{v:.{digits}f}"
+
+
+def _kv_table(rows: Sequence[tuple[str, str]], table_id: str) -> str:
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>" for k, v in rows)
+    return f'<table id="{table_id}">{body}</table>'
+
+
+def _img(name: str, data: bytes, alt: str, caption: str, cls: str = "") -> str:
+    b64 = base64.b64encode(data).decode("ascii")
+    c = f' class="{cls}"' if cls else ""
+    return (f'<figure{c}><img id="img-{html.escape(name)}" alt="{html.escape(alt)}" '
+            f'src="data:image/png;base64,{b64}"><figcaption>{caption}</figcaption></figure>')
+
+
+def _range(s: dict[str, float], unit: str, digits: int = 2) -> str:
+    return (f"{_num(s['min'], digits)} to {_num(s['max'], digits)} {unit} "
+            f"(median {_num(s['median'], digits)})")
+
+
+def _counts(d: dict[str, int]) -> str:
+    return "; ".join(f"{html.escape(k)}: {v}" for k, v in sorted(d.items(), key=lambda kv: -kv[1]))
+
+
+def _sweep_rows(s: dict[str, Any]) -> list[tuple[str, str]]:
+    rows = [("source", html.escape(str(s.get("source") or "(in memory)"))),
+            ("frames in the sweep", str(s["frames"]))]
+    inv = f"{s['invalid_frames']}"
+    if s["invalid_reasons"]:
+        inv += f" ({_counts(s['invalid_reasons'])})"
+    rows.append(("frames without a usable pose or image", inv))
+    if "frames_used" in s:
+        rows.append(("frames used (bone contour accepted)",
+                     f'<span id="frames-used">{s["frames_used"]}</span>'))
+        rej = f'<span id="frames-rejected">{s["frames_rejected"]}</span>'
+        if s["rejected_reasons"]:
+            rej += f" ({_counts(s['rejected_reasons'])})"
+        rows.append(("frames rejected by the segmentation", rej))
+    sx, sy = s["spacing_mm"]
+    rows += [
+        ("image size", f"{s['width']} x {s['height']} px = "
+                       f"{_num(s['image_size_mm'][0], 1)} x {_num(s['image_size_mm'][1], 1)} mm"),
+        ("pixel spacing", f"{sx:.4f} x {sy:.4f} mm (column x row)"),
+        ("sweep length", f'<span id="sweep-length">{_num(s["sweep_length_mm"], 1)}</span> mm '
+                         f"(path of the image centre), {_num(s['duration_s'], 1)} s"),
+    ]
+    if "slice_gap_mm" in s:
+        rows += [
+            ("distance between consecutive slices", _range(s["slice_gap_mm"], "mm")),
+            ("tilt between consecutive slices", _range(s["slice_tilt_deg"], "deg")),
+            ("tilt range (largest angle to the mean image plane)",
+             f"{_num(s['tilt_range_deg'], 1)} deg"),
+        ]
+    rows.append(("pose", html.escape(str(s.get("transform", "")))))
+    return rows
+
+
+def _accuracy_rows(ev: dict[str, Any]) -> str:
+    rows = []
+    for key, label, unit in _ACCURACY_ROWS:
+        if key not in ev:
+            continue
+        v = ev[key]
+        shown = _num(100.0 * float(v), 1) + " %" if unit == "%" else (
+            _num(v, 3) + (f" {unit}" if unit else ""))
+        rows.append(f'<tr><th>{label}</th><td class="num" data-key="{key}" '
+                    f'data-value="{float(v)!r}">{shown}</td></tr>')
+    return f'<table id="accuracy">{"".join(rows)}</table>'
+
+
+def _table_i(table: Sequence[tuple[int, float]]) -> str:
+    rows = []
+    for count, mean in table:
+        paper = PAPER_TABLE_I.get(int(count))
+        rows.append(f'<tr><td class="num">{int(count)}</td><td class="num" data-count="{int(count)}"'
+                    f' data-value="{float(mean)!r}">{_num(mean, 3)}</td>'
+                    f'<td class="num">{"" if paper is None else _num(paper, 2)}</td></tr>')
+    return ('<table id="table-i"><tr><th>control points (e)</th><th>mean distance (mm)</th>'
+            f'<th>paper (mm)</th></tr>{"".join(rows)}</table>')
+
+
+def _jsonable(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist() if obj.size <= 64 else f"array{obj.shape}"
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, (str, int, float, bool)) or obj is None:
+        return obj
+    return str(obj)
+
+
+def _evaluation_dict(evaluation: Any) -> tuple[dict[str, Any], np.ndarray]:
+    """``(numbers without distances, distances)`` from an Evaluation or a dict."""
+    d = evaluation.as_dict() if hasattr(evaluation, "as_dict") else dict(evaluation)
+    dist = getattr(evaluation, "distances", None)
+    if dist is None:
+        dist = d.get("distances", [])
+    d = {k: v for k, v in d.items() if k != "distances"}
+    return _jsonable(d), np.asarray(dist, dtype=float)
+
+
+# -- folder --------------------------------------------------------------------------
+def _check_outdir(outdir: Path) -> None:
+    parent = outdir.parent if str(outdir.parent) else Path(".")
+    if not parent.is_dir():
+        raise BoneUSReconError(f"folder {str(parent)!r} does not exist", outdir)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise BoneUSReconError(f"folder {str(parent)!r} is not writable", outdir)
+    if outdir.exists():
+        if not outdir.is_dir():
+            raise BoneUSReconError("exists and is not a folder", outdir)
+        if any(outdir.iterdir()) and not (outdir / REPORT_MARKER).exists():
+            raise BoneUSReconError(
+                "folder exists and is not a BoneUSRecon report; choose a new or empty folder",
+                outdir,
+            )
+
+
+@contextlib.contextmanager
+def _atomic_dir(outdir: Path) -> Any:
+    """Yield a temporary folder beside ``outdir``; swap it into place on success."""
+    parent = outdir.parent if str(outdir.parent) else Path(".")
+    tmp = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", suffix=".part", dir=parent))
+    try:
+        yield tmp
+        (tmp / REPORT_MARKER).write_text("BoneUSRecon report folder\n")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700 folders
+        old = None
+        if outdir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", suffix=".old", dir=parent))
+            os.replace(outdir, old / "r")
+        os.replace(tmp, outdir)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def write_report(
+    recon: Any,
+    outdir: str | os.PathLike[str],
+    *,
+    gold: np.ndarray | None = None,
+    evaluation: Any = None,
+    table: Sequence[tuple[int, float]] | None = None,
+    parameters: dict[str, Any] | None = None,
+    progress: ProgressCallback | None = None,
+) -> Path:
+    """Write the HTML report of a reconstruction into the folder ``outdir``.
+
+    Parameters
+    ----------
+    recon : Reconstruction
+        From :func:`BoneUSRecon.Logic.pipeline.reconstruct` (uses its ``sweep``,
+        ``segmentation``, ``surface``, ``points``, ``summary`` and ``timings``).
+    outdir : path-like
+        The report folder; created, or replaced if it is an earlier report (or empty).
+    gold : ndarray, shape (K, 3), optional
+        Gold-standard points (mm); the accuracy is computed with
+        :func:`BoneUSRecon.Logic.evaluation.evaluate_surface` unless ``evaluation`` is
+        given.
+    evaluation : Evaluation, optional
+        An evaluation already computed (shown as is).
+    table : list of (int, float), optional
+        The Table I curve: ``(control points, mean distance mm)``.
+    parameters : dict, optional
+        The parameters to list (default: ``recon.params`` when it has them).
+    progress : ProgressCallback, optional
+        Called as ``progress("report", done, total)``.
+
+    Returns
+    -------
+    Path
+        ``outdir / "index.html"``.
+
+    Raises
+    ------
+    BoneUSReconError
+        ``outdir`` cannot be written, or exists and is not a report folder.
+    """
+    out = Path(outdir)
+    _check_outdir(out)
+    sweep = recon.sweep
+    seg = getattr(recon, "segmentation", None)
+    has_gold = gold is not None or evaluation is not None
+    total = 4 + int(has_gold) + int(bool(table))
+    step = 0
+
+    def tick() -> None:
+        nonlocal step
+        step += 1
+        report(progress, "report", step, total)
+
+    report(progress, "report", 0, total)
+    summary = sweep_summary(sweep, seg)
+    figures: dict[str, bytes] = {}
+    sections: list[str] = []
+    numbers: dict[str, Any] = {"sweep": summary}
+
+    # Headline numbers and the reconstruction's own summary.
+    recon_summary = _jsonable(dict(getattr(recon, "summary", {}) or {}))
+    timings = _jsonable(dict(getattr(recon, "timings", {}) or {}))
+    numbers["reconstruction"] = recon_summary
+    numbers["timings_s"] = timings
+
+    # Surface, two viewpoints (paper Fig. 4).
+    from BoneUSRecon.Widgets.render import distance_array, render_views
+
+    views = render_views(recon.surface, points=getattr(recon, "points", None), sweep=sweep,
+                         window_size=(1000, 560))
+    tick()
+    dist = distance_array(recon.surface)
+    surf_caption = ("Reconstructed surface coloured by <i>Distance</i>, the distance (mm) "
+                    "from each vertex to the nearest segmented point; red dots are the "
+                    "segmented contour points (the paper's Fig. 4).")
+    if dist is not None and np.isfinite(dist).any():
+        numbers["surface_distance_mm"] = {"mean": float(np.nanmean(dist)),
+                                          "max": float(np.nanmax(dist))}
+    figs_html = []
+    for name, image in views.items():
+        figures[f"surface_{name}"] = _png(image)
+        what = ("seen from the probe's side" if name == "top"
+                else "oblique view showing the relief")
+        figs_html.append(_img(f"surface-{name}", figures[f"surface_{name}"],
+                              f"surface, {name} view", f"{surf_caption} {what.capitalize()}."))
+    surface_html = "".join(figs_html)
+    n_vert = int(recon.surface.GetNumberOfPoints())
+    n_pts = int(recon.points.GetNumberOfPoints()) if getattr(recon, "points", None) else 0
+    surface_html += (f"<p>{n_vert} surface vertices, {n_pts} segmented points.</p>")
+
+    # Accuracy against gold points.
+    accuracy_html = ""
+    if has_gold:
+        if evaluation is None:
+            from BoneUSRecon.Logic.evaluation import evaluate_surface
+
+            evaluation = evaluate_surface(recon.surface, np.asarray(gold, dtype=float))
+        ev, ev_dist = _evaluation_dict(evaluation)
+        numbers["evaluation"] = ev
+        figures["histogram"] = histogram_png(ev_dist, ev)
+        tick()
+        accuracy_html = (
+            f'<p class="big">Mean distance from the gold points to the surface: '
+            f'<b id="headline-mean">{_num(ev.get("mean"), 2)} mm</b> '
+            f"(the paper reports 1.16 to 1.71 mm on its clavicle phantom).</p>"
+            + _accuracy_rows(ev)
+            + _img("histogram", figures["histogram"], "histogram of distances",
+                   "Distances from each gold point to the nearest point of the surface.")
+        )
+
+    # Table I.
+    table_html = ""
+    if table:
+        table = [(int(c), float(m)) for c, m in table]
+        numbers["table_i"] = [{"control_points": c, "mean_mm": m} for c, m in table]
+        figures["table_i"] = table_png(table)
+        tick()
+        table_html = _table_i(table) + _img(
+            "table-i", figures["table_i"], "Table I curve",
+            "Mean gold-to-surface distance when the surface is refitted with e control "
+            "points along the bone (the paper's Table I).")
+
+    # Contour overlays.
+    overlay_html = ""
+    if seg is not None:
+        by_frame = {c.frame: c for c in seg.contours}
+        tiles = []
+        for k in sample_frames(seg):
+            c = by_frame[k]
+            data = _png(_overlay_image(sweep, c))
+            figures[f"frame_{k:04d}"] = data
+            cap = (f"frame {k}: accepted, {len(c.points_px)} points, confidence "
+                   f"{_num(getattr(c, 'confidence', float('nan')), 2)}" if c.accepted
+                   else f"frame {k}: REJECTED: {html.escape(c.reason or 'no reason given')}")
+            tiles.append(_img(f"frame-{k:04d}", data, f"frame {k}", cap,
+                              "" if c.accepted else "rejected"))
+        n_rej = summary.get("frames_rejected", 0)
+        overlay_html = (f"<p>{len(tiles)} frames of {len(by_frame)} segmented "
+                        f"({n_rej} rejected in all; rejected frames are outlined in red, "
+                        "accepted contours drawn in green).</p>"
+                        f'<div class="grid">{"".join(tiles)}</div>')
+    tick()
+
+    # Parameters and versions.
+    if parameters is None:
+        p = getattr(recon, "params", None)
+        parameters = _jsonable(p) if p is not None else {}
+    params_json = json.dumps(_jsonable(parameters), indent=2, default=str)
+    versions = software_versions()
+    numbers["parameters"] = _jsonable(parameters)
+    numbers["versions"] = versions
+    tick()
+
+    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    source = summary.get("source") or "in-memory sweep"
+    sections.append(f"<h1>Bone surface reconstruction</h1><p class='sub'>"
+                    f"{html.escape(str(source))} &middot; BoneUSRecon {__version__} &middot; {now}</p>")
+    if has_gold:
+        sections.append(f'<h2 id="accuracy-section">Accuracy against the gold points</h2>{accuracy_html}')
+    sections.append(f'<h2 id="surface-section">Surface</h2>{surface_html}')
+    if table_html:
+        sections.append(f'<h2 id="table-section">Table I: control points</h2>{table_html}')
+    sections.append(f'<h2 id="sweep-section">Sweep</h2>{_kv_table(_sweep_rows(summary), "sweep")}')
+    if overlay_html:
+        sections.append(f'<h2 id="overlay-section">Contours on sample frames</h2>{overlay_html}')
+    if recon_summary or timings:
+        rows = [(k, html.escape(_fmt_value(v))) for k, v in recon_summary.items()]
+        rows += [(f"time: {k}", f"{_num(v, 2)} s") for k, v in timings.items()]
+        sections.append(f'<h2 id="recon-section">Reconstruction</h2>{_kv_table(rows, "reconstruction")}')
+    sections.append(f'<h2 id="parameters-section">Parameters</h2><pre id="parameters">'
+                    f"{html.escape(params_json)}</pre>")
+    sections.append(f'<h2 id="versions-section">Software</h2>'
+                    f'{_kv_table([(k, html.escape(v)) for k, v in versions.items()], "versions")}')
+    page = ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+            "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+            f"<title>BoneUSRecon report: {html.escape(Path(str(source)).name)}</title>"
+            f"<style>{_CSS}</style></head><body>\n" + "\n".join(sections) + "\n</body></html>\n")
+
+    with _atomic_dir(out) as tmp:
+        (tmp / "figures").mkdir()
+        for name, data in figures.items():
+            (tmp / "figures" / f"{name}.png").write_bytes(data)
+        (tmp / "report.json").write_text(json.dumps(_jsonable(numbers), indent=2, default=str))
+        (tmp / "index.html").write_text(page, encoding="utf-8")
+    report(progress, "report", total, total)
+    return out / "index.html"
+
+
+def _fmt_value(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_fmt_value(x) for x in v)
+    if isinstance(v, dict):
+        return "; ".join(f"{k}: {_fmt_value(x)}" for k, x in v.items())
+    return str(v)
