@@ -73,8 +73,9 @@ def test_trimmed_to_where_there_was_data():
     full_area = RADIUS * np.deg2rad(120) * 60.0
     assert 0.83 * full_area < surface_area(pd) < 0.9 * full_area
     # max_distance_mm trims too; and nothing left is an error
-    near = surface_polydata(fit, grid, params=SurfaceParams(max_distance_mm=0.2))
-    assert arr(near, "Distance").max() <= 0.2
+    near = surface_polydata(fit, grid, params=SurfaceParams(max_distance_mm=0.6))
+    assert arr(near, "Distance").max() <= 0.6
+    assert surface_area(near) < 0.8 * surface_area(pd)
     with pytest.raises(BoneUSReconError, match="no part"):
         surface_polydata(fit, grid, params=SurfaceParams(max_distance_mm=1e-6))
 
