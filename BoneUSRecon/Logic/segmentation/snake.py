@@ -141,8 +141,11 @@ def run_snake(
     pot, gi, gj = potential
     ry = sy / REFERENCE_PIXEL_MM  # reference px per image row
     n = p.n_points
-    margin = min(mm_to_px(p.margin_mm, sx, minimum=0), (w - 1) // 4)
-    cols = np.linspace(margin, w - 1 - margin, n)
+    # Span the imaged field of view only: scanners pad the sector with black columns,
+    # where nothing holds the balloon back and the tension would drag the snake up.
+    lo, hi = field_of_view(image)
+    margin = min(mm_to_px(p.margin_mm, sx, minimum=0), (hi - lo) // 4)
+    cols = np.linspace(lo + margin, hi - margin, n)
     y = np.full(n, float(np.clip(init_row, 0, h - 1)) * ry)  # reference px
     y_max = (h - 1) * ry
     ab = cholesky_banded(internal_matrix_banded(n, p.w1, p.w2, p.tau))
@@ -187,6 +190,14 @@ def run_snake(
     )
 
 
+def field_of_view(image: np.ndarray, threshold: int = 8) -> tuple[int, int]:
+    """First and last columns holding image data (column maximum above ``threshold``)."""
+    cols = np.flatnonzero(np.asarray(image).max(axis=0) > threshold)
+    if cols.size < 2:
+        return 0, image.shape[1] - 1
+    return int(cols[0]), int(cols[-1])
+
+
 def initial_row(
     image_height: int, sy: float, params: SnakeParams, previous_px: np.ndarray | None
 ) -> float:
@@ -221,10 +232,21 @@ def snake_frame(
     prior_px : ndarray, shape (K, 2), optional
         The previous frame's kept points (initialisation rule).
     """
-    init = initial_row(image.shape[0], float(spacing[1]), params, prior_px)
-    run = run_snake(image, spacing, init, params)
+    h = image.shape[0]
+    init = initial_row(h, float(spacing[1]), params, prior_px)
+    potential = snake_potential(image, spacing, params)
+    run = run_snake(image, spacing, init, params, potential)
     intensity = sample_bilinear(image, run.points_px)
     keep = posterior_choice(run.points_px, intensity, spacing, posterior)
+    # The balloon only lifts: a line started above the bone rises to the skin. Then
+    # (or when nothing passed the posterior choice) start again from the bottom of the
+    # image, as the hip-bone snake of the paper's ref. [4] did.
+    top = 0.05 * h
+    if (not keep.any() or np.median(run.points_px[keep, 1]) < top) and init < h - 1:
+        init = float(h - 1)
+        run = run_snake(image, spacing, init, params, potential)
+        intensity = sample_bilinear(image, run.points_px)
+        keep = posterior_choice(run.points_px, intensity, spacing, posterior)
     extras = {
         "iterations": run.iterations,
         "stopped_by": run.stopped_by,
