@@ -1,0 +1,190 @@
+"""``bone-us-recon reconstruct SWEEP -o SURFACE``: sweep file in, bone surface file out."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+from BoneUSRecon.cli.common import (
+    ProgressBar,
+    add_calibration_option,
+    add_common_options,
+    print_json,
+    print_summary,
+)
+
+__all__ = ["register", "run", "add_reconstruction_options", "params_from_args", "check_report_dir"]
+
+POINT_OUT_EXTENSIONS = (".vtp", ".vtk", ".ply", ".csv")
+
+
+def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bool = True) -> None:
+    """``--segmenter``, ``--degree``, ``--control-points``, ``--rays`` (shared with ``table``)."""
+    p.add_argument(
+        "--segmenter",
+        metavar="NAME",
+        help="bone segmenter: 'shadowpath' (default, more accurate) or 'snake' (the paper's)",
+    )
+    p.add_argument(
+        "--degree", nargs=2, type=int, metavar=("P", "Q"),
+        help="B-spline degrees along and around the bone (default 2 2: quadratic)",
+    )
+    if control_points:
+        p.add_argument(
+            "--control-points", nargs=2, type=int, metavar=("E", "F"),
+            help="control points along and around the bone (default 15 5)",
+        )
+    p.add_argument("--rays", type=int, metavar="N", help="rays per slice (default 15)")
+
+
+def params_from_args(args: argparse.Namespace) -> Any:
+    """Build :class:`ReconstructionParams` from the options (raises on absurd values)."""
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams
+
+    p = ReconstructionParams()
+    seg = p.segmentation
+    if getattr(args, "segmenter", None):
+        from BoneUSRecon.Logic.errors import BoneUSReconError
+        from BoneUSRecon.Logic.segmentation import SEGMENTERS
+
+        if args.segmenter not in SEGMENTERS:
+            raise BoneUSReconError(
+                f"unknown segmenter {args.segmenter!r}; use one of {', '.join(sorted(SEGMENTERS))}"
+            )
+        seg = dataclasses.replace(seg, method=args.segmenter)
+    fit = p.fit
+    changes: dict[str, Any] = {}
+    if getattr(args, "degree", None):
+        changes["degree"] = tuple(args.degree)
+    if getattr(args, "control_points", None):
+        changes["control_points"] = tuple(args.control_points)
+    if changes:
+        fit = dataclasses.replace(fit, **changes)
+    res = p.resampling
+    if getattr(args, "rays", None) is not None:
+        res = dataclasses.replace(res, n_rays=args.rays)
+    return dataclasses.replace(p, segmentation=seg, fit=fit, resampling=res)
+
+
+def check_report_dir(path: str | os.PathLike[str]) -> Path:
+    """Check, before any work, that the report folder can be created or written."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+
+    d = Path(path)
+    if d.exists() and not d.is_dir():
+        raise BoneUSReconError("report path exists and is not a folder", d)
+    parent = d if d.is_dir() else (d.parent if str(d.parent) else Path("."))
+    if not parent.is_dir():
+        raise BoneUSReconError(f"folder {str(parent)!r} does not exist", d)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise BoneUSReconError(f"folder {str(parent)!r} is not writable", d)
+    return d
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``reconstruct`` sub-command."""
+    p = subparsers.add_parser(
+        "reconstruct",
+        help="reconstruct the bone surface from a tracked sweep",
+        description="Segment the bone contour in every frame, resample it on rays, fit a "
+        "tensor-product B-spline surface and write it as a mesh (.vtp .vtk .stl .ply "
+        ".obj, chosen by extension) with a 'Distance' array (mm to the nearest "
+        "segmented point).",
+    )
+    p.add_argument("sweep", metavar="SWEEP", help="PLUS sequence file (.mha or .mhd)")
+    p.add_argument("-o", "--output", required=True, metavar="SURFACE", help="output surface file")
+    add_calibration_option(p)
+    add_reconstruction_options(p)
+    p.add_argument(
+        "--points-out", metavar="POINTS",
+        help="also write the segmented points (.vtp .vtk .ply with Frame/Intensity/Confidence, or .csv)",
+    )
+    p.add_argument("--gold", metavar="GOLD", help="gold-standard points (CSV x,y,z mm or VTK) to evaluate against")
+    p.add_argument("--report", metavar="DIR", help="also write an HTML report into this folder")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    add_common_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Reconstruct and write the surface (and points, report); print the summary."""
+    from BoneUSRecon.Logic.evaluation import evaluate_surface
+    from BoneUSRecon.Logic.fileio import check_input_file, check_output_path
+    from BoneUSRecon.Logic.pipeline import params_to_dict, reconstruct
+    from BoneUSRecon.Logic.sequence_io import read_sweep
+    from BoneUSRecon.Logic.vtkio import (
+        SURFACE_EXTENSIONS,
+        polydata_points,
+        read_points,
+        write_points_csv,
+        write_polydata,
+    )
+
+    # Everything that can be checked is checked before the (long) work starts.
+    check_input_file(args.sweep)
+    out = check_output_path(args.output, SURFACE_EXTENSIONS)
+    pts_out = check_output_path(args.points_out, POINT_OUT_EXTENSIONS) if args.points_out else None
+    report_dir = check_report_dir(args.report) if args.report else None
+    params = params_from_args(args)
+    gold = read_points(args.gold) if args.gold else None
+
+    with ProgressBar(quiet=args.quiet or args.json) as bar:
+        sweep = read_sweep(
+            args.sweep, calibration=args.calibration, transform=args.transform, progress=bar
+        )
+        recon = reconstruct(sweep, params, progress=bar)
+        evaluation = evaluate_surface(recon.surface, gold) if gold is not None else None
+        write_polydata(recon.surface, out)
+        if pts_out is not None:
+            if pts_out.suffix.lower() == ".csv":
+                write_points_csv(polydata_points(recon.points), pts_out)
+            else:
+                write_polydata(recon.points, pts_out)
+        report_index = None
+        if report_dir is not None:
+            from BoneUSRecon.Widgets.report import write_report
+
+            report_index = write_report(
+                recon, report_dir, gold=gold, evaluation=evaluation,
+                parameters=params_to_dict(params), progress=bar,
+            )
+
+    s = recon.summary
+    if args.json:
+        doc: dict[str, Any] = {
+            "output": str(out),
+            "points_output": str(pts_out) if pts_out else None,
+            "report": str(report_index) if report_index else None,
+            "summary": s,
+            "timings_s": recon.timings,
+            "evaluation": evaluation.as_dict() if evaluation is not None else None,
+        }
+        print_json(doc)
+        return 0
+    rows: list[tuple[str, Any]] = [
+        ("frames used", f"{s['segmented_frames']} of {s['valid_frames']} valid ({s['frames']} in file)"),
+        ("frames rejected", f"{s['rejected_frames']} by segmentation, {len(s['fit_rejected_frames'])} by the robust fit"),
+        ("grid", f"{s['grid_shape'][0]} slices x {s['grid_shape'][1]} rays, {100 * s['grid_coverage']:.1f}% covered"),
+        ("resampling distance", f"{s['mean_resampling_distance_mm']:.3f} mm mean"),
+        ("fit residual", f"{s['fit_rms_mm']:.3f} mm RMS ({s['fit_outlier_points']} outlier points)"),
+        ("surface", f"{s['surface_triangles']} triangles, {s['surface_area_mm2']:.0f} mm^2"),
+        ("time", f"{recon.timings['total']:.2f} s"),
+    ]
+    if evaluation is not None:
+        e = evaluation
+        rows += [
+            ("gold points", e.n),
+            ("distance mean/RMS", f"{e.mean:.3f} / {e.rms:.3f} mm"),
+            ("distance median/p95/max", f"{e.median:.3f} / {e.p95:.3f} / {e.max:.3f} mm"),
+            ("within 0.5/1/2 mm", f"{100 * e.within_0_5:.1f}% / {100 * e.within_1:.1f}% / {100 * e.within_2:.1f}%"),
+        ]
+    rows.append(("written", str(out)))
+    if pts_out:
+        rows.append(("points", str(pts_out)))
+    if report_index:
+        rows.append(("report", str(report_index)))
+    print_summary(f"Reconstructed {Path(args.sweep).name}", rows)
+    return 0
