@@ -94,6 +94,12 @@ def to_uint8(frames: np.ndarray) -> np.ndarray:
     a = np.asarray(frames)
     if a.dtype == np.uint8:
         return a
+    # Absurd values (1e308) may overflow to inf on the way; they end up clipped.
+    with np.errstate(all="ignore"):
+        return _to_uint8(a)
+
+
+def _to_uint8(a: np.ndarray) -> np.ndarray:
     if a.dtype == np.bool_:
         return a.astype(np.uint8) * np.uint8(255)
     if a.dtype.kind not in "iuf":

@@ -195,7 +195,7 @@ def _split_header(path: Path) -> tuple[dict[str, str], dict[str, dict[int, str]]
                     f"not a MetaIO metafile (line {lineno} is not a header line)", path
                 )
             # latin-1 never fails to decode; bad bytes are caught by the key check.
-            text = line.decode("latin-1").strip()
+            text = line.decode("latin-1").replace("\t", " ").strip()
             if not text:
                 continue
             key, sep, value = text.partition("=")
@@ -311,7 +311,11 @@ def read_header(path: str | os.PathLike[str]) -> MetaHeader:
         )
     else:
         data_file = path.parent / edf
-        if not data_file.is_file():
+        try:
+            found = data_file.is_file()
+        except (OSError, ValueError):  # name too long, NUL byte
+            found = False
+        if not found:
             raise BoneUSReconError(f"data file {edf!r} named by ElementDataFile not found", path)
         data_offset = 0
         if "HeaderSize" in fields:
@@ -360,9 +364,23 @@ def _dims_text(hdr: MetaHeader) -> str:
     return f"DimSize {w} {h} {n} ({hdr.element_type}{ch})"
 
 
+# zlib's best ratio is about 1032:1; more than this is a wrong DimSize, not data.
+_ZLIB_MAX_RATIO = 1100
+
+
 def _inflate(hdr: MetaHeader) -> np.ndarray:
     """Stream-inflate zlib data into a flat uint8 buffer of exactly ``data_bytes``."""
     expected = hdr.data_bytes
+    stored = max(hdr.data_file.stat().st_size - hdr.data_offset, 0)
+    if hdr.compressed_size is not None:
+        stored = min(stored, hdr.compressed_size)
+    if expected > _ZLIB_MAX_RATIO * stored + 1024:
+        # Checked before allocating, so a corrupt DimSize cannot exhaust memory.
+        raise BoneUSReconError(
+            f"{_dims_text(hdr)} disagrees with the data: {expected} bytes cannot come "
+            f"from {stored} bytes of compressed data",
+            hdr.data_file,
+        )
     if expected > _INFLATE_TO_DISK_BYTES:
         # Backed by an anonymous temporary file: the OS pages it, RAM stays bounded.
         tmp = tempfile.TemporaryFile(prefix="boneusrecon-inflate-")
@@ -659,6 +677,19 @@ def sweep_transforms(
             path,
         )
 
+    # Overflow in absurd (e.g. 1e300) matrices just makes those frames invalid.
+    with np.errstate(all="ignore"):
+        return _compose(hdr, steps, sources, calib)
+
+
+def _compose(
+    hdr: MetaHeader,
+    steps: list[tuple[str, bool]],
+    sources: dict[str, str],
+    calib: np.ndarray | None,
+) -> tuple[np.ndarray, list[str], str]:
+    """Multiply the chain's links per frame and check each composed pose."""
+    path, n = hdr.path, hdr.n_frames
     total = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     problems = [""] * n
     for name, inverted in steps:
