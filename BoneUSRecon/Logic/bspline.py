@@ -149,6 +149,13 @@ def averaging_knots(params: np.ndarray, n_ctrl: int, degree: int) -> np.ndarray:
     return np.r_[np.zeros(degree + 1), interior, np.ones(degree + 1)]
 
 
+def _tensor_eval(bu: np.ndarray, ctrl: np.ndarray, bv: np.ndarray) -> np.ndarray:
+    """``S[i, j] = sum_ab Bu[i, a] C[a, b] Bv[j, b]`` by two matrix products."""
+    e, f, d = ctrl.shape
+    x = (bu @ ctrl.reshape(e, f * d)).reshape(-1, f, d)  # (m, f, 3)
+    return np.einsum("ifk,jf->ijk", x, bv)
+
+
 def basis_matrix(x: np.ndarray, knots: np.ndarray, degree: int) -> np.ndarray:
     """Dense B-spline collocation matrix ``B[i, a] = N_a,p(x_i)`` (x clipped to [0, 1])."""
     x = np.clip(np.asarray(x, float), knots[degree], knots[-degree - 1])
@@ -178,7 +185,7 @@ class BSplineSurface:
         """Points on the grid ``u x v``: shape ``(len(u), len(v), 3)`` in mm."""
         bu = basis_matrix(np.atleast_1d(u), self.knots_u, self.degrees[0])
         bv = basis_matrix(np.atleast_1d(v), self.knots_v, self.degrees[1])
-        return np.einsum("ia,abk,jb->ijk", bu, self.control_points, bv, optimize=True)
+        return _tensor_eval(bu, self.control_points, bv)
 
     def evaluate_points(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Points at paired parameters ``(u[k], v[k])``: shape ``(K, 3)``."""
@@ -305,11 +312,17 @@ def _solve_direct(
     bu: np.ndarray, bv: np.ndarray, w: np.ndarray, p: np.ndarray, smoothing: float
 ) -> np.ndarray:
     e, f = bu.shape[1], bv.shape[1]
-    # Normal matrix sum_ij w_ij (Bu_i (x) Bv_j)(Bu_i (x) Bv_j)^T with Kronecker structure.
-    t = np.einsum("ij,ia,ib->jab", w, bu, bu)
-    nmat = np.einsum("jab,jc,jd->acbd", t, bv, bv).reshape(e * f, e * f)
-    rhs = np.einsum("ia,ijk->ajk", bu, w[..., None] * p)
-    rhs = np.einsum("ajk,jc->ack", rhs, bv).reshape(e * f, 3)
+    m, n = w.shape
+    # Normal matrix sum_ij w_ij (Bu_i (x) Bv_j)(Bu_i (x) Bv_j)^T with Kronecker structure,
+    # as matrix products (BLAS) rather than one big einsum:
+    # T_j = Bu^T diag(w_:j) Bu, then N[(a,c),(b,d)] = sum_j T_j[a,b] Bv_jc Bv_jd.
+    wb = w.T[:, :, None] * bu[None]  # (n, m, e)
+    t = np.matmul(np.swapaxes(wb, 1, 2), bu)  # (n, e, e)
+    vv = (bv[:, :, None] * bv[:, None, :]).reshape(n, f * f)
+    nmat = (t.reshape(n, e * e).T @ vv).reshape(e, e, f, f)
+    nmat = nmat.transpose(0, 2, 1, 3).reshape(e * f, e * f)
+    rhs = bu.T @ (w[..., None] * p).reshape(m, n * 3)  # (e, n*3)
+    rhs = np.einsum("ajk,jc->ack", rhs.reshape(e, n, 3), bv).reshape(e * f, 3)
     if smoothing > 0:
         du, dv = _second_diff(e), _second_diff(f)
         pen = np.kron(du.T @ du, np.eye(f)) + np.kron(np.eye(e), dv.T @ dv)
@@ -424,7 +437,7 @@ def fit_surface(
         return _solve_separable(uu, vv, ku, kv, (p, q), w, np.where(present[..., None], pts, np.nan))
 
     def residuals(ctrl: np.ndarray) -> np.ndarray:
-        fitted = np.einsum("ia,abk,jb->ijk", bu, ctrl, bv, optimize=True)
+        fitted = _tensor_eval(bu, ctrl, bv)
         r = np.linalg.norm(fitted - pts, axis=-1)
         return np.where(present, r, np.nan)
 
