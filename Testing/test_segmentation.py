@@ -210,10 +210,10 @@ def test_unknown_segmenter():
 
 
 def test_jump_rejection():
-    """A frame whose 'bone' sits 4 mm off its neighbours is rejected as a jump."""
+    """A frame whose bone sits 4 mm shallower than its neighbours is rejected as a jump."""
     sw = analytic_sweep(12)
     frames = np.array(sw.frames)
-    img, _ = analytic_frame(0.1, seed=99, depth_mm=10.0)
+    img, _ = analytic_frame(0.1, seed=99, depth_mm=2.0)
     frames[6] = img
     r = segment_sweep(sw.replace(frames=frames))
     assert set(r.rejected) == {6}

@@ -111,9 +111,9 @@ class ShadowPathParams:
     """Height of the shadow region right below the band, mm."""
     shadow_mm: float = 6.0
     """Depth of the region (below the band) whose darkness gates the score, mm (ours)."""
-    min_score: float = 0.12
-    """Score (Dif in [0, 2] times the shadow gate) a pixel needs to pay off over "no bone" (ours)."""
-    slope_penalty: float = 0.5
+    min_score: float = 0.3
+    """Score (Dif in [0, 2] times the shadow gate) a pixel needs to pay off over "no bone" (ours: tuned on simulated clavicle, radius, tibia)."""
+    slope_penalty: float = 0.25
     """Cost per (mm of depth change per mm of lateral step)^2 between neighbouring columns (ours)."""
     max_slope: float = 1.5
     """Largest depth change per lateral mm the path may take (ours: ~56 degrees)."""
