@@ -1,0 +1,617 @@
+"""The 3D Slicer extension, tested without the Slicer application.
+
+* The extension's files: the module file and its Lib compile, CMake lists every Python
+  file of the module, the .ui binds every parameter of the parameter node.
+* The MRML adapter (:mod:`BoneUSRecon.Widgets.mrml`) against Slicer's real MRML classes
+  from the ``slicer-core`` package: scene <-> Sweep poses in mm, the model and point
+  nodes it creates, and equality with a direct :mod:`BoneUSRecon.Logic` run.
+* The module's Logic class (explicit and parameter-node entry points) on a real scene,
+  with Slicer's GUI framework (ScriptedLoadableModule, parameterNodeWrapper, i18n)
+  replaced by minimal stand-ins, since those need the application.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import py_compile
+import re
+import sys
+import types
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.sweep import Sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+MODULE = "BoneSurfaceReconstruction"
+MODULE_DIR = ROOT / MODULE
+LIB = MODULE_DIR / f"{MODULE}Lib"
+UI = MODULE_DIR / "Resources" / "UI" / f"{MODULE}.ui"
+
+if str(MODULE_DIR) not in sys.path:
+    sys.path.insert(0, str(MODULE_DIR))
+
+
+# ====================================================================================
+# Extension files
+# ====================================================================================
+def _module_python_files() -> list[str]:
+    """Every .py of the module folder (relative), except its build-time Testing folder."""
+    return sorted(
+        p.relative_to(MODULE_DIR).as_posix()
+        for p in MODULE_DIR.rglob("*.py")
+        if "Testing" not in p.relative_to(MODULE_DIR).parts and "__pycache__" not in p.parts
+    )
+
+
+def _cmake_list(text: str, var: str) -> list[str]:
+    m = re.search(rf"set\(\s*{var}\s+(.*?)\)", text, re.S)
+    assert m, f"{var} not set in CMakeLists.txt"
+    return [t.replace("${MODULE_NAME}", MODULE) for t in m.group(1).split()]
+
+
+def _parameter_fields() -> dict[str, str]:
+    """Field name -> annotation source of the @parameterNodeWrapper class (via ast)."""
+    tree = ast.parse((MODULE_DIR / f"{MODULE}.py").read_text())
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef) and any(
+            getattr(d, "id", None) == "parameterNodeWrapper" for d in node.decorator_list
+        ):
+            return {
+                s.target.id: ast.unparse(s.annotation)
+                for s in node.body
+                if isinstance(s, ast.AnnAssign) and isinstance(s.target, ast.Name)
+            }
+    raise AssertionError("no @parameterNodeWrapper class in the module file")
+
+
+def _ui_bindings() -> dict[str, ET.Element]:
+    """SlicerParameterName -> widget element in the .ui."""
+    out = {}
+    for w in ET.parse(UI).iter("widget"):
+        for prop in w.findall("property"):
+            if prop.get("name") == "SlicerParameterName":
+                out[prop.find("string").text] = w
+    return out
+
+
+def test_module_file_and_lib_compile(tmp_path: Path) -> None:
+    files = [MODULE_DIR / f for f in _module_python_files()]
+    assert MODULE_DIR / f"{MODULE}.py" in files and len(files) >= 3
+    for f in files:
+        py_compile.compile(str(f), cfile=str(tmp_path / (f.name + "c")), doraise=True)
+
+
+def test_module_folder_layout_does_not_shadow_the_package() -> None:
+    # Slicer loads every top-level .py of a module folder as a module (sys.modules[name]):
+    # only the module file may be there, and it must not be called BoneUSRecon.py.
+    top = sorted(p.name for p in MODULE_DIR.glob("*.py"))
+    assert top == [f"{MODULE}.py"]
+    assert not (MODULE_DIR / "BoneUSRecon.py").exists()
+    assert (LIB / "__init__.py").is_file()
+
+
+def test_cmake_lists_every_module_python_file_and_resource() -> None:
+    text = (MODULE_DIR / "CMakeLists.txt").read_text()
+    scripts = _cmake_list(text, "MODULE_PYTHON_SCRIPTS")
+    assert sorted(scripts) == _module_python_files()
+    for res in _cmake_list(text, "MODULE_PYTHON_RESOURCES"):
+        assert (MODULE_DIR / res).is_file(), res
+    assert "WITH_GENERIC_TESTS" in text and "slicerMacroBuildScriptedModule" in text
+    # The library goes beside the module so that `import BoneUSRecon` works installed.
+    assert "BoneUSRecon/*.py" in text
+    top = (ROOT / "CMakeLists.txt").read_text()
+    assert f"add_subdirectory({MODULE})" in top
+    for key in ("EXTENSION_HOMEPAGE", "EXTENSION_CATEGORY", "EXTENSION_DESCRIPTION", "EXTENSION_ICONURL"):
+        assert re.search(rf"set\({key}\s+\S", top), key
+
+
+def test_cmake_check_catches_an_unlisted_file(tmp_path: Path) -> None:
+    # The listing check must be able to fail: a file missing from the list is seen.
+    text = (MODULE_DIR / "CMakeLists.txt").read_text().replace(f"${{MODULE_NAME}}Lib/selftest.py", "")
+    assert sorted(_cmake_list(text, "MODULE_PYTHON_SCRIPTS")) != _module_python_files()
+
+
+def test_ui_binds_every_parameter_with_matching_ranges() -> None:
+    from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, NODE_PARAMETERS
+
+    fields = _parameter_fields()
+    bindings = _ui_bindings()
+    assert set(bindings) == set(fields)
+    assert set(fields) == set(INT_PARAMETERS) | set(NODE_PARAMETERS) | {"segmenter", "calibrationFile"}
+    for name, (default, lo, hi, _tip) in INT_PARAMETERS.items():
+        w = bindings[name]
+        assert w.get("class") == "QSpinBox"
+        props = {p.get("name"): p for p in w.findall("property")}
+        assert int(props["minimum"].find("number").text) == lo
+        assert int(props["maximum"].find("number").text) == hi
+        assert int(props["value"].find("number").text) == default
+        assert f"WithinRange(*_RANGE['{name}'])" in fields[name]
+    for name, types_ in NODE_PARAMETERS.items():
+        w = bindings[name]
+        assert w.get("class") == "qMRMLNodeComboBox"
+        listed = [s.text for s in w.find("property[@name='nodeTypes']").iter("string")]
+        assert listed == list(types_)
+        for t in types_:
+            assert t in fields[name]
+    assert bindings["segmenter"].get("class") == "QComboBox" and "Choice" in fields["segmenter"]
+    assert bindings["calibrationFile"].get("class") == "ctkPathLineEdit"
+    assert "applyButton" in {w.get("name") for w in ET.parse(UI).iter("widget")}
+
+
+def test_segmenter_choices_are_the_library_segmenters() -> None:
+    seg = pytest.importorskip("BoneUSRecon.Logic.segmentation")
+    from BoneSurfaceReconstructionLib.parameters import SEGMENTER_FALLBACK, segmenterNames
+
+    names = segmenterNames()
+    assert set(names) == set(seg.SEGMENTERS)
+    assert names[0] == seg.SegmentationParams().method  # the default is offered first
+    assert "snake" in names and set(SEGMENTER_FALLBACK) <= set(names)
+
+
+def test_dependencies_never_pip_install_vtk() -> None:
+    from BoneSurfaceReconstructionLib import dependencies
+
+    names = {r.split(">")[0].split("=")[0].strip().lower() for r in dependencies.REQUIREMENTS.values()}
+    assert not names & {"vtk", "pyvista", "slicer-core"}
+    # Everything is installed here: nothing to do, and the pip helper is not called.
+    called: list[str] = []
+    assert dependencies.installRequirements(pipInstall=called.append) == []
+    assert called == []
+
+
+def test_dependencies_install_only_what_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    from BoneSurfaceReconstructionLib import dependencies
+
+    monkeypatch.setitem(dependencies.REQUIREMENTS, "bone_us_recon_absent_pkg", "absent-pkg>=1")
+    installed: list[str] = []
+    with pytest.raises(RuntimeError, match="could not install: absent-pkg"):
+        dependencies.installRequirements(pipInstall=installed.append)
+    assert installed == ["absent-pkg>=1"]
+    with pytest.raises(RuntimeError, match="missing Python packages"):
+        dependencies.installRequirements(pipInstall=installed.append, confirm=lambda msg: False)
+    assert installed == ["absent-pkg>=1"]  # declined: nothing more installed
+
+
+def test_developer_mode_finds_the_package_one_folder_up() -> None:
+    from BoneSurfaceReconstructionLib import dependencies
+
+    assert Path(dependencies.repositoryRoot()) == ROOT
+    assert (ROOT / "BoneUSRecon" / "__init__.py").is_file()
+
+
+# ====================================================================================
+# MRML adapter on slicer-core
+# ====================================================================================
+slicer = pytest.importorskip("slicer")  # the PyPI package slicer-core (test extra)
+from vtkmodules.vtkCommonMath import vtkMatrix4x4  # noqa: E402
+from vtkmodules.vtkCommonTransforms import vtkGeneralTransform  # noqa: E402
+
+from BoneUSRecon.Logic.sweep import matrix_to_vtk, vtk_to_matrix  # noqa: E402
+from BoneUSRecon.Widgets import mrml  # noqa: E402
+
+
+def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def _synthetic_sweep(n: int = 12, h: int = 24, w: int = 32, seed: int = 0) -> Sweep:
+    """Oblique, non-parallel frames with anisotropic pixels (0.2 x 0.3 mm)."""
+    rng = np.random.default_rng(seed)
+    mats = np.zeros((n, 4, 4))
+    for k in range(n):
+        r = _rot([0.3, 1.0, 0.2], 0.04 * k) @ _rot([1, 0, 0], 0.6)
+        mats[k, :3, :3] = r @ np.diag([0.2, 0.3, 1.0])
+        mats[k, :3, 3] = [10.0 + 0.1 * k, -5.0, 2.5 * k]
+        mats[k, 3, 3] = 1.0
+    return Sweep(
+        frames=rng.integers(0, 256, (n, h, w), dtype=np.uint8),
+        image_to_reference=mats,
+        timestamps=0.05 * np.arange(n) + 100.0,
+        valid=np.ones(n, bool),
+    )
+
+
+def _world_of_pixels(volume, ij: np.ndarray) -> np.ndarray:
+    """Where Slicer itself puts pixel (i, j) of a volume node, via its own transform API."""
+    m = vtkMatrix4x4()
+    volume.GetIJKToRASMatrix(m)
+    ijk_to_ras = vtk_to_matrix(m)
+    to_world = vtkGeneralTransform()
+    slicer.vtkMRMLTransformNode.GetTransformBetweenNodes(volume.GetParentTransformNode(), None, to_world)
+    ras = (np.c_[ij, np.zeros(len(ij)), np.ones(len(ij))] @ ijk_to_ras.T)[:, :3]
+    return np.array([to_world.TransformPoint(*p) for p in ras])
+
+
+def _pixel_world(sweep: Sweep, k: int, ij: np.ndarray) -> np.ndarray:
+    return sweep.to_reference(k, ij)
+
+
+CORNERS = np.array([[0.0, 0.0], [31.0, 0.0], [31.0, 23.0], [0.0, 23.0], [12.5, 7.25]])
+
+
+@pytest.fixture()
+def scene():
+    return slicer.vtkMRMLScene()
+
+
+def test_sweep_scene_roundtrip_is_exact(scene) -> None:
+    sweep = _synthetic_sweep()
+    nodes = mrml.sweep_to_scene(sweep, scene, name="S")
+    assert nodes.image_sequence.GetNumberOfDataNodes() == sweep.n_frames
+    assert nodes.image_proxy.GetParentTransformNode() is nodes.transform_proxy
+    for read in (
+        mrml.sweep_from_node(nodes.browser),
+        mrml.sweep_from_node(nodes.image_proxy),  # the image shown in the views
+        mrml.sweep_from_sequences(nodes.image_sequence, nodes.transform_sequence),
+    ):
+        np.testing.assert_array_equal(read.frames, sweep.frames)
+        np.testing.assert_allclose(read.image_to_reference, sweep.image_to_reference, atol=1e-9)
+        np.testing.assert_allclose(read.timestamps, sweep.timestamps, atol=1e-12)
+        assert read.valid.all()
+        np.testing.assert_allclose(read.spacing_mm, [0.2, 0.3], atol=1e-12)
+
+
+def test_scene_poses_match_slicer_own_pixel_to_world_mapping(scene) -> None:
+    # Independent of the adapter's algebra: Slicer's transform API says where each
+    # pixel of each displayed frame is; the sweep read back must agree to 1e-9 mm.
+    sweep = _synthetic_sweep(n=6)
+    nodes = mrml.sweep_to_scene(sweep, scene)
+    logic = mrml._sequences_logic(scene)
+    for k in range(sweep.n_frames):
+        nodes.browser.SetSelectedItemNumber(k)
+        logic.UpdateProxyNodesFromSequences(nodes.browser)
+        want = _world_of_pixels(nodes.image_proxy, CORNERS)
+        np.testing.assert_allclose(_pixel_world(sweep, k, CORNERS), want, atol=1e-9)
+
+
+def _plus_like_scene(scene, n: int = 5, h: int = 20, w: int = 30):
+    """A PLUS recording as Slicer shows it: frames with IJKToRAS = diag(-1, -1, 1)
+    (MetaIO LPS -> RAS), under a static ImageToProbe transform, under a tracked
+    ProbeToReference transform sequence."""
+    iseq = scene.AddNewNodeByClass("vtkMRMLSequenceNode", "Image")
+    tseq = scene.AddNewNodeByClass("vtkMRMLSequenceNode", "ProbeToReference")
+    rng = np.random.default_rng(3)
+    probe = []
+    for k in range(n):
+        vol = scene.CreateNodeByClass("vtkMRMLScalarVolumeNode")
+        from vtkmodules.util import numpy_support
+        from vtkmodules.vtkCommonDataModel import vtkImageData
+
+        img = vtkImageData()
+        img.SetDimensions(w, h, 1)
+        img.GetPointData().SetScalars(
+            numpy_support.numpy_to_vtk(rng.integers(0, 256, h * w).astype(np.uint8), deep=True)
+        )
+        vol.SetAndObserveImageData(img)
+        vol.SetIJKToRASDirections(-1, 0, 0, 0, -1, 0, 0, 0, 1)
+        iseq.SetDataNodeAtValue(vol, f"{0.1 * k:.3f}")
+        vol.UnRegister(None)
+        p = np.eye(4)
+        p[:3, :3] = _rot([0, 0, 1], 0.1 * k) @ _rot([1, 1, 0], 0.3)
+        p[:3, 3] = [5.0 * k, 2.0, -3.0]
+        probe.append(p)
+        tr = scene.CreateNodeByClass("vtkMRMLLinearTransformNode")
+        tr.SetMatrixTransformToParent(matrix_to_vtk(p))
+        tseq.SetDataNodeAtValue(tr, f"{0.1 * k:.3f}")
+        tr.UnRegister(None)
+    logic = mrml._sequences_logic(scene)
+    browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", "Recording")
+    browser.SetAndObserveMasterSequenceNodeID(iseq.GetID())
+    browser.AddSynchronizedSequenceNodeID(tseq.GetID())
+    logic.UpdateProxyNodesFromSequences(browser)
+    image_to_probe = np.array(
+        [[0.0, -0.085, 0.0, 12.0], [0.085, 0.0, 0.0, -30.0], [0.0, 0.0, 1.0, 0.0], [0, 0, 0, 1]]
+    )
+    calib = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "ImageToProbe")
+    calib.SetMatrixTransformToParent(matrix_to_vtk(image_to_probe))
+    calib.SetAndObserveTransformNodeID(browser.GetProxyNode(tseq).GetID())
+    browser.GetProxyNode(iseq).SetAndObserveTransformNodeID(calib.GetID())
+    return browser, iseq, tseq, np.stack(probe), image_to_probe, calib
+
+
+def test_plus_recording_hierarchy_in_ras(scene) -> None:
+    browser, iseq, _tseq, probe, image_to_probe, _ = _plus_like_scene(scene)
+    sweep = mrml.sweep_from_node(browser)
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # IJKToRAS of a MetaIO frame with spacing 1
+    np.testing.assert_allclose(sweep.image_to_reference, probe @ image_to_probe @ flip, atol=1e-9)
+    # ... and it is what Slicer displays, frame by frame.
+    logic = mrml._sequences_logic(scene)
+    for k in range(sweep.n_frames):
+        browser.SetSelectedItemNumber(k)
+        logic.UpdateProxyNodesFromSequences(browser)
+        proxy = browser.GetProxyNode(iseq)
+        np.testing.assert_allclose(
+            _pixel_world(sweep, k, CORNERS), _world_of_pixels(proxy, CORNERS), atol=1e-9
+        )
+    np.testing.assert_allclose(sweep.spacing_mm, [0.085, 0.085], atol=1e-12)
+
+
+def test_calibration_replaces_the_image_geometry(scene) -> None:
+    browser, iseq, _tseq, probe, image_to_probe, calib_node = _plus_like_scene(scene)
+    # PLUS convention: frames directly under the probe transform, calibration maps pixels.
+    browser.GetProxyNode(iseq).SetAndObserveTransformNodeID(calib_node.GetParentTransformNode().GetID())
+    for calibration in (image_to_probe, calib_node):
+        sweep = mrml.sweep_from_node(browser, calibration=calibration)
+        np.testing.assert_allclose(sweep.image_to_reference, probe @ image_to_probe, atol=1e-9)
+        assert "calibration" in sweep.transform_name
+
+
+def test_reading_restores_the_browser_position(scene) -> None:
+    nodes = mrml.sweep_to_scene(_synthetic_sweep(n=8), scene)
+    nodes.browser.SetSelectedItemNumber(5)
+    mrml.sweep_from_node(nodes.browser)
+    assert nodes.browser.GetSelectedItemNumber() == 5
+
+
+def test_invalid_frames_are_left_out_of_the_scene(scene) -> None:
+    s = _synthetic_sweep(n=6)
+    mats = s.image_to_reference.copy()
+    mats[2] = np.nan
+    bad = s.replace(image_to_reference=mats, valid=np.array([1, 1, 0, 1, 1, 1], bool))
+    nodes = mrml.sweep_to_scene(bad, scene)
+    np.testing.assert_array_equal(nodes.frames, [0, 1, 3, 4, 5])
+    read = mrml.sweep_from_node(nodes.browser)
+    np.testing.assert_allclose(read.image_to_reference, s.image_to_reference[[0, 1, 3, 4, 5]], atol=1e-9)
+
+
+def test_transform_sequence_pairs_by_time_stamp(scene) -> None:
+    sweep = _synthetic_sweep(n=5)
+    nodes = mrml.sweep_to_scene(sweep, scene)
+    # A tracker sampled at the same instants but listed with one extra early sample.
+    tseq = nodes.transform_sequence
+    extra = scene.CreateNodeByClass("vtkMRMLLinearTransformNode")
+    extra.SetMatrixTransformToParent(matrix_to_vtk(np.diag([1.0, 1.0, 1.0, 1.0]) * 7))
+    tseq.SetDataNodeAtValue(extra, "99.0")
+    extra.UnRegister(None)
+    read = mrml.sweep_from_sequences(nodes.image_sequence, tseq)
+    np.testing.assert_allclose(read.image_to_reference, sweep.image_to_reference, atol=1e-9)
+
+
+def test_bad_inputs_raise_one_line_errors(scene) -> None:
+    nodes = mrml.sweep_to_scene(_synthetic_sweep(n=3), scene)
+    volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "Lonely")
+    empty_browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", "Empty")
+    model = scene.AddNewNodeByClass("vtkMRMLModelNode", "M")
+    cases = [
+        (None, "no input selected"),
+        (volume, "single image, not a sweep"),
+        (empty_browser, "browses no sequence of scalar volumes"),
+        (model, "cannot read a sweep"),
+        (nodes.transform_sequence, "not a sequence of scalar volumes"),
+    ]
+    for node, message in cases:
+        with pytest.raises(BoneUSReconError, match=message) as err:
+            mrml.sweep_from_node(node)
+        assert "\n" not in str(err.value)
+    with pytest.raises(BoneUSReconError, match="not a sequence of linear transforms"):
+        mrml.sweep_from_sequences(nodes.image_sequence, nodes.image_sequence)
+
+
+def test_frames_of_different_size_or_3d_are_refused(scene) -> None:
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+
+    seq = scene.AddNewNodeByClass("vtkMRMLSequenceNode", "Mixed")
+    for k, dims in enumerate([(8, 6, 1), (9, 6, 1)]):
+        vol = scene.CreateNodeByClass("vtkMRMLScalarVolumeNode")
+        img = vtkImageData()
+        img.SetDimensions(*dims)
+        img.AllocateScalars(3, 1)  # VTK_UNSIGNED_CHAR
+        vol.SetAndObserveImageData(img)
+        seq.SetDataNodeAtValue(vol, str(k))
+        vol.UnRegister(None)
+    with pytest.raises(BoneUSReconError, match="frames differ in size"):
+        mrml.sweep_from_sequences(seq)
+    vol3d = scene.CreateNodeByClass("vtkMRMLScalarVolumeNode")
+    img = vtkImageData()
+    img.SetDimensions(8, 6, 4)
+    img.AllocateScalars(3, 1)
+    vol3d.SetAndObserveImageData(img)
+    seq.SetDataNodeAtValue(vol3d, "0")
+    vol3d.UnRegister(None)
+    with pytest.raises(BoneUSReconError, match="expected 2D ultrasound frames"):
+        mrml.sweep_from_sequences(seq)
+
+
+def test_non_linear_transform_above_the_image_is_refused(scene) -> None:
+    nodes = mrml.sweep_to_scene(_synthetic_sweep(n=3), scene)
+    grid = scene.AddNewNodeByClass("vtkMRMLGridTransformNode", "Warp")
+    nodes.transform_proxy.SetAndObserveTransformNodeID(grid.GetID())
+    with pytest.raises(BoneUSReconError, match="non-linear transform"):
+        mrml.sweep_from_node(nodes.browser)
+
+
+def _surface_polydata(n: int = 6):
+    from vtkmodules.vtkFiltersSources import vtkPlaneSource
+    from vtkmodules.util import numpy_support
+
+    src = vtkPlaneSource()
+    src.SetResolution(n, n)
+    src.Update()
+    pd = src.GetOutput()
+    d = np.linspace(0.0, 3.0, pd.GetNumberOfPoints())
+    arr = numpy_support.numpy_to_vtk(d, deep=True)
+    arr.SetName("Distance")
+    pd.GetPointData().AddArray(arr)
+    return pd, d
+
+
+def test_surface_node_shows_distance_through_a_colour_table(scene) -> None:
+    pd, d = _surface_polydata()
+    node = mrml.show_surface(pd, scene, name="Bone")
+    assert node.IsA("vtkMRMLModelNode") and node.GetName() == "Bone"
+    disp = node.GetDisplayNode()
+    assert disp.GetActiveScalarName() == "Distance" and disp.GetScalarVisibility()
+    color = disp.GetColorNode()
+    assert color is not None and color.GetName() == mrml.DISTANCE_COLOR_NODE_NAME
+    assert color.GetNumberOfColors() == 256
+    lo, hi = disp.GetScalarRange()
+    assert lo == 0.0 and hi == pytest.approx(np.percentile(d, 95))
+    np.testing.assert_allclose(slicer.util.arrayFromModelPointData(node, "Distance"), d)
+    # A second surface reuses the colour table and refills a given node in place.
+    pd2, d2 = _surface_polydata(3)
+    again = mrml.show_surface(pd2, scene, node=node)
+    assert again is node and node.GetPolyData().GetNumberOfPoints() == 16
+    assert scene.GetNumberOfNodesByClass("vtkMRMLColorTableNode") == 1
+
+
+def test_points_go_to_a_model_or_a_markups_node(scene) -> None:
+    from BoneUSRecon.Logic.vtkio import points_to_polydata
+
+    xyz = np.random.default_rng(1).normal(size=(40, 3))
+    pd = points_to_polydata(xyz, {"Frame": np.arange(40) // 4})
+    model = mrml.show_points(pd, scene)
+    np.testing.assert_allclose(slicer.util.arrayFromModelPoints(model), xyz)
+    np.testing.assert_array_equal(slicer.util.arrayFromModelPointData(model, "Frame"), np.arange(40) // 4)
+    assert model.GetPolyData().GetNumberOfVerts() == 40
+    markups = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "Pts")
+    out = mrml.show_points(pd, scene, node=markups)
+    assert out is markups and markups.GetNumberOfControlPoints() == 40
+    np.testing.assert_allclose(slicer.util.arrayFromMarkupsControlPoints(markups), xyz, atol=1e-9)
+    with pytest.raises(BoneUSReconError, match="model or markups"):
+        mrml.show_points(pd, scene, node=scene.AddNewNodeByClass("vtkMRMLLinearTransformNode"))
+
+
+# ---- through the pipeline (needs the full library) ---------------------------------
+@pytest.fixture(scope="module")
+def small_sim():
+    pytest.importorskip("BoneUSRecon.Logic.pipeline")
+    from BoneSurfaceReconstructionLib.selftest import simulatedSweep
+
+    return simulatedSweep(n_frames=40)
+
+
+def test_adapter_equals_direct_logic_run(small_sim, scene) -> None:
+    from vtkmodules.util import numpy_support
+
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams, reconstruct
+    from BoneUSRecon.Logic.vtkio import polydata_points
+
+    params = ReconstructionParams()
+    direct = reconstruct(small_sim.sweep, params)
+    nodes = mrml.sweep_to_scene(small_sim.sweep, scene)
+    stages: list[str] = []
+    out = mrml.reconstruct_from_scene(
+        nodes.browser, params=params, progress=lambda s, d, t: stages.append(s)
+    )
+    assert "mrml" in stages and len(set(stages)) > 1
+    got = out.surface_node.GetPolyData()
+    # The poses read back differ from the simulated ones by ~1e-14 mm (spacing divided
+    # out and back in); the robust fit carries that to ~1e-7 mm: equal to 1e-6 mm.
+    np.testing.assert_allclose(polydata_points(got), polydata_points(direct.surface), atol=1e-6)
+    np.testing.assert_array_equal(
+        numpy_support.vtk_to_numpy(got.GetPolys().GetConnectivityArray()),
+        numpy_support.vtk_to_numpy(direct.surface.GetPolys().GetConnectivityArray()),
+    )
+    np.testing.assert_allclose(
+        slicer.util.arrayFromModelPointData(out.surface_node, "Distance"),
+        numpy_support.vtk_to_numpy(direct.surface.GetPointData().GetArray("Distance")),
+        atol=1e-6,
+    )
+    np.testing.assert_allclose(
+        slicer.util.arrayFromModelPoints(out.points_node), polydata_points(direct.points), atol=1e-6
+    )
+    assert out.surface_node.GetDisplayNode().GetActiveScalarName() == "Distance"
+
+
+def test_self_test_scenario_meets_its_accuracy(small_sim, scene) -> None:
+    from BoneSurfaceReconstructionLib import selftest
+
+    result = selftest.runSelfTest(scene, simulation=small_sim)
+    print(result)
+    assert result.failures() == []
+    assert result.pose_roundtrip_mm < 1e-6
+    assert result.nodes.surface_node.GetPolyData().GetNumberOfCells() > 0
+
+
+def test_make_params_maps_the_module_choices() -> None:
+    pytest.importorskip("BoneUSRecon.Logic.pipeline")
+    from BoneSurfaceReconstructionLib.parameters import reconstructionParams
+
+    p = reconstructionParams(segmenter="snake", controlPointsU=10, controlPointsV=4, degreeU=3, degreeV=1, rays=21)
+    assert p.segmentation.method == "snake"
+    assert tuple(p.fit.control_points) == (10, 4) and tuple(p.fit.degree) == (3, 1)
+    assert p.resampling.n_rays == 21
+    with pytest.raises(BoneUSReconError, match="too few"):
+        reconstructionParams(controlPointsU=3, degreeU=3)
+    with pytest.raises(BoneUSReconError, match="unknown segmenter"):
+        reconstructionParams(segmenter="magic")
+
+
+# ---- the module's Logic class -------------------------------------------------------
+@pytest.fixture()
+def module_logic(monkeypatch: pytest.MonkeyPatch):
+    """Import the module file with Slicer's GUI framework replaced by minimal stand-ins.
+
+    Only what needs the application is replaced (base classes, the parameter-node
+    wrapper, translation); MRML, the scene and the Sequences logic are slicer-core's.
+    """
+
+    class _Base:
+        def __init__(self, *args, **kwargs):
+            pass
+
+    slm = types.ModuleType("slicer.ScriptedLoadableModule")
+    for name in ("ScriptedLoadableModule", "ScriptedLoadableModuleWidget", "ScriptedLoadableModuleTest"):
+        setattr(slm, name, type(name, (_Base,), {}))
+
+    class ScriptedLoadableModuleLogic(_Base):
+        def getParameterNode(self):
+            return slicer.vtkMRMLScriptedModuleNode()
+
+    slm.ScriptedLoadableModuleLogic = ScriptedLoadableModuleLogic
+    pnw = types.ModuleType("slicer.parameterNodeWrapper")
+    pnw.parameterNodeWrapper = lambda cls: cls
+    pnw.WithinRange = lambda lo, hi: ("WithinRange", lo, hi)
+    pnw.Choice = lambda choices: ("Choice", tuple(choices))
+    i18n = types.ModuleType("slicer.i18n")
+    i18n.tr = lambda text: text
+    i18n.translate = lambda context, text: text
+    for name, mod in (("ScriptedLoadableModule", slm), ("parameterNodeWrapper", pnw), ("i18n", i18n)):
+        monkeypatch.setitem(sys.modules, f"slicer.{name}", mod)
+        monkeypatch.setattr(slicer, name, mod, raising=False)
+    monkeypatch.delitem(sys.modules, MODULE, raising=False)
+    module = importlib.import_module(MODULE)
+    yield module
+    sys.modules.pop(MODULE, None)
+
+
+def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None:
+    nodes = mrml.sweep_to_scene(small_sim.sweep, scene)
+    logic = module_logic.BoneSurfaceReconstructionLogic()
+    explicit = logic.process(nodes.browser, controlPoints=(10, 5), rays=15)
+    p = types.SimpleNamespace(
+        inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
+        segmenter=module_logic._SEGMENTERS[0], controlPointsU=10, controlPointsV=5,
+        degreeU=2, degreeV=2, rays=15, outputSurface=None, outputPoints=None,
+    )
+    via_node = logic.processParameterNode(p)
+    assert p.outputSurface is via_node.surface_node and p.outputPoints is via_node.points_node
+    np.testing.assert_allclose(
+        slicer.util.arrayFromModelPoints(via_node.surface_node),
+        slicer.util.arrayFromModelPoints(explicit.surface_node),
+        atol=1e-9,
+    )
+    text = logic.summaryText(via_node)
+    assert f"{small_sim.sweep.n_valid} frames" in text and "mm" in text
+    # A second run refills the same output nodes instead of adding new ones.
+    n_models = scene.GetNumberOfNodesByClass("vtkMRMLModelNode")
+    logic.processParameterNode(p)
+    assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == n_models
+
+
+def test_module_logic_raises_value_errors(module_logic, scene) -> None:
+    pytest.importorskip("BoneUSRecon.Logic.pipeline")
+    logic = module_logic.BoneSurfaceReconstructionLogic()
+    with pytest.raises(ValueError, match="Input sweep is invalid"):
+        logic.process(None)
+    volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "NotASweep")
+    with pytest.raises(ValueError, match="single image"):
+        logic.process(volume)
