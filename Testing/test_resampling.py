@@ -60,7 +60,7 @@ def test_grid_points_lie_on_contours_and_centres_on_axis():
     sweep, contours, centres = tube_sweep()
     grid = resample(contours, sweep)
     assert grid.shape == (40, 15)
-    assert grid.coverage > 0.97
+    assert grid.coverage > 0.85  # the end rays graze the contour ends
     # every grid vertex lies on its slice's circle (chord error ~5e-4 mm)
     r = np.linalg.norm(grid.points - centres[grid.frames][:, None], axis=-1)
     assert np.nanmax(np.abs(r - RADIUS)) < 0.005
@@ -74,7 +74,7 @@ def test_grid_points_lie_on_contours_and_centres_on_axis():
     assert 0.0 < grid.mean_resampling_distance_mm < 0.05
     # rays are at regular angles and the same index means the same direction
     assert np.allclose(np.diff(grid.angles), grid.angles[1] - grid.angles[0])
-    assert np.isclose(np.rad2deg(grid.angles[-1] - grid.angles[0]), 0.9 * 140, atol=1.0)
+    assert np.isclose(np.rad2deg(grid.angles[-1] - grid.angles[0]), 140, atol=1.0)
     # axis arc length ~ sweep length (60 mm of slightly bent tube)
     assert 60.0 < grid.axis_position[-1] < 62.0
 

@@ -56,14 +56,19 @@ class ResamplingParams:
         Rays per slice (paper II.C: 15). Count.
     angle_span_deg : float or None
         Angle between the first and last ray (degrees). ``None``: chosen from the data
-        as the median angular extent of the contours seen from their centres, so the
-        rays cover what the probe saw (ours, not the paper's, which gives no value).
+        (see ``auto_span_quantile``) so the rays cover what the probe saw (ours; the
+        paper gives no value).
     angle_step_deg : float or None
         Angle between consecutive rays (degrees); when given it overrides
         ``angle_span_deg`` (span = step x (n_rays - 1)). The paper calls it theta.
     angle_centre_deg : float or None
         Direction of the middle ray, degrees from "up" toward the column axis.
         ``None``: the middle of the data's median angular extent.
+    auto_span_quantile : float
+        For the automatic span: the rays run from this quantile of the slices' first
+        contour angles to the (1 - this) quantile of their last ones (0..0.5). 0.25:
+        the end rays hit in about three slices out of four; misses are trimmed away,
+        and a wider span keeps the surface out to where the gold points are.
     axis : str
         ``"spline"`` (robust smoothing spline, default, follows curved bones) or
         ``"line"`` (robust straight line, the paper's choice).
@@ -84,6 +89,7 @@ class ResamplingParams:
     angle_span_deg: float | None = None
     angle_step_deg: float | None = None
     angle_centre_deg: float | None = None
+    auto_span_quantile: float = 0.25
     axis: str = "spline"
     axis_bandwidth_mm: float = 5.0
     min_radius_mm: float = 1.0
@@ -491,15 +497,15 @@ def _ray_angles(q: np.ndarray, mask: np.ndarray, params: ResamplingParams) -> np
     ):
         ang = np.arctan2(q[..., 0], q[..., 1])  # from "up" toward lateral
         ang = np.where(mask, ang, np.nan)
-        lo = float(np.nanmedian(np.nanmin(ang, axis=1)))
-        hi = float(np.nanmedian(np.nanmax(ang, axis=1)))
+        qa = params.auto_span_quantile
+        lo = float(np.nanquantile(np.nanmin(ang, axis=1), qa))
+        hi = float(np.nanquantile(np.nanmax(ang, axis=1), 1.0 - qa))
     if params.angle_step_deg is not None:
         span = np.deg2rad(params.angle_step_deg) * (n - 1)
     elif params.angle_span_deg is not None:
         span = np.deg2rad(params.angle_span_deg)
     else:
-        # Slightly inside the median extent so the end rays hit in most slices.
-        span = 0.9 * (hi - lo)
+        span = hi - lo
     centre = (
         np.deg2rad(params.angle_centre_deg)
         if params.angle_centre_deg is not None
