@@ -688,3 +688,52 @@ def test_bad_input_raises_clear_error(tmp_path, name):
     assert "\n" not in msg
     named = kw.get("calibration") if "calibration" in name else path
     assert msg.startswith(f"{os.fspath(named)}: ") or msg.startswith(os.fspath(path))
+
+
+# ---------------------------------------------------------------------------------
+# Memory: big sweeps are mapped, not loaded (benchmark: benchmarks/bench_io.py)
+# ---------------------------------------------------------------------------------
+def _big_sweep_file(tmp_path: Path, n: int = 200, h: int = 400, w: int = 400) -> Path:
+    frame = np.random.default_rng(0).integers(0, 256, (h, w), dtype=np.uint8)
+    m = np.tile(np.diag([0.1, 0.1, 1.0, 1.0]), (n, 1, 1))
+    m[:, 2, 3] = np.arange(n) * 0.2
+    sweep = Sweep(np.broadcast_to(frame, (n, h, w)), m, np.arange(n) / 30.0, np.ones(n, bool))
+    return write_sweep(sweep, tmp_path / "big.mha")
+
+
+def test_read_allocates_far_less_than_the_data(tmp_path):
+    import tracemalloc
+
+    path = _big_sweep_file(tmp_path)  # 32 MB of pixels
+    tracemalloc.start()
+    try:
+        s = read_sweep(path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert s.frames.nbytes == 200 * 400 * 400
+    assert peak < 2 * 2**20, f"read_sweep allocated {peak / 2**20:.1f} MB"
+
+
+def _rss_file_kb() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("RssFile:"):
+            return int(line.split()[1])
+    raise AssertionError("no RssFile")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")
+def test_iter_frames_releases_mapped_pages(tmp_path):
+    path = _big_sweep_file(tmp_path)
+    s = read_sweep(path)
+    before = _rss_file_kb()
+    total = sum(int(f[::7, ::7].sum()) for _, f in s.iter_frames())
+    grown_iter = _rss_file_kb() - before
+    s2 = read_sweep(path)
+    before = _rss_file_kb()
+    total2 = sum(int(np.asarray(s2.frames[k])[::7, ::7].sum()) for k in range(s2.n_frames))
+    grown_index = _rss_file_kb() - before
+    assert total == total2
+    # Plain indexing keeps every touched page mapped (~31 MB); iter_frames does not.
+    assert grown_index > 20_000, grown_index
+    assert grown_iter < 10_000, grown_iter

@@ -19,7 +19,10 @@ Conventions (used everywhere in BoneUSRecon):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import mmap
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -210,6 +213,32 @@ class Sweep:
         t = t[np.isfinite(t)]  # frames without a timestamp field read as NaN
         return float(t.max() - t.min()) if t.size else 0.0
 
+    def iter_frames(
+        self, indices: np.ndarray | None = None, *, release_every: int = 32
+    ) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(k, frame)`` for the valid frames (or ``indices``), one at a time.
+
+        Each frame is a private C-contiguous ``uint8`` copy (``H x W``), so callers may
+        modify it. When the frames are a memory map, its pages are released every
+        ``release_every`` frames (``madvise(MADV_DONTNEED)``; they stay in the OS page
+        cache), so iterating a 600 MB sweep does not grow the resident set by 600 MB.
+
+        Examples
+        --------
+        >>> s = Sweep(np.zeros((3, 2, 4), np.uint8), np.tile(np.eye(4), (3, 1, 1)),
+        ...           np.zeros(3), np.array([True, False, True]))
+        >>> [k for k, _ in s.iter_frames()]
+        [0, 2]
+        """
+        idx = self.valid_indices if indices is None else np.asarray(indices, dtype=int)
+        mm = _backing_mmap(self.frames)
+        for count, k in enumerate(idx, start=1):
+            yield int(k), np.array(self.frames[k], dtype=np.uint8, order="C")
+            if mm is not None and count % max(1, release_every) == 0:
+                _release(mm)
+        if mm is not None:
+            _release(mm)
+
     def replace(self, **changes: Any) -> Sweep:
         """A copy with some fields replaced (frames are shared, not copied)."""
         return dataclasses.replace(self, **changes)
@@ -298,6 +327,22 @@ class Sweep:
             valid=np.ones(n, bool) if valid is None else valid,
             source=source,
         )
+
+
+def _backing_mmap(a: np.ndarray) -> mmap.mmap | None:
+    """The ``mmap`` behind a (view of a) ``numpy.memmap``, if any."""
+    mm = getattr(a, "_mmap", None)
+    # Never for copy-on-write ("c") maps: dropping their pages would lose changes.
+    if getattr(a, "mode", "c") not in ("r", "r+", "w+"):
+        return None
+    return mm if isinstance(mm, mmap.mmap) else None
+
+
+def _release(mm: mmap.mmap) -> None:
+    """Drop a read-only file mapping's pages from this process (not from the cache)."""
+    if hasattr(mm, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
+        with contextlib.suppress(OSError, ValueError):
+            mm.madvise(mmap.MADV_DONTNEED)
 
 
 def matrix_to_vtk(m: np.ndarray) -> vtkMatrix4x4:
