@@ -358,10 +358,16 @@ def scene_points(actors: dict[str, Any], max_points: int = 20000) -> np.ndarray:
 
     chunks = []
     for actor in actors.values():
-        data = actor.GetMapper().GetInput() if actor.GetMapper() is not None else None
-        if data is None or data.GetNumberOfPoints() == 0:
+        mapper = actor.GetMapper()
+        # pyvista feeds mappers through a pipeline that has not run before the first
+        # render, so GetInput() is still empty: use the dataset pyvista keeps.
+        data = getattr(mapper, "dataset", None)
+        if data is not None and data.GetNumberOfPoints():
+            chunks.append(numpy_support.vtk_to_numpy(data.GetPoints().GetData()))
             continue
-        chunks.append(numpy_support.vtk_to_numpy(data.GetPoints().GetData()))
+        b = np.asarray(actor.GetBounds(), dtype=float)
+        if np.all(np.isfinite(b)) and b[1] >= b[0]:
+            chunks.append(np.array([[x, y, z] for x in b[0:2] for y in b[2:4] for z in b[4:6]]))
     if not chunks:
         return np.zeros((1, 3))
     pts = np.concatenate(chunks).astype(float)
@@ -436,7 +442,7 @@ def png_bytes(image: np.ndarray) -> bytes:
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG", optimize=True)
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG")
     return buf.getvalue()
 
 

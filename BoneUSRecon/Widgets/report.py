@@ -44,7 +44,6 @@ __all__ = [
     "software_versions",
     "histogram_png",
     "table_png",
-    "contour_overlay",
     "sample_frames",
     "REPORT_MARKER",
     "PAPER_TABLE_I",
@@ -59,17 +58,18 @@ REPORT_MARKER = ".bone-us-recon-report"
 #: text (Sect. IV, "an error of 1,16mm") shows the values are millimetres.
 PAPER_TABLE_I: dict[int, float] = {5: 1.71, 10: 1.32, 15: 1.26, 20: 1.16}
 
-# Accuracy table rows: key of Evaluation.as_dict(), label, unit ("%" for fractions).
+# Accuracy table rows: key of Evaluation.as_dict() (also the evaluate command's JSON),
+# label, unit ("%" for shares in 0..1).
 _ACCURACY_ROWS = (
     ("n", "gold points", ""),
-    ("mean", "mean distance", "mm"),
-    ("rms", "RMS distance", "mm"),
-    ("median", "median distance", "mm"),
-    ("p95", "95th percentile", "mm"),
-    ("max", "maximum distance", "mm"),
-    ("within_0_5", "within 0.5 mm", "%"),
-    ("within_1", "within 1 mm", "%"),
-    ("within_2", "within 2 mm", "%"),
+    ("mean_mm", "mean distance", "mm"),
+    ("rms_mm", "RMS distance", "mm"),
+    ("median_mm", "median distance", "mm"),
+    ("p95_mm", "95th percentile", "mm"),
+    ("max_mm", "maximum distance", "mm"),
+    ("within_0_5mm", "within 0.5 mm", "%"),
+    ("within_1mm", "within 1 mm", "%"),
+    ("within_2mm", "within 2 mm", "%"),
 )
 
 
@@ -196,8 +196,9 @@ def histogram_png(distances: np.ndarray, evaluation: dict[str, Any] | None = Non
     bins = np.linspace(0.0, max(hi, 1e-3) * 1.0001, 41)
     ax.hist(d, bins=bins, color="#4a78b5", edgecolor="white", linewidth=0.5)
     if d.size:
-        mean = float(np.mean(d)) if evaluation is None else float(evaluation["mean"])
-        p95 = float(np.percentile(d, 95)) if evaluation is None else float(evaluation["p95"])
+        ev = evaluation or {}
+        mean = float(ev.get("mean_mm", np.mean(d)))
+        p95 = float(ev.get("p95_mm", np.percentile(d, 95)))
         ax.axvline(mean, color="#d62728", lw=1.5, label=f"mean {mean:.2f} mm")
         ax.axvline(p95, color="#ff7f0e", lw=1.5, ls="--", label=f"95th percentile {p95:.2f} mm")
         ax.legend(frameon=False)
@@ -243,46 +244,18 @@ def sample_frames(segmentation: Any, n_accepted: int = 6, n_rejected: int = 4) -
     return sorted(pick)
 
 
-def contour_overlay(frame: np.ndarray, contour_px: np.ndarray, *, accepted: bool,
-                    label: str, min_width: int = 320) -> np.ndarray:
-    """A B-mode frame with its contour drawn on it, as an RGB array.
+def _overlay_image(sweep: Any, contour: Any, truth_px: np.ndarray | None = None,
+                   min_width: int = 320) -> np.ndarray:
+    """One contour overlay (:func:`BoneUSRecon.Widgets.overlay.overlay_image`) as RGB."""
+    from BoneUSRecon.Widgets.overlay import overlay_image
 
-    Accepted contours are green; rejected ones red, with the frame outlined in red and
-    ``label`` (e.g. the rejection reason) on a banner. Small frames are enlarged
-    (nearest neighbour) to ``min_width`` so the picture stays readable.
-    """
-    from PIL import Image, ImageDraw
-
-    img = Image.fromarray(np.ascontiguousarray(frame, dtype=np.uint8)).convert("RGB")
-    scale = max(1, int(np.ceil(min_width / max(img.width, 1))))
-    if scale > 1:
-        img = img.resize((img.width * scale, img.height * scale), Image.Resampling.NEAREST)
-    draw = ImageDraw.Draw(img)
-    colour = (60, 220, 90) if accepted else (255, 59, 48)
-    pts = np.asarray(contour_px, dtype=float).reshape(-1, 2)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if len(pts):
-        # Pixel centres: pixel (i, j) covers [i, i+1) before scaling.
-        xy = [(float(x), float(y)) for x, y in (pts + 0.5) * scale]
-        if len(xy) > 1:
-            draw.line(xy, fill=colour, width=max(2, scale))
-        r = max(1.5, scale * 0.8)
-        for x, y in xy:
-            draw.ellipse((x - r, y - r, x + r, y + r), fill=colour)
-    w = max(2, scale)
-    if not accepted:
-        draw.rectangle((0, 0, img.width - 1, img.height - 1), outline=colour, width=w)
-    draw.rectangle((0, 0, img.width, 16), fill=(0, 0, 0))
-    draw.text((4, 2), label, fill=colour)
-    return np.asarray(img)
-
-
-def _overlay_image(sweep: Any, contour: Any) -> np.ndarray:
-    """One overlay; uses the segmentation's own overlay drawer when it provides one."""
     label = f"frame {contour.frame}: " + ("accepted" if contour.accepted
                                           else f"REJECTED ({contour.reason or 'no reason'})")
-    return contour_overlay(sweep.frames[contour.frame], contour.points_px,
-                           accepted=bool(contour.accepted), label=label)
+    scale = max(1, int(np.ceil(min_width / max(sweep.width, 1))))
+    img = overlay_image(sweep.frames[contour.frame], contour.points_px,
+                        accepted=bool(contour.accepted), label=label, truth_px=truth_px,
+                        scale=scale)
+    return np.asarray(img.convert("RGB"))
 
 
 def _png(image: np.ndarray) -> bytes:
@@ -302,7 +275,7 @@ th{background:#f4f4f4}td.num{text-align:right;font-variant-numeric:tabular-nums}
 figure{margin:.6em 0;display:inline-block;vertical-align:top}figcaption{color:#555;
 font-size:.9em;max-width:1000px}img{max-width:100%;border:1px solid #eee}
 .grid{display:flex;flex-wrap:wrap;gap:10px}.grid figure{width:32%;margin:0}
-.rejected figcaption{color:#c0392b;font-weight:bold}pre{background:#f7f7f7;padding:.8em;
+.rejected figcaption{color:#c0392b;font-weight:bold}.rejected img{border:3px solid #e74c3c}pre{background:#f7f7f7;padding:.8em;
 overflow-x:auto;font-size:.85em}.big{font-size:1.25em}
 """
 
@@ -412,12 +385,12 @@ def _jsonable(obj: Any) -> Any:
 
 
 def _evaluation_dict(evaluation: Any) -> tuple[dict[str, Any], np.ndarray]:
-    """``(numbers without distances, distances)`` from an Evaluation or a dict."""
-    d = evaluation.as_dict() if hasattr(evaluation, "as_dict") else dict(evaluation)
-    dist = getattr(evaluation, "distances", None)
-    if dist is None:
-        dist = d.get("distances", [])
-    d = {k: v for k, v in d.items() if k != "distances"}
+    """``(numbers without distances, distances)`` from an Evaluation or its as_dict()."""
+    if hasattr(evaluation, "as_dict"):
+        d, dist = evaluation.as_dict(), evaluation.distances
+    else:
+        d = dict(evaluation)
+        dist = d.pop("distances_mm", d.pop("distances", []))
     return _jsonable(d), np.asarray(dist, dtype=float)
 
 
@@ -470,6 +443,7 @@ def write_report(
     table: Sequence[tuple[int, float]] | None = None,
     parameters: dict[str, Any] | None = None,
     progress: ProgressCallback | None = None,
+    truth_px: Sequence[np.ndarray] | None = None,
 ) -> Path:
     """Write the HTML report of a reconstruction into the folder ``outdir``.
 
@@ -492,6 +466,9 @@ def write_report(
         The parameters to list (default: ``recon.params`` when it has them).
     progress : ProgressCallback, optional
         Called as ``progress("report", done, total)``.
+    truth_px : list of ndarray (K, 2), optional
+        Per frame (indexed by frame number) the true contour in pixels, e.g. a
+        simulation's ``true_contours_px``; drawn in yellow on the overlays.
 
     Returns
     -------
@@ -566,7 +543,7 @@ def write_report(
         tick()
         accuracy_html = (
             f'<p class="big">Mean distance from the gold points to the surface: '
-            f'<b id="headline-mean">{_num(ev.get("mean"), 2)} mm</b> '
+            f'<b id="headline-mean">{_num(ev.get("mean_mm"), 2)} mm</b> '
             f"(the paper reports 1.16 to 1.71 mm on its clavicle phantom).</p>"
             + _accuracy_rows(ev)
             + _img("histogram", figures["histogram"], "histogram of distances",
@@ -592,7 +569,8 @@ def write_report(
         tiles = []
         for k in sample_frames(seg):
             c = by_frame[k]
-            data = _png(_overlay_image(sweep, c))
+            truth = truth_px[k] if truth_px is not None and k < len(truth_px) else None
+            data = _png(_overlay_image(sweep, c, truth))
             figures[f"frame_{k:04d}"] = data
             cap = (f"frame {k}: accepted, {len(c.points_px)} points, confidence "
                    f"{_num(getattr(c, 'confidence', float('nan')), 2)}" if c.accepted
@@ -602,7 +580,9 @@ def write_report(
         n_rej = summary.get("frames_rejected", 0)
         overlay_html = (f"<p>{len(tiles)} frames of {len(by_frame)} segmented "
                         f"({n_rej} rejected in all; rejected frames are outlined in red, "
-                        "accepted contours drawn in green).</p>"
+                        "accepted contours drawn in green"
+                        + ("; the true contour in yellow" if truth_px is not None else "")
+                        + ").</p>"
                         f'<div class="grid">{"".join(tiles)}</div>')
     tick()
 
