@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from test_sequence_io import (
     BAD_NAMES,
-    N,
     REAL_MHA,
     REAL_XML,
+    N,
     bad_case,
     image_to_probe,
     make_file,

@@ -737,3 +737,19 @@ def test_iter_frames_releases_mapped_pages(tmp_path):
     # Plain indexing keeps every touched page mapped (~31 MB); iter_frames does not.
     assert grown_index > 20_000, grown_index
     assert grown_iter < 10_000, grown_iter
+
+
+def test_crlf_header_and_header_size(tmp_path):
+    frames = frames_u8()
+    fields = build_fields(frames)
+    text = "".join(f"{k} = {v}\r\n" for k, v in fields)
+    (tmp_path / "crlf.mha").write_bytes(text.encode() + pixel_bytes(frames))
+    assert np.array_equal(read_sweep(tmp_path / "crlf.mha").frames, frames)
+    # .mhd whose data file starts with a 100-byte preamble skipped by HeaderSize.
+    fields = set_field(fields, "ElementDataFile", None) + [["HeaderSize", "100"], ["ElementDataFile", "d.raw"]]
+    path = write_file(tmp_path / "h.mhd", fields, b"")
+    (tmp_path / "d.raw").write_bytes(b"\0" * 100 + pixel_bytes(frames))
+    assert np.array_equal(read_sweep(path).frames, frames)
+    fields = [kv if kv[0] != "HeaderSize" else ["HeaderSize", "-1"] for kv in fields]
+    path = write_file(tmp_path / "h2.mhd", fields, b"")
+    assert np.array_equal(read_sweep(path).frames, frames)  # -1: data at the end

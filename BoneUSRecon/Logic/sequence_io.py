@@ -617,7 +617,6 @@ def sweep_transforms(
         The chain used, e.g. ``"inv(ReferenceToTracker) * ProbeToTracker * ImageToProbe"``.
     """
     path = hdr.path
-    n = hdr.n_frames
     edges: dict[str, tuple[str, str]] = {}
     sources: dict[str, str] = {}
     for key in hdr.frame_fields:
@@ -712,7 +711,7 @@ def _compose(
         if inverted:
             link = _invert(link)
         total = link.matrices @ total
-        problems = [p or q for p, q in zip(problems, link.problem)]
+        problems = [p or q for p, q in zip(problems, link.problem, strict=True)]
 
     # Frame-level checks on the composed pose: finite, affine, non-degenerate plane.
     finite = np.all(np.isfinite(total), axis=(1, 2))

@@ -28,10 +28,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from vtkmodules.util import numpy_support
-from vtkmodules.vtkCommonMath import vtkMatrix4x4
 from vtkmodules.vtkCommonDataModel import vtkImageData
+from vtkmodules.vtkCommonMath import vtkMatrix4x4
 from vtkmodules.vtkCommonTransforms import vtkTransform
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
@@ -299,7 +298,7 @@ class Sweep:
         if not images:
             raise BoneUSReconError("the sweep has zero frames", source)
         frames, mats = [], []
-        for img, tr in zip(images, transforms):
+        for img, tr in zip(images, transforms, strict=True):
             w, h, d = img.GetDimensions()
             if d != 1:
                 raise BoneUSReconError(f"expected 2D frames, got dimensions {(w, h, d)}", source)
