@@ -1,0 +1,51 @@
+"""Phantom simulator: tracked freehand sweeps over a bone with a known true surface.
+
+Our ground truth for tests, benchmarks and the demo. Small files, one per stage:
+
+* :mod:`.bones` -- the bones as smooth generalised cylinders (analytic surface,
+  exact point-to-surface distance, dense mesh).
+* :mod:`.motion` -- the freehand probe path (poses per frame).
+* :mod:`.sections` -- where each image plane cuts the bone (the true contours).
+* :mod:`.imaging` -- B-mode image formation (speckle, tissue, bone echo, shadow).
+* :mod:`.corruption` -- frames that fool a per-frame segmenter.
+* :mod:`.core` -- :func:`simulate` and :func:`write_simulation`.
+
+Examples
+--------
+>>> from BoneUSRecon.Logic.simulation import SimulationParams, simulate
+>>> sim = simulate(SimulationParams(bone="ulna", n_frames=8, width=64, height=64, spacing_mm=0.6))
+>>> float(sim.distance_to_truth(sim.geometry.surface(50.0, 1.0)[None])[0]) < 1e-6
+True
+"""
+
+from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, BoneGeometry, BoneSpec
+from BoneUSRecon.Logic.simulation.core import (
+    SIMULATOR_VERSION,
+    Simulation,
+    check_params,
+    simulate,
+    simulation_info,
+    write_simulation,
+)
+from BoneUSRecon.Logic.simulation.params import (
+    BONES,
+    CORRUPTION_KINDS,
+    ImagingParams,
+    SimulationParams,
+)
+
+__all__ = [
+    "BONES",
+    "BONE_SPECS",
+    "CORRUPTION_KINDS",
+    "SIMULATOR_VERSION",
+    "BoneGeometry",
+    "BoneSpec",
+    "ImagingParams",
+    "Simulation",
+    "SimulationParams",
+    "check_params",
+    "simulate",
+    "simulation_info",
+    "write_simulation",
+]

@@ -1,0 +1,328 @@
+"""The simulator's entry points: :func:`simulate` and :func:`write_simulation`."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from vtkmodules.util import numpy_support
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+
+from BoneUSRecon import __version__
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.fileio import atomic_path
+from BoneUSRecon.Logic.progress import ProgressCallback, report
+from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, UP, BoneGeometry
+from BoneUSRecon.Logic.simulation.corruption import choose_corrupted
+from BoneUSRecon.Logic.simulation.imaging import render_frames
+from BoneUSRecon.Logic.simulation.motion import ProbePath, probe_path
+from BoneUSRecon.Logic.simulation.params import BONES, SimulationParams
+from BoneUSRecon.Logic.simulation.sections import BoneSections, bone_sections, visible_contours
+from BoneUSRecon.Logic.sweep import Sweep
+
+__all__ = ["Simulation", "simulate", "write_simulation", "check_params"]
+
+#: Version of the simulation model, written to ``simulation.json``; bump when the
+#: images or geometry for a given seed change.
+SIMULATOR_VERSION = 1
+
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """A simulated sweep with its ground truth.
+
+    Attributes
+    ----------
+    sweep : Sweep
+        The tracked sweep (``valid`` all True unless ``invalid_fraction > 0``).
+    params : SimulationParams
+    truth_vertices : ndarray (V, 3)
+        Dense triangulation of the true bone surface (mm, reference frame); within
+        0.003 mm of the analytic surface.
+    truth_faces : ndarray (F, 3)
+        Triangles (vertex indices, outward-oriented).
+    gold : ndarray (K, 3)
+        Digitised points on the imaged upper bone surface, with ``gold_noise_mm`` noise.
+    corrupted : ndarray of int
+        Indices of the corrupted frames, increasing.
+    corruption_kinds : dict[int, str]
+        Kind of each corrupted frame (see :mod:`.corruption`).
+    true_contours_px : list of ndarray (K, 2)
+        Per frame, the visible bone contour in pixels ``(i, j)``, ordered by increasing
+        ``i``; empty ``(0, 2)`` when no bone is in view.
+    geometry : BoneGeometry
+        The analytic bone (exact distances, normals).
+    path : ProbePath
+        The probe motion (axis parameter, tilts, lateral offset, depth per frame).
+    sections : BoneSections
+        Bone row and incidence cosine per frame and column (also outside the visible part).
+    swept_range_mm : (float, float)
+        Range of the bone axis parameter the sweep imaged.
+    """
+
+    sweep: Sweep
+    params: SimulationParams
+    truth_vertices: np.ndarray
+    truth_faces: np.ndarray
+    gold: np.ndarray
+    corrupted: np.ndarray
+    corruption_kinds: dict[int, str]
+    true_contours_px: list[np.ndarray]
+    geometry: BoneGeometry
+    path: ProbePath
+    sections: BoneSections
+    swept_range_mm: tuple[float, float]
+
+    def truth_polydata(self) -> vtkPolyData:
+        """The true bone surface as triangles with outward point ``Normals``."""
+        pd = vtkPolyData()
+        pts = vtkPoints()
+        pts.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(self.truth_vertices, float), deep=True))
+        pd.SetPoints(pts)
+        f = self.truth_faces
+        offsets = np.arange(0, 3 * len(f) + 1, 3, dtype=np.int64)
+        cells = vtkCellArray()
+        cells.SetData(
+            numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
+            numpy_support.numpy_to_vtkIdTypeArray(np.ascontiguousarray(f, np.int64).reshape(-1), deep=True),
+        )
+        pd.SetPolys(cells)
+        s, phi = self.geometry.mesh_params(*_MESH)
+        nrm = self.geometry.normals(s[:, None], phi[None, :]).reshape(-1, 3)
+        arr = numpy_support.numpy_to_vtk(np.ascontiguousarray(nrm), deep=True)
+        arr.SetName("Normals")
+        pd.GetPointData().SetNormals(arr)
+        return pd
+
+    def distance_to_truth(self, points: np.ndarray) -> np.ndarray:
+        """Unsigned distance (mm) from each point ``(K, 3)`` to the true bone surface.
+
+        Exact projection onto the analytic surface (Newton), accurate to ~1e-6 mm.
+        """
+        return self.geometry.distance(np.asarray(points, float).reshape(-1, 3))
+
+    def contour_mm(self, frame: int) -> np.ndarray:
+        """The true visible contour of ``frame`` in reference mm, shape (K, 3)."""
+        return self.sweep.to_reference(frame, self.true_contours_px[frame])
+
+
+# (ds mm, points around) of the truth mesh: see BoneGeometry.mesh for the error bound.
+_MESH = (0.5, 192)
+
+
+def check_params(params: SimulationParams) -> None:
+    """Raise :class:`BoneUSReconError` for parameters the simulator cannot honour."""
+    p = params
+    if p.bone not in BONES:
+        raise BoneUSReconError(f"unknown bone {p.bone!r}; choose one of {', '.join(BONES)}")
+    if int(p.n_frames) < 2:
+        raise BoneUSReconError(f"need at least 2 frames, got {p.n_frames}")
+    if int(p.width) < 16 or int(p.height) < 16:
+        raise BoneUSReconError(f"images must be at least 16 x 16 pixels, got {p.height} x {p.width}")
+    if not (np.isfinite(p.spacing_mm) and p.spacing_mm > 0):
+        raise BoneUSReconError(f"pixel spacing must be a positive number of mm, got {p.spacing_mm}")
+    for name in ("corrupted_fraction", "invalid_fraction"):
+        v = getattr(p, name)
+        if not (0.0 <= v <= 1.0):
+            raise BoneUSReconError(f"{name.replace('_', ' ')} must be between 0 and 1, got {v}")
+    if p.gold_points < 0 or p.gold_noise_mm < 0:
+        raise BoneUSReconError("gold points and gold noise must not be negative")
+    spec = BONE_SPECS[p.bone]
+    if 2 * p.sweep_margin_mm >= spec.length_mm:
+        raise BoneUSReconError(f"sweep margin {p.sweep_margin_mm} mm leaves nothing of the {spec.length_mm} mm {p.bone} to sweep")
+    need = spec.depth_mm + 3 * p.depth_jitter_mm + 4.0
+    have = p.height * p.spacing_mm
+    if need > have:
+        raise BoneUSReconError(
+            f"the image is {have:.1f} mm deep but the {p.bone} lies {spec.depth_mm:g} mm under the skin "
+            f"(needs about {need:.0f} mm to show it and its shadow); raise --height or --spacing"
+        )
+
+
+def _sample_gold(
+    geom: BoneGeometry, s_range: tuple[float, float], params: SimulationParams, rng: np.random.Generator
+) -> np.ndarray:
+    """Uniform-by-area points on the upward-facing surface within the swept range, plus noise.
+
+    "Upward-facing" uses the same threshold as the visible contours
+    (``normal . up >= visible_cos``): the part of the bone the probe images and a
+    surgeon's digitiser can reach from above.
+    """
+    k = int(params.gold_points)
+    if k == 0:
+        return np.empty((0, 3))
+    s = np.linspace(*s_range, max(int((s_range[1] - s_range[0]) / 0.25), 2))
+    phi = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    S, PH = np.meshgrid(s, phi, indexing="ij")
+    _, Ps, Pp = geom.derivatives(S, PH)
+    cr = np.cross(Pp, Ps)
+    area = np.linalg.norm(cr, axis=-1)
+    up = (cr @ UP) / area
+    w = np.where(up >= params.imaging.visible_cos, area, 0.0).reshape(-1)
+    cell = rng.choice(w.size, size=k, p=w / w.sum())
+    ds, dphi = s[1] - s[0], phi[1] - phi[0]
+    ss = np.clip(S.reshape(-1)[cell] + rng.uniform(-0.5, 0.5, k) * ds, *s_range)
+    pp = PH.reshape(-1)[cell] + rng.uniform(-0.5, 0.5, k) * dphi
+    pts = geom.surface(ss, pp)
+    return pts + rng.normal(0.0, params.gold_noise_mm, pts.shape)
+
+
+def simulate(params: SimulationParams = SimulationParams(), progress: ProgressCallback | None = None) -> Simulation:
+    """Simulate a tracked freehand sweep over a bone, with its ground truth.
+
+    Deterministic for a given ``params`` (including ``seed``): each random component
+    (motion, tissue, speckle per frame, corruption, gold, validity) has its own
+    generator seeded from ``(seed, component)``.
+
+    Parameters
+    ----------
+    params : SimulationParams
+    progress : callable, optional
+        Called as ``progress(stage, done, total)``.
+
+    Returns
+    -------
+    Simulation
+
+    Raises
+    ------
+    BoneUSReconError
+        Parameters out of range (unknown bone, fewer than 2 frames, an image too
+        shallow to show the bone, ...).
+
+    Examples
+    --------
+    >>> sim = simulate(SimulationParams(bone="radius", n_frames=10, width=64, height=64, spacing_mm=0.6))
+    >>> sim.sweep.frames.shape
+    (10, 64, 64)
+    """
+    check_params(params)
+    seed = int(params.seed)
+    geom = BoneGeometry(BONE_SPECS[params.bone])
+    report(progress, "geometry", 0, 3)
+    path = probe_path(geom, params, np.random.default_rng([seed, 1]))
+    sections = bone_sections(geom, path.image_to_reference, path.s, int(params.width))
+    report(progress, "geometry", 1, 3)
+    kinds = choose_corrupted(int(params.n_frames), float(params.corrupted_fraction), np.random.default_rng([seed, 4]))
+    frames = render_frames(path.image_to_reference, sections.top_j, sections.cos_incidence, params, kinds, progress)
+    hidden = {k for k, v in kinds.items() if v == "contact_loss"}
+    contours = visible_contours(sections, int(params.height), params.imaging.visible_cos, hidden)
+
+    # The part of the bone the sweep imaged: between the extreme sections that showed bone.
+    seen = np.array([c.shape[0] > 0 for c in contours])
+    sr = sections.s_range[seen] if seen.any() else sections.s_range
+    swept = (float(max(sr.min(), 0.0)), float(min(sr.max(), geom.length)))
+    gold = _sample_gold(geom, swept, params, np.random.default_rng([seed, 5]))
+    report(progress, "geometry", 2, 3)
+    verts, faces = geom.mesh(*_MESH)
+
+    n = int(params.n_frames)
+    valid = np.ones(n, bool)
+    reasons: dict[int, str] = {}
+    n_bad = int(round(params.invalid_fraction * n))
+    if n_bad:
+        bad = np.random.default_rng([seed, 6]).choice(n, size=n_bad, replace=False)
+        valid[bad] = False
+        reasons = {int(k): "ImageToReference status INVALID (simulated tracking loss)" for k in sorted(bad)}
+    sweep = Sweep(
+        frames=frames,
+        image_to_reference=path.image_to_reference,
+        timestamps=path.timestamps,
+        valid=valid,
+        source=None,
+        transform_name="ImageToReference",
+        invalid_reasons=reasons,
+        metadata={"simulated": True, "bone": params.bone, "seed": seed, "UltrasoundImageOrientation": "MF"},
+    )
+    report(progress, "geometry", 3, 3)
+    return Simulation(
+        sweep=sweep,
+        params=params,
+        truth_vertices=verts,
+        truth_faces=faces,
+        gold=gold,
+        corrupted=np.array(sorted(kinds), dtype=int),
+        corruption_kinds=dict(kinds),
+        true_contours_px=contours,
+        geometry=geom,
+        path=path,
+        sections=sections,
+        swept_range_mm=swept,
+    )
+
+
+def simulation_info(sim: Simulation) -> dict[str, Any]:
+    """The JSON-able description written to ``simulation.json``."""
+    spec = sim.geometry.spec
+    a, b = sim.geometry.semi_axes(np.linspace(*sim.swept_range_mm, 50))
+    return {
+        "simulator_version": SIMULATOR_VERSION,
+        "package_version": __version__,
+        "seed": int(sim.params.seed),
+        "parameters": asdict(sim.params),
+        "bone": {
+            **asdict(spec),
+            "swept_range_mm": list(sim.swept_range_mm),
+            "width_range_mm": [float(2 * a.min()), float(2 * a.max())],
+            "height_range_mm": [float(2 * b.min()), float(2 * b.max())],
+        },
+        "frames": sim.sweep.n_frames,
+        "spacing_mm": [float(v) for v in sim.sweep.spacing_mm],
+        "corrupted_frames": [int(k) for k in sim.corrupted],
+        "corruption_kinds": {str(k): v for k, v in sim.corruption_kinds.items()},
+        "invalid_frames": [int(k) for k in np.flatnonzero(~sim.sweep.valid)],
+        "frames_with_visible_bone": int(sum(c.shape[0] > 0 for c in sim.true_contours_px)),
+        "gold_points": int(sim.gold.shape[0]),
+        "reference_frame": "x along the bone, y lateral, z up (towards the skin); mm",
+    }
+
+
+def write_simulation(
+    sim: Simulation, outdir: str | os.PathLike[str], progress: ProgressCallback | None = None
+) -> dict[str, Path]:
+    """Write ``sweep.mha``, ``truth.vtp``, ``gold.csv`` and ``simulation.json`` to ``outdir``.
+
+    The folder is created if needed; every file is written atomically.
+
+    Returns
+    -------
+    dict
+        ``{"sweep", "truth", "gold", "json"}`` -> written paths.
+
+    Raises
+    ------
+    BoneUSReconError
+        The folder cannot be created or written.
+    """
+    from BoneUSRecon.Logic.sequence_io import write_sweep
+    from BoneUSRecon.Logic.vtkio import write_points_csv, write_polydata
+
+    out = Path(outdir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise BoneUSReconError("output path exists and is not a folder", out) from None
+    except OSError as exc:
+        raise BoneUSReconError(f"cannot create the output folder ({exc.strerror or exc})", out) from None
+    paths = {
+        "sweep": out / "sweep.mha",
+        "truth": out / "truth.vtp",
+        "gold": out / "gold.csv",
+        "json": out / "simulation.json",
+    }
+    report(progress, "writing", 0, 4)
+    write_sweep(sim.sweep, paths["sweep"])
+    report(progress, "writing", 1, 4)
+    write_polydata(sim.truth_polydata(), paths["truth"])
+    report(progress, "writing", 2, 4)
+    write_points_csv(sim.gold, paths["gold"])
+    report(progress, "writing", 3, 4)
+    with atomic_path(paths["json"]) as tmp:
+        tmp.write_text(json.dumps(simulation_info(sim), indent=2) + "\n", encoding="utf-8")
+    report(progress, "writing", 4, 4)
+    return paths

@@ -1,0 +1,101 @@
+"""Parameters of the phantom simulator (frozen dataclasses, every field documented)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+__all__ = ["BONES", "CORRUPTION_KINDS", "ImagingParams", "SimulationParams"]
+
+#: The bones the simulator knows (the long bones of the paper's introduction).
+BONES = ("radius", "ulna", "tibia", "humerus", "clavicle")
+
+#: Kinds of corrupted frames: the failures of a per-frame segmenter.
+CORRUPTION_KINDS = ("shadow_clutter", "false_echo", "contact_loss")
+
+
+@dataclass(frozen=True)
+class ImagingParams:
+    """Image formation. Amplitudes are relative to the RMS echo of muscle (= 1)."""
+
+    #: Transmit frequency (MHz): the paper's 7.5 MHz linear probe.
+    frequency_mhz: float = 7.5
+    #: Axial PSF sigma (mm): ~1.5 wavelengths pulse at 7.5 MHz -> FWHM ~0.3 mm.
+    psf_axial_mm: float = 0.13
+    #: Lateral PSF sigma (mm): F-number ~2 beam at 7.5 MHz -> FWHM ~0.7 mm.
+    psf_lateral_mm: float = 0.3
+    #: Smallest PSF sigma in pixels: speckle is never finer than the pixel grid (scan conversion).
+    psf_min_px: float = 0.6
+    #: Soft-tissue attenuation (dB/cm/MHz), textbook value.
+    attenuation_db_cm_mhz: float = 0.5
+    #: Fraction of the round-trip attenuation the TGC compensates (unitless).
+    tgc_compensation: float = 0.8
+    #: Displayed dynamic range of the log compression (dB), typical MSK preset.
+    dynamic_range_db: float = 50.0
+    #: Echo level shown as white (dB re the muscle RMS echo): sets the overall gain so
+    #: muscle is mid-dark grey (~90) and bone near white, as on a scanner's MSK preset.
+    display_max_db: float = 30.0
+    #: Echo amplitude of the skin line (dermis).
+    skin_amplitude: float = 3.0
+    #: Echo amplitude of subcutaneous fat (hypoechoic).
+    fat_amplitude: float = 0.35
+    #: Peak amplitude of a fascia line (bright, thin, no shadow: the distractor).
+    fascia_amplitude: float = 6.0
+    #: Peak amplitude of the bone echo at normal incidence (the brightest thing).
+    bone_amplitude: float = 16.0
+    #: Exponent of cos(incidence) in the bone echo: specular reflection fades fast off-normal.
+    specular_exponent: float = 2.0
+    #: Axial sigma of the bone line (mm): a bit thicker than the PSF (cortical reverberation).
+    bone_line_mm: float = 0.18
+    #: Amplitude transmitted into the acoustic shadow below bone (bone reflects ~all).
+    shadow_transmission: float = 0.03
+    #: Electronic noise floor (amplitude): the faint grain in shadows.
+    noise_floor: float = 0.15
+    #: Bone points with cos(incidence) below this are not part of the visible contour.
+    visible_cos: float = 0.5
+
+
+@dataclass(frozen=True)
+class SimulationParams:
+    """One simulated freehand sweep over one bone.
+
+    Defaults give the issue's reference sweep: 150 frames of 256 x 320 pixels at
+    0.15 mm (a 38 x 48 mm field of view, usual for a 7.5 MHz linear probe).
+    """
+
+    #: Which bone (one of :data:`BONES`).
+    bone: str = "clavicle"
+    #: Number of frames (the paper: 50 to 250 images per sweep).
+    n_frames: int = 150
+    #: Image width in pixels (columns, lateral).
+    width: int = 320
+    #: Image height in pixels (rows, depth).
+    height: int = 256
+    #: Pixel spacing (mm), the same along columns and rows.
+    spacing_mm: float = 0.15
+    #: Fraction of frames corrupted (clutter in shadow, false echo, contact loss); the
+    #: paper saw ~10 % bad frames on real forearms.
+    corrupted_fraction: float = 0.0
+    #: Fraction of frames flagged invalid (tracking lost: TransformStatus INVALID).
+    invalid_fraction: float = 0.0
+    #: Random seed: everything random (motion, tissue, speckle, corruption, gold) follows it.
+    seed: int = 0
+    #: Sweep from the far end of the bone back to the near end.
+    reverse: bool = False
+    #: Standard deviation of each probe tilt angle (degrees): freehand slices are not parallel.
+    tilt_deg: float = 4.0
+    #: Standard deviation of the probe's lateral wander off the bone (mm).
+    lateral_jitter_mm: float = 1.5
+    #: Standard deviation of the probe pressure variation, i.e. of the bone depth (mm).
+    depth_jitter_mm: float = 0.7
+    #: Relative standard deviation of the sweep speed (unitless): uneven hand speed.
+    speed_variation: float = 0.4
+    #: Frame rate (Hz), for the timestamps.
+    frame_rate_hz: float = 20.0
+    #: Length left unswept at each end of the bone segment (mm).
+    sweep_margin_mm: float = 10.0
+    #: Number of digitised gold-standard points (the paper: 1145).
+    gold_points: int = 1145
+    #: Standard deviation of the digitiser noise, per axis (mm).
+    gold_noise_mm: float = 0.2
+    #: Image formation parameters.
+    imaging: ImagingParams = field(default_factory=ImagingParams)

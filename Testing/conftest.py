@@ -1,0 +1,56 @@
+"""Shared fixtures: small simulated sweeps with known ground truth.
+
+Sessions share them (simulated once per test run), so tests stay fast. The small
+sweeps keep the reference field of view (38.4 mm deep x 48 mm wide) at 0.3 mm pixels.
+Fixtures are read-only by convention: never modify a simulation's arrays in a test.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
+
+#: Parameters of the small sweeps: 40 frames of 128 rows x 160 columns at 0.3 mm.
+SMALL: dict[str, Any] = {
+    "bone": "clavicle",
+    "n_frames": 40,
+    "width": 160,
+    "height": 128,
+    "spacing_mm": 0.3,
+}
+
+_CACHE: dict[tuple[tuple[str, Any], ...], Simulation] = {}
+
+
+def small_simulation(**params: Any) -> Simulation:
+    """Simulate with :data:`SMALL` defaults overridden by ``params``; cached per parameter set."""
+    full = {**SMALL, **params}
+    key = tuple(sorted(full.items()))
+    if key not in _CACHE:
+        _CACHE[key] = simulate(SimulationParams(**full))
+    return _CACHE[key]
+
+
+@pytest.fixture(scope="session")
+def sim_small() -> Simulation:
+    """Clavicle, 40 frames, 128 x 160 pixels at 0.3 mm, no corruption, seed 0."""
+    return small_simulation(seed=0)
+
+
+@pytest.fixture(scope="session")
+def sim_small_corrupted() -> Simulation:
+    """As :func:`sim_small` with 10 % corrupted frames (4 frames, all three kinds), seed 1."""
+    return small_simulation(seed=1, corrupted_fraction=0.1)
+
+
+@pytest.fixture(scope="session")
+def sim_factory() -> Callable[..., Simulation]:
+    """``sim_factory(**params)``: a cached small simulation (defaults :data:`SMALL`).
+
+    Example: ``sim_factory(bone="radius", seed=3, reverse=True)``.
+    """
+    return small_simulation
