@@ -153,3 +153,37 @@ def test_mhd_data_files(data_file, compressed, cut):
     fields[-1][1] = data_file
     payload = (ZRAW if compressed else RAW)[: len(RAW) - cut]
     _read(_text(fields), name="s.mhd", extra={"data.raw": payload, "data.zraw": payload})
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    shape=st.tuples(st.integers(1, 5), st.integers(1, 7), st.integers(1, 9)),
+    seed=st.integers(0, 2**32 - 1),
+    name=st.sampled_from(["s.mha", "s.mhd"]),
+    compress=st.booleans(),
+    data=st.data(),
+)
+def test_round_trip_property(shape, seed, name, compress, data):
+    """Any sweep written and read back has the same frames, poses, times and validity."""
+    from scipy.spatial.transform import Rotation
+
+    from BoneUSRecon.Logic.sequence_io import write_sweep
+
+    n, h, w = shape
+    rng = np.random.default_rng(seed)
+    m = np.tile(np.eye(4), (n, 1, 1))
+    m[:, :3, :3] = Rotation.random(n, random_state=seed).as_matrix() * rng.uniform(0.01, 2, (n, 1, 3))
+    m[:, :3, 3] = rng.normal(0, 1e3, (n, 3))
+    valid = np.array(data.draw(st.lists(st.booleans(), min_size=n, max_size=n)))
+    valid[rng.integers(n)] = True
+    times = np.array(
+        data.draw(st.lists(st.floats(-1e9, 1e9, allow_nan=False), min_size=n, max_size=n))
+    )
+    sweep = Sweep(rng.integers(0, 256, (n, h, w), dtype=np.uint8), m, times, valid)
+    with tempfile.TemporaryDirectory() as d:
+        back = read_sweep(write_sweep(sweep, Path(d) / name, compress=compress))
+        assert np.array_equal(np.asarray(back.frames), sweep.frames)
+        assert np.array_equal(back.image_to_reference[valid], m[valid])
+        assert np.array_equal(back.timestamps, times)
+        assert np.array_equal(back.valid, valid)
+        del back  # release the memory map before the folder goes

@@ -20,6 +20,11 @@ compressed data with a streaming :mod:`zlib` decompressor straight into the outp
 buffer (a temporary file-backed map for very large sweeps). It also gives one-line
 errors that name the problem. SimpleITK serves as the test oracle on the same files.
 
+Touched pages of a memory map count in the process's resident set until the OS
+reclaims them; :meth:`Sweep.iter_frames` releases them as it goes, so a consumer that
+walks all frames through it keeps its footprint flat (``Testing/benchmarks/bench_io.py``:
+2,000 frames of 640x480 read in 0.16 s and iterated with no growth of peak RSS).
+
 Image orientation
 -----------------
 ``UltrasoundImageOrientation`` says how the stored image axes relate to the
