@@ -405,6 +405,8 @@ def test_named_transforms(tmp_path):
         read_sweep(path, calibration=xml, transform="StylusToTracker")
     with pytest.raises(BoneUSReconError, match="not a transform name"):
         read_sweep(path, transform="reference")
+    with pytest.raises(BoneUSReconError, match="to itself"):
+        read_sweep(path, transform="ImageToImage")
     with pytest.raises(BoneUSReconError, match="from Image to Patient"):
         read_sweep(path, calibration=xml, transform="ImageToPatient")
 
@@ -535,6 +537,24 @@ def test_real_recording():
     # Pixels agree with SimpleITK.
     truth = sitk.GetArrayFromImage(sitk.ReadImage(str(REAL_MHA)))
     assert np.array_equal(s.frames, truth)
+
+
+@needs_real
+def test_real_recording_all_poses_match_simpleitk_metadata():
+    """Every frame's pose, recomposed from the fields as SimpleITK reads them."""
+    s = read_sweep(REAL_MHA, calibration=REAL_XML)
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(REAL_MHA))
+    reader.ReadImageInformation()
+
+    def field(k, name):
+        return np.array(reader.GetMetaData(f"Seq_Frame{k:04d}_{name}").split(), float).reshape(4, 4)
+
+    for k in range(21):
+        ref = np.linalg.inv(field(k, "ReferenceToTrackerTransform"))
+        expected = ref @ field(k, "ProbeToTrackerTransform") @ REAL_CALIB
+        assert np.allclose(s.image_to_reference[k], expected, atol=1e-9)
+        assert s.timestamps[k] == float(reader.GetMetaData(f"Seq_Frame{k:04d}_Timestamp"))
 
 
 @needs_real

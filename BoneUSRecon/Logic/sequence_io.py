@@ -653,6 +653,8 @@ def sweep_transforms(
             f"--transform {transform!r} is not a transform name like ImageToReference", path
         )
     a, b = ab
+    if a == b:
+        raise BoneUSReconError(f"--transform {transform!r} maps a frame to itself", path)
     if a == "Image":
         steps = _find_path(edges, "Image", b)
     elif target_name in edges:
