@@ -66,9 +66,10 @@ class ResamplingParams:
         ``None``: the middle of the data's median angular extent.
     auto_span_quantile : float
         For the automatic span: the rays run from this quantile of the slices' first
-        contour angles to the (1 - this) quantile of their last ones (0..0.5). 0.25:
-        the end rays hit in about three slices out of four; misses are trimmed away,
-        and a wider span keeps the surface out to where the gold points are.
+        contour angles to the (1 - this) quantile of their last ones (0..0.5). 0.1:
+        the end rays still hit in most slices; misses are trimmed away, and the wider
+        span keeps the surface out to the edges of the imaged bone (measured on the
+        simulated clavicle: mean gold distance 0.23 mm at 0.5, 0.19 mm at 0.1).
     axis : str
         ``"spline"`` (robust smoothing spline, default, follows curved bones) or
         ``"line"`` (robust straight line, the paper's choice).
@@ -89,7 +90,7 @@ class ResamplingParams:
     angle_span_deg: float | None = None
     angle_step_deg: float | None = None
     angle_centre_deg: float | None = None
-    auto_span_quantile: float = 0.25
+    auto_span_quantile: float = 0.1
     axis: str = "spline"
     axis_bandwidth_mm: float = 5.0
     min_radius_mm: float = 1.0
