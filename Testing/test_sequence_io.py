@@ -773,3 +773,24 @@ def test_crlf_header_and_header_size(tmp_path):
     fields = [kv if kv[0] != "HeaderSize" else ["HeaderSize", "-1"] for kv in fields]
     path = write_file(tmp_path / "h2.mhd", fields, b"")
     assert np.array_equal(read_sweep(path).frames, frames)  # -1: data at the end
+
+
+# ---------------------------------------------------------------------------------
+# Intensity mapping details
+# ---------------------------------------------------------------------------------
+def test_to_uint8_nan_and_chunking(monkeypatch):
+    import BoneUSRecon.Logic.intensity as inten
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(1000, 300, (12, 20, 30)).astype(np.float32)
+    a[0, 0, 0] = np.nan
+    whole = inten.to_uint8(a)
+    monkeypatch.setattr(inten, "_CHUNK_BYTES", 1)  # one frame per chunk
+    assert np.array_equal(inten.to_uint8(a), whole)
+    assert whole[0, 0, 0] == 0
+    lo, hi = np.percentile(a[np.isfinite(a)], [0.5, 99.5])
+    ref = np.clip(np.rint((a - lo) * 255 / (hi - lo)), 0, 255)
+    finite = np.isfinite(a)
+    assert np.abs(whole[finite].astype(float) - ref[finite]).max() <= 1
+    assert np.array_equal(inten.to_uint8(np.full((2, 3, 4), np.nan)), np.zeros((2, 3, 4), np.uint8))
+    assert np.array_equal(inten.to_uint8(np.full((2, 3), 7000, np.uint16)), np.zeros((2, 3), np.uint8))
