@@ -441,9 +441,9 @@ class SweepNodes:
     browser: Any
     """``vtkMRMLSequenceBrowserNode`` browsing both sequences."""
     image_sequence: Any
-    """``vtkMRMLSequenceNode`` of 2D ``vtkMRMLScalarVolumeNode`` frames (``IJKToRAS`` = spacing)."""
+    """``vtkMRMLSequenceNode`` of 2D ``vtkMRMLScalarVolumeNode`` frames in pixel units."""
     transform_sequence: Any
-    """``vtkMRMLSequenceNode`` of ``vtkMRMLLinearTransformNode`` (``ImageToReference`` in mm)."""
+    """``vtkMRMLSequenceNode`` of ``vtkMRMLLinearTransformNode``: ``ImageToReference``, pixel -> mm."""
     image_proxy: Any
     """The browser's image proxy, under :attr:`transform_proxy`."""
     transform_proxy: Any
@@ -457,11 +457,15 @@ def sweep_to_scene(
 ) -> SweepNodes:
     """Put a sweep into a scene the way SlicerIGT/PLUS recordings look in Slicer.
 
-    Each frame becomes a 2D scalar volume with ``IJKToRAS = diag(sx, sy, 1)`` (pixel ->
-    image mm) and an ``ImageToReference`` transform (image mm -> world mm) such that
-    ``ImageToReference @ IJKToRAS`` equals the sweep's ``image_to_reference`` exactly;
-    both sequences are indexed by time stamp (frame number if time stamps do not
-    increase) and browsed together, with the image proxy under the transform proxy.
+    Each frame becomes a 2D scalar volume in pixel units (``IJKToRAS`` the identity)
+    under an ``ImageToReference`` transform that carries the pixel spacing: the sweep's
+    ``image_to_reference`` itself. That is how a PLUS recording appears in Slicer (its
+    MetaIO ``ElementSpacing`` is 1, the millimetres live in the transforms), and it
+    makes the trip scene -> :func:`sweep_from_node` bit-exact (a spacing divided out
+    and multiplied back in would change poses by ~1e-16 mm, enough to flip threshold
+    decisions downstream). Both sequences are indexed by time stamp (frame number if
+    time stamps do not increase) and browsed together, the image proxy under the
+    transform proxy.
 
     Parameters
     ----------
@@ -487,7 +491,6 @@ def sweep_to_scene(
         seq.SetIndexType(seq.NumericIndex)
 
     mats = np.nan_to_num(sweep.image_to_reference[idx])
-    spacing = np.linalg.norm(mats[:, :3, :2], axis=1)  # (n, 2): mm per column, per row
     for n_k, (k, value) in enumerate(zip(idx, values)):
         vol = scene.CreateNodeByClass("vtkMRMLScalarVolumeNode")
         vol.SetName(f"{name}-Image_{int(k):04d}")
@@ -496,22 +499,18 @@ def sweep_to_scene(
         arr = numpy_support.numpy_to_vtk(np.ascontiguousarray(sweep.frames[k]).reshape(-1), deep=True)
         arr.SetName("ImageScalars")
         img.GetPointData().SetScalars(arr)
-        vol.SetAndObserveImageData(img)
-        sx, sy = spacing[n_k]
-        sx, sy = (sx if sx > 0 else 1.0), (sy if sy > 0 else 1.0)
-        vol.SetSpacing(sx, sy, 1.0)
-        vol.SetOrigin(0.0, 0.0, 0.0)
+        vol.SetAndObserveImageData(img)  # spacing 1, origin 0, identity directions
         iseq.SetDataNodeAtValue(vol, value)
         vol.UnRegister(None)  # the sequence holds its own copy
 
         m = mats[n_k].copy()
-        m[:3, 0] /= sx
-        m[:3, 1] /= sy
         if np.linalg.norm(m[:3, 2]) < 1e-9:
             # PLUS calibrations may leave the k column at zero; give the image plane a
-            # unit normal so that Slicer can invert the transform (k never matters in 2D).
+            # normal one pixel long so that Slicer can invert the transform (k never
+            # matters for 2D frames, and columns i, j and the origin stay untouched).
             normal = np.cross(m[:3, 0], m[:3, 1])
-            m[:3, 2] = normal / max(np.linalg.norm(normal), 1e-12)
+            pixel = np.sqrt(np.linalg.norm(m[:3, 0]) * np.linalg.norm(m[:3, 1]))
+            m[:3, 2] = normal / max(np.linalg.norm(normal), 1e-300) * pixel
         tr = scene.CreateNodeByClass("vtkMRMLLinearTransformNode")
         tr.SetName(f"{name}-ImageToReference_{int(k):04d}")
         tr.SetMatrixTransformToParent(matrix_to_vtk(m))
@@ -543,12 +542,11 @@ def distance_color_node(scene: Any) -> Any:
     node.SetName(DISTANCE_COLOR_NODE_NAME)
     node.SetTypeToUser()
     node.SetNumberOfColors(256)
-    node.NamesInitialisedOff() if hasattr(node, "NamesInitialisedOff") else None
     x = np.linspace(0.0, 1.0, len(_COLOR_STOPS))
     s = np.linspace(0.0, 1.0, 256)
     rgb = np.column_stack([np.interp(s, x, _COLOR_STOPS[:, c]) for c in range(3)])
     for k, (r, g, b) in enumerate(rgb):
-        node.SetColor(k, f"{k}", float(r), float(g), float(b), 1.0)
+        node.SetColor(k, float(r), float(g), float(b), 1.0)
     node.SetAttribute("Category", "BoneUSRecon")
     scene.AddNode(node)
     node.UnRegister(None)
