@@ -59,7 +59,10 @@ def test_progress_bar_quiet_is_silent(capsys):
     with ProgressBar(quiet=True) as bar:
         bar("segment", 1, 10)
     assert capsys.readouterr().err == ""
-    with ProgressBar() as bar:
+    with ProgressBar() as bar:  # stderr is not a terminal under capsys
+        bar("segment", 1, 3)
+    assert capsys.readouterr().err == ""
+    with ProgressBar(force=True) as bar:
         for k in range(3):
             bar("segment", k + 1, 3)
     assert "segment" in capsys.readouterr().err

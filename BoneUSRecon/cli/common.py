@@ -92,11 +92,13 @@ def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
 class ProgressBar:
     """A :data:`ProgressCallback` drawing one tqdm bar per stage on stderr.
 
-    Use as a context manager; ``quiet=True`` makes it silent.
+    Use as a context manager; ``quiet=True`` makes it silent. By default the bar is
+    drawn only when stderr is a terminal, so logs and pipes get the one-line summary
+    and errors without carriage-return clutter; ``force=True`` draws it anyway.
     """
 
-    def __init__(self, quiet: bool = False) -> None:
-        self.quiet = quiet
+    def __init__(self, quiet: bool = False, *, force: bool = False) -> None:
+        self.quiet = quiet or not (force or sys.stderr.isatty())
         self._bar: Any = None
         self._stage: str | None = None
 
