@@ -10,11 +10,18 @@ load each ``.py`` there as a module).
 import logging
 import os
 import pathlib
-from typing import Annotated, Optional, Union
-
-import vtk
+from typing import Annotated, Union
 
 import slicer
+import vtk
+from BoneSurfaceReconstructionLib import dependencies
+from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, segmenterNames
+from slicer import (
+    vtkMRMLMarkupsFiducialNode,
+    vtkMRMLModelNode,
+    vtkMRMLSequenceBrowserNode,
+    vtkMRMLSequenceNode,
+)
 from slicer.i18n import tr as _
 from slicer.i18n import translate
 from slicer.parameterNodeWrapper import Choice, WithinRange, parameterNodeWrapper
@@ -25,15 +32,6 @@ from slicer.ScriptedLoadableModule import (
     ScriptedLoadableModuleWidget,
 )
 from slicer.util import VTKObservationMixin
-from slicer import (
-    vtkMRMLMarkupsFiducialNode,
-    vtkMRMLModelNode,
-    vtkMRMLSequenceBrowserNode,
-    vtkMRMLSequenceNode,
-)
-
-from BoneSurfaceReconstructionLib import dependencies
-from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, segmenterNames
 
 # Developer mode: the BoneUSRecon package is in the repository root, one folder up.
 dependencies.ensureBoneUSReconImportable()
@@ -95,7 +93,8 @@ class BoneSurfaceReconstructionParameterNode:
     outputSurface, outputPoints - where the results go (created if empty).
     """
 
-    inputNode: Union[vtkMRMLSequenceBrowserNode, vtkMRMLSequenceNode]
+    # typing.Union, not X | Y: parameterNodeWrapper recognises typing.Union of nodes.
+    inputNode: Union[vtkMRMLSequenceBrowserNode, vtkMRMLSequenceNode]  # noqa: UP007
     transformSequence: vtkMRMLSequenceNode
     calibrationFile: pathlib.Path
     segmenter: Annotated[str, Choice(list(_SEGMENTERS))] = _SEGMENTERS[0]
@@ -105,7 +104,7 @@ class BoneSurfaceReconstructionParameterNode:
     degreeV: Annotated[int, WithinRange(*_RANGE["degreeV"])] = _DEFAULT["degreeV"]
     rays: Annotated[int, WithinRange(*_RANGE["rays"])] = _DEFAULT["rays"]
     outputSurface: vtkMRMLModelNode
-    outputPoints: Union[vtkMRMLModelNode, vtkMRMLMarkupsFiducialNode]
+    outputPoints: Union[vtkMRMLModelNode, vtkMRMLMarkupsFiducialNode]  # noqa: UP007
 
 
 #
@@ -166,7 +165,7 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
             if browser:
                 self._parameterNode.inputNode = browser
 
-    def setParameterNode(self, inputParameterNode: Optional[BoneSurfaceReconstructionParameterNode]) -> None:
+    def setParameterNode(self, inputParameterNode: BoneSurfaceReconstructionParameterNode | None) -> None:
         if self._parameterNode:
             self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
             self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
@@ -260,6 +259,7 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         import time
 
         from BoneSurfaceReconstructionLib.parameters import calibrationMatrix, reconstructionParams
+
         from BoneUSRecon.Widgets import mrml
 
         if not inputNode:
@@ -366,6 +366,7 @@ class BoneSurfaceReconstructionTest(ScriptedLoadableModuleTest):
     def test_ParameterNodeEntryPoint(self):
         """The parameter-node entry point gives the same surface as the explicit one."""
         from BoneSurfaceReconstructionLib import selftest
+
         from BoneUSRecon.Widgets import mrml
 
         sim = selftest.simulatedSweep(n_frames=30)

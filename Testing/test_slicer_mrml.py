@@ -113,7 +113,7 @@ def test_cmake_lists_every_module_python_file_and_resource() -> None:
 
 def test_cmake_check_catches_an_unlisted_file(tmp_path: Path) -> None:
     # The listing check must be able to fail: a file missing from the list is seen.
-    text = (MODULE_DIR / "CMakeLists.txt").read_text().replace(f"${{MODULE_NAME}}Lib/selftest.py", "")
+    text = (MODULE_DIR / "CMakeLists.txt").read_text().replace("${MODULE_NAME}Lib/selftest.py", "")
     assert sorted(_cmake_list(text, "MODULE_PYTHON_SCRIPTS")) != _module_python_files()
 
 
@@ -449,8 +449,8 @@ def test_non_linear_transform_above_the_image_is_refused(scene) -> None:
 
 
 def _surface_polydata(n: int = 6):
-    from vtkmodules.vtkFiltersSources import vtkPlaneSource
     from vtkmodules.util import numpy_support
+    from vtkmodules.vtkFiltersSources import vtkPlaneSource
 
     src = vtkPlaneSource()
     src.SetResolution(n, n)

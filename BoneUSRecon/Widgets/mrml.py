@@ -491,7 +491,7 @@ def sweep_to_scene(
         seq.SetIndexType(seq.NumericIndex)
 
     mats = np.nan_to_num(sweep.image_to_reference[idx])
-    for n_k, (k, value) in enumerate(zip(idx, values)):
+    for n_k, (k, value) in enumerate(zip(idx, values, strict=True)):
         vol = scene.CreateNodeByClass("vtkMRMLScalarVolumeNode")
         vol.SetName(f"{name}-Image_{int(k):04d}")
         img = vtkImageData()
