@@ -22,6 +22,7 @@ from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, BoneGeometry, BoneSpe
 from BoneUSRecon.Logic.simulation.core import (
     SIMULATOR_VERSION,
     Simulation,
+    check_output_dir,
     check_params,
     simulate,
     simulation_info,
@@ -44,6 +45,7 @@ __all__ = [
     "ImagingParams",
     "Simulation",
     "SimulationParams",
+    "check_output_dir",
     "check_params",
     "simulate",
     "simulation_info",

@@ -221,6 +221,7 @@ class BoneGeometry:
         Returns
         -------
         vertices : ndarray, shape (n_s * n_around, 3)
+            Ring by ring: vertex ``r * n_around + q`` is ``P(s_r, phi_q)``.
         faces : ndarray of int64, shape (2 * (n_s - 1) * n_around, 3)
         """
         s, phi = self.mesh_params(ds, n_around)

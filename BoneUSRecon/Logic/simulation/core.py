@@ -25,7 +25,7 @@ from BoneUSRecon.Logic.simulation.params import BONES, SimulationParams
 from BoneUSRecon.Logic.simulation.sections import BoneSections, bone_sections, visible_contours
 from BoneUSRecon.Logic.sweep import Sweep
 
-__all__ = ["Simulation", "simulate", "write_simulation", "check_params"]
+__all__ = ["Simulation", "simulate", "write_simulation", "check_params", "check_output_dir", "simulation_info"]
 
 #: Version of the simulation model, written to ``simulation.json``; bump when the
 #: images or geometry for a given seed change.
@@ -282,6 +282,31 @@ def simulation_info(sim: Simulation) -> dict[str, Any]:
     }
 
 
+def check_output_dir(outdir: str | os.PathLike[str]) -> Path:
+    """Check, before any work, that ``outdir`` is a folder or can be created as one.
+
+    Raises
+    ------
+    BoneUSReconError
+        The path is a file, lies under a file, or its nearest existing parent folder
+        is not writable.
+    """
+    out = Path(outdir)
+    if out.exists():
+        if not out.is_dir():
+            raise BoneUSReconError("output path exists and is not a folder", out)
+        probe = out
+    else:
+        probe = out.absolute().parent
+        while not probe.exists():
+            probe = probe.parent
+        if not probe.is_dir():
+            raise BoneUSReconError(f"cannot create the output folder: {str(probe)!r} is not a folder", out)
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise BoneUSReconError(f"cannot write in {str(probe)!r}", out)
+    return out
+
+
 def write_simulation(
     sim: Simulation, outdir: str | os.PathLike[str], progress: ProgressCallback | None = None
 ) -> dict[str, Path]:
@@ -302,7 +327,7 @@ def write_simulation(
     from BoneUSRecon.Logic.sequence_io import write_sweep
     from BoneUSRecon.Logic.vtkio import write_points_csv, write_polydata
 
-    out = Path(outdir)
+    out = check_output_dir(outdir)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except FileExistsError:

@@ -219,7 +219,7 @@ def render_frames(
     bone_amp = (
         ip.bone_amplitude * np.clip(cos_incidence, 0, 1) ** ip.specular_exponent * present_all
     ).astype(np.float32)
-    tail_tau = 0.4 / sp
+    tail_tau = 0.25 / sp  # cortical reverberation: the line's soft lower edge, ~0.5 mm
 
     # Muscle texture: white noise low-passed by FFT (cheaper than a spatial filter of
     # this ~1 mm width), normalised to unit std.
@@ -299,7 +299,7 @@ def render_frames(
 
         def bone_profile(d: np.ndarray) -> np.ndarray:
             core = np.exp(-0.5 * (d / sig_line) ** 2)
-            return core + np.where(d > 0, 0.3 * (1 - core) * np.exp(-np.clip(d, 0, None) / tail_tau), 0.0)
+            return core + np.where(d > 0, 0.25 * (1 - core) * np.exp(-np.clip(d, 0, None) / tail_tau), 0.0)
 
         bone = np.zeros_like(field)
         _add_band(bone, top_j[ks], bone_amp[ks] * rough * phases[:, 3], bone_profile, 4 * sig_line, 4 * sig_line + 6 * tail_tau)
