@@ -12,6 +12,7 @@ import os
 import pathlib
 from typing import Annotated, Union
 
+import qt
 import slicer
 import vtk
 from BoneSurfaceReconstructionLib import dependencies
@@ -136,6 +137,7 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
         self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+        self.ui.loadSweepButton.connect("clicked(bool)", self.onLoadSweepButton)
         self.initializeParameterNode()
 
     def cleanup(self) -> None:
@@ -197,6 +199,25 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
             finally:
                 dialog.close()
             self.ui.resultLabel.text = self.logic.summaryText(result)
+
+    def onLoadSweepButton(self) -> None:
+        """Read a PLUS file with BoneUSRecon's reader (pose chain, calibration, status
+        flags) into a new sequence browser, and make it the input."""
+        path = qt.QFileDialog.getOpenFileName(
+            self.parent, _("Load a PLUS sequence file"), "", _("PLUS sequence (*.mha *.mhd)")
+        )
+        if not path:
+            return
+        with slicer.util.tryWithErrorDisplay(_("Failed to load the sweep."), waitCursor=True):
+            dependencies.installRequirements(confirm=slicer.util.confirmOkCancelDisplay)
+            calibration = self._parameterNode.calibrationFile
+            browser = self.logic.loadSweepFile(path, calibration)
+            self._parameterNode.inputNode = browser
+            # The calibration is now inside the poses: applying it again would be wrong.
+            self._parameterNode.calibrationFile = pathlib.Path()
+            self.ui.resultLabel.text = _("Loaded {name}: {n} frames.").format(
+                name=browser.GetName(), n=browser.GetNumberOfItems()
+            )
 
     @staticmethod
     def _progressCallback(dialog):
@@ -287,6 +308,22 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         )
         logging.info(f"Bone surface reconstruction completed in {time.time() - startTime:.2f} seconds")
         return result
+
+    def loadSweepFile(self, path, calibration=None, progress=None):
+        """Read a PLUS .mha/.mhd with BoneUSRecon's reader into a new sequence browser.
+
+        :param path: the sequence file.
+        :param calibration: PLUS configuration XML (Image->Probe), or None / empty path.
+        :return: the vtkMRMLSequenceBrowserNode (frames under their ImageToReference).
+        """
+        from BoneSurfaceReconstructionLib.parameters import calibrationPath
+
+        from BoneUSRecon.Widgets import mrml
+
+        nodes = mrml.load_sweep_file(
+            path, slicer.mrmlScene, calibration=calibrationPath(calibration), progress=progress
+        )
+        return nodes.browser
 
     def processParameterNode(self, parameterNode, progress=None):
         """Same as :meth:`process`, reading every argument from the parameter node and

@@ -144,6 +144,15 @@ def test_ui_binds_every_parameter_with_matching_ranges() -> None:
     assert "applyButton" in {w.get("name") for w in ET.parse(UI).iter("widget")}
 
 
+def test_widgets_used_by_the_module_exist_in_the_ui() -> None:
+    from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS
+
+    names = {w.get("name") for w in ET.parse(UI).iter("widget")}
+    used = set(re.findall(r"self\.ui\.(\w+)", (MODULE_DIR / f"{MODULE}.py").read_text()))
+    used |= {f"{n}SpinBox" for n in INT_PARAMETERS}  # tooltips set in a loop
+    assert used and used <= names, sorted(used - names)
+
+
 def test_segmenter_choices_are_the_library_segmenters() -> None:
     seg = pytest.importorskip("BoneUSRecon.Logic.segmentation")
     from BoneSurfaceReconstructionLib.parameters import SEGMENTER_FALLBACK, segmenterNames
@@ -371,6 +380,20 @@ def test_real_plus_recording_roundtrip(scene) -> None:
     np.testing.assert_allclose(read.spacing_mm, sweep.spacing_mm, rtol=1e-12)
 
 
+@pytest.mark.skipif(not (PLUS_DATA / "BoneUltrasound_L14.igs.mha").is_file(), reason="PLUS test data absent")
+def test_load_sweep_file_puts_the_reader_result_in_the_scene(scene) -> None:
+    from BoneUSRecon.Logic.sequence_io import read_sweep
+
+    mha, xml = PLUS_DATA / "BoneUltrasound_L14.igs.mha", PLUS_DATA / "BoneUltrasound_L14_config.xml"
+    nodes = mrml.load_sweep_file(mha, scene, calibration=xml)
+    assert nodes.browser.GetName() == "BoneUltrasound_L14-Browser"
+    want = read_sweep(mha, calibration=xml)
+    got = mrml.sweep_from_node(nodes.browser)
+    np.testing.assert_array_equal(got.image_to_reference, want.image_to_reference[want.valid])
+    with pytest.raises(BoneUSReconError, match="no such file"):
+        mrml.load_sweep_file(PLUS_DATA / "missing.mha", scene)
+
+
 def test_invalid_frames_are_left_out_of_the_scene(scene) -> None:
     s = _synthetic_sweep(n=6)
     mats = s.image_to_reference.copy()
@@ -570,7 +593,8 @@ def module_logic(monkeypatch: pytest.MonkeyPatch):
     """Import the module file with Slicer's GUI framework replaced by minimal stand-ins.
 
     Only what needs the application is replaced (base classes, the parameter-node
-    wrapper, translation); MRML, the scene and the Sequences logic are slicer-core's.
+    wrapper, translation, the PythonQt ``qt`` module, which only the Widget uses); MRML,
+    the scene and the Sequences logic are slicer-core's.
     """
 
     class _Base:
@@ -596,6 +620,7 @@ def module_logic(monkeypatch: pytest.MonkeyPatch):
     for name, mod in (("ScriptedLoadableModule", slm), ("parameterNodeWrapper", pnw), ("i18n", i18n)):
         monkeypatch.setitem(sys.modules, f"slicer.{name}", mod)
         monkeypatch.setattr(slicer, name, mod, raising=False)
+    monkeypatch.setitem(sys.modules, "qt", types.ModuleType("qt"))  # used by the Widget only
     monkeypatch.delitem(sys.modules, MODULE, raising=False)
     module = importlib.import_module(MODULE)
     yield module
@@ -624,6 +649,26 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
     n_models = scene.GetNumberOfNodesByClass("vtkMRMLModelNode")
     logic.processParameterNode(p)
     assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == n_models
+
+
+@pytest.mark.skipif(not (PLUS_DATA / "BoneUltrasound_L14.igs.mha").is_file(), reason="PLUS test data absent")
+def test_module_logic_loads_a_plus_file(module_logic, scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(slicer, "mrmlScene", scene, raising=False)
+    logic = module_logic.BoneSurfaceReconstructionLogic()
+    browser = logic.loadSweepFile(
+        PLUS_DATA / "BoneUltrasound_L14.igs.mha", PLUS_DATA / "BoneUltrasound_L14_config.xml"
+    )
+    assert browser.GetScene() is scene and browser.GetNumberOfItems() == 21
+    sweep = mrml.sweep_from_node(browser)
+    np.testing.assert_allclose(sweep.spacing_mm, [0.085, 0.085], atol=0.005)  # the calibration's scale
+    # Without a calibration the reader has no pose for this file: a one-line error.
+    with pytest.raises(ValueError, match="BoneUltrasound_L14"):
+        logic.loadSweepFile(PLUS_DATA / "BoneUltrasound_L14.igs.mha", pathlib_empty())
+
+
+def pathlib_empty() -> Path:
+    """What the parameter node holds when the calibration field is empty."""
+    return Path()
 
 
 def test_module_logic_raises_value_errors(module_logic, scene) -> None:

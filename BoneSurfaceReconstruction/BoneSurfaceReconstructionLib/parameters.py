@@ -20,6 +20,7 @@ __all__ = [
     "SEGMENTER_FALLBACK",
     "segmenterNames",
     "reconstructionParams",
+    "calibrationPath",
     "calibrationMatrix",
 ]
 
@@ -61,10 +62,16 @@ def segmenterNames() -> tuple[str, ...]:
     return (default,) + tuple(sorted(n for n in SEGMENTERS if n != default))
 
 
+def calibrationPath(path: Any) -> str | None:
+    """``path`` as a string, or None when no file is set (None, ``""``, or ``Path()`` == ".")."""
+    text = "" if path is None else os.fspath(path).strip()
+    return None if text in ("", ".") else text
+
+
 def calibrationMatrix(path: Any) -> Any:
     """The PLUS ``ImageToProbe`` matrix from a configuration XML, or None if no file is set."""
-    text = "" if path is None else os.fspath(path)
-    if text.strip() in ("", "."):
+    text = calibrationPath(path)
+    if text is None:
         return None
     from BoneUSRecon.Logic.sequence_io import read_calibration
 

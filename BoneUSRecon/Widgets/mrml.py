@@ -33,6 +33,7 @@ geometry is ignored, as PLUS does: ``image_to_reference[k] = ParentTransformToWo
 from __future__ import annotations
 
 import dataclasses
+import os
 import weakref
 from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass
@@ -58,6 +59,7 @@ __all__ = [
     "sweep_from_browser",
     "sweep_from_sequences",
     "sweep_to_scene",
+    "load_sweep_file",
     "make_params",
     "distance_color_node",
     "show_surface",
@@ -528,6 +530,43 @@ def sweep_to_scene(
     tproxy.SetName(f"{name}-ImageToReference")
     iproxy.SetAndObserveTransformNodeID(tproxy.GetID())
     return SweepNodes(browser, iseq, tseq, iproxy, tproxy, idx)
+
+
+def load_sweep_file(
+    path: str | os.PathLike[str],
+    scene: Any,
+    *,
+    calibration: str | os.PathLike[str] | None = None,
+    transform: str | None = None,
+    name: str | None = None,
+    progress: ProgressCallback | None = None,
+) -> SweepNodes:
+    """Read a PLUS sequence file with BoneUSRecon's reader and put it in the scene.
+
+    For recordings Slicer's own reader does not pose as wanted: BoneUSRecon's reader
+    composes the pose chain (``inv(ReferenceToTracker) @ ProbeToTracker @ ImageToProbe``
+    with the calibration XML), drops frames whose status is not OK, and the result is
+    laid out as :func:`sweep_to_scene` does (frames in pixels under ``ImageToReference``).
+
+    Parameters
+    ----------
+    path : path-like
+        PLUS ``.mha``/``.mhd`` sequence.
+    scene : vtkMRMLScene
+    calibration, transform : optional
+        As :func:`BoneUSRecon.Logic.sequence_io.read_sweep`.
+    name : str, optional
+        Node name prefix (default: the file name without its extensions).
+
+    Raises
+    ------
+    BoneUSReconError
+        Unreadable file or calibration (one line naming the file).
+    """
+    from BoneUSRecon.Logic.sequence_io import read_sweep
+
+    sweep = read_sweep(path, calibration=calibration, transform=transform, progress=progress)
+    return sweep_to_scene(sweep, scene, name=name or Path(path).name.split(".")[0])
 
 
 # ------------------------------------------------------------------------------------
