@@ -108,6 +108,11 @@ def test_view_directions_lay_the_bone_horizontally() -> None:
         assert abs(u @ long_axis) < 1e-9 and abs(d @ u) < 1e-9
     d, _ = dirs["oblique"]
     assert np.degrees(np.arccos(abs(d @ n))) > 30
+    # Without a probe direction the convex (upper) side of the arch faces the viewer.
+    for flip in (1.0, -1.0):
+        arch = pts * np.array([1.0, 1.0, flip])
+        n, _ = render.view_directions(arch)["top"]
+        assert n @ np.array([0.0, 0.0, flip]) > 0.99
 
 
 def test_view_cli_screenshot_and_summary(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -155,8 +155,8 @@ def view_directions(
     points : ndarray, shape (K, 3)
         Surface points.
     toward_viewer : ndarray, shape (3,), optional
-        Direction from the surface toward the viewer; the third principal axis when
-        not given (its sign chosen arbitrarily).
+        Direction from the surface toward the viewer; when not given, the third
+        principal axis, signed toward the surface's convex side.
 
     Returns
     -------
@@ -168,7 +168,15 @@ def view_directions(
     # SVD of a (K, 3) array: cheap and robust principal axes.
     _, _, vt = np.linalg.svd(centred, full_matrices=False)
     long_axis = vt[0]
-    n = vt[2] if toward_viewer is None else np.asarray(toward_viewer, dtype=float)
+    if toward_viewer is None:
+        # Look at the convex side: on an arch most of the area lies near the apex, so
+        # the median height along the thin axis exceeds the mean on the apex side.
+        n = vt[2]
+        h = centred @ n
+        if np.median(h) < h.mean():
+            n = -n
+    else:
+        n = np.asarray(toward_viewer, dtype=float)
     n = n - long_axis * (n @ long_axis)  # make it orthogonal to the long axis
     if np.linalg.norm(n) < 1e-9:
         n = vt[2]
@@ -266,10 +274,14 @@ def make_plotter(
     if points is not None:
         pts = as_pyvista(points)
         if pts.n_points:
+            # Dense clouds (thousands of contour points) would hide the surface under
+            # full-size dots: shrink them with the square root of the count.
+            size = float(np.clip(style.point_size * np.sqrt(1000.0 / pts.n_points),
+                                 2.0, style.point_size))
             actors["points"] = pl.add_mesh(
                 pv.PolyData(np.asarray(pts.points)),
                 color=style.points_color,
-                point_size=style.point_size,
+                point_size=size,
                 render_points_as_spheres=True,
             )
     if gold is not None:
@@ -360,8 +372,12 @@ def scene_points(actors: dict[str, Any], max_points: int = 20000) -> np.ndarray:
     for actor in actors.values():
         mapper = actor.GetMapper()
         # pyvista feeds mappers through a pipeline that has not run before the first
-        # render, so GetInput() is still empty: use the dataset pyvista keeps.
-        data = getattr(mapper, "dataset", None)
+        # render, so the mapper's input is empty until that pipeline is updated.
+        data = None
+        if mapper is not None:
+            if mapper.GetInputAlgorithm() is not None:
+                mapper.GetInputAlgorithm().Update()
+            data = mapper.GetInput()
         if data is not None and data.GetNumberOfPoints():
             chunks.append(numpy_support.vtk_to_numpy(data.GetPoints().GetData()))
             continue
@@ -385,6 +401,7 @@ def render_views(
     window_size: Sequence[int] = (900, 600),
     style: Style = DEFAULT_STYLE,
     show_frames: bool = False,
+    fit_height: bool = False,
 ) -> dict[str, np.ndarray]:
     """Render the surface off-screen from named viewpoints (see :func:`view_directions`).
 
@@ -397,6 +414,11 @@ def render_views(
         ``show_frames``.
     views : sequence of str
         Names among ``"top"``, ``"oblique"``.
+    window_size : (int, int)
+        Image size in pixels; with ``fit_height`` the height is a maximum.
+    fit_height : bool
+        Shrink each image's height to the data's aspect (a long bone seen from above
+        is a thin strip), between 35 % of the width and ``window_size[1]``.
 
     Returns
     -------
@@ -422,6 +444,11 @@ def render_views(
             if name not in dirs:
                 raise ValueError(f"unknown view {name!r}; use one of {', '.join(dirs)}")
             d, up = dirs[name]
+            if fit_height:
+                w = int(window_size[0])
+                span = np.ptp(fit @ np.cross(up, d)) or 1.0
+                need = w * np.ptp(fit @ up) / span * 1.08 / 0.85  # margin, scalar bar
+                pl.window_size = [w, int(np.clip(need, 0.35 * w, window_size[1]))]
             set_camera(pl, fit, d, up)
             out[name] = screenshot(pl)
         return out

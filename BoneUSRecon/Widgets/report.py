@@ -24,6 +24,7 @@ import html
 import json
 import os
 import platform
+import re
 import shutil
 import sys
 import tempfile
@@ -40,6 +41,7 @@ from BoneUSRecon.Logic.progress import ProgressCallback, report
 
 __all__ = [
     "write_report",
+    "check_report_folder",
     "sweep_summary",
     "software_versions",
     "histogram_png",
@@ -149,7 +151,8 @@ def _short_reason(reason: str) -> str:
     text = str(reason) or "unspecified"
     for sep in (":", "(", ";"):
         text = text.split(sep)[0]
-    return text.strip() or "unspecified"
+    text = re.sub(r"[-+]?\d+(\.\d+)?", "#", text)
+    return " ".join(text.split()) or "unspecified"
 
 
 def software_versions() -> dict[str, str]:
@@ -228,29 +231,48 @@ def table_png(table: Sequence[tuple[int, float]]) -> bytes:
     return _fig_png(fig)
 
 
-def sample_frames(segmentation: Any, n_accepted: int = 6, n_rejected: int = 4) -> list[int]:
+def sample_frames(segmentation: Any, n_accepted: int = 6, n_rejected: int = 4,
+                  fit_rejected: Sequence[int] = (), n_fit_rejected: int = 2) -> list[int]:
     """Frames to show as overlays: accepted ones evenly spread, plus rejected ones.
 
-    Returns frame indices in file order.
+    Parameters
+    ----------
+    segmentation : SegmentationResult
+    n_accepted, n_rejected : int
+        How many accepted and segmentation-rejected frames to show (evenly spread).
+    fit_rejected : sequence of int
+        Frames whose contour the robust surface fit discarded as outliers; up to
+        ``n_fit_rejected`` of them are shown as well.
+
+    Returns
+    -------
+    list of int
+        Frame indices in file order, without repeats.
     """
     contours = tuple(getattr(segmentation, "contours", ()))
-    acc = [c.frame for c in contours if c.accepted]
+    fit_set = {int(f) for f in fit_rejected}
+    acc = [c.frame for c in contours if c.accepted and c.frame not in fit_set]
     rej = [c.frame for c in contours if not c.accepted]
+    fit = sorted(c.frame for c in contours if c.accepted and c.frame in fit_set)
     pick = []
-    for frames, n in ((acc, n_accepted), (rej, n_rejected)):
+    for frames, n in ((acc, n_accepted), (rej, n_rejected), (fit, n_fit_rejected)):
         if frames and n > 0:
             k = np.unique(np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int))
             pick += [frames[i] for i in k]
-    return sorted(pick)
+    return sorted(set(pick))
 
 
 def _overlay_image(sweep: Any, contour: Any, truth_px: np.ndarray | None = None,
-                   min_width: int = 320) -> np.ndarray:
+                   min_width: int = 320, fit_rejected: bool = False) -> np.ndarray:
     """One contour overlay (:func:`BoneUSRecon.Widgets.overlay.overlay_image`) as RGB."""
     from BoneUSRecon.Widgets.overlay import overlay_image
 
-    label = f"frame {contour.frame}: " + ("accepted" if contour.accepted
-                                          else f"REJECTED ({contour.reason or 'no reason'})")
+    if not contour.accepted:
+        label = f"frame {contour.frame}: REJECTED ({contour.reason or 'no reason'})"
+    elif fit_rejected:
+        label = f"frame {contour.frame}: outlier, discarded by the surface fit"
+    else:
+        label = f"frame {contour.frame}: accepted"
     scale = max(1, int(np.ceil(min_width / max(sweep.width, 1))))
     img = overlay_image(sweep.frames[contour.frame], contour.points_px,
                         accepted=bool(contour.accepted), label=label, truth_px=truth_px,
@@ -275,7 +297,8 @@ th{background:#f4f4f4}td.num{text-align:right;font-variant-numeric:tabular-nums}
 figure{margin:.6em 0;display:inline-block;vertical-align:top}figcaption{color:#555;
 font-size:.9em;max-width:1000px}img{max-width:100%;border:1px solid #eee}
 .grid{display:flex;flex-wrap:wrap;gap:10px}.grid figure{width:32%;margin:0}
-.rejected figcaption{color:#c0392b;font-weight:bold}.rejected img{border:3px solid #e74c3c}pre{background:#f7f7f7;padding:.8em;
+.rejected figcaption{color:#c0392b;font-weight:bold}.rejected img{border:3px solid #e74c3c}
+.outlier figcaption{color:#b9770e;font-weight:bold}.outlier img{border:3px solid #f39c12}pre{background:#f7f7f7;padding:.8em;
 overflow-x:auto;font-size:.85em}.big{font-size:1.25em}
 """
 
@@ -395,7 +418,19 @@ def _evaluation_dict(evaluation: Any) -> tuple[dict[str, Any], np.ndarray]:
 
 
 # -- folder --------------------------------------------------------------------------
-def _check_outdir(outdir: Path) -> None:
+def check_report_folder(path: str | os.PathLike[str]) -> Path:
+    """Check, before any work, that a report can be written to the folder ``path``.
+
+    The folder may be missing (it is created), empty, or an earlier report (it is
+    replaced); anything else is refused so that no one's files are deleted.
+
+    Raises
+    ------
+    BoneUSReconError
+        Missing or unwritable parent folder, a file in the way, or a folder that
+        holds other things than a BoneUSRecon report.
+    """
+    outdir = Path(path)
     parent = outdir.parent if str(outdir.parent) else Path(".")
     if not parent.is_dir():
         raise BoneUSReconError(f"folder {str(parent)!r} does not exist", outdir)
@@ -409,6 +444,7 @@ def _check_outdir(outdir: Path) -> None:
                 "folder exists and is not a BoneUSRecon report; choose a new or empty folder",
                 outdir,
             )
+    return outdir
 
 
 @contextlib.contextmanager
@@ -444,6 +480,7 @@ def write_report(
     parameters: dict[str, Any] | None = None,
     progress: ProgressCallback | None = None,
     truth_px: Sequence[np.ndarray] | None = None,
+    title: str | None = None,
 ) -> Path:
     """Write the HTML report of a reconstruction into the folder ``outdir``.
 
@@ -469,6 +506,8 @@ def write_report(
     truth_px : list of ndarray (K, 2), optional
         Per frame (indexed by frame number) the true contour in pixels, e.g. a
         simulation's ``true_contours_px``; drawn in yellow on the overlays.
+    title : str, optional
+        What was reconstructed (default: the sweep's file name).
 
     Returns
     -------
@@ -480,8 +519,7 @@ def write_report(
     BoneUSReconError
         ``outdir`` cannot be written, or exists and is not a report folder.
     """
-    out = Path(outdir)
-    _check_outdir(out)
+    out = check_report_folder(outdir)
     sweep = recon.sweep
     seg = getattr(recon, "segmentation", None)
     has_gold = gold is not None or evaluation is not None
@@ -509,7 +547,7 @@ def write_report(
     from BoneUSRecon.Widgets.render import distance_array, render_views
 
     views = render_views(recon.surface, points=getattr(recon, "points", None), sweep=sweep,
-                         window_size=(1000, 560))
+                         window_size=(1000, 620), fit_height=True)
     tick()
     dist = distance_array(recon.surface)
     surf_caption = ("Reconstructed surface coloured by <i>Distance</i>, the distance (mm) "
@@ -566,20 +604,28 @@ def write_report(
     overlay_html = ""
     if seg is not None:
         by_frame = {c.frame: c for c in seg.contours}
+        fit_rej = [int(f) for f in (recon_summary.get("fit_rejected_frames") or [])]
         tiles = []
-        for k in sample_frames(seg):
+        for k in sample_frames(seg, fit_rejected=fit_rej):
             c = by_frame[k]
             truth = truth_px[k] if truth_px is not None and k < len(truth_px) else None
-            data = _png(_overlay_image(sweep, c, truth))
+            outlier = bool(c.accepted and k in fit_rej)
+            data = _png(_overlay_image(sweep, c, truth, fit_rejected=outlier))
             figures[f"frame_{k:04d}"] = data
-            cap = (f"frame {k}: accepted, {len(c.points_px)} points, confidence "
-                   f"{_num(getattr(c, 'confidence', float('nan')), 2)}" if c.accepted
-                   else f"frame {k}: REJECTED: {html.escape(c.reason or 'no reason given')}")
-            tiles.append(_img(f"frame-{k:04d}", data, f"frame {k}", cap,
-                              "" if c.accepted else "rejected"))
+            conf = _num(getattr(c, "confidence", float("nan")), 2)
+            if not c.accepted:
+                cap = f"frame {k}: REJECTED: {html.escape(c.reason or 'no reason given')}"
+            elif outlier:
+                cap = (f"frame {k}: accepted by the segmentation (confidence {conf}), "
+                       "discarded as an outlier by the robust surface fit")
+            else:
+                cap = f"frame {k}: accepted, {len(c.points_px)} points, confidence {conf}"
+            cls = "rejected" if not c.accepted else ("outlier" if outlier else "")
+            tiles.append(_img(f"frame-{k:04d}", data, f"frame {k}", cap, cls))
         n_rej = summary.get("frames_rejected", 0)
         overlay_html = (f"<p>{len(tiles)} frames of {len(by_frame)} segmented "
-                        f"({n_rej} rejected in all; rejected frames are outlined in red, "
+                        f"({n_rej} rejected in all, {len(fit_rej)} more discarded by the robust fit; "
+                        "rejected frames are outlined in red, fit outliers in orange, "
                         "accepted contours drawn in green"
                         + ("; the true contour in yellow" if truth_px is not None else "")
                         + ").</p>"
@@ -597,7 +643,7 @@ def write_report(
     tick()
 
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    source = summary.get("source") or "in-memory sweep"
+    source = title or summary.get("source") or "in-memory sweep"
     sections.append(f"<h1>Bone surface reconstruction</h1><p class='sub'>"
                     f"{html.escape(str(source))} &middot; BoneUSRecon {__version__} &middot; {now}</p>")
     if has_gold:
