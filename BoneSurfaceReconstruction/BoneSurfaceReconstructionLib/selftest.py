@@ -51,12 +51,21 @@ class SelfTestResult:
         ]
 
 
-def simulatedSweep(n_frames: int = 40, width: int = 160, height: int = 128, seed: int = 0) -> Any:
-    """A small simulated clavicle sweep (:class:`BoneUSRecon.Logic.simulation.Simulation`)."""
+def simulatedSweep(
+    n_frames: int = 40, width: int = 160, height: int = 128, spacing_mm: float = 0.3, seed: int = 0
+) -> Any:
+    """A small simulated clavicle sweep (:class:`BoneUSRecon.Logic.simulation.Simulation`).
+
+    The defaults are the pytest suite's ``sim_small`` (Testing/conftest.py): 40 frames of
+    128 x 160 pixels at 0.3 mm, no corruption.
+    """
     from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 
     return simulate(
-        SimulationParams(bone="clavicle", n_frames=n_frames, width=width, height=height, seed=seed)
+        SimulationParams(
+            bone="clavicle", n_frames=n_frames, width=width, height=height,
+            spacing_mm=spacing_mm, seed=seed,
+        )
     )
 
 
