@@ -1,0 +1,149 @@
+"""End to end on small simulated sweeps: accuracy in mm against the simulator's truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from vtkmodules.util import numpy_support
+
+from BoneUSRecon.Logic.bspline import FitParams
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.evaluation import evaluate_surface
+from BoneUSRecon.Logic.pipeline import (
+    Reconstruction,
+    ReconstructionParams,
+    control_point_table,
+    reconstruct,
+    surface_from_contours,
+)
+from BoneUSRecon.Logic.surface import triangle_centroids
+from BoneUSRecon.Logic.sweep import pixels_to_reference
+
+
+def area_within(sim, surface, tol):
+    c, a = triangle_centroids(surface)
+    return float((a * (sim.distance_to_truth(c) <= tol)).sum() / a.sum())
+
+
+@pytest.fixture(scope="module")
+def recon_small(sim_small) -> Reconstruction:
+    return reconstruct(sim_small.sweep)
+
+
+@pytest.fixture(scope="module")
+def recon_corrupted(sim_small_corrupted) -> Reconstruction:
+    return reconstruct(sim_small_corrupted.sweep)
+
+
+def test_clean_sweep_accuracy_in_mm(sim_small, recon_small):
+    r = recon_small
+    ev = evaluate_surface(r.surface, sim_small.gold)
+    # gold carries 0.2 mm noise (mean ~0.16 mm): the surface adds little to it
+    assert ev.mean < 0.25
+    assert ev.p95 < 0.65
+    assert ev.within_1 > 0.97
+    # the surface itself stays on the true bone
+    assert area_within(sim_small, r.surface, 0.35) > 0.98
+    c, _ = triangle_centroids(r.surface)
+    assert np.percentile(sim_small.distance_to_truth(c), 99) < 0.3
+
+
+def test_summary_timings_and_arrays(sim_small, recon_small):
+    r = recon_small
+    s = r.summary
+    assert s["frames"] == 40 and s["segmented_frames"] + s["rejected_frames"] == 40
+    assert s["grid_shape"] == [r.grid.shape[0], 15]
+    assert 0.6 < s["grid_coverage"] <= 1.0
+    assert 0 < s["mean_resampling_distance_mm"] < 0.15  # paper: 0.14 mm
+    assert 0 < s["fit_rms_mm"] < 0.2
+    assert s["surface_triangles"] == r.surface.GetNumberOfCells() > 100
+    assert set(r.timings) >= {"segment", "resample", "fit", "surface", "total"}
+    pd = r.surface.GetPointData()
+    assert pd.GetScalars().GetName() == "Distance"
+    assert pd.GetNormals() is not None and pd.GetTCoords() is not None
+    # segmented points carry the segmentation's arrays
+    assert r.points.GetNumberOfPoints() == r.segmentation.n_points
+    assert r.points.GetPointData().GetArray("Frame") is not None
+
+
+def test_corrupted_frames_do_not_bend_the_surface(sim_small_corrupted, recon_corrupted):
+    sim, r = sim_small_corrupted, recon_corrupted
+    ev = evaluate_surface(r.surface, sim.gold)
+    assert ev.mean < 0.27 and ev.p95 < 0.7 and ev.within_1 > 0.96
+    assert area_within(sim, r.surface, 0.35) > 0.95
+    # every corrupted frame whose contour is far from the truth was rejected somewhere
+    fit_rejected = set(r.summary["fit_rejected_frames"])
+    for c in r.segmentation.accepted:
+        d = sim.distance_to_truth(c.points_mm(sim.sweep))
+        if np.median(d) > 1.0:
+            assert c.frame in fit_rejected
+
+
+def test_plain_least_squares_is_worse_with_false_contours(sim_small, recon_small):
+    # Inject false contours (5 mm too deep) into 10% of the true contours: the paper's
+    # plain least squares bends, the robust fit does not.
+    sw = sim_small.sweep
+    cont = [
+        (k, pixels_to_reference(sw.image_to_reference[k], c))
+        for k, c in enumerate(sim_small.true_contours_px)
+        if len(c) >= 2
+    ]
+    bad = {k for k, _ in cont[5::10]}
+    down = -sw.image_to_reference[0, :3, 1] / np.linalg.norm(sw.image_to_reference[0, :3, 1])
+    fake = [(k, p - 5.0 * down if k in bad else p) for k, p in cont]
+    params = ReconstructionParams()
+    plain = dataclasses.replace(params, fit=FitParams(robust="none"))
+    _, fit_r, surf_r = surface_from_contours(fake, sw, params)
+    _, _, surf_p = surface_from_contours(fake, sw, plain)
+    assert area_within(sim_small, surf_r, 0.35) > 0.97
+    assert area_within(sim_small, surf_p, 0.35) < area_within(sim_small, surf_r, 0.35) - 0.1
+    assert (fit_r.frame_weights == 0).sum() >= len(bad) - 1
+
+
+def test_reversed_sweep_equally_accurate(sim_factory):
+    sim = sim_factory(seed=0, reverse=True)
+    r = reconstruct(sim.sweep)
+    ev = evaluate_surface(r.surface, sim.gold)
+    assert ev.mean < 0.25 and ev.within_1 > 0.97
+
+
+def test_table_one_decreases_then_flattens(sim_small, recon_small):
+    rows = control_point_table(recon_small, sim_small.gold, (5, 10, 15))
+    assert [e for e, _ in rows] == [5, 10, 15]
+    d = dict(rows)
+    assert d[5] > d[15]  # 5 control points cannot follow the S-shaped clavicle
+    assert d[15] < 0.25
+    # same fit as the reconstruction for the default count
+    assert d[15] == pytest.approx(evaluate_surface(recon_small.surface, sim_small.gold).mean)
+
+
+def test_progress_reports_every_stage(sim_small):
+    seen = []
+    reconstruct(sim_small.sweep, progress=lambda s, d, t: seen.append(s))
+    assert {"segment", "resample", "fit", "surface"} <= set(seen)
+
+
+def test_blank_sweep_refused_with_file_name(sim_small, tmp_path):
+    sw = sim_small.sweep.replace(
+        frames=np.zeros_like(sim_small.sweep.frames), source=tmp_path / "blank.mha"
+    )
+    with pytest.raises(BoneUSReconError, match="blank.mha"):
+        reconstruct(sw)
+
+
+def test_more_control_points_than_slices_refused(sim_small, recon_small):
+    params = dataclasses.replace(ReconstructionParams(), fit=FitParams(control_points=(60, 5)))
+    with pytest.raises(BoneUSReconError, match="too few valid grid points for 60 x 5"):
+        surface_from_contours(recon_small.segmentation.contours_mm(sim_small.sweep), sim_small.sweep, params)
+
+
+def test_distance_texture_matches_segmented_points(recon_small):
+    from scipy.spatial import cKDTree
+
+    r = recon_small
+    pts = numpy_support.vtk_to_numpy(r.surface.GetPoints().GetData())
+    seg = r.segmentation.points_mm(r.sweep)[0]
+    dist = numpy_support.vtk_to_numpy(r.surface.GetPointData().GetArray("Distance"))
+    assert np.allclose(dist, cKDTree(seg).query(pts)[0])
