@@ -56,7 +56,10 @@ def segmenterNames() -> tuple[str, ...]:
     """Names of ``BoneUSRecon.Logic.segmentation.SEGMENTERS``, the default first."""
     try:
         from BoneUSRecon.Logic.segmentation import SEGMENTERS, SegmentationParams
-    except ImportError:  # dependencies not installed yet: offer the known names
+    except Exception:  # noqa: BLE001
+        # Called while Slicer loads the module: dependencies may not be installed yet
+        # (ImportError) or be of a version that fails to import; the module must load
+        # anyway (the Apply button installs them), so offer the known names.
         return SEGMENTER_FALLBACK
     default = SegmentationParams().method
     return (default,) + tuple(sorted(n for n in SEGMENTERS if n != default))
