@@ -158,7 +158,8 @@ class BoneGeometry:
 
     def surface(self, s: np.ndarray, phi: np.ndarray) -> np.ndarray:
         """Surface points ``P(s, phi)``, shape ``broadcast(s, phi).shape + (3,)``."""
-        s, phi = np.broadcast_arrays(np.asarray(s, float), np.asarray(phi, float))
+        # The basis depends on s only: with s (n, 1) and phi (1, m) it is computed n times.
+        s, phi = np.asarray(s, float), np.asarray(phi, float)
         c, U, V = self.section_basis(s)
         return c + np.cos(phi)[..., None] * U + np.sin(phi)[..., None] * V
 
@@ -171,7 +172,7 @@ class BoneGeometry:
         section basis (accurate to ~1e-8 mm: everything is a sum of sines).
         """
         hs = self._HS
-        s, phi = np.broadcast_arrays(np.asarray(s, float), np.asarray(phi, float))
+        s, phi = np.asarray(s, float), np.asarray(phi, float)
         c0, U0, V0 = self.section_basis(s)
         cp, Up, Vp = self.section_basis(s + hs)
         cm, Um, Vm = self.section_basis(s - hs)

@@ -159,7 +159,7 @@ def _sample_gold(
     s = np.linspace(*s_range, max(int((s_range[1] - s_range[0]) / 0.25), 2))
     phi = np.linspace(0, 2 * np.pi, 720, endpoint=False)
     S, PH = np.meshgrid(s, phi, indexing="ij")
-    _, Ps, Pp = geom.derivatives(S, PH)
+    _, Ps, Pp = geom.derivatives(s[:, None], phi[None, :])
     cr = np.cross(Pp, Ps)
     area = np.linalg.norm(cr, axis=-1)
     up = (cr @ UP) / area

@@ -27,7 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy import fft as sfft
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.simulation import corruption as corr
@@ -214,10 +214,13 @@ def render_frames(
 
     present_all = np.isfinite(top_j)
     top_filled = np.where(present_all, top_j, np.inf).astype(np.float32)
-    # Shadow only where the beam hits bone; edges blurred by the beam width.
-    lat_weight = gaussian_filter1d(present_all.astype(np.float32), sig_lat, axis=1)
+    # Shadow only where the beam hits bone; edges blurred by the beam width, which
+    # grows below the bone (the beam diverges past its focus): blend two blurs by depth.
+    lat_near = gaussian_filter1d(present_all.astype(np.float32), sig_lat, axis=1)
+    lat_far = gaussian_filter1d(present_all.astype(np.float32), 4 * sig_lat, axis=1)
+    cos_c = np.clip(cos_incidence, 0, 1)
     bone_amp = (
-        ip.bone_amplitude * np.clip(cos_incidence, 0, 1) ** ip.specular_exponent * present_all
+        ip.bone_amplitude * (cos_c**ip.specular_exponent + ip.diffuse_fraction * cos_c) * present_all
     ).astype(np.float32)
     tail_tau = 0.25 / sp  # cortical reverberation: the line's soft lower edge, ~0.5 mm
 
@@ -225,7 +228,9 @@ def render_frames(
     # this ~1 mm width), normalised to unit std.
     tex_transfer, tex_norm = _psf_transfer((hp, wp), tex_sigma, tex_sigma)
     tex_transfer = tex_transfer[:, : wp // 2 + 1]
-    n_septa = max(1, int(0.004 * hp * wp))  # sparse bright fibre septa in muscle
+    # Sparse bright fibre septa in muscle: short lateral streaks ~1.2 mm long.
+    n_septa = max(1, int(0.0015 * hp * wp))
+    septa_len = max(1, int(round(1.2 / sp)))
 
     out = np.empty((n, h, w), np.uint8)
     for c0 in range(0, n, _CHUNK):
@@ -267,7 +272,8 @@ def render_frames(
         tex *= np.float32(tex_norm)
         muscle = z_pad >= f1
         echo *= np.exp(np.where(muscle, np.float32(0.35), np.float32(0.15)) * tex)
-        echo[muscle & septa.reshape(nc, hp, wp)] *= 3.5
+        streaks = maximum_filter1d(septa.reshape(nc, hp, wp), septa_len, axis=2)
+        echo[muscle & streaks] *= 3.0
 
         # 2. speckle by FFT convolution with the PSF
         noise *= echo
@@ -294,8 +300,10 @@ def render_frames(
         # bone echo itself: a Gaussian core on the true surface row and a cortical tail.
         dj = rows - top_filled[ks][:, None, :]
         ramp = np.clip((dj - 2 * sig_line) / max(sig_line, 1.0) + 0.5, 0.0, 1.0)
-        field *= 1.0 - np.float32(1.0 - ip.shadow_transmission) * ramp * lat_weight[ks][:, None, :]
-        del dj, ramp
+        far = np.clip(dj * np.float32(sp / 15.0), 0.0, 1.0)  # full divergence 15 mm below
+        lat = lat_near[ks][:, None, :] + far * (lat_far[ks] - lat_near[ks])[:, None, :]
+        field *= 1.0 - np.float32(1.0 - ip.shadow_transmission) * ramp * lat
+        del dj, ramp, far, lat
 
         def bone_profile(d: np.ndarray) -> np.ndarray:
             core = np.exp(-0.5 * (d / sig_line) ** 2)

@@ -32,8 +32,9 @@ class ImagingParams:
     #: Displayed dynamic range of the log compression (dB), typical MSK preset.
     dynamic_range_db: float = 50.0
     #: Echo level shown as white (dB re the muscle RMS echo): sets the overall gain so
-    #: muscle is mid-dark grey (~90) and bone near white, as on a scanner's MSK preset.
-    display_max_db: float = 30.0
+    #: muscle is dark grey (~70) and bone near white, as on a scanner's MSK preset
+    #: (compare the real L14 recording in ../shared/data/plus: tissue mostly < 90).
+    display_max_db: float = 33.0
     #: Echo amplitude of the skin line (dermis).
     skin_amplitude: float = 3.0
     #: Echo amplitude of subcutaneous fat (hypoechoic).
@@ -44,6 +45,9 @@ class ImagingParams:
     bone_amplitude: float = 16.0
     #: Exponent of cos(incidence) in the bone echo: specular reflection fades fast off-normal.
     specular_exponent: float = 2.0
+    #: Diffuse part of the bone echo (fraction of bone_amplitude, times cos(incidence)):
+    #: rough cortex still returns a little echo off-normal, so the sides of the bone show dimly.
+    diffuse_fraction: float = 0.12
     #: Axial sigma of the bone line (mm): a bit thicker than the PSF (cortical reverberation).
     bone_line_mm: float = 0.18
     #: Amplitude transmitted into the acoustic shadow below bone (bone reflects ~all).
