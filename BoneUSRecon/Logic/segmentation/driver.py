@@ -15,7 +15,7 @@ from BoneUSRecon.Logic.segmentation.params import SegmentationParams
 from BoneUSRecon.Logic.segmentation.rejection import (
     frame_evidence,
     frame_verdict,
-    neighbour_jumps,
+    neighbour_deviation,
 )
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.shadowpath import shadowpath_frame
@@ -115,19 +115,51 @@ def segment_sweep(
         report(progress, "segment", n + 1, int(idx.size))
     t_seg = time.perf_counter() - t0
 
-    # Neighbour consistency, twice: the second pass no longer sees the first's rejects.
+    # Neighbour consistency. Gross jumps go first (a frame next to a wrong one is
+    # judged again once the wrong one is gone), then the plain thresholds. Tolerances
+    # grow with the scatter of the neighbours about their own trend (sparse sweeps).
     sy = float(np.median(spacing_all[idx, 1]))
-    for _ in range(2):
+    margin = rej.extend_mm / float(np.median(spacing_all[idx, 0]))
+    keep = {k: np.ones(d.points_px.shape[0], bool) for k, d in dets.items()}
+    for factor in (3.0, 2.0, 1.0, 1.0):
         order = [k for k in dets if not verdicts[k][1]]
-        jumps = neighbour_jumps({k: dets[k].points_px for k in order}, order, sy, rej.jump_window)
+        devs, scatter = neighbour_deviation(
+            {k: dets[k].points_px[keep[k]] for k in order}, order, sy, rej.jump_window, margin
+        )
         changed = False
-        for k, dev in jumps.items():
-            if np.isfinite(dev) and dev > rej.jump_mm:
-                conf = verdicts[k][0] * float(np.exp(-((dev / rej.jump_mm) ** 2)))
-                verdicts[k] = (conf, f"jump of {dev:.1f} mm from neighbouring frames")
+        for k, dev in devs.items():
+            known = ~np.isnan(dev)
+            if not known.any():
+                continue
+            slack = 3.0 * scatter.get(k, 0.0)
+            off = known & (np.abs(dev) > factor * max(rej.point_jump_mm, slack))
+            conf, _ = verdicts[k]
+            finite = np.isfinite(dev)
+            typical = float(np.median(np.abs(dev[finite]))) if finite.any() else np.inf
+            unsupported = np.isinf(dev).sum() > 0.5 * known.sum()
+            if unsupported or typical > factor * max(rej.jump_mm, slack):
+                if np.isfinite(typical):
+                    conf *= float(np.exp(-((typical / rej.jump_mm) ** 2)))
+                    why = f"jump of {typical:.1f} mm from neighbouring frames"
+                else:
+                    conf, why = 0.0, "no overlap with neighbouring frames"
+                verdicts[k] = (conf, why)
                 changed = True
-        if not changed:
+            elif off.any() and factor == 1.0:
+                sel = np.flatnonzero(keep[k])
+                keep[k][sel[off]] = False
+                verdicts[k] = (conf * (1.0 - off.sum() / dev.size), "")
+                changed = True
+        if not changed and factor == 1.0:
             break
+    for k in dets:
+        if not keep[k].all():
+            d = dets[k]
+            remaining = d.points_px[keep[k]]
+            length = float(np.ptp(remaining[:, 0]) * spacing_all[k, 0]) if len(remaining) > 1 else 0.0
+            dets[k] = Detection(remaining, d.intensity[keep[k]], {**d.extras, "dropped_points": int((~keep[k]).sum())})
+            if not verdicts[k][1] and (len(remaining) < rej.min_points or length < rej.min_length_mm):
+                verdicts[k] = (verdicts[k][0], f"contour too short after dropping off-neighbour points ({length:.1f} mm)")
 
     contours = []
     for k, det in dets.items():

@@ -101,8 +101,8 @@ class ShadowPathParams:
     path is refined to sub-pixel depth on the full-resolution image.
     """
 
-    work_mm: float = 0.2
-    """Pixel size of the down-sampled working image, mm (ours: half a bone echo; sets the speed)."""
+    work_mm: float = 0.25
+    """Target pixel size of the down-sampled working image, mm (ours: the sub-pixel step restores full resolution; sets the speed)."""
     mid_mm: float = 0.6
     """Height of the bright band, mm (as the snake's M_mid)."""
     up_mm: float = 1.5
@@ -147,8 +147,12 @@ class RejectionParams:
     """Reject when the mean shadow intensity (1-5 mm below) exceeds this fraction of the echo's ("no acoustic shadow")."""
     min_contrast: float = 0.12
     """Reject when the mean Dif (grey/255 units) along the contour is below this ("low contrast")."""
-    jump_mm: float = 2.5
-    """Reject when the contour's depth differs from the neighbouring frames' median by more than this (mm)."""
+    jump_mm: float = 1.5
+    """Reject when the contour's median depth difference from the neighbouring frames' prediction exceeds this, mm (ours: a false echo lies >= 1.5 mm above the bone)."""
+    point_jump_mm: float = 1.0
+    """Points of a kept frame farther than this (mm, depth) from the neighbouring frames' prediction are dropped (ours)."""
+    extend_mm: float = 2.0
+    """A contour may extend this far (mm) laterally beyond its neighbours' and still be compared; farther points are unsupported (ours)."""
     jump_window: int = 3
     """Number of frames on each side used for the neighbour median."""
     min_confidence: float = 0.0

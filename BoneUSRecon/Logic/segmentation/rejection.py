@@ -9,8 +9,10 @@ segmenter's internal score, so a segmenter cannot vouch for its own mistakes):
 * ``no acoustic shadow``: the region 1-5 mm under the contour is not much darker than
   the echo itself (a tissue layer or noise, not bone: the paper's false positives were
   "images with important noise on the acoustic shadow under the bone").
-* ``jump``: the contour's depth differs from its neighbouring frames' (median over a
-  window) by more than ``jump_mm``: bones are continuous and the probe moves smoothly.
+* ``jump``: most of the contour lies more than ``jump_mm`` off the depth its
+  neighbouring frames give at the same columns (median over a window): bones are
+  continuous and the probe moves smoothly. When only some points are off (a contour
+  that runs partly onto a false echo), those points are dropped and the frame kept.
 
 The confidence in [0, 1] is the product of soft versions of these checks.
 """
@@ -23,7 +25,7 @@ import numpy as np
 
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 
-__all__ = ["FrameEvidence", "frame_evidence", "frame_verdict", "neighbour_jumps"]
+__all__ = ["FrameEvidence", "frame_evidence", "frame_verdict", "neighbour_deviation"]
 
 
 @dataclass(frozen=True)
@@ -107,27 +109,83 @@ def frame_verdict(ev: FrameEvidence, params: RejectionParams) -> tuple[float, st
     return conf, ""
 
 
-def _depth_deviation(a: np.ndarray, b: np.ndarray, sy: float) -> float:
-    """Median |depth difference| (mm) of contour ``a`` against ``b`` where they overlap."""
-    lo, hi = b[0, 0], b[-1, 0]
-    m = (a[:, 0] >= lo) & (a[:, 0] <= hi)
-    if m.sum() < 2:
-        return float("nan")
-    return float(np.median(np.abs(a[m, 1] - np.interp(a[m, 0], b[:, 0], b[:, 1]))) * sy)
+def neighbour_deviation(
+    contours: dict[int, np.ndarray],
+    order: list[int],
+    sy: float,
+    window: int,
+    margin_px: float = 0.0,
+) -> tuple[dict[int, np.ndarray], dict[int, float]]:
+    """Per frame and point, the depth difference (mm) from its neighbouring frames.
 
+    For each point of frame ``f``, the neighbours' depth at the same column
+    (interpolated along their contours, and held constant up to ``margin_px`` beyond
+    their ends) is collected from the ``window`` accepted frames on each side that
+    cover that column; the reference is their median (so one bad neighbour does not
+    matter). The depth is predicted at the frame by a Theil-Sen line through the
+    neighbours' depths against their position in the sequence, so a bone that
+    deepens steadily along the sweep is no jump, and one bad neighbour does not
+    matter. Points that fewer than two neighbours cover get ``inf`` (unsupported:
+    nothing near them in the neighbouring frames); frames with fewer than two
+    neighbours get NaN (unknown).
 
-def neighbour_jumps(
-    contours: dict[int, np.ndarray], order: list[int], sy: float, window: int
-) -> dict[int, float]:
-    """Per frame, the median depth deviation (mm) from its ``window`` accepted neighbours each side.
+    Returns
+    -------
+    deviation : dict frame -> ndarray (K,)
+        Signed depth differences in mm.
+    scatter : dict frame -> float
+        Median absolute residual (mm) of the neighbours about their own line: how
+        much depth varies between frames in this part of the sweep.
 
-    ``order`` lists the accepted frames in acquisition order; frames with no
-    overlapping neighbour get NaN.
+    Parameters
+    ----------
+    contours : dict frame -> ndarray (K, 2)
+        Contours ``(i, j)`` ordered by increasing ``i``.
+    order : list of int
+        The accepted frames in acquisition order.
+    sy : float
+        mm per row.
+    window : int
+    margin_px : float
+        Columns a contour may extend beyond its neighbours' ends and still be compared.
     """
-    out: dict[int, float] = {}
+    out: dict[int, np.ndarray] = {}
+    scatter: dict[int, float] = {}
     for pos, f in enumerate(order):
+        a = contours[f]
         neigh = order[max(0, pos - window) : pos] + order[pos + 1 : pos + 1 + window]
-        devs = [_depth_deviation(contours[f], contours[g], sy) for g in neigh]
-        devs = [d for d in devs if np.isfinite(d)]
-        out[f] = float(np.median(devs)) if len(devs) >= 2 else float("nan")
-    return out
+        ref = np.full((len(neigh), a.shape[0]), np.nan)
+        for r, g in enumerate(neigh):
+            b = contours[g]
+            inside = (a[:, 0] >= b[0, 0] - margin_px) & (a[:, 0] <= b[-1, 0] + margin_px)
+            ref[r, inside] = np.interp(a[inside, 0], b[:, 0], b[:, 1])
+        dev = np.full(a.shape[0], np.nan if len(neigh) < 2 else np.inf)
+        ok = np.isfinite(ref).sum(axis=0) >= 2
+        if ok.any():
+            pred, spread = _theil_sen_at_zero(ref[:, ok], _offsets(order, pos, neigh))
+            dev[ok] = (a[ok, 1] - pred) * sy
+            scatter[f] = float(np.median(spread)) * sy
+        out[f] = dev
+    return out, scatter
+
+
+def _offsets(order: list[int], pos: int, neigh: list[int]) -> np.ndarray:
+    """Positions of the neighbours in the accepted sequence relative to ``pos``."""
+    where = {f: p for p, f in enumerate(order)}
+    return np.array([where[g] - pos for g in neigh], dtype=float)
+
+
+def _theil_sen_at_zero(depth: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust line through ``depth[r, k]`` at positions ``x[r]``, evaluated at 0, per column ``k``.
+
+    Slope: median of the pairwise slopes; intercept: median of ``depth - slope x``;
+    spread: median absolute residual about the line.
+    NaN entries (neighbours not covering a column) are ignored; every column must have
+    at least two finite entries.
+    """
+    r1, r2 = np.triu_indices(x.size, 1)
+    slopes = (depth[r2] - depth[r1]) / (x[r2] - x[r1])[:, None]
+    slope = np.nanmedian(slopes, axis=0)
+    intercept = np.nanmedian(depth - slope[None, :] * x[:, None], axis=0)
+    spread = np.nanmedian(np.abs(depth - intercept - slope[None, :] * x[:, None]), axis=0)
+    return intercept, spread
