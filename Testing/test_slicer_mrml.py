@@ -405,6 +405,20 @@ def test_invalid_frames_are_left_out_of_the_scene(scene) -> None:
     np.testing.assert_allclose(read.image_to_reference, s.image_to_reference[[0, 1, 3, 4, 5]], atol=1e-9)
 
 
+def test_unusable_poses_in_the_scene_mark_frames_invalid(scene) -> None:
+    sweep = _synthetic_sweep(n=5)
+    nodes = mrml.sweep_to_scene(sweep, scene)
+    # A tracker dropout recorded as a collapsed (all-zero) transform for frame 3.
+    zero = np.zeros((4, 4))
+    zero[3, 3] = 1.0
+    nodes.transform_sequence.GetNthDataNode(3).SetMatrixTransformToParent(matrix_to_vtk(zero))
+    read = mrml.sweep_from_node(nodes.browser)
+    np.testing.assert_array_equal(read.valid, [True, True, True, False, True])
+    assert read.invalid_reasons == {3: "pose is singular"}
+    np.testing.assert_array_equal(read.image_to_reference[3], np.eye(4))
+    np.testing.assert_array_equal(read.image_to_reference[[0, 1, 2, 4]], sweep.image_to_reference[[0, 1, 2, 4]])
+
+
 def test_transform_sequence_pairs_by_time_stamp(scene) -> None:
     sweep = _synthetic_sweep(n=5)
     nodes = mrml.sweep_to_scene(sweep, scene)

@@ -202,7 +202,8 @@ def _assemble(
         raise BoneUSReconError("no frame has a usable pose (all NaN or singular)", source)
     return Sweep(
         frames=stack,
-        image_to_reference=np.where(valid[:, None, None], mats, np.nan_to_num(mats)),
+        # identity where unusable, as the PLUS reader does, so no NaN reaches geometry code
+        image_to_reference=np.where(valid[:, None, None], mats, np.eye(4)),
         timestamps=times,
         valid=valid,
         source=source,
