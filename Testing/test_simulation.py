@@ -10,6 +10,7 @@ import json
 
 import numpy as np
 import pytest
+from vtkmodules.vtkCommonCore import reference
 from vtkmodules.vtkCommonDataModel import vtkStaticCellLocator
 
 from BoneUSRecon.cli import main
@@ -38,7 +39,7 @@ def test_same_seed_same_everything_other_seed_differs() -> None:
     assert np.array_equal(a.sweep.timestamps, b.sweep.timestamps)
     assert np.array_equal(a.gold, b.gold)
     assert a.corruption_kinds == b.corruption_kinds
-    assert all(np.array_equal(x, y) for x, y in zip(a.true_contours_px, b.true_contours_px))
+    assert all(np.array_equal(x, y) for x, y in zip(a.true_contours_px, b.true_contours_px, strict=True))
     assert not np.array_equal(a.sweep.frames, c.sweep.frames)
     assert not np.allclose(a.sweep.image_to_reference, c.sweep.image_to_reference)
     assert not np.allclose(a.gold, c.gold)
@@ -133,15 +134,11 @@ def test_distance_to_truth_exact_and_matches_the_mesh(sim_small) -> None:
     loc.SetDataSet(pd)
     loc.BuildLocator()
     closest = [0.0, 0.0, 0.0]
-    cell, sub, d2 = [0], [0], [0.0]
-    from vtkmodules.vtkCommonCore import reference
-
     cid, sid, dd = reference(0), reference(0), reference(0.0)
     vtk_d = []
     for p in q[:300]:
         loc.FindClosestPoint(p.tolist(), closest, cid, sid, dd)
         vtk_d.append(np.sqrt(float(dd)))
-    del cell, sub, d2
     assert np.abs(np.array(vtk_d) - dist[:300]).max() < 0.01
 
 

@@ -172,7 +172,7 @@ def _sample_gold(
     return pts + rng.normal(0.0, params.gold_noise_mm, pts.shape)
 
 
-def simulate(params: SimulationParams = SimulationParams(), progress: ProgressCallback | None = None) -> Simulation:
+def simulate(params: SimulationParams | None = None, progress: ProgressCallback | None = None) -> Simulation:
     """Simulate a tracked freehand sweep over a bone, with its ground truth.
 
     Deterministic for a given ``params`` (including ``seed``): each random component
@@ -181,7 +181,8 @@ def simulate(params: SimulationParams = SimulationParams(), progress: ProgressCa
 
     Parameters
     ----------
-    params : SimulationParams
+    params : SimulationParams, optional
+        Defaults to ``SimulationParams()`` (clavicle, 150 frames of 256 x 320 at 0.15 mm).
     progress : callable, optional
         Called as ``progress(stage, done, total)``.
 
@@ -201,6 +202,7 @@ def simulate(params: SimulationParams = SimulationParams(), progress: ProgressCa
     >>> sim.sweep.frames.shape
     (10, 64, 64)
     """
+    params = SimulationParams() if params is None else params
     check_params(params)
     seed = int(params.seed)
     geom = BoneGeometry(BONE_SPECS[params.bone])
