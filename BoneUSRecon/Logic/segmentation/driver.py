@@ -136,7 +136,9 @@ def segment_sweep(
             conf, _ = verdicts[k]
             finite = np.isfinite(dev)
             typical = float(np.median(np.abs(dev[finite]))) if finite.any() else np.inf
-            unsupported = np.isinf(dev).sum() > 0.5 * known.sum()
+            # Frames with no point near any neighbour's contour are rejected; points
+            # beyond the neighbours' lateral extent are dropped below (as "off").
+            unsupported = not finite.any()
             if unsupported or typical > factor * max(rej.jump_mm, slack):
                 if np.isfinite(typical):
                     conf *= float(np.exp(-((typical / rej.jump_mm) ** 2)))
