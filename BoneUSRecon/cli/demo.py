@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     from BoneUSRecon.Logic.fileio import atomic_path
     from BoneUSRecon.Logic.pipeline import ReconstructionParams, control_point_table, reconstruct
     from BoneUSRecon.Logic.simulation import simulate, write_simulation
-    from BoneUSRecon.Logic.vtkio import write_polydata
+    from BoneUSRecon.Logic.vtkio import read_points, write_polydata
 
     t0 = time.perf_counter()
     # Everything checkable is checked before the work starts.
@@ -104,9 +104,12 @@ def run(args: argparse.Namespace) -> int:
     with ProgressBar(quiet=args.quiet or args.json) as bar:
         sim = simulate(sim_params, progress=bar)
         files = write_simulation(sim, outdir, progress=bar)
+        # Evaluate against the gold points as written (CSV, 1e-6 mm), so that
+        # ``bone-us-recon evaluate surface.vtp gold.csv`` gives the very same numbers.
+        gold = read_points(files["gold"])
         recon = reconstruct(sim.sweep, params, progress=bar)
-        evaluation = evaluate_surface(recon.surface, sim.gold)
-        table = None if args.no_table else control_point_table(recon, sim.gold, progress=bar)
+        evaluation = evaluate_surface(recon.surface, gold)
+        table = None if args.no_table else control_point_table(recon, gold, progress=bar)
         files["surface"] = write_polydata(recon.surface, outdir / "surface.vtp")
         files["points"] = write_polydata(recon.points, outdir / "points.vtp")
         doc = {
@@ -123,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
             tmp.write_text(json.dumps(doc, indent=2, default=_json_default))
         files["evaluation"] = outdir / "evaluation.json"
         if report_dir is not None:
-            files["report"] = _write_report(recon, report_dir, sim, evaluation, table,
+            files["report"] = _write_report(recon, report_dir, sim, gold, evaluation, table,
                                             sim_params, params, bar)
     elapsed = time.perf_counter() - t0
 
@@ -162,14 +165,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_report(recon: Any, report_dir: Path, sim: Any, evaluation: Any, table: Any,
-                  sim_params: Any, params: Any, bar: Any) -> Path:
+def _write_report(recon: Any, report_dir: Path, sim: Any, gold: Any, evaluation: Any,
+                  table: Any, sim_params: Any, params: Any, bar: Any) -> Path:
     from BoneUSRecon.Logic.pipeline import params_to_dict
     from BoneUSRecon.Widgets.report import write_report
 
     parameters = {"simulation": params_to_dict(sim_params),
                   "reconstruction": params_to_dict(params)}
-    return write_report(recon, report_dir, gold=sim.gold, evaluation=evaluation, table=table,
+    return write_report(recon, report_dir, gold=gold, evaluation=evaluation, table=table,
                         parameters=parameters, progress=bar, truth_px=sim.true_contours_px,
                         title=f"simulated {sim_params.bone} phantom, {sim_params.n_frames} frames, "
                               f"seed {sim_params.seed}")
