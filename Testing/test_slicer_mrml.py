@@ -282,9 +282,9 @@ def test_scene_poses_match_slicer_own_pixel_to_world_mapping(scene) -> None:
 
 
 def _plus_like_scene(scene, n: int = 5, h: int = 20, w: int = 30):
-    """A PLUS recording as Slicer shows it: frames with IJKToRAS = diag(-1, -1, 1)
-    (MetaIO LPS -> RAS), under a static ImageToProbe transform, under a tracked
-    ProbeToReference transform sequence."""
+    """A tracked recording in Slicer's usual hierarchy: frames with a flipped
+    IJKToRAS = diag(-1, -1, 1) (what an LPS -> RAS conversion gives), under a static
+    ImageToProbe transform, under a tracked ProbeToReference transform sequence."""
     iseq = scene.AddNewNodeByClass("vtkMRMLSequenceNode", "Image")
     tseq = scene.AddNewNodeByClass("vtkMRMLSequenceNode", "ProbeToReference")
     rng = np.random.default_rng(3)
@@ -326,10 +326,10 @@ def _plus_like_scene(scene, n: int = 5, h: int = 20, w: int = 30):
     return browser, iseq, tseq, np.stack(probe), image_to_probe, calib
 
 
-def test_plus_recording_hierarchy_in_ras(scene) -> None:
+def test_tracked_hierarchy_with_flipped_ijk_to_ras(scene) -> None:
     browser, iseq, _tseq, probe, image_to_probe, _ = _plus_like_scene(scene)
     sweep = mrml.sweep_from_node(browser)
-    flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # IJKToRAS of a MetaIO frame with spacing 1
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])
     np.testing.assert_allclose(sweep.image_to_reference, probe @ image_to_probe @ flip, atol=1e-9)
     # ... and it is what Slicer displays, frame by frame.
     logic = mrml._sequences_logic(scene)

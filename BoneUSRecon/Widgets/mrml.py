@@ -19,10 +19,12 @@ reconstructs exactly what Slicer displays::
 
 so the BoneUSRecon "reference" frame *is* Slicer's world (RAS), the voxel index ``i``
 is the image column and ``j`` the row (PLUS ``MF`` orientation: row 0 nearest the
-transducer), and the output surface needs no transform. A PLUS ``.mha`` file loaded by
-Slicer gets ``IJKToRAS = diag(-1, -1, 1)`` (MetaIO is LPS): that is only a mirror of the
-whole scene and changes neither the segmentation (done in pixel space) nor the
-distances.
+transducer), and the output surface needs no transform. If the frames show in the
+right place in Slicer's views, the reconstruction is in the right place. (Readers that
+convert MetaIO's LPS to RAS give frames an ``IJKToRAS`` with flipped axes: that is
+part of what Slicer displays and is followed as such. :func:`load_sweep_file`
+sidesteps the question for PLUS files: frames in pixel units, ``IJKToRAS`` the
+identity, under their ``ImageToReference`` transform, exactly PLUS's convention.)
 
 When a PLUS probe calibration is given instead (``calibration``: ``ImageToProbe``,
 pixel ``(i, j, 0, 1)`` -> probe mm, as in the PLUS configuration XML), the image's own
