@@ -151,3 +151,15 @@ def test_too_few_slices_refused():
     sweep, contours, _ = tube_sweep()
     with pytest.raises(BoneUSReconError, match="at least 3"):
         resample(contours[:2], sweep)
+
+
+def test_extent_rays_span_each_contour_end_to_end():
+    sweep, contours, centres = tube_sweep()
+    grid = resample(contours, sweep, ResamplingParams(rays="extent"))
+    assert grid.coverage == 1.0  # every ray hits: first and last on the contour's ends
+    rows = {int(f): i for i, f in enumerate(grid.frames)}
+    for k, p in contours[::7]:
+        row = grid.points[rows[k]]
+        assert np.linalg.norm(row[0] - p[0]) < 0.02 or np.linalg.norm(row[0] - p[-1]) < 0.02
+        assert np.linalg.norm(row[-1] - p[-1]) < 0.02 or np.linalg.norm(row[-1] - p[0]) < 0.02
+    assert grid.ray_angles.shape == grid.points.shape[:2]
