@@ -9,7 +9,51 @@ each a module of pure functions on numpy arrays with a thin VTK edge
 the CLI, the Slicer module and the viewer are shells over it.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.sweep import Sweep
 
-__all__ = ["BoneUSReconError", "Sweep"]
+# The public API, imported lazily (PEP 562) so that importing one stage does not load
+# every other (and so that stages importing ``BoneUSRecon.Logic.sweep`` never cycle).
+_LAZY = {
+    "read_sweep": "sequence_io",
+    "write_sweep": "sequence_io",
+    "read_calibration": "sequence_io",
+    "simulate": "simulation",
+    "SimulationParams": "simulation",
+    "segment_sweep": "segmentation",
+    "SegmentationParams": "segmentation",
+    "resample": "resampling",
+    "ResamplingParams": "resampling",
+    "fit_surface": "bspline",
+    "FitParams": "bspline",
+    "surface_polydata": "surface",
+    "SurfaceParams": "surface",
+    "evaluate_surface": "evaluation",
+    "Evaluation": "evaluation",
+    "reconstruct": "pipeline",
+    "ReconstructionParams": "pipeline",
+    "Reconstruction": "pipeline",
+    "control_point_table": "pipeline",
+    "read_points": "vtkio",
+    "read_polydata": "vtkio",
+    "write_polydata": "vtkio",
+}
+
+__all__ = ["BoneUSReconError", "Sweep", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(f"BoneUSRecon.Logic.{_LAZY[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
