@@ -174,6 +174,24 @@ def test_dependencies_never_pip_install_vtk() -> None:
     assert called == []
 
 
+def test_requirements_cover_every_third_party_import_of_the_library() -> None:
+    # What the module pip-installs into Slicer must cover what Logic and the adapter
+    # import (VTK excepted: Slicer ships it), or Apply would fail with ImportError.
+    from BoneSurfaceReconstructionLib import dependencies
+
+    files = [*(ROOT / "BoneUSRecon" / "Logic").rglob("*.py"), ROOT / "BoneUSRecon" / "Widgets" / "mrml.py"]
+    names: set[str] = set()
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                names |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.add(node.module.split(".")[0])
+    third_party = names - set(sys.stdlib_module_names) - {"BoneUSRecon", "vtkmodules", "vtk", "slicer"}
+    assert "numpy" in third_party  # the scan works
+    assert third_party <= set(dependencies.REQUIREMENTS), sorted(third_party - set(dependencies.REQUIREMENTS))
+
+
 def test_dependencies_install_only_what_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
     from BoneSurfaceReconstructionLib import dependencies
 

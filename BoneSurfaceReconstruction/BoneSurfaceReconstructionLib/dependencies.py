@@ -23,13 +23,12 @@ from collections.abc import Callable
 
 __all__ = ["REQUIREMENTS", "ensureBoneUSReconImportable", "missingRequirements", "installRequirements"]
 
-#: import name -> pip requirement, for what BoneUSRecon.Logic needs beyond what Slicer
-#: ships (numpy, SimpleITK and VTK come with Slicer; scipy and scikit-image may not).
+#: import name -> pip requirement: every third-party package BoneUSRecon.Logic and the
+#: MRML adapter import, except VTK (Slicer's own). numpy comes with Slicer; scipy may
+#: not. Testing/test_slicer_mrml.py checks this list against their import statements.
 REQUIREMENTS: dict[str, str] = {
     "numpy": "numpy",
     "scipy": "scipy>=1.11",
-    "skimage": "scikit-image>=0.22",
-    "SimpleITK": "SimpleITK>=2.3",
 }
 
 #: Never installed into Slicer's Python, whatever a requirement pulls in.
