@@ -10,6 +10,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from vtkmodules.vtkCommonCore import reference
 from vtkmodules.vtkCommonDataModel import vtkStaticCellLocator
 
@@ -140,6 +142,31 @@ def test_distance_to_truth_exact_and_matches_the_mesh(sim_small) -> None:
         loc.FindClosestPoint(p.tolist(), closest, cid, sid, dd)
         vtk_d.append(np.sqrt(float(dd)))
     assert np.abs(np.array(vtk_d) - dist[:300]).max() < 0.01
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    bone=st.sampled_from(BONES),
+    s=st.floats(0.02, 0.98),
+    phi=st.floats(0, 2 * np.pi),
+    d=st.floats(-1.0, 8.0),
+)
+def test_distance_to_truth_property(bone: str, s: float, phi: float, d: float) -> None:
+    # A point d mm along the outward normal is |d| from the surface (inside: while
+    # |d| is below the smallest radius of curvature, > 3 mm for every bone).
+    geom = BoneGeometry(BONE_SPECS[bone])
+    s_mm = s * geom.length
+    p = geom.surface(s_mm, phi) + d * geom.normals(s_mm, phi)
+    assert abs(geom.distance(p[None])[0] - abs(d)) < 1e-6
+
+
+def test_contours_mm_skip_frames_without_bone(sim_small_corrupted) -> None:
+    sim = sim_small_corrupted
+    got = dict(sim.contours_mm())
+    lost = [k for k, v in sim.corruption_kinds.items() if v == "contact_loss"]
+    assert lost and not set(lost) & set(got)
+    assert len(got) == sim.sweep.n_frames - len(lost)
+    assert all(sim.distance_to_truth(p).max() < 0.01 for p in got.values())
 
 
 # -- probe motion ---------------------------------------------------------------------------

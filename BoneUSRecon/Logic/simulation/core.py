@@ -110,6 +110,17 @@ class Simulation:
         """The true visible contour of ``frame`` in reference mm, shape (K, 3)."""
         return self.sweep.to_reference(frame, self.true_contours_px[frame])
 
+    def contours_mm(self) -> list[tuple[int, np.ndarray]]:
+        """``(frame, (K, 3) mm)`` for every valid frame with a visible bone, in frame order.
+
+        The same form as ``SegmentationResult.contours_mm``: a perfect segmentation.
+        """
+        return [
+            (k, self.contour_mm(k))
+            for k in range(self.sweep.n_frames)
+            if self.sweep.valid[k] and len(self.true_contours_px[k])
+        ]
+
 
 # (ds mm, points around) of the truth mesh: see BoneGeometry.mesh for the error bound.
 _MESH = (0.5, 192)
