@@ -371,6 +371,23 @@ def test_calibration_replaces_the_image_geometry(scene) -> None:
         assert "calibration" in sweep.transform_name
 
 
+def test_browser_whose_master_is_the_tracker(scene) -> None:
+    # Recordings often make the (faster) tracker the master sequence: frames are then
+    # found by their own time stamps, and the image sequence is picked automatically.
+    sweep = _synthetic_sweep(n=6)
+    nodes = mrml.sweep_to_scene(sweep, scene)
+    logic = mrml._sequences_logic(scene)
+    browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", "TrackerMaster")
+    browser.SetAndObserveMasterSequenceNodeID(nodes.transform_sequence.GetID())
+    browser.AddSynchronizedSequenceNodeID(nodes.image_sequence.GetID())
+    logic.UpdateProxyNodesFromSequences(browser)
+    image_proxy = browser.GetProxyNode(nodes.image_sequence)
+    image_proxy.SetAndObserveTransformNodeID(browser.GetProxyNode(nodes.transform_sequence).GetID())
+    read = mrml.sweep_from_node(browser)
+    np.testing.assert_array_equal(read.image_to_reference, sweep.image_to_reference)
+    np.testing.assert_array_equal(read.frames, sweep.frames)
+
+
 def test_reading_restores_the_browser_position(scene) -> None:
     nodes = mrml.sweep_to_scene(_synthetic_sweep(n=8), scene)
     nodes.browser.SetSelectedItemNumber(5)
