@@ -150,7 +150,7 @@ def test_page_holds_every_section_as_real_pictures(written: SimpleNamespace) -> 
     # The surface pictures are coloured by Distance (viridis), with red points.
     top = imgs["surface-top"].astype(int)
     assert ((top[..., 0] > 200) & (top[..., 1] < 100) & (top[..., 2] < 100)).sum() > 50
-    assert ((top[..., 2] > top[..., 0] + 40)).sum() > 1000  # the blue/purple end of viridis
+    assert (top[..., 2] > top[..., 0] + 40).sum() > 1000  # the blue/purple end of viridis
     assert not np.array_equal(imgs["surface-top"], imgs["surface-oblique"])
     # The same pictures are beside the page as files, byte for byte decodable.
     files = sorted(p.stem for p in (written.out / "figures").glob("*.png"))

@@ -82,6 +82,34 @@ def test_screenshot_shows_the_surface_points_and_frames(tmp_path: Path) -> None:
     assert (sat > 60).mean() > 0.05
 
 
+def test_window_toggles_layers_and_picking_reports_distances() -> None:
+    from BoneUSRecon.Widgets.viewer import _add_interaction
+
+    mesh = _surface()
+    gold = _points(50, 0.7, 3)
+    pl, actors = render.make_plotter(mesh, points=_points(), gold=gold, sweep=_sweep(),
+                                     off_screen=True, window_size=(400, 300))
+    try:
+        cb = _add_interaction(pl, mesh, actors, gold, render.DEFAULT_STYLE)
+        assert {"toggle:points", "toggle:gold", "toggle:frames", "toggle:invalid_frames",
+                "pick"} <= set(cb)
+        cb["toggle:gold"](False)
+        assert not actors["gold"].GetVisibility() and actors["points"].GetVisibility()
+        cb["toggle:gold"](True)
+        assert actors["gold"].GetVisibility()
+        k = 123
+        v = np.asarray(mesh.points)[k]
+        text = cb["pick"](v)
+        d = float(mesh.point_data["Distance"][k])
+        assert f"{d:.2f} mm" in text
+        # Distance to the nearest gold point, by brute force (gold lies 0.7 mm out).
+        nearest = np.linalg.norm(gold - v, axis=1).min()
+        assert nearest >= 0.7 - 1e-9 and f"nearest gold point: {nearest:.2f} mm" in text
+        assert cb["pick"](None) is None
+    finally:
+        pl.close()
+
+
 def test_distance_is_computed_from_points_when_missing() -> None:
     surf = _surface(distance=False)
     pts = _points(400, lift=0.0)

@@ -27,7 +27,6 @@ from BoneUSRecon.Logic.errors import BoneUSReconError
 
 if TYPE_CHECKING:  # pragma: no cover
     import pyvista as pv
-    from vtkmodules.vtkCommonDataModel import vtkPolyData
 
     from BoneUSRecon.Logic.sweep import Sweep
 
@@ -197,6 +196,12 @@ def view_directions(
     return {"top": (n, up), "oblique": (d2 / np.linalg.norm(d2), up1)}
 
 
+def _dot_size(n: int, largest: float) -> float:
+    """Point size in pixels: dense clouds (thousands of points) would hide the surface
+    under full-size dots, so shrink them with the square root of the count."""
+    return float(np.clip(largest * np.sqrt(300.0 / max(n, 1)), 2.0, largest))
+
+
 def make_plotter(
     surface: Any,
     *,
@@ -274,14 +279,10 @@ def make_plotter(
     if points is not None:
         pts = as_pyvista(points)
         if pts.n_points:
-            # Dense clouds (thousands of contour points) would hide the surface under
-            # full-size dots: shrink them with the square root of the count.
-            size = float(np.clip(style.point_size * np.sqrt(1000.0 / pts.n_points),
-                                 2.0, style.point_size))
             actors["points"] = pl.add_mesh(
                 pv.PolyData(np.asarray(pts.points)),
                 color=style.points_color,
-                point_size=size,
+                point_size=_dot_size(pts.n_points, style.point_size),
                 render_points_as_spheres=True,
             )
     if gold is not None:
@@ -290,13 +291,14 @@ def make_plotter(
             actors["gold"] = pl.add_mesh(
                 pv.PolyData(np.asarray(g.points)),
                 color=style.gold_color,
-                point_size=style.point_size + 1,
+                point_size=_dot_size(g.n_points, style.point_size),
                 render_points_as_spheres=True,
             )
     if sweep is not None:
         valid, invalid = sweep_outlines(sweep)
         if valid.n_points:
-            actors["frames"] = pl.add_mesh(valid, color=style.outline_color, line_width=1)
+            actors["frames"] = pl.add_mesh(valid, color=style.outline_color, line_width=1,
+                                           opacity=0.6)
         if invalid.n_points:
             actors["invalid_frames"] = pl.add_mesh(
                 invalid, color=style.invalid_outline_color, line_width=1.5

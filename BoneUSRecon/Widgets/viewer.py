@@ -57,8 +57,8 @@ def _legend(pl: Any, actors: dict[str, Any], style: render.Style) -> None:
     if "invalid_frames" in actors:
         entries.append(["invalid frames", style.invalid_outline_color])
     if entries:
-        pl.add_legend(entries, bcolor=style.background, border=False, size=(0.22, 0.04 * len(entries) + 0.02),
-                      loc="upper right", face="circle")
+        pl.add_legend(entries, bcolor=style.background, border=False,
+                      size=(0.2, 0.032 * len(entries) + 0.01), loc="lower left", face="circle")
 
 
 def show_surface(
@@ -129,16 +129,16 @@ def show_surface(
         title=title,
     )
     try:
-        _legend(pl, actors, style)
         pts = np.asarray(mesh.points, dtype=float)
         d, up = render.view_directions(pts, render._toward_probe(sweep))[view]
         fit = render.scene_points(actors)
         if out is not None:
-            render.set_camera(pl, fit, d, up, reserve_top=0.12)
+            _legend(pl, actors, style)  # the window has labelled check boxes instead
+            render.set_camera(pl, fit, d, up, reserve_top=0.06)
             image = render.screenshot(pl)
             return render.save_png(image, out)
         _add_interaction(pl, mesh, actors, gold, style)
-        render.set_camera(pl, fit, d, up, reserve_top=0.12)
+        render.set_camera(pl, fit, d, up, reserve_top=0.06)
         pl.show(title=title)
         return None
     finally:
@@ -146,14 +146,18 @@ def show_surface(
 
 
 def _add_interaction(pl: Any, mesh: Any, actors: dict[str, Any], gold: Any,
-                     style: render.Style) -> None:
-    """Check boxes for the optional layers, and picking that reports distances."""
+                     style: render.Style) -> dict[str, Any]:
+    """Check boxes for the optional layers, and picking that reports distances.
+
+    Returns the callbacks (``"toggle:<layer>"`` and ``"pick"``), for tests.
+    """
+    callbacks: dict[str, Any] = {}
     y = 10.0
-    for key, label in (
-        ("invalid_frames", "invalid frames"),
-        ("frames", "frames"),
-        ("gold", "gold points"),
-        ("points", "segmented points"),
+    for key, label, colour in (
+        ("invalid_frames", "invalid frames", style.invalid_outline_color),
+        ("frames", "frames", style.outline_color),
+        ("gold", "gold points", style.gold_color),
+        ("points", "segmented points", style.points_color),
     ):
         actor = actors.get(key)
         if actor is None:
@@ -162,10 +166,11 @@ def _add_interaction(pl: Any, mesh: Any, actors: dict[str, Any], gold: Any,
         def toggle(flag: bool, actor: Any = actor) -> None:
             actor.SetVisibility(bool(flag))
 
+        # Each box is filled with its layer's colour, so the boxes are the legend.
         pl.add_checkbox_button_widget(toggle, value=True, position=(10.0, y), size=28,
-                                      border_size=3, color_on=style.points_color
-                                      if key == "points" else "#4a90d9")
+                                      border_size=3, color_on=colour, color_off="white")
         pl.add_text(label, position=(45, int(y) + 4), font_size=10, color=style.text_color)
+        callbacks[f"toggle:{key}"] = toggle
         y += 36.0
 
     tree = cKDTree(np.asarray(mesh.points, dtype=float))
@@ -173,9 +178,9 @@ def _add_interaction(pl: Any, mesh: Any, actors: dict[str, Any], gold: Any,
     gold_pts = None if gold is None else np.asarray(render.as_pyvista(gold).points, float)
     gold_tree = cKDTree(gold_pts) if gold_pts is not None and gold_pts.size else None
 
-    def on_pick(point: Any) -> None:
+    def on_pick(point: Any) -> str | None:
         if point is None:
-            return
+            return None
         p = np.asarray(point, dtype=float).reshape(3)
         _, k = tree.query(p)
         text = f"picked ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm"
@@ -183,9 +188,12 @@ def _add_interaction(pl: Any, mesh: Any, actors: dict[str, Any], gold: Any,
             text += f"\nDistance to nearest segmented point: {dist[k]:.2f} mm"
         if gold_tree is not None:
             text += f"\nnearest gold point: {gold_tree.query(p)[0]:.2f} mm"
-        pl.add_text(text, position="lower_right", font_size=10, color=style.text_color,
+        pl.add_text(text, position="upper_right", font_size=10, color=style.text_color,
                     name="pick")
+        return text
 
     pl.enable_point_picking(callback=on_pick, show_message=
                             "P or right-click on the surface: show its distance",
                             font_size=10, color=style.points_color, point_size=10)
+    callbacks["pick"] = on_pick
+    return callbacks
