@@ -66,10 +66,11 @@ class ResamplingParams:
         ``None``: the middle of the data's median angular extent.
     auto_span_quantile : float
         For the automatic span: the rays run from this quantile of the slices' first
-        contour angles to the (1 - this) quantile of their last ones (0..0.5). 0.1:
-        the end rays still hit in most slices; misses are trimmed away, and the wider
-        span keeps the surface out to the edges of the imaged bone (measured on the
-        simulated clavicle: mean gold distance 0.23 mm at 0.5, 0.19 mm at 0.1).
+        contour angles to the (1 - this) quantile of their last ones (0..0.5). 0: from
+        the widest contour end to the widest on the other side, so no segmented point
+        is out of the rays' reach; end rays that miss are NaN and the mesh is trimmed
+        there. Measured on simulated sweeps of the five bones (150 frames): mean gold
+        distance 0.18-0.24 mm at 0, 0.19-0.25 mm at 0.1, 0.23-0.28 mm at 0.5.
     rays : str
         ``"fixed"`` (the paper's: the same regular angles in every slice) or
         ``"extent"`` (regular angles spanning each slice's own contour, first and last
@@ -98,7 +99,7 @@ class ResamplingParams:
     angle_span_deg: float | None = None
     angle_step_deg: float | None = None
     angle_centre_deg: float | None = None
-    auto_span_quantile: float = 0.1
+    auto_span_quantile: float = 0.0
     rays: str = "fixed"
     axis: str = "spline"
     axis_bandwidth_mm: float = 5.0
@@ -402,7 +403,14 @@ def resample(
         eps = 1e-7 * np.maximum(hi - lo, 1e-9)
         ray_angles = np.linspace(lo + eps, hi - eps, int(params.n_rays), axis=1)  # (m, n)
     else:
-        ray_angles = np.broadcast_to(_ray_angles(q, mask, params), (q.shape[0], int(params.n_rays)))
+        # The span comes from slices whose centre agrees with the axis: a false contour
+        # (deeper, so wider as seen from the centre) must not stretch the rays.
+        trusted = axis_w > 0.5
+        if trusted.sum() < 3:
+            trusted = np.ones_like(trusted)
+        ray_angles = np.broadcast_to(
+            _ray_angles(q[trusted], mask[trusted], params), (q.shape[0], int(params.n_rays))
+        )
     radius, near = _cast_rays(q, mask, ray_angles, params.max_gap_mm)
     d = np.stack([np.sin(ray_angles), np.cos(ray_angles)], axis=-1)  # (m, n, 2)
     pts2 = radius[..., None] * d  # (m, n, 2) relative to centre

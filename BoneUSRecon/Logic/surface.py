@@ -2,8 +2,8 @@
 
 The surface is evaluated on a fine regular ``(u, v)`` grid (about ``step_mm`` between
 samples along and around the bone), triangulated two triangles per quad, and trimmed
-to where there were data: a fine-grid vertex is kept when the share of present grid
-entries around it (bilinear interpolation of the resampled grid's presence mask in
+to where there were data: a fine-grid vertex is kept when the share of grid entries
+around it that held a point the fit kept (present, weight > 0) (bilinear interpolation of the resampled grid's presence mask in
 ``(u, v)``) is at least ``coverage_threshold``, so the model never extends over
 parameter regions no ray saw (the spline is unconstrained there). The result carries
 
@@ -44,18 +44,19 @@ class SurfaceParams:
         enough for a light mesh. Ours.
     coverage_threshold : float
         Trimming: keep vertices where the bilinearly interpolated share of the
-        surrounding grid entries that held data is at least this (0..1). 0.1: the mesh
-        reaches ~0.9 of a cell past the last hit ray or slice, where the contour still
-        runs (rays sample it discretely) and the spline is still held by data; 0.5
-        would stop midway and cut off the imaged edges (simulated clavicle: p95 gold
-        distance 0.74 mm at 0.5, 0.51 mm at 0.1, with 100% of the area within 0.35 mm
-        of the true bone either way).
+        surrounding grid entries that held data is at least this (0..1). 0.05: the mesh
+        reaches up to ~0.95 of a cell past the last hit ray or slice, where the contour
+        still runs (rays sample it discretely) and the spline is still held by data;
+        0.5 would stop midway and cut off the imaged edges. Measured on simulated
+        sweeps of the five bones: p95 gold distance 0.45-0.82 mm at 0.05 against
+        0.50-1.10 mm at 0.25, with >= 99.98 % of the area within 0.35 mm of the true
+        bone either way.
     max_distance_mm : float or None
         If set, also drop vertices farther than this (mm) from every segmented point.
     """
 
     step_mm: float = 0.5
-    coverage_threshold: float = 0.1
+    coverage_threshold: float = 0.05
     max_distance_mm: float | None = None
 
     def __post_init__(self) -> None:
@@ -105,7 +106,9 @@ def surface_polydata(
     BoneUSReconError
         Nothing left after trimming.
     """
-    present = np.isfinite(fit.residuals)
+    # Trim to the entries the fit trusted: present and not rejected as outliers (an
+    # edge seen only by a rejected false contour is not data).
+    present = np.isfinite(fit.residuals) & (fit.weights > 0)
     nu, nv = _sample_counts(fit, grid, params.step_mm)
     us, vs = np.linspace(0, 1, nu), np.linspace(0, 1, nv)
     pts = fit.surface.evaluate(us, vs)  # (nu, nv, 3)
