@@ -3,9 +3,9 @@
 The surface is evaluated on a fine regular ``(u, v)`` grid (about ``step_mm`` between
 samples along and around the bone), triangulated two triangles per quad, and trimmed
 to where there were data: a fine-grid vertex is kept when the share of grid entries
-around it that held a point the fit kept (present, weight > 0) (bilinear interpolation of the resampled grid's presence mask in
-``(u, v)``) is at least ``coverage_threshold``, so the model never extends over
-parameter regions no ray saw (the spline is unconstrained there). The result carries
+around it holding a point the fit kept (present, weight > 0; bilinear interpolation of
+that mask in ``(u, v)``) is at least ``coverage_threshold``, so the model never extends
+over parameter regions no ray saw (the spline is unconstrained there). It carries
 
 * point normals (``vtkPolyDataNormals``, oriented toward the probe, i.e. out of the bone),
 * texture coordinates ``(u, v)`` in [0, 1],
