@@ -101,9 +101,9 @@ def test_snake_energy_decreases_and_stops_by_the_3px_rule():
     assert run.displacements_px[-1] < 3.0
     assert np.all(run.displacements_px[SnakeParams().min_iterations - 1 : -1] >= 3.0)
     assert run.iterations < 300
-    # It found the bone (the balloon/region balance sits on the echo's upper flank).
+    # It found the bone.
     err = depth_error_mm(run.points_px, surf, s)
-    assert abs(np.median(err)) < 0.6
+    assert abs(np.median(err)) < 0.2
 
 
 def test_snake_iteration_cap():
@@ -142,7 +142,7 @@ def test_pixel_size_invariance(method):
         # The posterior choice's extent depends on speckle, not on the pixel size; the
         # snake's depth and its number of iterations must not.
         it = [res[s][2].extras["iterations"] for s in (0.05, 0.15)]
-        assert abs(it[0] - it[1]) <= 0.25 * max(it)
+        assert abs(it[0] - it[1]) <= max(3, 0.25 * max(it))
 
 
 def test_shadowpath_subpixel_accuracy_on_analytic_frames():

@@ -51,19 +51,19 @@ class SnakeParams:
     """Balloon pressure along the normal, in ``force_unit`` (paper: k1 = 500)."""
     k2: float = 0.5
     """Weight of the unit potential-gradient ``grad P/|grad P|``, in ``force_unit`` (paper: k2 = 0.5)."""
-    force_unit: float = 1e-3
-    """Reference px per iteration per unit of k1, k2 (ours: keeps the paper's k1:k2 = 1000:1 ratio; balloon = 0.5 px)."""
-    k_regional: float = 24.0
-    """Weight of the regional energy ``-P`` (ours: the paper gives none; the bone band out-pulls the balloon without oscillating at tau = 12)."""
-    tau: float = 12.0
-    """Time step of ``(I + tau A) y' = y + tau F`` (ours: the balloon then moves 6 px per iteration, so the 3 px rule means "held")."""
+    force_unit: float = 1e-2
+    """Reference px per unit time per unit of k1, k2 (ours: keeps the paper's k1:k2 = 1000:1; balloon = 5 px per unit time)."""
+    k_regional: float = 600.0
+    """Weight of the regional energy ``-P`` (ours: the paper gives none; tuned so the echo holds the snake against balloon and tension)."""
+    tau: float = 3.0
+    """Time step of ``(I + tau A) y' = y + tau F`` (ours: the balloon alone then moves a point 15 px, capped at max_step_px, so the 3 px rule means "held")."""
     mid_mm: float = 0.6
     """Height of the bright band ``M_mid`` centred on the point, mm (Fig. 1; ours: typical bone echo thickness)."""
     up_mm: float = 1.5
     """Height of the region above the band ``M_up``, mm (Fig. 1; ours)."""
     down_mm: float = 3.0
     """Height of the shadow region below the band ``M_down``, mm (Fig. 1; ours)."""
-    smooth_mm: float = 0.6
+    smooth_mm: float = 0.3
     """Gaussian sigma of the potential ``P`` (positive part of Dif), mm (ours: the bone band's basin of attraction)."""
     max_step_px: float = 5.0
     """Largest move of a point in one iteration, reference px (ours, as skimage's max_px_move)."""

@@ -27,8 +27,11 @@ Minimisation (semi-implicit finite differences): ``(I + tau A) y' = y + tau F(y)
 with ``A`` the pentadiagonal matrix of eq. (1) with free ends (``A = 2 (w1 D1'D1 + w2
 D2'D2)``, D1, D2 the first and second difference matrices), Cholesky-factorised once
 per frame (:func:`scipy.linalg.cholesky_banded`) and solved in O(n) per iteration.
-Iterations stop when no point moved more than ``stop_px`` reference pixels (the
-paper's 3 px) or after ``max_iterations`` (300). The energy is recorded each iteration.
+Each step is capped at ``max_step_px`` and halved until the energy does not increase
+(backtracking: the external forces are explicit and would otherwise make the contour
+oscillate across a thin echo). Iterations stop when no point moved more than
+``stop_px`` reference pixels (the paper's 3 px) or after ``max_iterations`` (300). The
+energy is recorded each iteration and never increases.
 """
 
 from __future__ import annotations
@@ -171,12 +174,21 @@ def run_snake(
         force = p.k_regional * pgj + kdir * unit_j - balloon
         y_new = cho_solve_banded((ab, False), y + p.tau * force)
         # Cap the step (as skimage's max_px_move): a thin echo must not be jumped over.
-        y_new = y + np.clip(y_new - y, -p.max_step_px, p.max_step_px)
-        np.clip(y_new, 0.0, y_max, out=y_new)
-        d = float(np.max(np.abs(y_new - y)))
-        y = y_new
-        pv, pgi, pgj = sample(y)
-        energies.append(energy(y, pv))
+        step = np.clip(y_new - y, -p.max_step_px, p.max_step_px)
+        # Backtracking: the explicit external step can overshoot the echo and make the
+        # contour oscillate; halve it until the energy goes down (at most 6 times).
+        for _ in range(7):
+            y_try = np.clip(y + step, 0.0, y_max)
+            pv_t, pgi_t, pgj_t = sample(y_try)
+            e_try = energy(y_try, pv_t)
+            if e_try <= energies[-1]:
+                break
+            step *= 0.5
+        else:
+            y_try, pv_t, pgi_t, pgj_t, e_try = y, pv, pgi, pgj, energies[-1]
+        d = float(np.max(np.abs(y_try - y)))
+        y, pv, pgi, pgj = y_try, pv_t, pgi_t, pgj_t
+        energies.append(e_try)
         disp.append(d)
         if it + 1 >= p.min_iterations and d < p.stop_px:
             stopped = "displacement"
