@@ -251,6 +251,29 @@ def test_soft_tissue_has_speckle_and_fascia(sim_small) -> None:
     assert np.percentile(f[int(1.5 / sp) : top - 2], 99.5) > 150
 
 
+def test_forearm_scan_shows_the_other_bone_beside_the_target(sim_factory) -> None:
+    with_n = sim_factory(bone="radius", n_frames=6)
+    without = sim_factory(bone="radius", n_frames=6, neighbour=False)
+    assert with_n.neighbour is not None and without.neighbour is None
+    assert with_n.neighbour.spec.name == "ulna"
+    # Same truth, gold and contours: the neighbour is only a distractor in the image.
+    assert np.array_equal(with_n.gold, without.gold)
+    assert all(np.array_equal(a, b) for a, b in zip(with_n.true_contours_px, without.true_contours_px, strict=True))
+    h = with_n.sweep.height
+    for k in range(6):
+        a = with_n.sweep.frames[k].astype(float)
+        b = without.sweep.frames[k].astype(float)
+        cols = np.flatnonzero(np.abs(a - b).max(0) > 0)
+        target = np.flatnonzero(np.isfinite(with_n.sections.top_j[k]))
+        assert cols.size > 5
+        # Only beside the target bone (shadow edges blur by a few pixels)...
+        assert np.intersect1d(cols, target[3:-3]).size == 0
+        # ...a bright bone echo over a dark shadow.
+        other = cols[np.abs(a - b)[:, cols].max(0) > 100]
+        assert a[:, other].max() > 180
+        assert a[h // 2 :, other].mean() < 0.5 * b[h // 2 :, other].mean()
+
+
 # -- gold points ----------------------------------------------------------------------------
 def test_gold_points_on_the_imaged_upper_surface(sim_small) -> None:
     gold = sim_small.gold

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["BoneSpec", "BONE_SPECS", "BoneGeometry"]
+__all__ = ["BoneSpec", "BONE_SPECS", "NEIGHBOURS", "BoneGeometry"]
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -75,20 +75,32 @@ BONE_SPECS: dict[str, BoneSpec] = {
 }
 
 
+#: The other bone a transverse scan shows beside the target, and its lateral distance
+#: (mm, axis to axis, along +y): the forearm's radius and ulna lie side by side, ~26 mm
+#: apart mid-shaft, so a 48 mm wide image catches the edge of the other one.
+NEIGHBOURS: dict[str, tuple[str, float]] = {
+    "radius": ("ulna", -26.0),
+    "ulna": ("radius", 26.0),
+}
+
+
 class BoneGeometry:
     """The analytic surface of one bone (see the module docstring for the formula).
 
     Parameters
     ----------
     spec : BoneSpec
+    offset : (3,) array-like, optional
+        Translation of the whole bone (mm), for a neighbouring bone.
     """
 
     # Finite-difference step in s for the surface derivatives (mm). The surface is a
     # sum of sines, so central differences are accurate to ~h^2 * |P'''| ~ 1e-8 mm.
     _HS = 1e-3
 
-    def __init__(self, spec: BoneSpec) -> None:
+    def __init__(self, spec: BoneSpec, offset: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
         self.spec = spec
+        self.offset = np.asarray(offset, float).reshape(3)
         self.length = float(spec.length_mm)
         self._tree: cKDTree | None = None
         self._tree_params: np.ndarray | None = None
@@ -101,7 +113,7 @@ class BoneGeometry:
         x = s - L / 2
         y = sp.lateral_bow_mm * np.sin(2 * np.pi * sp.lateral_periods * s / L)
         z = sp.vertical_bow_mm * np.sin(np.pi * s / L)
-        return np.stack([x, y, z], axis=-1)
+        return np.stack([x, y, z], axis=-1) + self.offset
 
     def axis_derivative(self, s: np.ndarray) -> np.ndarray:
         """``dc/ds``, shape ``s.shape + (3,)``."""

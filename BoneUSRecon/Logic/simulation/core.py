@@ -17,7 +17,7 @@ from BoneUSRecon import __version__
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.fileio import atomic_path
 from BoneUSRecon.Logic.progress import ProgressCallback, report
-from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, UP, BoneGeometry
+from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, NEIGHBOURS, UP, BoneGeometry
 from BoneUSRecon.Logic.simulation.corruption import choose_corrupted
 from BoneUSRecon.Logic.simulation.imaging import render_frames
 from BoneUSRecon.Logic.simulation.motion import ProbePath, probe_path
@@ -63,6 +63,9 @@ class Simulation:
         Bone row and incidence cosine per frame and column (also outside the visible part).
     swept_range_mm : (float, float)
         Range of the bone axis parameter the sweep imaged.
+    neighbour : BoneGeometry or None
+        The other forearm bone shown beside the target (a distractor; not in the
+        truth, the gold points or the contours), when there is one.
     """
 
     sweep: Sweep
@@ -77,6 +80,7 @@ class Simulation:
     path: ProbePath
     sections: BoneSections
     swept_range_mm: tuple[float, float]
+    neighbour: BoneGeometry | None = None
 
     def truth_polydata(self) -> vtkPolyData:
         """The true bone surface as triangles with outward point ``Normals``."""
@@ -183,6 +187,18 @@ def _sample_gold(
     return pts + rng.normal(0.0, params.gold_noise_mm, pts.shape)
 
 
+def _neighbour(geom: BoneGeometry, params: SimulationParams) -> BoneGeometry | None:
+    """The other forearm bone beside the target, its top ~2 mm deeper than the target's."""
+    if not params.neighbour or params.bone not in NEIGHBOURS:
+        return None
+    name, dy = NEIGHBOURS[params.bone]
+    spec2 = BONE_SPECS[name]
+    plain = BoneGeometry(spec2)
+    skin = float(geom.top_height(geom.length / 2)[0]) + geom.spec.depth_mm
+    dz = skin - (spec2.depth_mm + 2.0) - float(plain.top_height(plain.length / 2)[0])
+    return BoneGeometry(spec2, offset=(0.0, dy, dz))
+
+
 def simulate(params: SimulationParams | None = None, progress: ProgressCallback | None = None) -> Simulation:
     """Simulate a tracked freehand sweep over a bone, with its ground truth.
 
@@ -220,9 +236,20 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     report(progress, "geometry", 0, 3)
     path = probe_path(geom, params, np.random.default_rng([seed, 1]))
     sections = bone_sections(geom, path.image_to_reference, path.s, int(params.width))
+    top_j, cos_inc = sections.top_j, sections.cos_incidence
+    other = _neighbour(geom, params)
+    if other is not None:
+        # The image shows whichever bone each beam meets first (they never overlap).
+        s2 = path.s - geom.length / 2 + other.length / 2  # same x as the probe
+        sec2 = bone_sections(other, path.image_to_reference, s2, int(params.width))
+        use2 = np.isfinite(sec2.top_j) & ~(top_j <= sec2.top_j)
+        top_j = np.where(use2, sec2.top_j, top_j)
+        cos_inc = np.where(use2, sec2.cos_incidence, cos_inc)
     report(progress, "geometry", 1, 3)
     kinds = choose_corrupted(int(params.n_frames), float(params.corrupted_fraction), np.random.default_rng([seed, 4]))
-    frames = render_frames(path.image_to_reference, sections.top_j, sections.cos_incidence, params, kinds, progress)
+    frames = render_frames(
+        path.image_to_reference, top_j, cos_inc, params, kinds, progress, tissue_top_j=sections.top_j
+    )
     hidden = {k for k, v in kinds.items() if v == "contact_loss"}
     contours = visible_contours(sections, int(params.height), params.imaging.visible_cos, hidden)
 
@@ -266,6 +293,7 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         path=path,
         sections=sections,
         swept_range_mm=swept,
+        neighbour=other,
     )
 
 
@@ -289,6 +317,9 @@ def simulation_info(sim: Simulation) -> dict[str, Any]:
         "corrupted_frames": [int(k) for k in sim.corrupted],
         "corruption_kinds": {str(k): v for k, v in sim.corruption_kinds.items()},
         "invalid_frames": [int(k) for k in np.flatnonzero(~sim.sweep.valid)],
+        "neighbour": None
+        if sim.neighbour is None
+        else {"bone": sim.neighbour.spec.name, "offset_mm": [float(v) for v in sim.neighbour.offset]},
         "frames_with_visible_bone": int(sum(c.shape[0] > 0 for c in sim.true_contours_px)),
         "gold_points": int(sim.gold.shape[0]),
         "reference_frame": "x along the bone, y lateral, z up (towards the skin); mm",

@@ -173,6 +173,7 @@ def render_frames(
     params: SimulationParams,
     corrupted: dict[int, str],
     progress: ProgressCallback | None = None,
+    tissue_top_j: np.ndarray | None = None,
 ) -> np.ndarray:
     """Render all frames of a sweep.
 
@@ -185,6 +186,9 @@ def render_frames(
     corrupted : dict
         ``{frame: kind}`` of frames to corrupt.
     progress : callable, optional
+    tissue_top_j : ndarray (N, W), optional
+        Bone rows the soft-tissue layers are laid over (default ``top_j``): the
+        target bone's, so a neighbouring bone does not move the fascia.
 
     Returns
     -------
@@ -203,7 +207,10 @@ def render_frames(
     hp, wp = h + 2 * pad, w + 2 * pad
     transfer, norm = _psf_transfer((hp, wp), sig_ax, sig_lat)
 
-    layers = tissue_layers(image_to_reference, top_j, params, np.random.default_rng([seed, 2]), pad)
+    layers = tissue_layers(
+        image_to_reference, top_j if tissue_top_j is None else tissue_top_j, params,
+        np.random.default_rng([seed, 2]), pad,
+    )
     z_pad = ((np.arange(hp) - pad) * sp).astype(np.float32)[None, :, None]
     rows = np.arange(h, dtype=np.float32)[None, :, None]
     z_cm = np.arange(h) * sp / 10.0

@@ -97,6 +97,10 @@ class SimulationParams:
     frame_rate_hz: float = 20.0
     #: Length left unswept at each end of the bone segment (mm).
     sweep_margin_mm: float = 10.0
+    #: Show the forearm's other bone beside the target (radius <-> ulna), as a
+    #: transverse forearm scan does: a second bone echo with its own shadow at the
+    #: side of the image. It is not part of the truth, the gold points or the contours.
+    neighbour: bool = True
     #: Number of digitised gold-standard points (the paper: 1145).
     gold_points: int = 1145
     #: Standard deviation of the digitiser noise, per axis (mm).
