@@ -7,8 +7,9 @@
 * :mod:`.report`: :func:`~.report.write_report`, a self-contained HTML report of a
   reconstruction.
 * :mod:`.overlay`: contours drawn on B-mode frames (PNG, Pillow).
+* :mod:`.mrml`: the adapter between Slicer's MRML scene and BoneUSRecon.
 
 Submodules are imported on demand: importing this package loads nothing heavy.
 """
 
-__all__ = ["render", "viewer", "report", "overlay"]
+__all__ = ["render", "viewer", "report", "overlay", "mrml"]

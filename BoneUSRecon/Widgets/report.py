@@ -655,11 +655,13 @@ def write_report(
     if overlay_html:
         sections.append(f'<h2 id="overlay-section">Contours on sample frames</h2>{overlay_html}')
     if recon_summary or timings:
-        rows = [(k, html.escape(_fmt_value(v))) for k, v in recon_summary.items()]
+        rows = [(k, html.escape(_fmt_value(v))) for k, v in recon_summary.items()
+                if v is not None and v != ""]
         rows += [(f"time: {k}", f"{_num(v, 2)} s") for k, v in timings.items()]
         sections.append(f'<h2 id="recon-section">Reconstruction</h2>{_kv_table(rows, "reconstruction")}')
-    sections.append(f'<h2 id="parameters-section">Parameters</h2><pre id="parameters">'
-                    f"{html.escape(params_json)}</pre>")
+    sections.append(f'<h2 id="parameters-section">Parameters</h2><details><summary>'
+                    "every parameter of this run (JSON; also in report.json)</summary>"
+                    f'<pre id="parameters">{html.escape(params_json)}</pre></details>')
     sections.append(f'<h2 id="versions-section">Software</h2>'
                     f'{_kv_table([(k, html.escape(v)) for k, v in versions.items()], "versions")}')
     page = ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
