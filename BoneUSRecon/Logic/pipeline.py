@@ -131,6 +131,7 @@ def surface_from_contours(
     """
     t = timings if timings is not None else {}
     t0 = time.perf_counter()
+    _check_probe_moves([k for k, _ in contours_mm], sweep)
     report(progress, "resample", 0, 1)
     grid = resample(contours_mm, sweep, params.resampling)
     t1 = time.perf_counter()
@@ -145,6 +146,30 @@ def surface_from_contours(
     report(progress, "surface", 1, 1)
     t.update(resample=t1 - t0, fit=t2 - t1, surface=t3 - t2)
     return grid, fit, surf
+
+
+#: Below this extent of the image centres along the sweep (mm) the probe was held
+#: still: the slices are one cross-section seen again and again, and no surface along
+#: the bone can be built (tracking jitter alone spans a few tenths of a mm).
+MIN_SWEEP_EXTENT_MM = 2.0
+
+
+def _check_probe_moves(frames: Sequence[int], sweep: Sweep) -> None:
+    """Refuse sweeps whose segmented frames do not advance along the bone."""
+    idx = np.asarray(frames, dtype=int)
+    if idx.size < 2:
+        return  # resample() gives the "too few slices" error
+    hw = np.array([(sweep.width - 1) / 2, (sweep.height - 1) / 2, 0.0, 1.0])
+    c = np.einsum("nab,b->na", sweep.image_to_reference[idx, :3, :], hw)
+    c = c - c.mean(0)
+    extent = float(np.ptp(c @ np.linalg.svd(c, full_matrices=False)[2][0]))
+    if not extent >= MIN_SWEEP_EXTENT_MM:
+        raise BoneUSReconError(
+            f"the probe does not move: the {idx.size} frames with a bone contour span "
+            f"only {extent:.2f} mm (at least {MIN_SWEEP_EXTENT_MM:g} mm are needed to "
+            "build a surface along the bone)",
+            sweep.source,
+        )
 
 
 def reconstruct(
@@ -276,7 +301,12 @@ def control_point_table(
     for n, e in enumerate(counts):
         report(progress, "table", n, len(counts))
         fp = dataclasses.replace(p.fit, control_points=(int(e), p.fit.control_points[1]))
-        fit = fit_surface(grid.points, fp, u=grid.axis_position, v=grid.angles)
+        try:
+            fit = fit_surface(grid.points, fp, u=grid.axis_position, v=grid.angles)
+        except BoneUSReconError as exc:  # name the sweep, as reconstruct() does
+            if exc.path is None and recon.sweep.source is not None:
+                raise BoneUSReconError(exc.message, recon.sweep.source) from None
+            raise
         surf = surface_polydata(fit, grid, seg_pts, p.surface)
         rows.append((int(e), evaluate_surface(surf, gold).mean))
     report(progress, "table", len(counts), len(counts))
