@@ -24,6 +24,7 @@ frames see the same anatomy.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sfft
@@ -72,22 +73,22 @@ class SmoothField:
         return self.amp * np.sin(arg).sum(-1)
 
 
+@dataclass(frozen=True, eq=False)
 class TissueLayers:
-    """Depths (mm) of the soft-tissue interfaces per frame and (padded) column.
+    """Depths (mm) of the soft-tissue interfaces per frame and (padded) column, shape (N, Wp)."""
 
-    Attributes
-    ----------
-    skin, fascia1, fascia2, deep : ndarray (N, Wp)
-        Depth below the probe face of the skin line's lower edge, the superficial
-        fascia (fat/muscle), an intermuscular fascia (NaN where there is no room above
-        the bone) and a deep fascia at bone level beside the bone (hidden by the
-        shadow under it).
-    strength1, strength2, strength_deep : ndarray (N, Wp)
-        Relative brightness along each fascia line (0 where it fades out).
-    """
-
-    def __init__(self, **arrays: np.ndarray) -> None:
-        self.__dict__.update(arrays)
+    #: Lower edge of the bright skin line (dermis).
+    skin: np.ndarray
+    #: Superficial fascia between fat and muscle.
+    fascia1: np.ndarray
+    #: Intermuscular fascia, NaN where there is no room above the bone.
+    fascia2: np.ndarray
+    #: Deep fascia at bone level beside the bone (hidden by the shadow under it).
+    deep: np.ndarray
+    #: Relative brightness along each fascia line (0 where it fades out).
+    strength1: np.ndarray
+    strength2: np.ndarray
+    strength_deep: np.ndarray
 
 
 def tissue_layers(
@@ -145,18 +146,18 @@ def _add_band(
     centre: np.ndarray,
     amp: np.ndarray,
     profile: Callable[[np.ndarray], np.ndarray],
-    below: float,
-    above: float,
+    up: float,
+    down: float,
 ) -> None:
     """Add ``amp * profile(j - centre)`` to ``field`` in place, only on the rows it touches.
 
     Specular lines are a few pixels thick: drawing them on a band of rows
-    ``[centre - below, centre + above]`` per column instead of the whole image is ~20x
+    ``[centre - up, centre + down]`` per column instead of the whole image is ~20x
     cheaper. ``field`` (n, H, W) complex; ``centre`` (n, W) rows (non-finite: no line);
     ``amp`` (n, W) complex.
     """
     n, h, w = field.shape
-    offs = np.arange(-int(np.ceil(below)), int(np.ceil(above)) + 2)
+    offs = np.arange(-int(np.ceil(up)), int(np.ceil(down)) + 2)
     ok_c = np.isfinite(centre) & (amp != 0)
     c = np.where(ok_c, centre, 0.0)
     rows = np.floor(c)[..., None] + offs  # (n, W, B)
