@@ -388,7 +388,12 @@ def test_cli_simulate_writes_and_reports(tmp_path, capsys) -> None:
     assert info["frames"] == 5 and info["bone"] == "radius" and len(info["corrupted_frames"]) == 2
     for name in ("sweep.mha", "truth.vtp", "gold.csv", "simulation.json"):
         assert (out / name).stat().st_size > 0
-    assert json.loads((out / "simulation.json").read_text())["parameters"]["reverse"] is True
+    saved = json.loads((out / "simulation.json").read_text())
+    assert saved["parameters"]["reverse"] is True and saved["neighbour"]["bone"] == "ulna"
+    rc = main(["simulate", "radius", str(tmp_path / "alone"), "--frames", "3", "--width", "64",
+               "--height", "64", "--spacing", "0.6", "--no-neighbour", "-q"])
+    assert rc == 0 and "Simulated radius sweep" in capsys.readouterr().out
+    assert json.loads((tmp_path / "alone" / "simulation.json").read_text())["neighbour"] is None
 
 
 @pytest.mark.parametrize(

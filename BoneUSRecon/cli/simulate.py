@@ -41,6 +41,10 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--seed", type=int, default=d.seed, metavar="S", help=f"random seed (default {d.seed})")
     p.add_argument("--reverse", action="store_true", help="sweep from the far end back")
+    p.add_argument(
+        "--no-neighbour", dest="neighbour", action="store_false",
+        help="forearm bones: do not show the other bone (radius/ulna) beside the target",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead")
     add_common_options(p)
     p.set_defaults(func=run)
@@ -66,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
         invalid_fraction=args.invalid,
         seed=args.seed,
         reverse=args.reverse,
+        neighbour=args.neighbour,
     )
     # Refuse bad input before any work is done or any folder is made.
     check_params(params)
