@@ -79,8 +79,14 @@ def check_report_dir(path: str | os.PathLike[str]) -> Path:
     parent = d if d.is_dir() else (d.parent if str(d.parent) else Path("."))
     if not parent.is_dir():
         raise BoneUSReconError(f"folder {str(parent)!r} does not exist", d)
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise BoneUSReconError(f"folder {str(parent)!r} is not writable", d)
+    # Probe by creating a file: os.access() says yes to root on read-only mounts.
+    import tempfile
+
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError:
+        raise BoneUSReconError(f"folder {str(parent)!r} is not writable", d) from None
     return d
 
 

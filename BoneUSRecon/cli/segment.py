@@ -75,6 +75,9 @@ def run(args: argparse.Namespace) -> int:
             raise BoneUSReconError("overlay path exists and is not a folder", odir)
         if not odir.parent.is_dir() and str(odir.parent):
             raise BoneUSReconError(f"folder {str(odir.parent)!r} does not exist", odir)
+        from BoneUSRecon.cli.reconstruct import check_report_dir
+
+        check_report_dir(odir)  # writable? (checked by creating a file)
     if args.overlay_every < 1:
         raise BoneUSReconError(f"--overlay-every must be >= 1, got {args.overlay_every}")
 
