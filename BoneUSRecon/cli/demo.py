@@ -9,8 +9,11 @@ OUTDIR. Needs no input file; about 15 s on two cores.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import shutil
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +80,18 @@ def _params(args: argparse.Namespace) -> Any:
     return params
 
 
+@contextlib.contextmanager
+def _removed_on_failure(outdir: Path) -> Iterator[None]:
+    """Delete OUTDIR again if this run created it and then failed: no partial output."""
+    created = not outdir.exists()
+    try:
+        yield
+    except BaseException:
+        if created and outdir.is_dir():
+            shutil.rmtree(outdir, ignore_errors=True)
+        raise
+
+
 def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct, evaluate, write; print where everything is."""
     from BoneUSRecon.Logic.errors import BoneUSReconError
@@ -101,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
             check_report_folder(report_dir)
     params = ReconstructionParams()
 
-    with ProgressBar(quiet=args.quiet or args.json) as bar:
+    with ProgressBar(quiet=args.quiet or args.json) as bar, _removed_on_failure(outdir):
         sim = simulate(sim_params, progress=bar)
         files = write_simulation(sim, outdir, progress=bar)
         # Evaluate against the gold points as written (CSV, 1e-6 mm), so that
