@@ -106,3 +106,18 @@ def test_bad_surface_params_refused():
         SurfaceParams(step_mm=0)
     with pytest.raises(BoneUSReconError):
         SurfaceParams(coverage_threshold=0)
+
+
+def test_long_gaps_between_slices_are_not_bridged():
+    sweep, contours, _ = tube_sweep(m=40, tilt_deg=0.0)
+    kept = [c for c in contours if not 15 <= c[0] < 25]  # 10 slices missing: 17 mm gap
+    grid = resample(kept, sweep, ResamplingParams(angle_span_deg=120, angle_centre_deg=0))
+    fit = fit_surface(grid.points, FitParams(), u=grid.axis_position, v=grid.angles)
+    holed = surface_polydata(fit, grid)
+    bridged = surface_polydata(fit, grid, params=SurfaceParams(gap_factor=None))
+    x_h = numpy_support.vtk_to_numpy(holed.GetPoints().GetData())[:, 0]
+    x_b = numpy_support.vtk_to_numpy(bridged.GetPoints().GetData())[:, 0]
+    assert not ((x_h > 28) & (x_h < 32)).any()  # mid-gap: > 3 slice spacings from data
+    assert ((x_b > 28) & (x_b < 32)).any()
+    # bridging is still accurate on a smooth tube (the spline spans the gap)
+    assert surface_area(bridged) > surface_area(holed) * 1.2

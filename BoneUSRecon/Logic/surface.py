@@ -53,11 +53,17 @@ class SurfaceParams:
         bone either way.
     max_distance_mm : float or None
         If set, also drop vertices farther than this (mm) from every segmented point.
+    gap_factor : float or None
+        Also drop vertices farther from every segmented point than this many times the
+        median spacing between consecutive slices (unitless; needs the grid). 3: the
+        mesh bridges up to ~5 missing or rejected slices but opens a hole over longer
+        gaps, where the spline has nothing to follow (ours). ``None`` disables.
     """
 
     step_mm: float = 0.5
     coverage_threshold: float = 0.05
     max_distance_mm: float | None = None
+    gap_factor: float | None = 3.0
 
     def __post_init__(self) -> None:
         if not self.step_mm > 0:
@@ -136,6 +142,10 @@ def surface_polydata(
         dist = np.full(flat.shape[0], np.nan)
     if params.max_distance_mm is not None and seg.shape[0]:
         keep &= dist.reshape(nu, nv) <= params.max_distance_mm
+    if params.gap_factor is not None and grid is not None and seg.shape[0] and grid.shape[0] > 1:
+        spacing = float(np.median(np.diff(grid.axis_position)))
+        if spacing > 0:
+            keep &= dist.reshape(nu, nv) <= params.gap_factor * spacing
 
     # Two triangles per quad, kept when all three corners are kept.
     idx = np.arange(nu * nv).reshape(nu, nv)
