@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -346,8 +347,12 @@ def check_output_dir(outdir: str | os.PathLike[str]) -> Path:
             probe = probe.parent
         if not probe.is_dir():
             raise BoneUSReconError(f"cannot create the output folder: {str(probe)!r} is not a folder", out)
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise BoneUSReconError(f"cannot write in {str(probe)!r}", out)
+    # Probe by creating a file: os.access() says yes to root on read-only mounts.
+    try:
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError:
+        raise BoneUSReconError(f"cannot write in {str(probe)!r}", out) from None
     return out
 
 
