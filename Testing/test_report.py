@@ -140,7 +140,7 @@ def test_page_holds_every_section_as_real_pictures(written: SimpleNamespace) -> 
     page = written.index.read_text(encoding="utf-8")
     assert written.index == written.out / "index.html"
     imgs = _images(page)
-    assert {"surface-top", "surface-oblique", "histogram", "table-i"} <= set(imgs)
+    assert {"surface-top", "surface-oblique", "histogram", "table-i", "gold-errors"} <= set(imgs)
     frames = sorted(k for k in imgs if k.startswith("frame-"))
     # Rejected frames 4 and 17 are shown among the sample, and marked as such.
     assert "frame-0004" in frames and "frame-0017" in frames and len(frames) >= 6
@@ -152,6 +152,10 @@ def test_page_holds_every_section_as_real_pictures(written: SimpleNamespace) -> 
     assert ((top[..., 0] > 200) & (top[..., 1] < 100) & (top[..., 2] < 100)).sum() > 50
     assert (top[..., 2] > top[..., 0] + 40).sum() > 1000  # the blue/purple end of viridis
     assert not np.array_equal(imgs["surface-top"], imgs["surface-oblique"])
+    # Gold offsets run 0 to 1.5 mm: the error map shows both ends of coolwarm.
+    err = imgs["gold-errors"].astype(int)
+    assert ((err[..., 2] > 150) & (err[..., 0] < 120)).sum() > 30  # blue: near
+    assert ((err[..., 0] > 150) & (err[..., 2] < 90)).sum() > 30  # red: far
     # The same pictures are beside the page as files, byte for byte decodable.
     files = sorted(p.stem for p in (written.out / "figures").glob("*.png"))
     assert len(files) == len(imgs)

@@ -40,6 +40,7 @@ __all__ = [
     "view_directions",
     "make_plotter",
     "render_views",
+    "render_error_map",
     "set_camera",
     "scene_points",
     "screenshot",
@@ -196,6 +197,13 @@ def view_directions(
     return {"top": (n, up), "oblique": (d2 / np.linalg.norm(d2), up1)}
 
 
+def _bar_args(title: str, style: Style) -> dict[str, Any]:
+    # Horizontal, below the data: bones are long and lie horizontally.
+    return {"title": title, "color": style.text_color, "vertical": False,
+            "position_x": 0.25, "position_y": 0.03, "height": 0.09, "width": 0.5,
+            "fmt": "%.2f", "n_labels": 5}
+
+
 def _dot_size(n: int, largest: float) -> float:
     """Point size in pixels: dense clouds (thousands of points) would hide the surface
     under full-size dots, so shrink them with the square root of the count."""
@@ -259,20 +267,7 @@ def make_plotter(
             nan_color="lightgrey",
             smooth_shading=True,
             show_scalar_bar=scalar_bar,
-            scalar_bar_args={
-                "title": "Distance (mm)",
-                "color": style.text_color,
-                # Horizontal, below the data: bones are long and lie horizontally.
-                "vertical": False,
-                "position_x": 0.25,
-                "position_y": 0.03,
-                "height": 0.09,
-                "width": 0.5,
-                "fmt": "%.2f",
-                "n_labels": 5,
-            }
-            if scalar_bar
-            else None,
+            scalar_bar_args=_bar_args("Distance (mm)", style) if scalar_bar else None,
         )
     else:
         actors["surface"] = pl.add_mesh(mesh, color="#d9c8a9", smooth_shading=True)
@@ -483,3 +478,72 @@ def save_png(image: np.ndarray, path: str | os.PathLike[str]) -> Path:
     with atomic_path(p) as tmp:
         tmp.write_bytes(png_bytes(image))
     return p
+
+
+def render_error_map(
+    surface: Any,
+    gold: np.ndarray,
+    distances: np.ndarray,
+    *,
+    sweep: Sweep | None = None,
+    view: str = "top",
+    window_size: Sequence[int] = (1000, 620),
+    style: Style = DEFAULT_STYLE,
+) -> np.ndarray:
+    """The surface in plain colour with the gold points coloured by their distance to it.
+
+    Shows where the reconstruction is off, which the histogram cannot.
+
+    Parameters
+    ----------
+    surface : vtkPolyData or pyvista.PolyData
+    gold : ndarray, shape (K, 3)
+        Gold points (mm).
+    distances : ndarray, shape (K,)
+        Their distances to the surface (mm), e.g. ``Evaluation.distances``.
+    sweep : Sweep, optional
+        Orients the ``top`` view toward the probe.
+    view : {"top", "oblique"}
+    window_size : (int, int)
+        Width, and the largest height (the height follows the data's aspect).
+
+    Returns
+    -------
+    ndarray of uint8, shape (H, W, 3)
+    """
+    use_offscreen_backend()
+    import pyvista as pv
+
+    mesh = as_pyvista(surface)
+    g = pv.PolyData(np.asarray(gold, dtype=float).reshape(-1, 3))
+    dist = np.asarray(distances, dtype=float).reshape(-1)
+    g.point_data["gold distance"] = dist
+    # Colour range: a few far outliers must not wash out the rest; values above the
+    # range take the top colour.
+    top = float(np.nanmax(dist)) if dist.size else 1.0
+    hi = max(min(top, max(1.0, 2.0 * float(np.nanpercentile(dist, 95)))), 1e-3)
+    pl = pv.Plotter(off_screen=True, window_size=list(window_size))
+    try:
+        pl.set_background(style.background)
+        actors = {
+            "surface": pl.add_mesh(mesh, color="#c8c8c8", smooth_shading=True),
+            "gold": pl.add_mesh(
+                g, scalars="gold distance", cmap="coolwarm", clim=(0.0, hi),
+                point_size=_dot_size(g.n_points, style.point_size + 2),
+                render_points_as_spheres=True,
+                scalar_bar_args=_bar_args(
+                    "gold point to surface (mm" + (f", {hi:.2f} or more in dark red)"
+                                                   if top > hi else ")"), style),
+            ),
+        }
+        pts = np.asarray(mesh.points, dtype=float)
+        d, up = view_directions(pts, _toward_probe(sweep))[view]
+        fit = scene_points(actors)
+        w = int(window_size[0])
+        span = np.ptp(fit @ np.cross(up, d)) or 1.0
+        need = w * np.ptp(fit @ up) / span * 1.08 / 0.85
+        pl.window_size = [w, int(np.clip(need, 0.35 * w, window_size[1]))]
+        set_camera(pl, fit, d, up)
+        return screenshot(pl)
+    finally:
+        pl.close()

@@ -565,7 +565,7 @@ def write_report(
                               f"surface, {name} view", f"{surf_caption} {what.capitalize()}."))
     surface_html = "".join(figs_html)
     n_vert = int(recon.surface.GetNumberOfPoints())
-    n_pts = int(recon.points.GetNumberOfPoints()) if getattr(recon, "points", None) else 0
+    n_pts = 0 if getattr(recon, "points", None) is None else int(recon.points.GetNumberOfPoints())
     surface_html += (f"<p>{n_vert} surface vertices, {n_pts} segmented points.</p>")
 
     # Accuracy against gold points.
@@ -578,6 +578,12 @@ def write_report(
         ev, ev_dist = _evaluation_dict(evaluation)
         numbers["evaluation"] = ev
         figures["histogram"] = histogram_png(ev_dist, ev)
+        gold_pts = np.asarray(gold, dtype=float) if gold is not None else None
+        if gold_pts is not None and len(gold_pts) == len(ev_dist):
+            from BoneUSRecon.Widgets.render import render_error_map
+
+            figures["gold_errors"] = _png(render_error_map(recon.surface, gold_pts, ev_dist,
+                                                           sweep=sweep))
         tick()
         accuracy_html = (
             f'<p class="big">Mean distance from the gold points to the surface: '
@@ -586,6 +592,10 @@ def write_report(
             + _accuracy_rows(ev)
             + _img("histogram", figures["histogram"], "histogram of distances",
                    "Distances from each gold point to the nearest point of the surface.")
+            + (_img("gold-errors", figures["gold_errors"], "gold points by distance",
+                    "Where the surface is off: the gold points coloured by their distance "
+                    "to the (grey) surface, seen from the probe's side.")
+               if "gold_errors" in figures else "")
         )
 
     # Table I.
