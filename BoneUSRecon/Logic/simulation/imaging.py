@@ -221,7 +221,16 @@ def render_frames(
     tex_sigma = 1.0 / sp  # muscle texture correlation ~1 mm
 
     present_all = np.isfinite(top_j)
-    top_filled = np.where(present_all, top_j, np.inf).astype(np.float32)
+    # Row where the shadow starts: the bone row, carried to the columns beside the bone
+    # (nearest bone column) so that the blurred shadow edge spreads outwards too.
+    top_filled = np.full(top_j.shape, np.inf, np.float32)
+    cols = np.arange(top_j.shape[1])
+    for k in np.flatnonzero(present_all.any(1)):
+        have = np.flatnonzero(present_all[k])
+        nearest = have[np.clip(np.searchsorted(have, cols), 0, have.size - 1)]
+        left = have[np.clip(np.searchsorted(have, cols) - 1, 0, have.size - 1)]
+        nearest = np.where(np.abs(left - cols) < np.abs(nearest - cols), left, nearest)
+        top_filled[k] = top_j[k, nearest]
     # Shadow only where the beam hits bone; edges blurred by the beam width, which
     # grows below the bone (the beam diverges past its focus): blend two blurs by depth.
     lat_near = gaussian_filter1d(present_all.astype(np.float32), sig_lat, axis=1)
