@@ -115,45 +115,57 @@ def segment_sweep(
         report(progress, "segment", n + 1, int(idx.size))
     t_seg = time.perf_counter() - t0
 
-    # Neighbour consistency. Gross jumps go first (a frame next to a wrong one is
-    # judged again once the wrong one is gone), then the plain thresholds. Tolerances
-    # grow with the scatter of the neighbours about their own trend (sparse sweeps).
+    # Neighbour consistency. A bad frame also spoils its neighbours' predictions, so
+    # frames are rejected one at a time per neighbourhood (the worst first) and the
+    # rest judged again without it. Tolerances grow with the scatter of the
+    # neighbours about their own trend (sparse sweeps). Then, in frames kept, points
+    # off their neighbours' prediction (or beyond their lateral extent) are dropped.
     sy = float(np.median(spacing_all[idx, 1]))
     margin = rej.extend_mm / float(np.median(spacing_all[idx, 0]))
     keep = {k: np.ones(d.points_px.shape[0], bool) for k, d in dets.items()}
-    for factor in (3.0, 2.0, 1.0, 1.0):
+    for _ in range(idx.size):
         order = [k for k in dets if not verdicts[k][1]]
         devs, scatter = neighbour_deviation(
-            {k: dets[k].points_px[keep[k]] for k in order}, order, sy, rej.jump_window, margin
+            {k: dets[k].points_px for k in order}, order, sy, rej.jump_window, margin
         )
-        changed = False
-        for k, dev in devs.items():
-            known = ~np.isnan(dev)
-            if not known.any():
-                continue
-            slack = 3.0 * scatter.get(k, 0.0)
-            off = known & (np.abs(dev) > factor * max(rej.point_jump_mm, slack))
-            conf, _ = verdicts[k]
+        bad: dict[int, float] = {}
+        n_order = len(order)
+        for p, (k, dev) in enumerate(devs.items()):
             finite = np.isfinite(dev)
+            if np.isnan(dev).all():
+                continue
+            tol = max(rej.jump_mm, 3.0 * scatter.get(k, 0.0))
+            if p == 0 or p == n_order - 1:
+                tol *= 2.0  # extrapolated from one side only: less sure
             typical = float(np.median(np.abs(dev[finite]))) if finite.any() else np.inf
-            # Frames with no point near any neighbour's contour are rejected; points
-            # beyond the neighbours' lateral extent are dropped below (as "off").
-            unsupported = not finite.any()
-            if unsupported or typical > factor * max(rej.jump_mm, slack):
-                if np.isfinite(typical):
-                    conf *= float(np.exp(-((typical / rej.jump_mm) ** 2)))
-                    why = f"jump of {typical:.1f} mm from neighbouring frames"
-                else:
-                    conf, why = 0.0, "no overlap with neighbouring frames"
-                verdicts[k] = (conf, why)
-                changed = True
-            elif off.any() and factor == 1.0:
-                sel = np.flatnonzero(keep[k])
-                keep[k][sel[off]] = False
-                verdicts[k] = (conf * (1.0 - off.sum() / dev.size), "")
-                changed = True
-        if not changed and factor == 1.0:
+            if typical > tol:
+                bad[k] = typical / tol
+        if not bad:
             break
+        pos = {k: p for p, k in enumerate(order)}
+        for k, ratio in bad.items():
+            near = [g for g in bad if abs(pos[g] - pos[k]) <= rej.jump_window]
+            if ratio < max(bad[g] for g in near):
+                continue  # a worse frame nearby goes first
+            conf = verdicts[k][0]
+            dev = devs[k]
+            finite = np.isfinite(dev)
+            if finite.any():
+                typical = float(np.median(np.abs(dev[finite])))
+                conf *= float(np.exp(-((typical / rej.jump_mm) ** 2)))
+                why = f"jump of {typical:.1f} mm from neighbouring frames"
+            else:
+                conf, why = 0.0, "no overlap with neighbouring frames"
+            verdicts[k] = (conf, why)
+    order = [k for k in dets if not verdicts[k][1]]
+    devs, scatter = neighbour_deviation(
+        {k: dets[k].points_px for k in order}, order, sy, rej.jump_window, margin
+    )
+    for k, dev in devs.items():
+        off = ~np.isnan(dev) & (np.abs(dev) > max(rej.point_jump_mm, 3.0 * scatter.get(k, 0.0)))
+        if off.any():
+            keep[k] = ~off
+            verdicts[k] = (verdicts[k][0] * (1.0 - off.sum() / dev.size), "")
     for k in dets:
         if not keep[k].all():
             d = dets[k]

@@ -117,8 +117,8 @@ class ShadowPathParams:
     """Cost per (mm of depth change per mm of lateral step)^2 between neighbouring columns (ours)."""
     max_slope: float = 1.5
     """Largest depth change per lateral mm the path may take (ours: ~56 degrees)."""
-    switch_cost: float = 0.6
-    """Cost of entering or leaving the "no bone" state (ours: ignores specks shorter than ~2 mm)."""
+    switch_cost: float = 0.3
+    """Cost of entering or leaving the "no bone" state (ours: tuned on simulated bones and the shared real recording)."""
     merge_gap_mm: float = 3.0
     """Bone runs separated by a gap shorter than this (and a depth step < merge_step_mm) are one contour (ours)."""
     merge_step_mm: float = 1.5
