@@ -1,0 +1,81 @@
+"""Segmentation against the simulator's ground truth (mm), on the shared small sweeps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
+
+
+@pytest.fixture(scope="module")
+def shadowpath_clean(sim_small):
+    return segment_sweep(sim_small.sweep)
+
+
+@pytest.fixture(scope="module")
+def shadowpath_corrupted(sim_small_corrupted):
+    return segment_sweep(sim_small_corrupted.sweep)
+
+
+def distances(result, sim):
+    return sim.distance_to_truth(result.points_mm(sim.sweep)[0])
+
+
+def test_shadowpath_accuracy_mm(shadowpath_clean, sim_small):
+    d = distances(shadowpath_clean, sim_small)
+    assert np.median(d) <= 0.15
+    assert np.percentile(d, 95) <= 0.5
+    assert np.mean(d > 2.0) < 0.01
+    # It covers the bone: nearly every frame kept, most of each visible contour found.
+    assert len(shadowpath_clean.accepted) >= 0.9 * sim_small.sweep.n_frames
+    cover = []
+    for c in shadowpath_clean.accepted:
+        t = sim_small.true_contours_px[c.frame]
+        if len(t) > 1:
+            cover.append(np.ptp(c.points_px[:, 0]) / np.ptp(t[:, 0]))
+    assert np.median(cover) > 0.8
+
+
+def test_shadowpath_matches_true_contour_in_pixels(shadowpath_clean, sim_small):
+    """Sub-pixel: the depth error along the true contour is a fraction of a pixel."""
+    errs = []
+    for c in shadowpath_clean.accepted:
+        t = sim_small.true_contours_px[c.frame]
+        if len(t) < 2:
+            continue
+        inside = (c.points_px[:, 0] >= t[0, 0]) & (c.points_px[:, 0] <= t[-1, 0])
+        errs.append(c.points_px[inside, 1] - np.interp(c.points_px[inside, 0], t[:, 0], t[:, 1]))
+    e = np.abs(np.concatenate(errs))
+    assert np.median(e) < 0.3  # pixels (0.3 mm each)
+
+
+def test_corrupted_frames_never_reach_the_fit(shadowpath_corrupted, sim_small_corrupted):
+    sim = sim_small_corrupted
+    r = shadowpath_corrupted
+    d = distances(r, sim)
+    # Whatever was kept is on the bone.
+    assert np.percentile(d, 95) <= 0.5
+    assert np.mean(d > 2.0) < 0.01
+    # Frames without bone (probe lifted) are always rejected, with a reason.
+    for f, kind in sim.corruption_kinds.items():
+        if kind == "contact_loss":
+            assert f in r.rejected and r.rejected[f]
+    # A kept corrupted frame must be on the bone (e.g. the bone under a false echo).
+    for c in r.accepted:
+        if c.frame in sim.corruption_kinds:
+            dc = sim.distance_to_truth(c.points_mm(sim.sweep))
+            assert np.median(dc) < 0.5, (c.frame, sim.corruption_kinds[c.frame])
+    # Clean frames are almost all kept.
+    clean = set(range(sim.sweep.n_frames)) - set(sim.corruption_kinds)
+    assert len(clean & set(r.rejected)) <= 1
+
+
+def test_paper_snake_on_the_simulator(sim_small):
+    r = segment_sweep(sim_small.sweep, SegmentationParams(method="snake"))
+    d = distances(r, sim_small)
+    # The paper's method is less accurate than the default but finds the bone.
+    assert np.median(d) <= 0.5
+    assert len(r.accepted) >= 0.5 * sim_small.sweep.n_frames
+    iters = [c.extras["iterations"] for c in r.contours]
+    assert max(iters) <= 300
