@@ -291,6 +291,22 @@ def test_gold_points_on_the_imaged_upper_surface(sim_small) -> None:
     assert (s.max() - s.min()) > 0.8 * (hi - lo)
 
 
+def test_gold_points_stay_inside_a_narrow_field_of_view(sim_factory) -> None:
+    # A 9 mm wide image over a 25-30 mm wide tibia: gold only where it was imaged.
+    def lateral(sim):  # gold's lateral position across the bone (mm from the axis)
+        s, _, foot, _ = sim.geometry.closest_points(sim.gold)
+        _, e_lat, _ = sim.geometry.frame(s)
+        return np.einsum("ki,ki->k", foot - sim.geometry.axis(s), e_lat)
+
+    narrow = sim_factory(bone="tibia", width=30, n_frames=20)
+    wide = sim_factory(bone="tibia", n_frames=20)
+    assert len(narrow.gold) == len(wide.gold) == 1145
+    ln, lw = lateral(narrow), lateral(wide)
+    half_fov = 0.5 * 30 * narrow.params.spacing_mm
+    assert np.abs(ln).max() < half_fov + 3 * narrow.params.lateral_jitter_mm
+    assert np.ptp(np.percentile(ln, [1, 99])) < 0.6 * np.ptp(np.percentile(lw, [1, 99]))
+
+
 # -- corruption -----------------------------------------------------------------------------
 def test_corrupted_frames_are_recorded_and_do_what_they_say(sim_small_corrupted, sim_factory) -> None:
     sim = sim_small_corrupted

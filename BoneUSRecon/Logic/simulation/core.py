@@ -161,13 +161,18 @@ def check_params(params: SimulationParams) -> None:
 
 
 def _sample_gold(
-    geom: BoneGeometry, s_range: tuple[float, float], params: SimulationParams, rng: np.random.Generator
+    geom: BoneGeometry,
+    s_range: tuple[float, float],
+    path: ProbePath,
+    params: SimulationParams,
+    rng: np.random.Generator,
 ) -> np.ndarray:
-    """Uniform-by-area points on the upward-facing surface within the swept range, plus noise.
+    """Uniform-by-area points on the imaged upper surface, plus isotropic noise.
 
-    "Upward-facing" uses the same threshold as the visible contours
-    (``normal . up >= visible_cos``): the part of the bone the probe images and a
-    surgeon's digitiser can reach from above.
+    The imaged upper surface: within the swept range, facing up (``normal . up >=
+    visible_cos``, the same threshold as the visible contours: what the probe sees
+    and a digitiser reaches from above) and inside the field of view of the frame
+    nearest along the bone (a narrow image does not show the whole width of a tibia).
     """
     k = int(params.gold_points)
     if k == 0:
@@ -175,11 +180,23 @@ def _sample_gold(
     s = np.linspace(*s_range, max(int((s_range[1] - s_range[0]) / 0.25), 2))
     phi = np.linspace(0, 2 * np.pi, 720, endpoint=False)
     S, PH = np.meshgrid(s, phi, indexing="ij")
-    _, Ps, Pp = geom.derivatives(s[:, None], phi[None, :])
+    P, Ps, Pp = geom.derivatives(s[:, None], phi[None, :])
     cr = np.cross(Pp, Ps)
     area = np.linalg.norm(cr, axis=-1)
     up = (cr @ UP) / area
-    w = np.where(up >= params.imaging.visible_cos, area, 0.0).reshape(-1)
+    # Field of view of the nearest frame (by axis parameter) for every grid point.
+    order = np.argsort(path.s)
+    pos = np.clip(np.searchsorted(path.s[order], s), 1, len(order) - 1)
+    lo, hi = order[pos - 1], order[pos]
+    near = np.where(np.abs(path.s[lo] - s) <= np.abs(path.s[hi] - s), lo, hi)
+    m = path.image_to_reference[near]  # (n_s, 4, 4)
+    d = P - m[:, None, :3, 3]
+    i = np.einsum("smk,sk->sm", d, m[:, :3, 0]) / np.einsum("sk,sk->s", m[:, :3, 0], m[:, :3, 0])[:, None]
+    j = np.einsum("smk,sk->sm", d, m[:, :3, 1]) / np.einsum("sk,sk->s", m[:, :3, 1], m[:, :3, 1])[:, None]
+    seen = (i >= 0) & (i <= params.width - 1) & (j >= 0) & (j <= params.height - 1)
+    w = np.where((up >= params.imaging.visible_cos) & seen, area, 0.0).reshape(-1)
+    if w.sum() <= 0:
+        return np.empty((0, 3))
     cell = rng.choice(w.size, size=k, p=w / w.sum())
     ds, dphi = s[1] - s[0], phi[1] - phi[0]
     ss = np.clip(S.reshape(-1)[cell] + rng.uniform(-0.5, 0.5, k) * ds, *s_range)
@@ -258,7 +275,7 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     seen = np.array([c.shape[0] > 0 for c in contours])
     sr = sections.s_range[seen] if seen.any() else sections.s_range
     swept = (float(max(sr.min(), 0.0)), float(min(sr.max(), geom.length)))
-    gold = _sample_gold(geom, swept, params, np.random.default_rng([seed, 5]))
+    gold = _sample_gold(geom, swept, path, params, np.random.default_rng([seed, 5]))
     report(progress, "geometry", 2, 3)
     verts, faces = geom.mesh(*_MESH)
 
