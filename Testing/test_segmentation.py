@@ -11,6 +11,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from vtkmodules.util import numpy_support
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import (
@@ -26,13 +27,16 @@ from BoneUSRecon.Logic.segmentation.snake import internal_matrix_banded, run_sna
 from BoneUSRecon.Logic.sweep import Sweep
 from BoneUSRecon.Logic.vtkio import polydata_points
 
-from vtkmodules.util import numpy_support
-
 
 # -- a small analytic frame: bone echo at a known depth (mm) -------------------------
 def analytic_frame(
-    spacing: float, *, width_mm: float = 16.0, height_mm: float = 12.8, seed: int = 0,
-    depth_mm: float = 7.0, bone: bool = True,
+    spacing: float,
+    *,
+    width_mm: float = 16.0,
+    height_mm: float = 12.8,
+    seed: int = 0,
+    depth_mm: float = 7.0,
+    bone: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Speckled tissue, a Gaussian bone echo on ``depth(x)``, dark shadow below.
 

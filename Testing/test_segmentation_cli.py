@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
 import pytest
+from test_segmentation import analytic_sweep
 
 from BoneUSRecon.cli import main
 from BoneUSRecon.Logic.sequence_io import write_sweep
 from BoneUSRecon.Logic.vtkio import read_polydata
-
-from test_segmentation import analytic_sweep
 
 
 @pytest.fixture(scope="module")

@@ -31,20 +31,29 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("sweep", metavar="SWEEP", help="PLUS sequence file (.mha or .mhd)")
     p.add_argument(
-        "-o", "--output", required=True, metavar="POINTS",
+        "-o",
+        "--output",
+        required=True,
+        metavar="POINTS",
         help="output points (.vtp, .vtk, .ply, .stl, .obj)",
     )
     add_calibration_option(p)
     p.add_argument(
-        "--segmenter", default="shadowpath", choices=sorted(SEGMENTERS),
+        "--segmenter",
+        default="shadowpath",
+        choices=sorted(SEGMENTERS),
         help="segmenter (default: shadowpath; 'snake' is the paper's active contour)",
     )
     p.add_argument(
-        "--overlay", metavar="DIR",
+        "--overlay",
+        metavar="DIR",
         help="also write PNG overlays of the contours (rejected frames marked) into DIR",
     )
     p.add_argument(
-        "--overlay-every", type=int, default=1, metavar="N",
+        "--overlay-every",
+        type=int,
+        default=1,
+        metavar="N",
         help="write one accepted frame's overlay in N (rejected frames always; default 1)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")

@@ -41,8 +41,11 @@ def skimage_seconds_per_frame(frames: np.ndarray, n: int = 5) -> float:
         init = np.column_stack([np.full(100, h / 2.0), np.linspace(0, w - 1, 100)])
         t = time.perf_counter()
         active_contour(
-            gaussian(img, 1.0, preserve_range=False), init, boundary_condition="free",
-            max_num_iter=300, convergence=0.0,
+            gaussian(img, 1.0, preserve_range=False),
+            init,
+            boundary_condition="free",
+            max_num_iter=300,
+            convergence=0.0,
         )
         ts.append(time.perf_counter() - t)
     return float(np.mean(ts))
@@ -57,14 +60,22 @@ def main() -> None:
     args = ap.parse_args()
     warnings.simplefilter("ignore")
 
-    print(f"{'bone':9} {'segmenter':10} {'median':>7} {'p95':>7} {'>2mm%':>6} "
-          f"{'caught':>7} {'fps':>7} {'skimage x':>9}")
+    print(
+        f"{'bone':9} {'segmenter':10} {'median':>7} {'p95':>7} {'>2mm%':>6} "
+        f"{'caught':>7} {'fps':>7} {'skimage x':>9}"
+    )
     allv: dict[str, list[np.ndarray]] = {m: [] for m in SEGMENTERS}
     for bone in BONES:
-        sim = simulate(SimulationParams(
-            bone=bone, n_frames=args.frames, width=args.width, height=args.height,
-            corrupted_fraction=0.1, seed=3,
-        ))
+        sim = simulate(
+            SimulationParams(
+                bone=bone,
+                n_frames=args.frames,
+                width=args.width,
+                height=args.height,
+                corrupted_fraction=0.1,
+                seed=3,
+            )
+        )
         sk = skimage_seconds_per_frame(sim.sweep.frames)
         corrupted = set(sim.corruption_kinds)
         for m in SEGMENTERS:
@@ -79,13 +90,17 @@ def main() -> None:
             d = sim.distance_to_truth(pts)
             allv[m].append(d)
             caught = len(corrupted & set(r.rejected)) / max(1, len(corrupted))
-            print(f"{bone:9} {m:10} {np.median(d):7.3f} {np.percentile(d, 95):7.3f} "
-                  f"{100 * np.mean(d > 2):6.2f} {caught:7.2f} {1 / dt:7.1f} {sk / dt:9.1f}")
+            print(
+                f"{bone:9} {m:10} {np.median(d):7.3f} {np.percentile(d, 95):7.3f} "
+                f"{100 * np.mean(d > 2):6.2f} {caught:7.2f} {1 / dt:7.1f} {sk / dt:9.1f}"
+            )
     for m, ds in allv.items():
         if ds:
             d = np.concatenate(ds)
-            print(f"{'ALL':9} {m:10} {np.median(d):7.3f} {np.percentile(d, 95):7.3f} "
-                  f"{100 * np.mean(d > 2):6.2f}")
+            print(
+                f"{'ALL':9} {m:10} {np.median(d):7.3f} {np.percentile(d, 95):7.3f} "
+                f"{100 * np.mean(d > 2):6.2f}"
+            )
 
     # Speed on 480x640 frames (issue 7 target: ~15-20 ms per frame for the default).
     sim = simulate(SimulationParams(bone="radius", n_frames=20, width=640, height=480, seed=4))
@@ -93,8 +108,10 @@ def main() -> None:
     segment_sweep(sim.sweep)
     dt = (time.perf_counter() - t) / sim.sweep.n_frames
     sk = skimage_seconds_per_frame(sim.sweep.frames, n=3)
-    print(f"480x640 shadowpath: {1e3 * dt:.1f} ms/frame ({1 / dt:.0f} frames/s); "
-          f"skimage active_contour {1e3 * sk:.0f} ms/frame; ratio {sk / dt:.0f}x")
+    print(
+        f"480x640 shadowpath: {1e3 * dt:.1f} ms/frame ({1 / dt:.0f} frames/s); "
+        f"skimage active_contour {1e3 * sk:.0f} ms/frame; ratio {sk / dt:.0f}x"
+    )
 
     if REAL.exists():
         from BoneUSRecon.Logic.sequence_io import read_sweep

@@ -45,7 +45,7 @@ SEGMENTERS: dict[str, FrameSegmenter] = {"shadowpath": _shadowpath, "snake": _sn
 def segment_frame(
     image: np.ndarray,
     spacing: tuple[float, float],
-    params: SegmentationParams = SegmentationParams(),
+    params: SegmentationParams = SegmentationParams(),  # noqa: B008 (frozen dataclass)
     prior_px: np.ndarray | None = None,
 ) -> Detection:
     """Run the segmenter named by ``params.method`` on one frame (no rejection)."""
@@ -60,7 +60,7 @@ def segment_frame(
 
 def segment_sweep(
     sweep: Sweep,
-    params: SegmentationParams = SegmentationParams(),
+    params: SegmentationParams = SegmentationParams(),  # noqa: B008 (frozen dataclass)
     progress: ProgressCallback | None = None,
 ) -> SegmentationResult:
     """Segment every valid frame of ``sweep`` and reject implausible contours.
@@ -170,10 +170,21 @@ def segment_sweep(
         if not keep[k].all():
             d = dets[k]
             remaining = d.points_px[keep[k]]
-            length = float(np.ptp(remaining[:, 0]) * spacing_all[k, 0]) if len(remaining) > 1 else 0.0
-            dets[k] = Detection(remaining, d.intensity[keep[k]], {**d.extras, "dropped_points": int((~keep[k]).sum())})
-            if not verdicts[k][1] and (len(remaining) < rej.min_points or length < rej.min_length_mm):
-                verdicts[k] = (verdicts[k][0], f"contour too short after dropping off-neighbour points ({length:.1f} mm)")
+            length = (
+                float(np.ptp(remaining[:, 0]) * spacing_all[k, 0]) if len(remaining) > 1 else 0.0
+            )
+            dets[k] = Detection(
+                remaining,
+                d.intensity[keep[k]],
+                {**d.extras, "dropped_points": int((~keep[k]).sum())},
+            )
+            if not verdicts[k][1] and (
+                len(remaining) < rej.min_points or length < rej.min_length_mm
+            ):
+                verdicts[k] = (
+                    verdicts[k][0],
+                    f"contour too short after dropping off-neighbour points ({length:.1f} mm)",
+                )
 
     contours = []
     for k, det in dets.items():

@@ -24,7 +24,7 @@ def posterior_choice(
     points_px: np.ndarray,
     intensity: np.ndarray,
     spacing: tuple[float, float],
-    params: PosteriorParams = PosteriorParams(),
+    params: PosteriorParams = PosteriorParams(),  # noqa: B008 (frozen dataclass)
 ) -> np.ndarray:
     """Boolean mask of the snake points kept by the posterior choice.
 

@@ -75,9 +75,7 @@ class SegmentationResult:
         """``[(frame, points (K, 3) mm)]`` of the accepted frames, ordered along each contour."""
         return [(c.frame, c.points_mm(sweep)) for c in self.accepted]
 
-    def points_mm(
-        self, sweep: Sweep
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def points_mm(self, sweep: Sweep) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """All kept points: ``(points (K, 3) mm, frame (K,), intensity (K,), confidence (K,))``."""
         acc = self.accepted
         if not acc:

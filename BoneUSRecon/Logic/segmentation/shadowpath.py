@@ -40,9 +40,7 @@ __all__ = ["shadowpath_frame", "bone_score"]
 _NULL = np.int8(-128)  # back-pointer meaning "came from the no-bone state"
 
 
-def bone_score(
-    work: np.ndarray, dy: float, params: ShadowPathParams
-) -> np.ndarray:
+def bone_score(work: np.ndarray, dy: float, params: ShadowPathParams) -> np.ndarray:
     """Shadow-gated regional contrast of a working image (values 0..1), shape (h, w).
 
     Parameters
@@ -170,7 +168,7 @@ def _best_group(
 def shadowpath_frame(
     image: np.ndarray,
     spacing: tuple[float, float],
-    params: ShadowPathParams = ShadowPathParams(),
+    params: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
     prior_px: np.ndarray | None = None,
 ) -> Detection:
     """Find the bone contour of one frame.

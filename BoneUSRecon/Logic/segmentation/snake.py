@@ -104,8 +104,9 @@ def snake_potential(
     """
     sx, sy = float(spacing[0]), float(spacing[1])
     img = np.asarray(image, dtype=np.float32) * np.float32(1.0 / 255.0)
-    dif = dif_map(img, mm_to_px(params.mid_mm, sy), mm_to_px(params.up_mm, sy),
-                  mm_to_px(params.down_mm, sy))
+    dif = dif_map(
+        img, mm_to_px(params.mid_mm, sy), mm_to_px(params.up_mm, sy), mm_to_px(params.down_mm, sy)
+    )
     # E_R = -Dif where Dif >= 0 and the constant k = 0 elsewhere; smoothing the clipped
     # map (rather than clipping a smoothed one) gives the bone band a basin of
     # attraction a few sigma wide, so a snake rising from the shadow is caught.
@@ -120,7 +121,7 @@ def run_snake(
     image: np.ndarray,
     spacing: tuple[float, float],
     init_row: float,
-    params: SnakeParams = SnakeParams(),
+    params: SnakeParams = SnakeParams(),  # noqa: B008 (frozen dataclass)
     potential: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> SnakeRun:
     """Minimise the snake energy from a horizontal line at ``init_row`` (image rows).
@@ -230,8 +231,8 @@ def initial_row(
 def snake_frame(
     image: np.ndarray,
     spacing: tuple[float, float],
-    params: SnakeParams = SnakeParams(),
-    posterior: PosteriorParams = PosteriorParams(),
+    params: SnakeParams = SnakeParams(),  # noqa: B008 (frozen dataclass)
+    posterior: PosteriorParams = PosteriorParams(),  # noqa: B008 (frozen dataclass)
     prior_px: np.ndarray | None = None,
 ) -> Detection:
     """Segment one frame with the paper's snake and posterior choice.
