@@ -225,8 +225,8 @@ def _circle_centres(
     one = mask.astype(float)
     # Normal equations of  min sum (x^2 + y^2 + D x + E y + F)^2, one 3x3 per slice.
     cols = np.stack([x, y, one], axis=-1)  # (m, K, 3)
-    a = np.einsum("mki,mkj->mij", cols, cols)
-    b = -np.einsum("mki,mk->mi", cols, x * x + y * y)
+    a = np.matmul(np.swapaxes(cols, 1, 2), cols)  # batched BLAS, faster than einsum
+    b = -np.matmul(np.swapaxes(cols, 1, 2), (x * x + y * y)[..., None])[..., 0]
     det = np.linalg.det(a)
     scale = np.einsum("mii->m", a) ** 3 + 1e-300
     ok = np.abs(det) > 1e-12 * scale
@@ -372,9 +372,7 @@ def resample(
 
     # In-plane 2D coordinates (x = lateral, y = up) relative to each frame's origin.
     rel = pts3 - origin[:, None, :]
-    xy = np.stack(
-        [np.einsum("mkd,md->mk", rel, lateral), np.einsum("mkd,md->mk", rel, up)], axis=-1
-    )
+    xy = np.matmul(rel, np.stack([lateral, up], axis=-1))  # (m, K, 2)
     c2 = _circle_centres(xy, mask, params.min_radius_mm, params.max_radius_mm)
     raw_centres = origin + c2[:, :1] * lateral + c2[:, 1:] * up
 
