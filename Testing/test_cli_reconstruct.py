@@ -76,7 +76,8 @@ def test_reconstruct_text_summary_and_options(capsys, files, tmp_path):
     code, stdout, err = run(
         capsys,
         ["reconstruct", str(sweep), "-o", str(tmp_path / "b.stl"), "--degree", "3", "2",
-         "--control-points", "10", "4", "--rays", "11", "--points-out", str(tmp_path / "p.csv"), "-q"],
+         "--control-points", "10", "4", "--rays", "11", "--fit-method", "separable", "--robust", "none",
+         "--axis", "line", "--points-out", str(tmp_path / "p.csv"), "-q"],
     )
     assert code == 0, err
     assert "frames used" in stdout and "fit residual" in stdout and "11 rays" in stdout

@@ -22,7 +22,8 @@ POINT_OUT_EXTENSIONS = (".vtp", ".vtk", ".ply", ".csv")
 
 
 def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bool = True) -> None:
-    """``--segmenter``, ``--degree``, ``--control-points``, ``--rays`` (shared with ``table``)."""
+    """Stage options shared with ``table``: segmenter, degree, control points, rays,
+    fit method, robust weights, axis model."""
     p.add_argument(
         "--segmenter",
         metavar="NAME",
@@ -38,6 +39,19 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
             help="control points along and around the bone (default 15 5)",
         )
     p.add_argument("--rays", type=int, metavar="N", help="rays per slice (default 15)")
+    p.add_argument(
+        "--fit-method", choices=("direct", "separable"),
+        help="surface least squares: 'direct' (exact weighted tensor-product, default) or "
+        "'separable' (the paper's de Boor column-then-row fits)",
+    )
+    p.add_argument(
+        "--robust", choices=("tukey", "huber", "none"),
+        help="robust reweighting of the fit (default tukey; 'none' is the paper's plain least squares)",
+    )
+    p.add_argument(
+        "--axis", choices=("spline", "line"),
+        help="central axis through the slice centres (default spline; 'line' is the paper's)",
+    )
 
 
 def params_from_args(args: argparse.Namespace) -> Any:
@@ -61,11 +75,17 @@ def params_from_args(args: argparse.Namespace) -> Any:
         changes["degree"] = tuple(args.degree)
     if getattr(args, "control_points", None):
         changes["control_points"] = tuple(args.control_points)
+    if getattr(args, "fit_method", None):
+        changes["method"] = args.fit_method
+    if getattr(args, "robust", None):
+        changes["robust"] = args.robust
     if changes:
         fit = dataclasses.replace(fit, **changes)
     res = p.resampling
     if getattr(args, "rays", None) is not None:
         res = dataclasses.replace(res, n_rays=args.rays)
+    if getattr(args, "axis", None):
+        res = dataclasses.replace(res, axis=args.axis)
     return dataclasses.replace(p, segmentation=seg, fit=fit, resampling=res)
 
 

@@ -15,7 +15,8 @@ prints:
 Then times resampling + fitting for a 250-frame sweep (median of repeats; the
 simulator's true contours as input, ~80 points per frame like the segmenter's).
 With ``--truth-contours`` the accuracy rows use the true contours too, isolating
-steps C-D from segmentation. ``--control-points`` prints Table I per bone.
+steps C-D from segmentation. ``--control-points`` prints Table I per bone. ``--paper``
+runs the paper's choices (snake, straight axis, separable plain least squares).
 
 Run: ``python Testing/benchmarks/bench_reconstruction.py [--frames 150] [--bones clavicle ulna]``
 Targets: mean <= 0.22 mm and p95 <= 0.55 mm clean; <= 0.25 / 0.65 mm with 10 %
@@ -26,6 +27,7 @@ resampling + fitting < 50 ms for 250 frames.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 import warnings
@@ -82,6 +84,17 @@ def time_resample_fit(n_frames: int, repeats: int, seed: int) -> tuple[float, fl
     return float(np.median(tr)), float(np.median(tf)), float(np.median(cpu)), npts
 
 
+def paper_params() -> ReconstructionParams:
+    """The paper's pipeline: snake, straight axis, de Boor separable LSQ, no reweighting."""
+    p = ReconstructionParams()
+    return dataclasses.replace(
+        p,
+        segmentation=dataclasses.replace(p.segmentation, method="snake"),
+        resampling=dataclasses.replace(p.resampling, axis="line"),
+        fit=dataclasses.replace(p.fit, method="separable", robust="none"),
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=150)
@@ -91,6 +104,10 @@ def main() -> None:
     ap.add_argument("--control-points", action="store_true", help="also print Table I")
     ap.add_argument("--timing-frames", type=int, default=250)
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument(
+        "--paper", action="store_true",
+        help="the paper's choices: snake segmenter, straight axis, separable plain least squares",
+    )
     ap.add_argument("--json", help="also write the rows to this JSON file")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
@@ -106,7 +123,7 @@ def main() -> None:
             sim = simulate(
                 SimulationParams(bone=bone, n_frames=args.frames, corrupted_fraction=corr, seed=args.seed)
             )
-            params = ReconstructionParams()
+            params = paper_params() if args.paper else ReconstructionParams()
             t0 = time.perf_counter()
             if args.truth_contours:
                 timings: dict[str, float] = {}
