@@ -222,3 +222,21 @@ def test_jump_rejection():
     r = segment_sweep(sw.replace(frames=frames))
     assert set(r.rejected) == {6}
     assert r.rejected[6].startswith("jump")
+
+
+def test_optimal_path_follows_ridge_and_leaves_where_no_bone():
+    from BoneUSRecon.Logic.segmentation.shadowpath import _optimal_path
+
+    h, w = 30, 40
+    gain = np.full((h, w), -0.1)
+    rows = (10 + 4 * np.sin(np.arange(w) / 6)).round().astype(int)
+    cols = np.arange(8, 30)
+    gain[rows[cols], cols] = 1.0
+    steps = np.arange(-2, 3)
+    path = _optimal_path(gain, 0.05 * steps**2, 0.5)
+    assert np.all(path[cols] == rows[cols])
+    assert np.all(path[:6] == -1) and np.all(path[32:] == -1)
+    # A one-column speck is not worth two switches.
+    gain2 = np.full((h, w), -0.1)
+    gain2[5, 20] = 0.8
+    assert np.all(_optimal_path(gain2, 0.05 * steps**2, 0.5) == -1)
