@@ -201,7 +201,9 @@ def _bar_args(title: str, style: Style) -> dict[str, Any]:
     # Horizontal, below the data: bones are long and lie horizontally.
     return {"title": title, "color": style.text_color, "vertical": False,
             "position_x": 0.25, "position_y": 0.03, "height": 0.09, "width": 0.5,
-            "fmt": "%.2f", "n_labels": 5}
+            "fmt": "%.2f", "n_labels": 5,
+            # Fixed sizes: VTK's automatic ones let the title overlap the labels.
+            "title_font_size": 16, "label_font_size": 14}
 
 
 def _dot_size(n: int, largest: float) -> float:
