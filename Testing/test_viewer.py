@@ -81,6 +81,15 @@ def test_screenshot_shows_the_surface_points_and_frames(tmp_path: Path) -> None:
     sat = img2.max(axis=2) - img2.min(axis=2)
     assert (sat > 60).mean() > 0.05
 
+    # A surface from elsewhere, without Distance and without points: plain colour, no
+    # scalar bar, still a picture.
+    plain = tmp_path / "plain.png"
+    show_surface(_surface(distance=False), screenshot=plain, window_size=(800, 500))
+    img3 = _load(plain)
+    assert img3.std() > 10
+    sat3 = img3.max(axis=2) - img3.min(axis=2)
+    assert (sat3 > 60).mean() < 0.005 < ((img3.sum(axis=2) < 600).mean())
+
 
 def test_window_toggles_layers_and_picking_reports_distances() -> None:
     from BoneUSRecon.Widgets.viewer import _add_interaction
