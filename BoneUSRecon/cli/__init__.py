@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from BoneUSRecon import __version__
-from BoneUSRecon.cli.common import run_guarded
+from BoneUSRecon.cli.common import PROG, run_guarded
 
 __all__ = ["main", "build_parser"]
 
@@ -53,7 +53,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
-    parser = build_parser()
+    try:
+        parser = build_parser()  # imports the commands: Ctrl-C may land here too
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted; no output was written", file=sys.stderr)
+        return 130
     args = parser.parse_args(argv)
     return run_guarded(args.func, args)
 

@@ -9,10 +9,14 @@ Ctrl-C prints ``bone-us-recon: interrupted`` and exits with 130.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
+import shutil
 import sys
 import traceback
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
 from typing import Any
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
@@ -27,6 +31,7 @@ __all__ = [
     "ProgressBar",
     "print_summary",
     "print_json",
+    "removed_on_failure",
 ]
 
 PROG = "bone-us-recon"
@@ -87,6 +92,42 @@ def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
                 file=sys.stderr,
             )
         return 1
+
+
+def _state(p: Path) -> tuple[int, int, int] | None:
+    try:
+        st = os.stat(p)
+    except OSError:
+        return None
+    return (st.st_ino, st.st_mtime_ns, st.st_size)
+
+
+@contextlib.contextmanager
+def removed_on_failure(*paths: str | os.PathLike[str] | None) -> Iterator[None]:
+    """Undo a command's outputs if it fails or is interrupted part-way.
+
+    Each file is written atomically, but a command with several outputs (surface,
+    points, report; or a folder of files) can be stopped between two of them. Then
+    the files this run wrote are removed, and the folders it created, so that "no
+    output was written" holds. Folders that existed before are left alone, and so are
+    files this run had not yet replaced. ``None`` entries are ignored.
+    """
+    items = [Path(p) for p in paths if p is not None]
+    before = {p: _state(p) for p in items}
+    try:
+        yield
+    except BaseException:
+        for p in items:
+            now = _state(p)
+            if now is None or now == before[p]:
+                continue
+            if p.is_dir():
+                if before[p] is None:
+                    shutil.rmtree(p, ignore_errors=True)
+            else:
+                with contextlib.suppress(OSError):
+                    p.unlink()
+        raise
 
 
 class ProgressBar:

@@ -13,6 +13,7 @@ from BoneUSRecon.cli.common import (
     add_common_options,
     print_json,
     print_summary,
+    removed_on_failure,
 )
 
 __all__ = ["register", "run"]
@@ -96,14 +97,16 @@ def run(args: argparse.Namespace) -> int:
             args.sweep, calibration=args.calibration, transform=args.transform, progress=bar
         )
         result = segment_sweep(sweep, params, progress=bar)
-    write_polydata(points_polydata(result, sweep), out)
     overlays = []
-    if args.overlay:
-        from BoneUSRecon.Widgets.overlay import write_overlays
+    # Two outputs: if the overlays fail (or Ctrl-C), the points file is removed again.
+    with removed_on_failure(out, args.overlay):
+        write_polydata(points_polydata(result, sweep), out)
+        if args.overlay:
+            from BoneUSRecon.Widgets.overlay import write_overlays
 
-        overlays = write_overlays(
-            sweep.frames, result.contours, args.overlay, every=args.overlay_every
-        )
+            overlays = write_overlays(
+                sweep.frames, result.contours, args.overlay, every=args.overlay_every
+            )
     summary = result.summary()
     summary.update(
         {

@@ -5,7 +5,13 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from BoneUSRecon.cli.common import ProgressBar, add_common_options, print_json, print_summary
+from BoneUSRecon.cli.common import (
+    ProgressBar,
+    add_common_options,
+    print_json,
+    print_summary,
+    removed_on_failure,
+)
 
 __all__ = ["register", "run"]
 
@@ -75,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     # Refuse bad input before any work is done or any folder is made.
     check_params(params)
     check_output_dir(args.outdir)
-    with ProgressBar(quiet=args.quiet or args.json) as bar:
+    with ProgressBar(quiet=args.quiet or args.json) as bar, removed_on_failure(args.outdir):
         sim = simulate(params, progress=bar)
         paths = write_simulation(sim, args.outdir, progress=bar)
     sweep = sim.sweep
