@@ -14,6 +14,7 @@ from BoneUSRecon.cli.common import (
     add_common_options,
     print_json,
     print_summary,
+    removed_on_failure,
 )
 
 __all__ = ["register", "run", "add_reconstruction_options", "params_from_args", "check_report_dir"]
@@ -157,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
     params = params_from_args(args)
     gold = read_points(args.gold) if args.gold else None
 
-    with ProgressBar(quiet=args.quiet or args.json) as bar:
+    # Several outputs: if a later one fails (or Ctrl-C), the earlier ones are removed.
+    with ProgressBar(quiet=args.quiet or args.json) as bar, removed_on_failure(out, pts_out, report_dir):
         sweep = read_sweep(
             args.sweep, calibration=args.calibration, transform=args.transform, progress=bar
         )
