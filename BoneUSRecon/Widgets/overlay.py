@@ -52,13 +52,15 @@ def overlay_image(
     if scale > 1:
         img = img.resize((img.width * scale, img.height * scale), Image.Resampling.NEAREST)
     draw = ImageDraw.Draw(img)
+    # Lines about 1/300 of the image wide, so they stay visible on large frames.
+    lw = max(scale, round(img.width / 300))
 
     def xy(p: np.ndarray) -> list[tuple[float, float]]:
         q = (np.asarray(p, float) + 0.5) * scale - 0.5
         return [(float(a), float(b)) for a, b in q]
 
     if truth_px is not None and len(truth_px) > 1:
-        draw.line(xy(truth_px), fill=YELLOW, width=1)
+        draw.line(xy(truth_px), fill=YELLOW, width=max(1, lw // 2))
     if points_px is not None and len(points_px):
         colour = GREEN if accepted else RED
         pts = xy(points_px)
@@ -67,8 +69,8 @@ def overlay_image(
             gaps = np.flatnonzero(np.diff(np.asarray(points_px)[:, 0]) > 3 * _step(points_px))
             for seg in np.split(np.arange(len(pts)), gaps + 1):
                 if seg.size > 1:
-                    draw.line([pts[s] for s in seg], fill=colour, width=max(1, scale))
-        r = max(1.0, scale * 0.75)
+                    draw.line([pts[s] for s in seg], fill=colour, width=lw)
+        r = max(1.0, lw * 0.75)
         for x, y in pts[:: max(1, len(pts) // 60)]:
             draw.ellipse((x - r, y - r, x + r, y + r), outline=colour)
     if label:

@@ -111,6 +111,8 @@ class ShadowPathParams:
     """Height of the shadow region right below the band, mm."""
     shadow_mm: float = 6.0
     """Depth of the region (below the band) whose darkness gates the score, mm (ours)."""
+    gate_ratio: float = 0.6
+    """Shadow/echo intensity ratio at which the shadow gate reaches 0 (ours: tissue under a layer is >= 60 % as bright)."""
     min_score: float = 0.3
     """Score (Dif in [0, 2] times the shadow gate) a pixel needs to pay off over "no bone" (ours: tuned on simulated clavicle, radius, tibia)."""
     slope_penalty: float = 0.25

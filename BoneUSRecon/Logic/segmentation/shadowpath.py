@@ -7,7 +7,7 @@ of the working image):
    averaged out, and the cost no longer depends on the recording's resolution).
 2. Score every working pixel with the paper's contrast ``Dif = 2 M_mid - M_up -
    M_down`` (only its positive part) times a shadow gate ``1 - M_shadow / M_mid``
-   (scaled so a shadow at 60 % of the echo counts for nothing). The gate is a ratio,
+   (scaled so a shadow at ``gate_ratio`` of the echo counts for nothing). The gate is a ratio,
    so it does not depend on the gain or on attenuation with depth: a bone echo is
    bright *relative to what lies under it*, whereas tissue layers have tissue under
    them.
@@ -65,7 +65,7 @@ def bone_score(work: np.ndarray, dy: float, params: ShadowPathParams) -> np.ndar
     m_down = column_window_mean(csum, bot, bot + down)
     m_sh = column_window_mean(csum, bot, bot + shadow)
     dif = 2.0 * m_mid - m_up - m_down
-    gate = 1.0 - (m_sh / (m_mid + 0.02)) / 0.6
+    gate = 1.0 - (m_sh / (m_mid + 0.02)) / p.gate_ratio
     # Where most of the shadow region is outside the image there is no evidence of a
     # shadow: no score (otherwise the image's bottom rows would look like bone).
     inside = np.clip(h - bot, 0, shadow) / shadow
