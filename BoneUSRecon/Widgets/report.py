@@ -556,6 +556,9 @@ def write_report(
     if dist is not None and np.isfinite(dist).any():
         numbers["surface_distance_mm"] = {"mean": float(np.nanmean(dist)),
                                           "max": float(np.nanmax(dist))}
+    else:
+        surf_caption = ("Reconstructed surface (it has no <i>Distance</i> array); red dots "
+                        "are the segmented contour points.")
     figs_html = []
     for name, image in views.items():
         figures[f"surface_{name}"] = _png(image)
