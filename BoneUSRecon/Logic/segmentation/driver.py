@@ -113,7 +113,6 @@ def segment_sweep(
         if not reason:
             prior = det.points_px
         report(progress, "segment", n + 1, int(idx.size))
-    t_seg = time.perf_counter() - t0
 
     # Neighbour consistency. A bad frame also spoils its neighbours' predictions, so
     # frames are rejected one at a time per neighbourhood (the worst first) and the
@@ -186,6 +185,7 @@ def segment_sweep(
                     f"contour too short after dropping off-neighbour points ({length:.1f} mm)",
                 )
 
+    t_seg = time.perf_counter() - t0
     contours = []
     for k, det in dets.items():
         conf, reason = verdicts[k]

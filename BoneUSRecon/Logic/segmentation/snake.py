@@ -10,8 +10,18 @@ Reading of the garbled eq. (3): ``E_R(v) = -Dif(v)`` where ``Dif(v) >= 0`` and t
 constant ``k`` (taken as 0) where ``Dif(v) < 0``. Minimising ``-Dif`` puts the contour
 "in the centre of the dark-bright-dark region", as the text says; the printed equation
 lost the minus sign. ``Dif = 2 M_mid - M_up - M_down`` uses region heights in mm
-(:class:`~.params.SnakeParams`), and the potential ``P`` is ``Dif`` smoothed by a
-Gaussian of ``smooth_mm``.
+(:class:`~.params.SnakeParams`), and the potential ``P`` is the positive part of
+``Dif`` smoothed by a Gaussian of ``smooth_mm`` (so ``E_R = -P``: the smoothing gives
+the thin echo a basin of attraction a few tenths of a mm wide).
+
+Scaling, so the paper's numbers keep their meaning on any image: positions and
+differences are in reference pixels of 0.1 mm (the paper's "pixels"), whatever the
+recording's pixel size, so eq. (1) with w1 = 1, w2 = 2.5 penalises the same shapes on a
+0.05 and a 0.15 mm/px image; intensities are grey/255, so ``Dif`` is in [-2, 2] and
+does not depend on the gain's absolute scale; k1, k2 multiply unit vectors and are in
+``force_unit`` reference pixels per unit time (their ratio is the paper's). The paper
+gives no weight for ``E_R``; ``k_regional`` is ours, chosen (with ``tau``) so that the
+echo holds the snake against the balloon and the tension of the free parts.
 
 Balloon (eq. 2): ``k1 N + k2 grad P / |grad P|``, both in units of ``force_unit``
 reference pixels per unit time, so the paper's 1000:1 ratio of k1 to k2 is kept. The
