@@ -140,7 +140,11 @@ def test_page_holds_every_section_as_real_pictures(written: SimpleNamespace) -> 
     page = written.index.read_text(encoding="utf-8")
     assert written.index == written.out / "index.html"
     imgs = _images(page)
-    assert {"surface-top", "surface-oblique", "histogram", "table-i", "gold-errors"} <= set(imgs)
+    assert {"surface-top", "surface-oblique", "histogram", "table-i", "gold-errors",
+            "sweep"} <= set(imgs)
+    # The sweep picture outlines invalid frame 25 in orange.
+    sw = imgs["sweep"].astype(int)
+    assert ((np.abs(sw - [0xFF, 0x95, 0x00]).max(axis=2)) < 40).sum() > 20
     frames = sorted(k for k in imgs if k.startswith("frame-"))
     # Rejected frames 4 and 17 are shown among the sample, and marked as such.
     assert "frame-0004" in frames and "frame-0017" in frames and len(frames) >= 6

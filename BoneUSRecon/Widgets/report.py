@@ -548,6 +548,8 @@ def write_report(
 
     views = render_views(recon.surface, points=getattr(recon, "points", None), sweep=sweep,
                          window_size=(1000, 620), fit_height=True)
+    figures["sweep"] = _png(render_views(recon.surface, sweep=sweep, views=("oblique",),
+                                         window_size=(1000, 560), show_frames=True)["oblique"])
     tick()
     dist = distance_array(recon.surface)
     surf_caption = ("Reconstructed surface coloured by <i>Distance</i>, the distance (mm) "
@@ -664,7 +666,10 @@ def write_report(
     sections.append(f'<h2 id="surface-section">Surface</h2>{surface_html}')
     if table_html:
         sections.append(f'<h2 id="table-section">Table I: control points</h2>{table_html}')
-    sections.append(f'<h2 id="sweep-section">Sweep</h2>{_kv_table(_sweep_rows(summary), "sweep")}')
+    sections.append(f'<h2 id="sweep-section">Sweep</h2>{_kv_table(_sweep_rows(summary), "sweep")}'
+                    + _img("sweep", figures["sweep"], "the sweep's image planes",
+                           "The image planes of the sweep (grey; frames without a usable "
+                           "pose in orange) around the reconstructed surface."))
     if overlay_html:
         sections.append(f'<h2 id="overlay-section">Contours on sample frames</h2>{overlay_html}')
     if recon_summary or timings:
