@@ -1,0 +1,153 @@
+"""Ctrl-C leaves no partial output (issue 7, section 2).
+
+Real ``python -m BoneUSRecon`` processes get SIGINT part-way through their work; each
+must exit with status 130, print the one-line ``bone-us-recon: interrupted; no output
+was written``, print no traceback, and leave neither its outputs nor temporary
+``.part`` files behind. The moment of interruption is chosen from what the process
+is observably doing (its memory map of the sweep, its CPU time, the files appearing
+in its output folder), not from a guessed delay.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from BoneUSRecon.Logic.sequence_io import write_sweep
+
+MESSAGE = "bone-us-recon: interrupted; no output was written"
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
+
+
+def start(argv: list[str]) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "BoneUSRecon", *argv],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+
+
+def interrupt_when(proc: subprocess.Popen[str], ready: Callable[[], bool], timeout: float = 120.0) -> tuple[int, str, str]:
+    """Send SIGINT as soon as ``ready()``; return (status, stdout, stderr)."""
+    t_end = time.monotonic() + timeout
+    sent = False
+    while proc.poll() is None and time.monotonic() < t_end:
+        if ready():
+            proc.send_signal(signal.SIGINT)
+            sent = True
+            break
+        time.sleep(0.005)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert sent, f"the process ended before the moment to interrupt it came (status {proc.returncode}): {err}"
+    return proc.returncode, out, err
+
+
+def assert_clean_interrupt(status: int, out: str, err: str) -> None:
+    assert status == 130, (status, err)
+    assert "Traceback" not in err, err
+    assert err.strip().splitlines() == [MESSAGE], err
+    assert out == ""
+
+
+def maps_file(pid: int, path: Path) -> bool:
+    """True once the process has ``path`` memory-mapped (read_sweep has finished)."""
+    try:
+        return str(path) in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a running process."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@pytest.fixture(scope="module")
+def big_sweep(sim_small, tmp_path_factory) -> Path:
+    """120 frames of 256 x 320 px (the small clavicle sweep, upsampled 2x and played
+    back and forth 3 times): a few seconds of segmentation, uncompressed (memory-mapped)."""
+    s = sim_small.sweep
+    up = np.repeat(np.repeat(s.frames, 2, axis=1), 2, axis=2)
+    m = s.image_to_reference.copy()
+    m[:, :3, :2] *= 0.5  # half the pixel size: the same field of view
+    order = np.r_[np.arange(s.n_frames), np.arange(s.n_frames)[::-1], np.arange(s.n_frames)]
+    big = s.replace(
+        frames=up[order], image_to_reference=m[order],
+        timestamps=np.arange(order.size) * 0.05, valid=s.valid[order],
+    )
+    return write_sweep(big, tmp_path_factory.mktemp("interrupt_in") / "big.mha")
+
+
+@pytest.fixture(scope="module")
+def small_sweep(sim_small, tmp_path_factory) -> Path:
+    return write_sweep(sim_small.sweep, tmp_path_factory.mktemp("interrupt_small") / "small.mha")
+
+
+def test_reconstruct_interrupted_while_segmenting(big_sweep, tmp_path):
+    proc = start(["reconstruct", str(big_sweep), "-o", str(tmp_path / "bone.vtp"),
+                  "--points-out", str(tmp_path / "points.vtp"), "-q"])
+    status, out, err = interrupt_when(proc, lambda: maps_file(proc.pid, big_sweep))
+    assert_clean_interrupt(status, out, err)
+    assert os.listdir(tmp_path) == []
+
+
+def test_reconstruct_interrupted_between_outputs(small_sweep, tmp_path):
+    """Ctrl-C while the report is written, after the surface and points files exist:
+    those are removed again, as the message promises."""
+    surface, points, report = tmp_path / "bone.vtp", tmp_path / "points.vtp", tmp_path / "report"
+    proc = start(["reconstruct", str(small_sweep), "-o", str(surface), "--points-out", str(points),
+                  "--report", str(report), "-q"])
+    status, out, err = interrupt_when(proc, lambda: surface.exists() and points.exists())
+    assert_clean_interrupt(status, out, err)
+    assert os.listdir(tmp_path) == []
+
+
+def test_simulate_interrupted_while_simulating(tmp_path):
+    # CPU time the command needs to start (imports, argument checks): a run that stops
+    # at the first parameter check.
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    probe = subprocess.run([sys.executable, "-m", "BoneUSRecon", "simulate", "clavicle",
+                            str(tmp_path / "x"), "--frames", "1"], capture_output=True, timeout=120)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    assert probe.returncode == 2
+    startup = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    outdir = tmp_path / "sim"
+    # 60 frames of 256 x 320 take about 2 CPU s to simulate: stop 0.3 s into it.
+    proc = start(["simulate", "clavicle", str(outdir), "--frames", "60", "-q"])
+    status, out, err = interrupt_when(proc, lambda: cpu_seconds(proc.pid) > startup + 0.3)
+    assert_clean_interrupt(status, out, err)
+    assert os.listdir(tmp_path) == []
+
+
+def test_simulate_interrupted_while_writing(tmp_path):
+    """Ctrl-C once the first file is being written: the new OUTDIR goes away entirely."""
+    outdir = tmp_path / "sim"
+
+    def writing() -> bool:
+        try:
+            return any(".part" in f or f.endswith(".mha") for f in os.listdir(outdir))
+        except OSError:
+            return False
+
+    proc = start(["simulate", "clavicle", str(outdir), "--frames", "20", "--width", "160",
+                  "--height", "128", "--spacing", "0.3", "-q"])
+    status, out, err = interrupt_when(proc, writing)
+    assert_clean_interrupt(status, out, err)
+    assert os.listdir(tmp_path) == []
