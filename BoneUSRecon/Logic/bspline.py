@@ -24,8 +24,9 @@ Solvers (``FitParams.method``)
     when the weights factor as ``w_ij = a_i b_j`` (complete grid, per-frame times
     per-ray weights): the normal matrix is then a Kronecker product. With missing
     entries or per-point weights it is *not* exact: column ``j`` is fitted with its own
-    weights ``w_ij`` (a column too sparse for ``e`` control points is dropped) and the
-    row stage weighs column ``j`` by its mean weight.
+    weights ``w_ij`` (with the same small smoothing penalty as below, so a column with
+    gaps is still solvable; without it such a column is dropped) and the row stage
+    weighs column ``j`` by its mean weight, i.e. by how much of it was seen.
     ``"direct"`` (default): the exact weighted tensor-product least squares,
     ``min sum_ij w_ij |S(u_i, v_j) - P_ij|^2``, by its ``ef x ef`` normal equations
     built with Kronecker structure (``B_u^T W B_u`` per column, then contracted with
@@ -276,7 +277,12 @@ def _second_diff(n: int) -> np.ndarray:
 
 
 def fit_curve(
-    x: np.ndarray, points: np.ndarray, weights: np.ndarray, knots: np.ndarray, degree: int
+    x: np.ndarray,
+    points: np.ndarray,
+    weights: np.ndarray,
+    knots: np.ndarray,
+    degree: int,
+    smoothing: float = 0.0,
 ) -> np.ndarray:
     """Weighted least-squares B-spline curves, batched (the separable scheme's stage).
 
@@ -289,6 +295,8 @@ def fit_curve(
     weights : ndarray, shape (r, b)
     knots : ndarray
     degree : int
+    smoothing : float
+        Relative second-difference penalty (as in :class:`FitParams`); 0 = plain LSQ.
 
     Returns
     -------
@@ -300,6 +308,10 @@ def fit_curve(
     p = np.nan_to_num(points)
     nmat = np.einsum("rb,ra,rc->bac", w, bmat, bmat)  # (b, a, a)
     rhs = np.einsum("rb,ra,rbd->bad", w, bmat, p)
+    if smoothing > 0:
+        d2 = _second_diff(bmat.shape[1])
+        scale = np.einsum("baa->b", nmat)[:, None, None] / bmat.shape[1]
+        nmat = nmat + smoothing * scale * (d2.T @ d2)[None]
     ctrl = np.full((bmat.shape[1], points.shape[1], points.shape[2]), np.nan)
     eig_min = np.linalg.eigvalsh(nmat)[:, 0]
     ok = eig_min > 1e-10 * np.maximum(np.einsum("baa->b", nmat), 1e-300)
@@ -355,14 +367,15 @@ def _solve_separable(
     deg: tuple[int, int],
     w: np.ndarray,
     p: np.ndarray,
+    smoothing: float = 0.0,
 ) -> np.ndarray:
     # Stage 1: curve fit down each column j (over u): e intermediate points per column.
-    inter = fit_curve(u, p, w, ku, deg[0])  # (e, n, 3)
+    inter = fit_curve(u, p, w, ku, deg[0], smoothing)  # (e, n, 3)
     col_ok = np.isfinite(inter).all(axis=(0, 2))
     col_w = np.where(col_ok, w.mean(axis=0), 0.0)
     # Stage 2: curve fit across each row of intermediate points (over v).
     rows = np.moveaxis(np.nan_to_num(inter), 1, 0)  # (n, e, 3): the e rows as curves
-    ctrl = fit_curve(v, rows, np.broadcast_to(col_w[:, None], rows.shape[:2]), kv, deg[1])
+    ctrl = fit_curve(v, rows, np.broadcast_to(col_w[:, None], rows.shape[:2]), kv, deg[1], smoothing)
     if not np.isfinite(ctrl).all():
         raise BoneUSReconError(
             "the grid has too few complete columns for the requested control points "
@@ -442,7 +455,9 @@ def fit_surface(
     def solve(w: np.ndarray) -> np.ndarray:
         if params.method == "direct":
             return _solve_direct(bu, bv, w, pz, params.smoothing, pen)
-        return _solve_separable(uu, vv, ku, kv, (p, q), w, np.where(present[..., None], pts, np.nan))
+        return _solve_separable(
+            uu, vv, ku, kv, (p, q), w, np.where(present[..., None], pts, np.nan), params.smoothing
+        )
 
     def residuals(ctrl: np.ndarray) -> np.ndarray:
         fitted = _tensor_eval(bu, ctrl, bv)

@@ -35,6 +35,7 @@ import warnings
 import numpy as np
 
 from BoneUSRecon.Logic.bspline import fit_surface
+from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.evaluation import evaluate_surface
 from BoneUSRecon.Logic.pipeline import (
     ReconstructionParams,
@@ -84,6 +85,17 @@ def time_resample_fit(n_frames: int, repeats: int, seed: int) -> tuple[float, fl
     return float(np.median(tr)), float(np.median(tf)), float(np.median(cpu)), npts
 
 
+def run_one(sim, params, truth: bool):
+    if truth:
+        timings: dict[str, float] = {}
+        grid, fit, surf = surface_from_contours(true_contours(sim), sim.sweep, params, timings=timings)
+        return grid, fit, surf, timings, 0, 0.0, None
+    recon = reconstruct(sim.sweep, params)
+    t = recon.timings
+    return (recon.grid, recon.fit, recon.surface, t, recon.summary["rejected_frames"],
+            t["segment"], recon)
+
+
 def paper_params() -> ReconstructionParams:
     """The paper's pipeline: snake, straight axis, de Boor separable LSQ, no reweighting."""
     p = ReconstructionParams()
@@ -125,18 +137,12 @@ def main() -> None:
             )
             params = paper_params() if args.paper else ReconstructionParams()
             t0 = time.perf_counter()
-            if args.truth_contours:
-                timings: dict[str, float] = {}
-                grid, fit, surf = surface_from_contours(
-                    true_contours(sim), sim.sweep, params, timings=timings
-                )
-                rej_seg, seg_s = 0, 0.0
-                recon = None
-            else:
-                recon = reconstruct(sim.sweep, params)
-                grid, fit, surf = recon.grid, recon.fit, recon.surface
-                timings = recon.timings
-                rej_seg, seg_s = recon.summary["rejected_frames"], timings["segment"]
+            try:
+                grid, fit, surf, timings, rej_seg, seg_s, recon = run_one(sim, params, args.truth_contours)
+            except BoneUSReconError as exc:
+                print(f"{bone:9} {corr:4.1f} FAILED: {exc}", flush=True)
+                rows.append({"bone": bone, "corrupted": corr, "error": str(exc), "meets_targets": False})
+                continue
             ev = evaluate_surface(surf, sim.gold)
             aw = area_within(sim, surf)
             cd_ms = 1000 * (timings["resample"] + timings["fit"])
@@ -164,9 +170,10 @@ def main() -> None:
             if args.control_points and recon is not None:
                 table = control_point_table(recon, sim.gold, (5, 10, 15, 20, 30))
                 print("          Table I: " + "  ".join(f"e={e}: {d:.3f}" for e, d in table))
-    means = np.array([[r["mean_mm"], r["p95_mm"]] for r in rows])
-    print(f"all: mean of means {means[:, 0].mean():.3f} mm, worst p95 {means[:, 1].max():.3f} mm, "
-          f"{sum(r['meets_targets'] for r in rows)}/{len(rows)} rows meet the targets")
+    means = np.array([[r["mean_mm"], r["p95_mm"]] for r in rows if "mean_mm" in r]).reshape(-1, 2)
+    if means.size:
+        print(f"all: mean of means {means[:, 0].mean():.3f} mm, worst p95 {means[:, 1].max():.3f} mm, "
+              f"{sum(r['meets_targets'] for r in rows)}/{len(rows)} rows meet the targets")
 
     tr, tf, cpu, npts = time_resample_fit(args.timing_frames, args.repeats, args.seed)
     print(
