@@ -240,3 +240,37 @@ def test_optimal_path_follows_ridge_and_leaves_where_no_bone():
     gain2 = np.full((h, w), -0.1)
     gain2[5, 20] = 0.8
     assert np.all(_optimal_path(gain2, 0.05 * steps**2, 0.5) == -1)
+
+
+@pytest.mark.parametrize("method", sorted(SEGMENTERS))
+def test_segment_frame_never_crashes_on_odd_images(method):
+    """Random sizes, constant, saturated and noisy frames: valid output or nothing."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(
+        h=st.integers(4, 90),
+        w=st.integers(4, 90),
+        kind=st.sampled_from(["zeros", "full", "noise", "rows"]),
+        spacing=st.floats(0.03, 0.6),
+        seed=st.integers(0, 1000),
+    )
+    def check(h, w, kind, spacing, seed):
+        rng = np.random.default_rng(seed)
+        img = {
+            "zeros": np.zeros((h, w), np.uint8),
+            "full": np.full((h, w), 255, np.uint8),
+            "noise": rng.integers(0, 256, (h, w), dtype=np.uint8),
+            "rows": np.repeat(rng.integers(0, 256, (h, 1), dtype=np.uint8), w, axis=1),
+        }[kind]
+        det = segment_frame(img, (spacing, spacing), SegmentationParams(method=method))
+        pts = det.points_px
+        assert pts.ndim == 2 and pts.shape[1] == 2 and det.intensity.shape == (pts.shape[0],)
+        if pts.shape[0]:
+            assert np.all(np.isfinite(pts))
+            assert np.all(np.diff(pts[:, 0]) > 0)
+            assert pts[:, 0].min() >= -0.5 and pts[:, 0].max() <= w - 0.5
+            assert pts[:, 1].min() >= -0.5 and pts[:, 1].max() <= h - 0.5
+
+    check()
