@@ -72,3 +72,10 @@ def test_segment_refuses_bad_input(case, message, sweep_file, black_file, tmp_pa
     assert len(err) == 1 and err[0].startswith("bone-us-recon: error:") and message in err[0]
     assert not out.exists()
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]  # no temp leftovers
+
+
+def test_cli_segmenter_names_match_logic():
+    from BoneUSRecon.cli.segment import SEGMENTER_NAMES
+    from BoneUSRecon.Logic.segmentation import SEGMENTERS
+
+    assert sorted(SEGMENTER_NAMES) == sorted(SEGMENTERS)

@@ -16,13 +16,15 @@ from BoneUSRecon.cli.common import (
     removed_on_failure,
 )
 
-__all__ = ["register", "run"]
+__all__ = ["register", "run", "SEGMENTER_NAMES"]
+
+#: Names of :data:`BoneUSRecon.Logic.segmentation.SEGMENTERS` (listed here so that
+#: building the parser does not import the segmentation stack; a test keeps them equal).
+SEGMENTER_NAMES = ("shadowpath", "snake")
 
 
 def register(subparsers: Any) -> None:
     """Add the ``segment`` sub-command."""
-    from BoneUSRecon.Logic.segmentation import SEGMENTERS
-
     p = subparsers.add_parser(
         "segment",
         help="segment the bone contour in every frame and write the kept points",
@@ -42,7 +44,7 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--segmenter",
         default="shadowpath",
-        choices=sorted(SEGMENTERS),
+        choices=SEGMENTER_NAMES,
         help="segmenter (default: shadowpath; 'snake' is the paper's active contour)",
     )
     p.add_argument(
