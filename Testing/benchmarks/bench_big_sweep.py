@@ -1,0 +1,178 @@
+"""Big-sweep benchmark (issue 7 section 2): reconstruct 2,000 frames of 640x480 in bounded memory.
+
+Writes a synthetic 2,000-frame 480x640 uncompressed PLUS sequence (614 MB of pixels:
+speckle, a bright convex bone echo whose depth drifts along the sweep, and its
+acoustic shadow; the probe advances 0.05 mm per frame, 100 mm in all) with
+:func:`write_sweep`, never holding it in memory (frames are generated in chunks into
+a temporary memory map first). Then runs ``bone-us-recon reconstruct`` on it in a
+fresh process and prints, against the data size:
+
+* ``ru_maxrss``: the peak resident set (counts touched pages of the memory-mapped
+  sweep, which are page cache the kernel can drop, as well as private memory);
+* peak ``RssAnon`` (sampled from ``/proc/PID/status`` every 20 ms): the private
+  memory the process really holds; a float64 copy of the sweep would be 4.9 GB;
+* peak ``RssFile``: mapped file pages resident at once;
+* the same for a process that only imports the command line (fixed overhead).
+
+The simulator is not used: it would need minutes and holds its sweep in memory.
+
+Target: peak memory well below the data size plus a fixed overhead.
+
+Run::
+
+    python Testing/benchmarks/bench_big_sweep.py [--frames 2000] [--width 640] [--height 480]
+        [--keep DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+SPACING_MM = 0.075  # 640 px x 0.075 mm = 48 mm, the simulator's field of view
+STEP_MM = 0.05  # probe advance per frame
+
+
+def synthetic_frames(k0: int, k1: int, n: int, h: int, w: int, bank: np.ndarray) -> np.ndarray:
+    """Frames k0..k1-1 (uint8): speckle, a convex bone echo and its shadow (vectorised)."""
+    k = np.arange(k0, k1, dtype=np.float32)[:, None, None]
+    y = (np.arange(h, dtype=np.float32) * SPACING_MM)[None, :, None]  # depth, mm
+    x = (np.arange(w, dtype=np.float32) * SPACING_MM)[None, None, :]  # lateral, mm
+    xc = w * SPACING_MM / 2
+    depth_mm = h * SPACING_MM
+    # Bone top at 45 % of the depth, drifting by +-10 % over the sweep; convex cross-section.
+    d = depth_mm * (0.45 + 0.1 * np.sin(2 * np.pi * 1.5 * k / n)) + 0.012 * (x - xc) ** 2
+    tissue = 60.0 + 50.0 * np.exp(-y / 6.0)
+    echo = 200.0 * np.exp(-(((y - d) / 0.3) ** 2))
+    shadow = np.where(y > d + 0.45, 0.12, 1.0)
+    # Speckle: a bank of multiplicative patterns, rolled so neighbouring frames differ.
+    sp = np.stack([np.roll(bank[int(i) % len(bank)], int(i) * 7, axis=1) for i in range(k0, k1)])
+    img = (tissue * sp + echo * (0.7 + 0.3 * sp)) * shadow
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def make_big_sweep(path: Path, n: int, h: int, w: int) -> float:
+    """Write the synthetic sweep to ``path`` (uncompressed); return seconds taken."""
+    from BoneUSRecon.Logic.sequence_io import write_sweep
+    from BoneUSRecon.Logic.sweep import Sweep
+
+    t = time.perf_counter()
+    rng = np.random.default_rng(0)
+    bank = rng.gamma(2.0, 0.5, (8, h, w)).astype(np.float32)
+    # Pixel (i, j) -> (i * s, -j * s, -k * step): rows go down in depth, frames advance.
+    m = np.tile(np.diag([SPACING_MM, -SPACING_MM, -1.0, 1.0]), (n, 1, 1))
+    m[:, 2, 3] = -np.arange(n) * STEP_MM
+    m[:, 0, 3] = 0.2 * np.sin(np.arange(n) / 150.0)  # a little lateral wobble
+    with tempfile.TemporaryDirectory(prefix="bench_big_", dir=path.parent) as tmp:
+        frames = np.lib.format.open_memmap(Path(tmp) / "frames.npy", mode="w+", dtype=np.uint8, shape=(n, h, w))
+        for k0 in range(0, n, 25):
+            k1 = min(n, k0 + 25)
+            frames[k0:k1] = synthetic_frames(k0, k1, n, h, w, bank)
+        frames.flush()
+        write_sweep(Sweep(frames, m, np.arange(n) / 30.0, np.ones(n, bool)), path)
+        del frames
+    return time.perf_counter() - t
+
+
+def status_kb(pid: int) -> dict[str, int]:
+    out = {}
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "RssAnon", "RssFile"):
+                out[key] = int(value.split()[0])
+    except OSError:
+        pass
+    return out
+
+
+def run_measured(argv: list[str]) -> dict[str, float]:
+    """Run a command; return wall s, CPU s, ru_maxrss MB and sampled peaks (MB)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peaks = {"VmRSS": 0, "RssAnon": 0, "RssFile": 0}
+    stop = threading.Event()
+
+    def sample() -> None:
+        while not stop.is_set():
+            for key, v in status_kb(proc.pid).items():
+                peaks[key] = max(peaks[key], v)
+            time.sleep(0.02)
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    out, err = proc.communicate()
+    stop.set()
+    th.join()
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise SystemExit(f"command failed ({proc.returncode}): {err.strip()}")
+    return {
+        "wall_s": wall,
+        "cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
+        # RUSAGE_CHILDREN's maxrss is the largest of the children waited for so far;
+        # the baseline (smaller) runs after the big one, so this is the big one's.
+        "maxrss_mb": after.ru_maxrss / 1024,
+        "peak_rss_mb": peaks["VmRSS"] / 1024,
+        "peak_anon_mb": peaks["RssAnon"] / 1024,
+        "peak_file_mb": peaks["RssFile"] / 1024,
+        "stdout": out,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=2000)
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--keep", type=Path, help="write (or reuse) the sweep in this folder")
+    args = ap.parse_args(argv)
+    n, h, w = args.frames, args.height, args.width
+    root = Path(__file__).resolve().parents[2]
+    print(f"bench_big_sweep: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores")
+    with tempfile.TemporaryDirectory(prefix="bench_big_sweep_") as tmp:
+        folder = args.keep or Path(tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"big_{n}x{h}x{w}.mha"
+        if not path.exists():
+            t = make_big_sweep(path, n, h, w)
+            print(f"wrote {path.name} in {t:.1f} s")
+        data_mb = n * h * w / 2**20
+        print(f"sweep: {n} frames of {h}x{w} uint8 = {data_mb:.0f} MB of pixels "
+              f"(float64 copy would be {8 * data_mb / 1024:.1f} GB), file {path.stat().st_size / 2**20:.0f} MB")
+        out = Path(tmp) / "surface.vtp"
+        r = run_measured([sys.executable, "-m", "BoneUSRecon", "reconstruct", str(path), "-o", str(out),
+                          "--json", "-q"])
+        doc = json.loads(r["stdout"])
+        base = run_measured([sys.executable, "-c",
+                             "from BoneUSRecon.cli import build_parser; build_parser();"
+                             "import BoneUSRecon.Logic.pipeline, BoneUSRecon.Logic.sequence_io"])
+        s = doc["summary"]
+        print(f"reconstruct: {s['segmented_frames']} of {s['frames']} frames segmented, grid "
+              f"{s['grid_shape'][0]}x{s['grid_shape'][1]}, fit RMS {s['fit_rms_mm']:.3f} mm; "
+              f"wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, {n / r['wall_s']:.0f} frames/s; "
+              f"stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in doc["timings_s"].items()))
+        print(f"{'':<26}{'maxrss MB':>10}{'peak RSS MB':>12}{'peak anon MB':>13}{'peak file MB':>13}")
+        for label, m in (("reconstruct", r), ("imports only (overhead)", base)):
+            print(f"{label:<26}{m['maxrss_mb'] if m is r else float('nan'):>10.0f}{m['peak_rss_mb']:>12.0f}"
+                  f"{m['peak_anon_mb']:>13.0f}{m['peak_file_mb']:>13.0f}")
+        over = r["peak_rss_mb"] - base["peak_rss_mb"]
+        print(f"peak RSS above the import overhead: {over:.0f} MB = {100 * over / data_mb:.1f}% of the "
+              f"data size; private (anon) above overhead: {r['peak_anon_mb'] - base['peak_anon_mb']:.0f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
