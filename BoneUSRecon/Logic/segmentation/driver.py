@@ -16,6 +16,7 @@ from BoneUSRecon.Logic.segmentation.rejection import (
     frame_evidence,
     frame_verdict,
     neighbour_deviation,
+    trim_unshadowed_ends,
 )
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.shadowpath import shadowpath_frame
@@ -105,6 +106,13 @@ def segment_sweep(
     for n, (k, image) in enumerate(sweep.iter_frames(idx)):
         sp = (float(spacing_all[k, 0]), float(spacing_all[k, 1]))
         det = segment_frame(image, sp, params, prior)
+        trim = trim_unshadowed_ends(image, det.points_px, sp, rej.max_shadow_ratio)
+        if not trim.all():
+            det = Detection(
+                det.points_px[trim],
+                det.intensity[trim],
+                {**det.extras, "trimmed_points": int((~trim).sum())},
+            )
         ev = frame_evidence(image, det.points_px, sp)
         conf, reason = frame_verdict(ev, rej)
         if det.empty:

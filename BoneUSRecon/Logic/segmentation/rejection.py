@@ -3,16 +3,20 @@
 Checks, the same for every segmenter, measured on the frame itself (not on the
 segmenter's internal score, so a segmenter cannot vouch for its own mistakes):
 
+* unshadowed ends: end points with no shadow under them (a contour running from the
+  bone onto a tissue layer at its edge) are trimmed first.
 * ``no bone found``: the segmenter returned nothing.
 * ``contour too short``: lateral extent below ``min_length_mm`` or too few points.
 * ``low contrast``: the mean ``Dif`` (bright band against above and below) is weak.
 * ``no acoustic shadow``: the region 1-5 mm under the contour is not much darker than
   the echo itself (a tissue layer or noise, not bone: the paper's false positives were
   "images with important noise on the acoustic shadow under the bone").
-* ``jump``: most of the contour lies more than ``jump_mm`` off the depth its
-  neighbouring frames give at the same columns (median over a window): bones are
-  continuous and the probe moves smoothly. When only some points are off (a contour
-  that runs partly onto a false echo), those points are dropped and the frame kept.
+* ``jump`` (after all frames): the contour's typical depth difference from what its
+  neighbouring frames predict at the same columns (a robust Theil-Sen line through
+  their depths along the sequence) exceeds ``jump_mm``: bones are continuous and the
+  probe moves smoothly. In kept frames, single points off that prediction by more
+  than ``point_jump_mm``, or beyond the neighbours' lateral extent by more than
+  ``extend_mm``, are dropped.
 
 The confidence in [0, 1] is the product of soft versions of these checks.
 """
@@ -25,7 +29,14 @@ import numpy as np
 
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 
-__all__ = ["FrameEvidence", "frame_evidence", "frame_verdict", "neighbour_deviation"]
+__all__ = [
+    "FrameEvidence",
+    "frame_evidence",
+    "frame_verdict",
+    "neighbour_deviation",
+    "point_shadow_ratio",
+    "trim_unshadowed_ends",
+]
 
 
 @dataclass(frozen=True)
@@ -87,6 +98,72 @@ def frame_evidence(
         above = 0.0
     length = float(np.ptp(points_px[:, 0]) * sx) if k > 1 else 0.0
     return FrameEvidence(length, k, echo, above, shadow)
+
+
+def _band_means(
+    image: np.ndarray, i: np.ndarray, j: np.ndarray, a_mm: float, b_mm: float, sy: float
+) -> np.ndarray:
+    """Per point, the mean grey value of rows ``j + [a_mm, b_mm)`` in column ``i`` (NaN outside)."""
+    h = image.shape[0]
+    a = int(np.floor(a_mm / sy))
+    b = max(a + 1, int(np.ceil(b_mm / sy)))
+    rows = j[:, None] + np.arange(a, b)[None, :]
+    inside = (rows >= 0) & (rows < h)
+    vals = image[np.clip(rows, 0, h - 1), i[:, None]].astype(np.float64)
+    n = inside.sum(axis=1)
+    total = np.where(inside, vals, 0.0).sum(axis=1)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
+
+
+def point_shadow_ratio(
+    image: np.ndarray, points_px: np.ndarray, spacing: tuple[float, float]
+) -> np.ndarray:
+    """Per point, mean intensity 1-5 mm below over the echo's (+-0.3 mm), shape (K,).
+
+    Points with no room for a shadow below get 1 (no evidence of a shadow). The
+    ratios are smoothed by a running median of 5 points (speckle).
+    """
+    from scipy.ndimage import median_filter
+
+    sy = float(spacing[1])
+    w = image.shape[1]
+    i = np.clip(np.rint(points_px[:, 0]).astype(np.intp), 0, w - 1)
+    j = np.rint(points_px[:, 1]).astype(np.intp)
+    echo = _band_means(image, i, j, -0.3, 0.3, sy)
+    shadow = _band_means(image, i, j, 1.0, 5.0, sy)
+    ratio = np.where(np.isfinite(shadow), shadow / np.maximum(echo, 1.0), 1.0)
+    if ratio.size >= 5:
+        ratio = median_filter(ratio, size=5, mode="nearest")
+    return ratio
+
+
+def trim_unshadowed_ends(
+    image: np.ndarray,
+    points_px: np.ndarray,
+    spacing: tuple[float, float],
+    max_ratio: float,
+) -> np.ndarray:
+    """Mask keeping the contour minus its unshadowed ends.
+
+    A contour that runs from the bone onto a tissue layer at its edge keeps going
+    where nothing is dark below: those end points are cut, one end at a time, up to
+    the first point with a shadow (ratio at most ``max_ratio`` and at most 2.5 times
+    the contour's median ratio, floor 0.2). Interior points are left to the frame's checks.
+    """
+    keep = np.ones(points_px.shape[0], bool)
+    if points_px.shape[0] == 0:
+        return keep
+    ratio = point_shadow_ratio(image, points_px, spacing)
+    # Relative to the contour's own shadow: a tissue layer next to a bone with a black
+    # shadow stands out even if it is darker below than max_ratio.
+    limit = min(max_ratio, max(0.2, 2.5 * float(np.median(ratio))))
+    shadowed = ratio <= limit
+    if not shadowed.any():
+        return keep  # the whole frame will be judged (and rejected) as unshadowed
+    first, last = np.flatnonzero(shadowed)[[0, -1]]
+    keep[:first] = False
+    keep[last + 1 :] = False
+    return keep
 
 
 def frame_verdict(ev: FrameEvidence, params: RejectionParams) -> tuple[float, str]:
