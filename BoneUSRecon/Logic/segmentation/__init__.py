@@ -15,17 +15,18 @@ Measured (``Testing/benchmarks/bench_segmentation.py``: 60-frame 256x320 simulat
 sweeps at 0.15 mm/px of each of the five bones with 10 % corrupted frames; distances of
 the kept points to the true bone surface, all bones pooled):
 
-============  ========  ========  =========  ===========================
-segmenter     median    p95       > 2 mm     corrupted frames harmless
-============  ========  ========  =========  ===========================
-shadowpath    0.011 mm  0.040 mm  0 %        100 % (rejected or on bone)
-snake         0.122 mm  0.303 mm  0 %        100 %
-============  ========  ========  =========  ===========================
+============  ========  ========  =========  ====================================
+segmenter     median    p95       > 2 mm     corrupted frames rejected / harmless
+============  ========  ========  =========  ====================================
+shadowpath    0.011 mm  0.039 mm  0 %        33-83 % / 100 %
+snake         0.120 mm  0.301 mm  0 %        67-83 % / 100 %
+============  ========  ========  =========  ====================================
 
-shadowpath runs at ~14 ms per 480x640 frame on one core, about 50x faster than
-``skimage.segmentation.active_contour`` (100 points, 300 iterations, free ends) on the
-same frames; the paper's snake is ~10x faster than skimage's. Hence shadowpath is the
-default.
+("harmless": rejected, or kept with its points on the bone, e.g. the bone found under
+a false echo.) shadowpath runs at ~10 ms per 480x640 frame on one core, 50-130x
+faster than ``skimage.segmentation.active_contour`` (100 points, 300 iterations, free
+ends) on the same frames; the paper's snake is ~10-15x faster than skimage's. Hence
+shadowpath is the default.
 """
 
 from BoneUSRecon.Logic.segmentation.detection import Detection
