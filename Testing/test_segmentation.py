@@ -274,3 +274,39 @@ def test_segment_frame_never_crashes_on_odd_images(method):
             assert pts[:, 1].min() >= -0.5 and pts[:, 1].max() <= h - 0.5
 
     check()
+
+
+def test_tissue_layer_without_shadow_is_not_bone():
+    """A bright layer with tissue under it: no detection, or a rejection saying why."""
+    from BoneUSRecon.Logic.segmentation.params import RejectionParams
+    from BoneUSRecon.Logic.segmentation.rejection import frame_evidence, frame_verdict
+
+    s = 0.1
+    line = np.column_stack([np.arange(10, 150, 2.0), np.full(70, 71.5)])
+    for add in (60, 90):  # a fascia at 7 mm, 60 or 90 grey levels above the tissue
+        img, _ = analytic_frame(s, bone=False, seed=5)
+        img = np.clip(img.astype(float) + add * (np.arange(128) // 4 == 70 // 4)[:, None], 0, 255)
+        img = img.astype(np.uint8)
+        assert segment_frame(img, (s, s)).empty
+    # A contour along the dimmer layer (as a snake could leave) is refused, with why.
+    img, _ = analytic_frame(s, bone=False, seed=5)
+    img[70:74] = np.clip(img[70:74].astype(float) + 60, 0, 255).astype(np.uint8)
+    conf, reason = frame_verdict(frame_evidence(img, line, (s, s)), RejectionParams())
+    assert reason.startswith("no acoustic shadow") and conf < 0.7
+
+
+def test_unshadowed_ends_are_trimmed():
+    from BoneUSRecon.Logic.segmentation.rejection import trim_unshadowed_ends
+
+    s = 0.1
+    img, surf = analytic_frame(s, seed=2)
+    img = img.copy()
+    # Restore tissue under the left quarter: there the "bone" line has no shadow.
+    tissue, _ = analytic_frame(s, bone=False, seed=2)
+    img[:, :40] = tissue[:, :40]
+    img[np.rint(surf[:40] / s).astype(int), np.arange(40)] = 220
+    i = np.arange(0, 160, 2.0)
+    pts = np.column_stack([i, np.interp(i, np.arange(160), surf / s)])
+    keep = trim_unshadowed_ends(img, pts, (s, s), 0.45)
+    assert not keep[pts[:, 0] < 34].any()
+    assert keep[pts[:, 0] > 46].all()
