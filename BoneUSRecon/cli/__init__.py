@@ -12,6 +12,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from BoneUSRecon import __version__
 from BoneUSRecon.cli.common import PROG, run_guarded
@@ -31,9 +32,19 @@ COMMANDS = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with our one-line error style: no usage block (it is in ``--help``).
+
+    Sub-parsers are made of the same class, so every command gets it.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser (all sub-commands)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="bone-us-recon",
         description="Bone surface reconstruction from tracked freehand ultrasound.",
     )
