@@ -358,3 +358,24 @@ def test_command_line_process_prints_one_line(bad, tmp_path, argv, problem):
     assert len(lines) == 1 and problem in lines[0] and ".mha" in lines[0], proc.stderr
     assert proc.stdout == ""
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["reconstruct", "s.mha", "-o", "s.vtp", "--rays", "abc"],
+        ["reconstruct", "s.mha", "-o", "s.vtp", "--degree", "2"],
+        ["demo", "--size", "-80x64"],
+        ["table", "s.mha", "--gold", "g.csv", "--control-points"],
+        ["segment", "s.mha"],
+        ["no-such-command"],
+    ],
+)
+def test_argument_errors_are_one_line(capsys, argv):
+    """argparse's own refusals follow the same style: one line, exit 2, no usage block."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("bone-us-recon") and ": error: " in err[0] and "--help" in err[0], err
