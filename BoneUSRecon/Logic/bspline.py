@@ -26,7 +26,10 @@ Solvers (``FitParams.method``)
     entries or per-point weights it is *not* exact: column ``j`` is fitted with its own
     weights ``w_ij`` (with the same small smoothing penalty as below, so a column with
     gaps is still solvable; without it such a column is dropped) and the row stage
-    weighs column ``j`` by its mean weight, i.e. by how much of it was seen.
+    weighs intermediate point ``(k, j)`` by the share of basis function ``k``'s mass in
+    column ``j`` that carried data (an intermediate point over a gap was only
+    extrapolated; weighing whole columns instead gave 1.0 mm mean gold distance on a
+    simulated clavicle, this 0.18 mm, direct 0.176 mm).
     ``"direct"`` (default): the exact weighted tensor-product least squares,
     ``min sum_ij w_ij |S(u_i, v_j) - P_ij|^2``, by its ``ef x ef`` normal equations
     built with Kronecker structure (``B_u^T W B_u`` per column, then contracted with
@@ -372,10 +375,17 @@ def _solve_separable(
     # Stage 1: curve fit down each column j (over u): e intermediate points per column.
     inter = fit_curve(u, p, w, ku, deg[0], smoothing)  # (e, n, 3)
     col_ok = np.isfinite(inter).all(axis=(0, 2))
-    col_w = np.where(col_ok, w.mean(axis=0), 0.0)
+    # Stage-2 weight of intermediate point (k, j): the weighted share of basis k's mass
+    # in column j that had data, so an intermediate point standing over a gap (where
+    # the column fit only extrapolated) counts little. Scaling a whole row k of weights
+    # does not change that row's fit, so tensor weights a_i b_j still give exactly the
+    # tensor-product solution.
+    bu = basis_matrix(u, ku, deg[0])  # (m, e)
+    support = (bu.T @ w) / np.maximum(bu.sum(axis=0), 1e-300)[:, None]  # (e, n)
+    support = np.where(col_ok[None, :], support, 0.0)
     # Stage 2: curve fit across each row of intermediate points (over v).
     rows = np.moveaxis(np.nan_to_num(inter), 1, 0)  # (n, e, 3): the e rows as curves
-    ctrl = fit_curve(v, rows, np.broadcast_to(col_w[:, None], rows.shape[:2]), kv, deg[1], smoothing)
+    ctrl = fit_curve(v, rows, support.T, kv, deg[1], smoothing)
     if not np.isfinite(ctrl).all():
         raise BoneUSReconError(
             "the grid has too few complete columns for the requested control points "
