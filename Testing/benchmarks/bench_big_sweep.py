@@ -7,7 +7,7 @@ acoustic shadow; the probe advances 0.05 mm per frame, 100 mm in all) with
 a temporary memory map first). Then runs ``bone-us-recon reconstruct`` on it in a
 fresh process and prints, against the data size:
 
-* ``ru_maxrss``: the peak resident set (counts touched pages of the memory-mapped
+* ``ru_maxrss`` (the command's own, from ``wait4``): the peak resident set (counts touched pages of the memory-mapped
   sweep, which are page cache the kernel can drop, as well as private memory);
 * peak ``RssAnon`` (sampled from ``/proc/PID/status`` every 20 ms): the private
   memory the process really holds; a float64 copy of the sweep would be 4.9 GB;
@@ -21,7 +21,7 @@ Target: peak memory well below the data size plus a fixed overhead.
 Run::
 
     python Testing/benchmarks/bench_big_sweep.py [--frames 2000] [--width 640] [--height 480]
-        [--keep DIR]
+        [--keep DIR] [--compressed]
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -61,8 +60,8 @@ def synthetic_frames(k0: int, k1: int, n: int, h: int, w: int, bank: np.ndarray)
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def make_big_sweep(path: Path, n: int, h: int, w: int) -> float:
-    """Write the synthetic sweep to ``path`` (uncompressed); return seconds taken."""
+def make_big_sweep(path: Path, n: int, h: int, w: int, compress: bool = False) -> float:
+    """Write the synthetic sweep to ``path`` (zlib when ``compress``); return seconds taken."""
     from BoneUSRecon.Logic.sequence_io import write_sweep
     from BoneUSRecon.Logic.sweep import Sweep
 
@@ -79,7 +78,7 @@ def make_big_sweep(path: Path, n: int, h: int, w: int) -> float:
             k1 = min(n, k0 + 25)
             frames[k0:k1] = synthetic_frames(k0, k1, n, h, w, bank)
         frames.flush()
-        write_sweep(Sweep(frames, m, np.arange(n) / 30.0, np.ones(n, bool)), path)
+        write_sweep(Sweep(frames, m, np.arange(n) / 30.0, np.ones(n, bool)), path, compress=compress)
         del frames
     return time.perf_counter() - t
 
@@ -97,38 +96,40 @@ def status_kb(pid: int) -> dict[str, int]:
 
 
 def run_measured(argv: list[str]) -> dict[str, float]:
-    """Run a command; return wall s, CPU s, ru_maxrss MB and sampled peaks (MB)."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    """Run a command; return wall s, CPU s, its own ru_maxrss MB and sampled peaks (MB)."""
     t = time.perf_counter()
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    peaks = {"VmRSS": 0, "RssAnon": 0, "RssFile": 0}
-    stop = threading.Event()
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(argv, stdout=out, stderr=err, text=True)
+        peaks = {"VmRSS": 0, "RssAnon": 0, "RssFile": 0}
+        stop = threading.Event()
 
-    def sample() -> None:
-        while not stop.is_set():
-            for key, v in status_kb(proc.pid).items():
-                peaks[key] = max(peaks[key], v)
-            time.sleep(0.02)
+        def sample() -> None:
+            while not stop.is_set():
+                for key, v in status_kb(proc.pid).items():
+                    peaks[key] = max(peaks[key], v)
+                time.sleep(0.02)
 
-    th = threading.Thread(target=sample, daemon=True)
-    th.start()
-    out, err = proc.communicate()
-    stop.set()
-    th.join()
-    wall = time.perf_counter() - t
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        th = threading.Thread(target=sample, daemon=True)
+        th.start()
+        # wait4 gives this child's own rusage (RUSAGE_CHILDREN would mix in others').
+        _, status, ru = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        stop.set()
+        th.join()
+        wall = time.perf_counter() - t
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read(), err.read()
     if proc.returncode != 0:
-        raise SystemExit(f"command failed ({proc.returncode}): {err.strip()}")
+        raise SystemExit(f"command failed ({proc.returncode}): {stderr.strip()}")
     return {
         "wall_s": wall,
-        "cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
-        # RUSAGE_CHILDREN's maxrss is the largest of the children waited for so far;
-        # the baseline (smaller) runs after the big one, so this is the big one's.
-        "maxrss_mb": after.ru_maxrss / 1024,
+        "cpu_s": ru.ru_utime + ru.ru_stime,
+        "maxrss_mb": ru.ru_maxrss / 1024,
         "peak_rss_mb": peaks["VmRSS"] / 1024,
         "peak_anon_mb": peaks["RssAnon"] / 1024,
         "peak_file_mb": peaks["RssFile"] / 1024,
-        "stdout": out,
+        "stdout": stdout,
     }
 
 
@@ -138,17 +139,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--keep", type=Path, help="write (or reuse) the sweep in this folder")
+    ap.add_argument("--compressed", action="store_true",
+                    help="zlib-compressed data (inflated by the reader into a temporary file-backed map)")
+    ap.add_argument("--make", type=Path, help=argparse.SUPPRESS)  # internal: write the sweep only
     args = ap.parse_args(argv)
     n, h, w = args.frames, args.height, args.width
+    if args.make:
+        make_big_sweep(args.make, n, h, w, args.compressed)
+        return 0
     root = Path(__file__).resolve().parents[2]
     print(f"bench_big_sweep: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory(prefix="bench_big_sweep_") as tmp:
         folder = args.keep or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        path = folder / f"big_{n}x{h}x{w}.mha"
+        path = folder / f"big_{n}x{h}x{w}{'_zlib' if args.compressed else ''}.mha"
         if not path.exists():
-            t = make_big_sweep(path, n, h, w)
-            print(f"wrote {path.name} in {t:.1f} s")
+            # In a child process: this one must stay small, because a child's
+            # ru_maxrss starts from its parent's resident set at fork time.
+            t = time.perf_counter()
+            subprocess.run([sys.executable, __file__, "--make", str(path), "--frames", str(n),
+                            "--height", str(h), "--width", str(w)]
+                           + (["--compressed"] if args.compressed else []), check=True)
+            print(f"wrote {path.name} in {time.perf_counter() - t:.1f} s")
         data_mb = n * h * w / 2**20
         print(f"sweep: {n} frames of {h}x{w} uint8 = {data_mb:.0f} MB of pixels "
               f"(float64 copy would be {8 * data_mb / 1024:.1f} GB), file {path.stat().st_size / 2**20:.0f} MB")
@@ -166,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
               f"stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in doc["timings_s"].items()))
         print(f"{'':<26}{'maxrss MB':>10}{'peak RSS MB':>12}{'peak anon MB':>13}{'peak file MB':>13}")
         for label, m in (("reconstruct", r), ("imports only (overhead)", base)):
-            print(f"{label:<26}{m['maxrss_mb'] if m is r else float('nan'):>10.0f}{m['peak_rss_mb']:>12.0f}"
+            print(f"{label:<26}{m['maxrss_mb']:>10.0f}{m['peak_rss_mb']:>12.0f}"
                   f"{m['peak_anon_mb']:>13.0f}{m['peak_file_mb']:>13.0f}")
         over = r["peak_rss_mb"] - base["peak_rss_mb"]
         print(f"peak RSS above the import overhead: {over:.0f} MB = {100 * over / data_mb:.1f}% of the "
