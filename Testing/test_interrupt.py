@@ -1,4 +1,5 @@
-"""Ctrl-C leaves no partial output (issue 7, section 2).
+"""Big sweeps (issue 7, section 2): Ctrl-C leaves no partial output; mapped frames are
+not kept resident.
 
 Real ``python -m BoneUSRecon`` processes get SIGINT part-way through their work; each
 must exit with status 130, print the one-line ``bone-us-recon: interrupted; no output
@@ -22,7 +23,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from BoneUSRecon.Logic.sequence_io import write_sweep
+from BoneUSRecon.Logic.pipeline import reconstruct
+from BoneUSRecon.Logic.sequence_io import read_sweep, write_sweep
 
 MESSAGE = "bone-us-recon: interrupted; no output was written"
 
@@ -151,3 +153,30 @@ def test_simulate_interrupted_while_writing(tmp_path):
     status, out, err = interrupt_when(proc, writing)
     assert_clean_interrupt(status, out, err)
     assert os.listdir(tmp_path) == []
+
+
+def mapped_rss_kb(path: Path) -> int:
+    """Resident kB of this process's mappings of ``path`` (from /proc/self/smaps)."""
+    total, current = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        head = line.split(maxsplit=1)[0]
+        if "-" in head and ":" not in head:  # a mapping's first line: "start-end perms ..."
+            current = line.endswith(str(path))
+        elif current and line.startswith("Rss:"):
+            total += int(line.split()[1])
+    return total
+
+
+def test_reconstruct_does_not_keep_the_memory_mapped_sweep_resident(sim_small, tmp_path):
+    """Segmentation reads frames through ``iter_frames``, which drops the mapped pages:
+    after a whole reconstruction almost none of the sweep's pages are resident, whereas
+    touching the frames directly makes the whole map resident (the control)."""
+    path = write_sweep(sim_small.sweep, tmp_path / "sweep.mha")
+    sweep = read_sweep(path)
+    assert isinstance(sweep.frames, np.memmap)
+    size_kb = sweep.frames.nbytes // 1024
+    recon = reconstruct(sweep)
+    assert recon.summary["segmented_frames"] == sweep.n_frames
+    assert mapped_rss_kb(path) < 0.1 * size_kb
+    int(sweep.frames.sum(dtype=np.uint64))  # control: the probe does see touched pages
+    assert mapped_rss_kb(path) > 0.9 * size_kb
