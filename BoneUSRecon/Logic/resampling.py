@@ -46,6 +46,12 @@ from BoneUSRecon.Logic.sweep import Sweep, frame_planes
 __all__ = ["ResamplingParams", "ResampledGrid", "resample", "robust_weights"]
 
 
+#: Upper bound on rays per slice: more rays than a contour has points (a few hundred)
+#: add no information, and memory and time grow with them (100,000 rays on a
+#: 150-frame sweep took 35 s and 4 GB).
+MAX_RAYS = 1000
+
+
 @dataclass(frozen=True)
 class ResamplingParams:
     """Parameters of the ray resampling.
@@ -110,6 +116,10 @@ class ResamplingParams:
     def __post_init__(self) -> None:
         if int(self.n_rays) < 2:
             raise BoneUSReconError(f"need at least 2 rays per slice, got {self.n_rays}")
+        if int(self.n_rays) > MAX_RAYS:
+            raise BoneUSReconError(
+                f"at most {MAX_RAYS} rays per slice, got {self.n_rays} (the paper uses 15)"
+            )
         if self.rays not in ("fixed", "extent"):
             raise BoneUSReconError(f"unknown ray mode {self.rays!r}; use 'fixed' or 'extent'")
         if self.axis not in ("spline", "line"):
