@@ -177,3 +177,24 @@ def test_separable_with_missing_entries_is_close_but_not_exact():
     scale = np.abs(truth).max()
     assert err["direct"] < 1e-6 * scale
     assert 1e-6 * scale < err["separable"] < 1e-3 * scale
+
+
+def test_row_medians_match_nanmedian_and_robust_weights_shape():
+    import warnings
+
+    from BoneUSRecon.Logic.bspline import _row_medians
+    from BoneUSRecon.Logic.resampling import robust_weights
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 1, (50, 15))
+    a[rng.random(a.shape) < 0.3] = np.nan
+    a[3] = np.nan  # an empty row -> 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ref = np.nan_to_num(np.nanmedian(a, axis=1))
+    assert np.allclose(_row_medians(a), ref)
+    r = np.array([0.0, 1.0, 4.685, 10.0])
+    t = robust_weights(r, 1.0, "tukey")
+    assert t[0] == 1.0 and 0 < t[1] < 1 and t[2] == 0 and t[3] == 0
+    h = robust_weights(r, 1.0, "huber")
+    assert h[0] == 1.0 and np.isclose(h[3], 0.1345)
