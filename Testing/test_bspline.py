@@ -198,3 +198,19 @@ def test_row_medians_match_nanmedian_and_robust_weights_shape():
     assert t[0] == 1.0 and 0 < t[1] < 1 and t[2] == 0 and t[3] == 0
     h = robust_weights(r, 1.0, "huber")
     assert h[0] == 1.0 and np.isclose(h[3], 0.1345)
+
+
+def test_fit_is_equivariant_under_rigid_motion():
+    from scipy.spatial.transform import Rotation
+
+    surf, u, v, pts, rng = known_surface(seed=9)
+    noisy = pts + rng.normal(scale=0.3, size=pts.shape)
+    noisy[rng.random(pts.shape[:2]) < 0.1] = np.nan
+    noisy[4, :, 2] += 8.0  # one false frame, so the robust weights are exercised too
+    rot = Rotation.from_euler("zyx", [30, 10, -70], degrees=True).as_matrix()
+    shift = np.array([5.0, -3.0, 100.0])
+    a = fit_surface(noisy, FitParams(), u=u, v=v)
+    b = fit_surface(noisy @ rot.T + shift, FitParams(), u=u, v=v)
+    assert np.allclose(a.surface.control_points @ rot.T + shift, b.surface.control_points, atol=1e-6)
+    assert np.allclose(a.weights, b.weights, atol=1e-9)
+    assert a.frame_weights[4] == 0

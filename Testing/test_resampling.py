@@ -163,3 +163,20 @@ def test_extent_rays_span_each_contour_end_to_end():
         assert np.linalg.norm(row[0] - p[0]) < 0.02 or np.linalg.norm(row[0] - p[-1]) < 0.02
         assert np.linalg.norm(row[-1] - p[-1]) < 0.02 or np.linalg.norm(row[-1] - p[0]) < 0.02
     assert grid.ray_angles.shape == grid.points.shape[:2]
+
+
+def test_rigid_motion_of_the_whole_scene_moves_the_grid_with_it():
+    from scipy.spatial.transform import Rotation
+
+    sweep, contours, _ = tube_sweep(seed=4)
+    rot = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
+    shift = np.array([12.0, -40.0, 7.5])
+    m4 = np.eye(4)
+    m4[:3, :3], m4[:3, 3] = rot, shift
+    moved = sweep.replace(image_to_reference=m4 @ sweep.image_to_reference)
+    moved_contours = [(k, p @ rot.T + shift) for k, p in contours]
+    g1, g2 = resample(contours, sweep), resample(moved_contours, moved)
+    assert np.array_equal(g1.frames, g2.frames)
+    assert np.allclose(g1.points @ rot.T + shift, g2.points, atol=1e-6, equal_nan=True)
+    assert np.allclose(g1.angles, g2.angles)
+    assert np.isclose(g1.mean_resampling_distance_mm, g2.mean_resampling_distance_mm)
