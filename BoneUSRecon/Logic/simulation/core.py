@@ -130,6 +130,12 @@ class Simulation:
 # (ds mm, points around) of the truth mesh: see BoneGeometry.mesh for the error bound.
 _MESH = (0.5, 192)
 
+#: Limits that keep an absurd request from eating the machine: the simulated sweep is
+#: held in memory (uint8), and image formation needs ~130 bytes per pixel of one frame
+#: (complex64 speckle fields), 0.5 GB at 2048 x 2048.
+MAX_IMAGE_SIDE = 2048
+MAX_SWEEP_BYTES = 4_000_000_000
+
 
 def check_params(params: SimulationParams) -> None:
     """Raise :class:`BoneUSReconError` for parameters the simulator cannot honour."""
@@ -140,6 +146,16 @@ def check_params(params: SimulationParams) -> None:
         raise BoneUSReconError(f"need at least 2 frames, got {p.n_frames}")
     if int(p.width) < 16 or int(p.height) < 16:
         raise BoneUSReconError(f"images must be at least 16 x 16 pixels, got {p.height} x {p.width}")
+    if int(p.width) > MAX_IMAGE_SIDE or int(p.height) > MAX_IMAGE_SIDE:
+        raise BoneUSReconError(
+            f"images must be at most {MAX_IMAGE_SIDE} pixels per side, got {p.height} x {p.width}"
+        )
+    if int(p.n_frames) * int(p.width) * int(p.height) > MAX_SWEEP_BYTES:
+        raise BoneUSReconError(
+            f"{p.n_frames} frames of {p.height} x {p.width} pixels would need "
+            f"{int(p.n_frames) * int(p.width) * int(p.height) / 1e9:.1f} GB in memory; "
+            f"the simulator holds at most {MAX_SWEEP_BYTES / 1e9:g} GB"
+        )
     if not (np.isfinite(p.spacing_mm) and p.spacing_mm > 0):
         raise BoneUSReconError(f"pixel spacing must be a positive number of mm, got {p.spacing_mm}")
     for name in ("corrupted_fraction", "invalid_fraction"):
