@@ -167,6 +167,7 @@ ABSURD = [
     (["--degree", "20", "2"], "too few for degree 20 2"),
     (["--rays", "0"], "need at least 2 rays"),
     (["--rays", "-4"], "need at least 2 rays"),
+    (["--rays", "100000"], "at most 1000 rays per slice"),
     (["--segmenter", "magic"], "unknown segmenter 'magic'"),
 ]
 
@@ -210,6 +211,8 @@ def test_table_refuses_absurd_parameters(capsys, bad, tmp_path, options, problem
         (["--spacing", "-0.3"], "pixel spacing must be a positive"),
         (["--corrupt", "2"], "corrupted fraction must be between 0 and 1"),
         (["--invalid", "-0.1"], "invalid fraction must be between 0 and 1"),
+        (["--width", "100000"], "at most 2048 pixels per side"),
+        (["--frames", "10000000"], "would need 819.2 GB in memory"),
     ],
 )
 def test_simulate_refuses_absurd_parameters(capsys, tmp_path, options, problem):
@@ -227,6 +230,7 @@ def test_simulate_refuses_absurd_parameters(capsys, tmp_path, options, problem):
         (["--size", "abc"], "--size must look like"),
         (["--spacing", "-1"], "pixel spacing must be a positive"),
         (["--corrupted", "3"], "--corrupted must be between"),
+        (["--frames", "10000000"], "would need 819.2 GB in memory"),
     ],
 )
 def test_demo_refuses_absurd_parameters(capsys, tmp_path, options, problem):
