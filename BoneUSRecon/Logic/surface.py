@@ -143,7 +143,11 @@ def surface_polydata(
     if params.max_distance_mm is not None and seg.shape[0]:
         keep &= dist.reshape(nu, nv) <= params.max_distance_mm
     if params.gap_factor is not None and grid is not None and seg.shape[0] and grid.shape[0] > 1:
-        spacing = float(np.median(np.diff(grid.axis_position)))
+        # Slice spacing between distinct positions: frames repeated at one pose (a
+        # tracker slower than the video, a sweep retraced) would make the median 0.
+        steps = np.diff(grid.axis_position)
+        steps = steps[steps > 1e-6]
+        spacing = float(np.median(steps)) if steps.size else 0.0
         if spacing > 0:
             keep &= dist.reshape(nu, nv) <= params.gap_factor * spacing
 
