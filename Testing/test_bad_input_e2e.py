@@ -155,6 +155,36 @@ def test_every_sweep_reader_refuses_garbage_and_missing_files(capsys, bad, tmp_p
             names="missing.mha", problem="no such file", outdir=tmp_path)
 
 
+# -- awkward but valid sweeps: refused by nothing, reconstructed as well as a clean one --
+
+@pytest.mark.parametrize("kind", ["retraced", "repeated_poses", "paused"])
+def test_awkward_sweeps_reconstruct_accurately(capsys, sim_small, tmp_path, kind):
+    """A sweep retraced over the same poses, every pose recorded twice (a tracker
+    slower than the video), and a probe resting (20 frames, 0.05 mm jitter) before it
+    moves: all must give the clean sweep's accuracy against the gold points."""
+    from BoneUSRecon.Logic.evaluation import evaluate_surface
+    from BoneUSRecon.Logic.vtkio import read_polydata
+
+    s = sim_small.sweep
+    n = s.n_frames
+    m = s.image_to_reference
+    order = {
+        "retraced": np.r_[np.arange(n), np.arange(n)[::-1]],
+        "repeated_poses": np.repeat(np.arange(n), 2),
+        "paused": np.r_[np.zeros(20, int), np.arange(n)],
+    }[kind]
+    poses = m[order].copy()
+    if kind == "paused":
+        poses[:20, :3, 3] += np.random.default_rng(3).normal(0.0, 0.05, (20, 3))
+    sweep = s.replace(frames=s.frames[order], image_to_reference=poses,
+                      timestamps=np.arange(order.size) * 0.05, valid=s.valid[order])
+    path = write_sweep(sweep, tmp_path / f"{kind}.mha")
+    out = tmp_path / "bone.vtp"
+    assert main(["reconstruct", str(path), "-o", str(out), "-q"]) == 0, capsys.readouterr().err
+    ev = evaluate_surface(read_polydata(out), sim_small.gold)
+    assert ev.mean < 0.3 and ev.within_1 > 0.95, (ev.mean, ev.within_1)
+
+
 # -- absurd parameters ------------------------------------------------------------------
 
 ABSURD = [
