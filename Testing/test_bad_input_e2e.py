@@ -110,9 +110,18 @@ NO_SURFACE = [
 def test_reconstruct_refuses_sweeps_without_a_surface(capsys, bad, tmp_path, name, problem):
     refused(
         capsys,
-        ["reconstruct", str(bad[name]), "-o", str(tmp_path / "s.vtp"),
-         "--points-out", str(tmp_path / "p.vtp"), "-q"],
-        names=f"{name}.mha", problem=problem, outdir=tmp_path,
+        [
+            "reconstruct",
+            str(bad[name]),
+            "-o",
+            str(tmp_path / "s.vtp"),
+            "--points-out",
+            str(tmp_path / "p.vtp"),
+            "-q",
+        ],
+        names=f"{name}.mha",
+        problem=problem,
+        outdir=tmp_path,
     )
 
 
@@ -120,8 +129,18 @@ def test_reconstruct_refuses_sweeps_without_a_surface(capsys, bad, tmp_path, nam
 def test_table_refuses_sweeps_without_a_surface(capsys, bad, tmp_path, name, problem):
     refused(
         capsys,
-        ["table", str(bad[name]), "--gold", str(bad["gold"]), "--plot", str(tmp_path / "t.png"), "-q"],
-        names=f"{name}.mha", problem=problem, outdir=tmp_path,
+        [
+            "table",
+            str(bad[name]),
+            "--gold",
+            str(bad["gold"]),
+            "--plot",
+            str(tmp_path / "t.png"),
+            "-q",
+        ],
+        names=f"{name}.mha",
+        problem=problem,
+        outdir=tmp_path,
     )
 
 
@@ -129,8 +148,18 @@ def test_table_refuses_sweeps_without_a_surface(capsys, bad, tmp_path, name, pro
 def test_segment_refuses_sweeps_without_bone(capsys, bad, tmp_path, name):
     refused(
         capsys,
-        ["segment", str(bad[name]), "-o", str(tmp_path / "p.vtp"), "--overlay", str(tmp_path / "ov"), "-q"],
-        names=f"{name}.mha", problem="no bone contour found", outdir=tmp_path,
+        [
+            "segment",
+            str(bad[name]),
+            "-o",
+            str(tmp_path / "p.vtp"),
+            "--overlay",
+            str(tmp_path / "ov"),
+            "-q",
+        ],
+        names=f"{name}.mha",
+        problem="no bone contour found",
+        outdir=tmp_path,
     )
 
 
@@ -149,13 +178,24 @@ def test_every_sweep_reader_refuses_garbage_and_missing_files(capsys, bad, tmp_p
         "reconstruct": ["-o", str(tmp_path / "s.vtp")],
         "table": ["--gold", str(bad["gold"])],
     }[command]
-    refused(capsys, [command, str(bad["garbage"]), *extra, "-q"],
-            names="garbage.mha", problem="not a MetaIO metafile", outdir=tmp_path)
-    refused(capsys, [command, str(tmp_path / "missing.mha"), *extra, "-q"],
-            names="missing.mha", problem="no such file", outdir=tmp_path)
+    refused(
+        capsys,
+        [command, str(bad["garbage"]), *extra, "-q"],
+        names="garbage.mha",
+        problem="not a MetaIO metafile",
+        outdir=tmp_path,
+    )
+    refused(
+        capsys,
+        [command, str(tmp_path / "missing.mha"), *extra, "-q"],
+        names="missing.mha",
+        problem="no such file",
+        outdir=tmp_path,
+    )
 
 
 # -- awkward but valid sweeps: refused by nothing, reconstructed as well as a clean one --
+
 
 @pytest.mark.parametrize("kind", ["retraced", "repeated_poses", "paused"])
 def test_awkward_sweeps_reconstruct_accurately(capsys, sim_small, tmp_path, kind):
@@ -176,8 +216,12 @@ def test_awkward_sweeps_reconstruct_accurately(capsys, sim_small, tmp_path, kind
     poses = m[order].copy()
     if kind == "paused":
         poses[:20, :3, 3] += np.random.default_rng(3).normal(0.0, 0.05, (20, 3))
-    sweep = s.replace(frames=s.frames[order], image_to_reference=poses,
-                      timestamps=np.arange(order.size) * 0.05, valid=s.valid[order])
+    sweep = s.replace(
+        frames=s.frames[order],
+        image_to_reference=poses,
+        timestamps=np.arange(order.size) * 0.05,
+        valid=s.valid[order],
+    )
     path = write_sweep(sweep, tmp_path / f"{kind}.mha")
     out = tmp_path / "bone.vtp"
     assert main(["reconstruct", str(path), "-o", str(out), "-q"]) == 0, capsys.readouterr().err
@@ -202,13 +246,18 @@ ABSURD = [
 ]
 
 
-@pytest.mark.parametrize(("options", "problem"), ABSURD, ids=lambda v: " ".join(v) if isinstance(v, list) else None)
+@pytest.mark.parametrize(
+    ("options", "problem"), ABSURD, ids=lambda v: " ".join(v) if isinstance(v, list) else None
+)
 def test_reconstruct_refuses_absurd_parameters(capsys, bad, tmp_path, options, problem):
     # Parameter errors name the option's values; the ones found on the data name the sweep.
     names = "good.mha" if problem.startswith("too few valid") else problem.split()[0]
     refused(
-        capsys, ["reconstruct", str(bad["good"]), "-o", str(tmp_path / "s.vtp"), *options, "-q"],
-        names=names, problem=problem, outdir=tmp_path,
+        capsys,
+        ["reconstruct", str(bad["good"]), "-o", str(tmp_path / "s.vtp"), *options, "-q"],
+        names=names,
+        problem=problem,
+        outdir=tmp_path,
     )
 
 
@@ -225,9 +274,20 @@ def test_reconstruct_refuses_absurd_parameters(capsys, bad, tmp_path, options, p
 def test_table_refuses_absurd_parameters(capsys, bad, tmp_path, options, problem):
     names = "good.mha" if problem.startswith("too few valid") else problem.split()[0]
     refused(
-        capsys, ["table", str(bad["good"]), "--gold", str(bad["gold"]),
-                 "--plot", str(tmp_path / "t.png"), *options, "-q"],
-        names=names, problem=problem, outdir=tmp_path,
+        capsys,
+        [
+            "table",
+            str(bad["good"]),
+            "--gold",
+            str(bad["gold"]),
+            "--plot",
+            str(tmp_path / "t.png"),
+            *options,
+            "-q",
+        ],
+        names=names,
+        problem=problem,
+        outdir=tmp_path,
     )
 
 
@@ -247,8 +307,11 @@ def test_table_refuses_absurd_parameters(capsys, bad, tmp_path, options, problem
 )
 def test_simulate_refuses_absurd_parameters(capsys, tmp_path, options, problem):
     refused(
-        capsys, ["simulate", "clavicle", str(tmp_path / "sim"), *options, "-q"],
-        names=problem.split()[0], problem=problem, outdir=tmp_path,
+        capsys,
+        ["simulate", "clavicle", str(tmp_path / "sim"), *options, "-q"],
+        names=problem.split()[0],
+        problem=problem,
+        outdir=tmp_path,
     )
 
 
@@ -265,8 +328,11 @@ def test_simulate_refuses_absurd_parameters(capsys, tmp_path, options, problem):
 )
 def test_demo_refuses_absurd_parameters(capsys, tmp_path, options, problem):
     refused(
-        capsys, ["demo", str(tmp_path / "demo"), *options, "-q"],
-        names=problem.split()[0], problem=problem, outdir=tmp_path,
+        capsys,
+        ["demo", str(tmp_path / "demo"), *options, "-q"],
+        names=problem.split()[0],
+        problem=problem,
+        outdir=tmp_path,
     )
 
 
@@ -274,18 +340,37 @@ def test_demo_too_small_to_fit_leaves_no_folder(capsys, tmp_path):
     """Simulated fine, but 3 frames cannot carry 15 control points: OUTDIR is removed."""
     refused(
         capsys,
-        ["demo", str(tmp_path / "demo"), "--frames", "3", "--size", "80x64", "--spacing", "0.6",
-         "--no-report", "--no-table", "-q"],
-        names="control points", problem="too few valid grid points", outdir=tmp_path,
+        [
+            "demo",
+            str(tmp_path / "demo"),
+            "--frames",
+            "3",
+            "--size",
+            "80x64",
+            "--spacing",
+            "0.6",
+            "--no-report",
+            "--no-table",
+            "-q",
+        ],
+        names="control points",
+        problem="too few valid grid points",
+        outdir=tmp_path,
     )
 
 
 def test_view_refuses_absurd_size(capsys, surface, tmp_path):
-    refused(capsys, ["view", str(surface), "--screenshot", str(tmp_path / "v.png"), "--size", "0x0", "-q"],
-            names="--size", problem="out of range", outdir=tmp_path)
+    refused(
+        capsys,
+        ["view", str(surface), "--screenshot", str(tmp_path / "v.png"), "--size", "0x0", "-q"],
+        names="--size",
+        problem="out of range",
+        outdir=tmp_path,
+    )
 
 
 # -- unwritable, missing and unknown outputs ---------------------------------------------
+
 
 def _output_cases(bad: dict[str, Path], surface: Path, target: Path) -> dict[str, list[str]]:
     """Each command with its output put at ``target`` (a file path)."""
@@ -293,23 +378,71 @@ def _output_cases(bad: dict[str, Path], surface: Path, target: Path) -> dict[str
     return {
         "segment": ["segment", str(bad["good"]), "-o", str(target.with_suffix(".vtp"))],
         "reconstruct": ["reconstruct", str(bad["good"]), "-o", str(target.with_suffix(".vtp"))],
-        "reconstruct --points-out": ["reconstruct", str(bad["good"]), "-o", "IGNORED.vtp",
-                                     "--points-out", str(target.with_suffix(".vtp"))],
-        "reconstruct --report": ["reconstruct", str(bad["good"]), "-o", "IGNORED.vtp",
-                                 "--report", str(folder)],
-        "segment --overlay": ["segment", str(bad["good"]), "-o", "IGNORED.vtp", "--overlay", str(folder)],
-        "table --plot": ["table", str(bad["good"]), "--gold", str(bad["gold"]),
-                         "--plot", str(target.with_suffix(".png"))],
-        "view --screenshot": ["view", str(surface), "--screenshot", str(target.with_suffix(".png"))],
-        "simulate": ["simulate", "clavicle", str(folder), "--frames", "10", "--width", "80",
-                     "--height", "64", "--spacing", "0.6"],
+        "reconstruct --points-out": [
+            "reconstruct",
+            str(bad["good"]),
+            "-o",
+            "IGNORED.vtp",
+            "--points-out",
+            str(target.with_suffix(".vtp")),
+        ],
+        "reconstruct --report": [
+            "reconstruct",
+            str(bad["good"]),
+            "-o",
+            "IGNORED.vtp",
+            "--report",
+            str(folder),
+        ],
+        "segment --overlay": [
+            "segment",
+            str(bad["good"]),
+            "-o",
+            "IGNORED.vtp",
+            "--overlay",
+            str(folder),
+        ],
+        "table --plot": [
+            "table",
+            str(bad["good"]),
+            "--gold",
+            str(bad["gold"]),
+            "--plot",
+            str(target.with_suffix(".png")),
+        ],
+        "view --screenshot": [
+            "view",
+            str(surface),
+            "--screenshot",
+            str(target.with_suffix(".png")),
+        ],
+        "simulate": [
+            "simulate",
+            "clavicle",
+            str(folder),
+            "--frames",
+            "10",
+            "--width",
+            "80",
+            "--height",
+            "64",
+            "--spacing",
+            "0.6",
+        ],
         "demo": ["demo", str(folder), "--frames", "20", "--size", "80x64", "--spacing", "0.6"],
     }
 
 
 CASES = [
-    "segment", "reconstruct", "reconstruct --points-out", "reconstruct --report",
-    "segment --overlay", "table --plot", "view --screenshot", "simulate", "demo",
+    "segment",
+    "reconstruct",
+    "reconstruct --points-out",
+    "reconstruct --report",
+    "segment --overlay",
+    "table --plot",
+    "view --screenshot",
+    "simulate",
+    "demo",
 ]
 
 
@@ -327,9 +460,16 @@ def test_output_in_unwritable_folder(capsys, bad, surface, tmp_path, case):
 @pytest.mark.parametrize("case", [c for c in CASES if c not in ("simulate", "demo")])
 def test_output_in_missing_folder(capsys, bad, surface, tmp_path, case):
     """(simulate and demo create their OUTDIR with its parents, by design.)"""
-    argv = _redirect_ignored(_output_cases(bad, surface, tmp_path / "nowhere" / "out.x")[case], tmp_path)
-    refused(capsys, [*argv, "-q"], names="out", problem="'" + str(tmp_path / "nowhere") + "' does not exist",
-            outdir=tmp_path)
+    argv = _redirect_ignored(
+        _output_cases(bad, surface, tmp_path / "nowhere" / "out.x")[case], tmp_path
+    )
+    refused(
+        capsys,
+        [*argv, "-q"],
+        names="out",
+        problem="'" + str(tmp_path / "nowhere") + "' does not exist",
+        outdir=tmp_path,
+    )
     assert not (tmp_path / "nowhere").exists()
 
 
@@ -339,38 +479,110 @@ def test_output_in_missing_folder(capsys, bad, surface, tmp_path, case):
         lambda b, s, t: ["segment", str(b["good"]), "-o", str(t / "p.xyz")],
         lambda b, s, t: ["reconstruct", str(b["good"]), "-o", str(t / "s.xyz")],
         lambda b, s, t: ["reconstruct", str(b["good"]), "-o", str(t / "s")],
-        lambda b, s, t: ["reconstruct", str(b["good"]), "-o", str(t / "s.vtp"), "--points-out", str(t / "p.xyz")],
-        lambda b, s, t: ["table", str(b["good"]), "--gold", str(b["gold"]), "--plot", str(t / "t.xyz")],
+        lambda b, s, t: [
+            "reconstruct",
+            str(b["good"]),
+            "-o",
+            str(t / "s.vtp"),
+            "--points-out",
+            str(t / "p.xyz"),
+        ],
+        lambda b, s, t: [
+            "table",
+            str(b["good"]),
+            "--gold",
+            str(b["gold"]),
+            "--plot",
+            str(t / "t.xyz"),
+        ],
         lambda b, s, t: ["view", str(s), "--screenshot", str(t / "v.xyz")],
     ],
     ids=["segment", "reconstruct", "reconstruct-no-suffix", "points-out", "table-plot", "view"],
 )
 def test_unknown_output_extension(capsys, bad, surface, tmp_path, argv_fn):
-    refused(capsys, [*argv_fn(bad, surface, tmp_path), "-q"], names=str(tmp_path),
-            problem="unknown output extension", outdir=tmp_path)
+    refused(
+        capsys,
+        [*argv_fn(bad, surface, tmp_path), "-q"],
+        names=str(tmp_path),
+        problem="unknown output extension",
+        outdir=tmp_path,
+    )
 
 
 # -- evaluate and view inputs ----------------------------------------------------------
 
+
 def test_evaluate_and_view_refuse_bad_inputs(capsys, bad, surface, tmp_path):
-    refused(capsys, ["evaluate", str(surface), str(bad["empty_gold"]), "-q"],
-            names="header_only.csv", problem="no points", outdir=tmp_path)
-    refused(capsys, ["evaluate", str(bad["garbage"]), str(bad["gold"]), "-q"],
-            names="garbage.mha", problem="unknown surface format", outdir=tmp_path)
-    refused(capsys, ["evaluate", str(tmp_path / "none.vtp"), str(bad["gold"]), "-q"],
-            names="none.vtp", problem="no such file", outdir=tmp_path)
-    refused(capsys, ["reconstruct", str(bad["good"]), "-o", str(tmp_path / "s.vtp"),
-                     "--gold", str(bad["empty_gold"]), "-q"],
-            names="header_only.csv", problem="no points", outdir=tmp_path)
-    refused(capsys, ["view", str(surface), "--screenshot", str(tmp_path / "v.png"),
-                     "--gold", str(bad["empty_gold"]), "-q"],
-            names="header_only.csv", problem="no points", outdir=tmp_path)
-    refused(capsys, ["view", str(surface), "--screenshot", str(tmp_path / "v.png"),
-                     "--sweep", str(bad["garbage"]), "-q"],
-            names="garbage.mha", problem="not a MetaIO metafile", outdir=tmp_path)
+    refused(
+        capsys,
+        ["evaluate", str(surface), str(bad["empty_gold"]), "-q"],
+        names="header_only.csv",
+        problem="no points",
+        outdir=tmp_path,
+    )
+    refused(
+        capsys,
+        ["evaluate", str(bad["garbage"]), str(bad["gold"]), "-q"],
+        names="garbage.mha",
+        problem="unknown surface format",
+        outdir=tmp_path,
+    )
+    refused(
+        capsys,
+        ["evaluate", str(tmp_path / "none.vtp"), str(bad["gold"]), "-q"],
+        names="none.vtp",
+        problem="no such file",
+        outdir=tmp_path,
+    )
+    refused(
+        capsys,
+        [
+            "reconstruct",
+            str(bad["good"]),
+            "-o",
+            str(tmp_path / "s.vtp"),
+            "--gold",
+            str(bad["empty_gold"]),
+            "-q",
+        ],
+        names="header_only.csv",
+        problem="no points",
+        outdir=tmp_path,
+    )
+    refused(
+        capsys,
+        [
+            "view",
+            str(surface),
+            "--screenshot",
+            str(tmp_path / "v.png"),
+            "--gold",
+            str(bad["empty_gold"]),
+            "-q",
+        ],
+        names="header_only.csv",
+        problem="no points",
+        outdir=tmp_path,
+    )
+    refused(
+        capsys,
+        [
+            "view",
+            str(surface),
+            "--screenshot",
+            str(tmp_path / "v.png"),
+            "--sweep",
+            str(bad["garbage"]),
+            "-q",
+        ],
+        names="garbage.mha",
+        problem="not a MetaIO metafile",
+        outdir=tmp_path,
+    )
 
 
 # -- the real command line: what a user sees --------------------------------------------
+
 
 @pytest.mark.parametrize(
     ("argv", "problem"),
@@ -384,7 +596,10 @@ def test_command_line_process_prints_one_line(bad, tmp_path, argv, problem):
     names = {"black": bad["black"], "still": bad["still"], "out": tmp_path}
     argv = [a.format(**names) for a in argv]
     proc = subprocess.run(
-        [sys.executable, "-m", "BoneUSRecon", *argv], capture_output=True, text=True, timeout=120,
+        [sys.executable, "-m", "BoneUSRecon", *argv],
+        capture_output=True,
+        text=True,
+        timeout=120,
         env={**os.environ, "PYTHONWARNINGS": "default"},
     )
     assert proc.returncode == 2, proc.stderr

@@ -34,11 +34,15 @@ pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
 def start(argv: list[str]) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "BoneUSRecon", *argv],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
 
 
-def interrupt_when(proc: subprocess.Popen[str], ready: Callable[[], bool], timeout: float = 120.0) -> tuple[int, str, str]:
+def interrupt_when(
+    proc: subprocess.Popen[str], ready: Callable[[], bool], timeout: float = 120.0
+) -> tuple[int, str, str]:
     """Send SIGINT as soon as ``ready()``; return (status, stdout, stderr)."""
     t_end = time.monotonic() + timeout
     sent = False
@@ -53,7 +57,9 @@ def interrupt_when(proc: subprocess.Popen[str], ready: Callable[[], bool], timeo
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert sent, f"the process ended before the moment to interrupt it came (status {proc.returncode}): {err}"
+    assert sent, (
+        f"the process ended before the moment to interrupt it came (status {proc.returncode}): {err}"
+    )
     return proc.returncode, out, err
 
 
@@ -91,8 +97,10 @@ def big_sweep(sim_small, tmp_path_factory) -> Path:
     m[:, :3, :2] *= 0.5  # half the pixel size: the same field of view
     order = np.r_[np.arange(s.n_frames), np.arange(s.n_frames)[::-1], np.arange(s.n_frames)]
     big = s.replace(
-        frames=up[order], image_to_reference=m[order],
-        timestamps=np.arange(order.size) * 0.05, valid=s.valid[order],
+        frames=up[order],
+        image_to_reference=m[order],
+        timestamps=np.arange(order.size) * 0.05,
+        valid=s.valid[order],
     )
     return write_sweep(big, tmp_path_factory.mktemp("interrupt_in") / "big.mha")
 
@@ -103,8 +111,17 @@ def small_sweep(sim_small, tmp_path_factory) -> Path:
 
 
 def test_reconstruct_interrupted_while_segmenting(big_sweep, tmp_path):
-    proc = start(["reconstruct", str(big_sweep), "-o", str(tmp_path / "bone.vtp"),
-                  "--points-out", str(tmp_path / "points.vtp"), "-q"])
+    proc = start(
+        [
+            "reconstruct",
+            str(big_sweep),
+            "-o",
+            str(tmp_path / "bone.vtp"),
+            "--points-out",
+            str(tmp_path / "points.vtp"),
+            "-q",
+        ]
+    )
     status, out, err = interrupt_when(proc, lambda: maps_file(proc.pid, big_sweep))
     assert_clean_interrupt(status, out, err)
     assert os.listdir(tmp_path) == []
@@ -114,8 +131,19 @@ def test_reconstruct_interrupted_between_outputs(small_sweep, tmp_path):
     """Ctrl-C while the report is written, after the surface and points files exist:
     those are removed again, as the message promises."""
     surface, points, report = tmp_path / "bone.vtp", tmp_path / "points.vtp", tmp_path / "report"
-    proc = start(["reconstruct", str(small_sweep), "-o", str(surface), "--points-out", str(points),
-                  "--report", str(report), "-q"])
+    proc = start(
+        [
+            "reconstruct",
+            str(small_sweep),
+            "-o",
+            str(surface),
+            "--points-out",
+            str(points),
+            "--report",
+            str(report),
+            "-q",
+        ]
+    )
     status, out, err = interrupt_when(proc, lambda: surface.exists() and points.exists())
     assert_clean_interrupt(status, out, err)
     assert os.listdir(tmp_path) == []
@@ -125,8 +153,20 @@ def test_simulate_interrupted_while_simulating(tmp_path):
     # CPU time the command needs to start (imports, argument checks): a run that stops
     # at the first parameter check.
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    probe = subprocess.run([sys.executable, "-m", "BoneUSRecon", "simulate", "clavicle",
-                            str(tmp_path / "x"), "--frames", "1"], capture_output=True, timeout=120)
+    probe = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "BoneUSRecon",
+            "simulate",
+            "clavicle",
+            str(tmp_path / "x"),
+            "--frames",
+            "1",
+        ],
+        capture_output=True,
+        timeout=120,
+    )
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     assert probe.returncode == 2
     startup = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
@@ -148,8 +188,22 @@ def test_simulate_interrupted_while_writing(tmp_path):
         except OSError:
             return False
 
-    proc = start(["simulate", "clavicle", str(outdir), "--frames", "20", "--width", "160",
-                  "--height", "128", "--spacing", "0.3", "-q"])
+    proc = start(
+        [
+            "simulate",
+            "clavicle",
+            str(outdir),
+            "--frames",
+            "20",
+            "--width",
+            "160",
+            "--height",
+            "128",
+            "--spacing",
+            "0.3",
+            "-q",
+        ]
+    )
     status, out, err = interrupt_when(proc, writing)
     assert_clean_interrupt(status, out, err)
     assert os.listdir(tmp_path) == []

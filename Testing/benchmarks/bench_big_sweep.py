@@ -73,12 +73,16 @@ def make_big_sweep(path: Path, n: int, h: int, w: int, compress: bool = False) -
     m[:, 2, 3] = -np.arange(n) * STEP_MM
     m[:, 0, 3] = 0.2 * np.sin(np.arange(n) / 150.0)  # a little lateral wobble
     with tempfile.TemporaryDirectory(prefix="bench_big_", dir=path.parent) as tmp:
-        frames = np.lib.format.open_memmap(Path(tmp) / "frames.npy", mode="w+", dtype=np.uint8, shape=(n, h, w))
+        frames = np.lib.format.open_memmap(
+            Path(tmp) / "frames.npy", mode="w+", dtype=np.uint8, shape=(n, h, w)
+        )
         for k0 in range(0, n, 25):
             k1 = min(n, k0 + 25)
             frames[k0:k1] = synthetic_frames(k0, k1, n, h, w, bank)
         frames.flush()
-        write_sweep(Sweep(frames, m, np.arange(n) / 30.0, np.ones(n, bool)), path, compress=compress)
+        write_sweep(
+            Sweep(frames, m, np.arange(n) / 30.0, np.ones(n, bool)), path, compress=compress
+        )
         del frames
     return time.perf_counter() - t
 
@@ -134,21 +138,27 @@ def run_measured(argv: list[str]) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--frames", type=int, default=2000)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--keep", type=Path, help="write (or reuse) the sweep in this folder")
-    ap.add_argument("--compressed", action="store_true",
-                    help="zlib-compressed data (inflated by the reader into a temporary file-backed map)")
+    ap.add_argument(
+        "--compressed",
+        action="store_true",
+        help="zlib-compressed data (inflated by the reader into a temporary file-backed map)",
+    )
     ap.add_argument("--make", type=Path, help=argparse.SUPPRESS)  # internal: write the sweep only
     args = ap.parse_args(argv)
     n, h, w = args.frames, args.height, args.width
     if args.make:
         make_big_sweep(args.make, n, h, w, args.compressed)
         return 0
-    root = Path(__file__).resolve().parents[2]
-    print(f"bench_big_sweep: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores")
+    print(
+        f"bench_big_sweep: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores"
+    )
     with tempfile.TemporaryDirectory(prefix="bench_big_sweep_") as tmp:
         folder = args.keep or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
@@ -157,32 +167,71 @@ def main(argv: list[str] | None = None) -> int:
             # In a child process: this one must stay small, because a child's
             # ru_maxrss starts from its parent's resident set at fork time.
             t = time.perf_counter()
-            subprocess.run([sys.executable, __file__, "--make", str(path), "--frames", str(n),
-                            "--height", str(h), "--width", str(w)]
-                           + (["--compressed"] if args.compressed else []), check=True)
+            subprocess.run(
+                [
+                    sys.executable,
+                    __file__,
+                    "--make",
+                    str(path),
+                    "--frames",
+                    str(n),
+                    "--height",
+                    str(h),
+                    "--width",
+                    str(w),
+                ]
+                + (["--compressed"] if args.compressed else []),
+                check=True,
+            )
             print(f"wrote {path.name} in {time.perf_counter() - t:.1f} s")
         data_mb = n * h * w / 2**20
-        print(f"sweep: {n} frames of {h}x{w} uint8 = {data_mb:.0f} MB of pixels "
-              f"(float64 copy would be {8 * data_mb / 1024:.1f} GB), file {path.stat().st_size / 2**20:.0f} MB")
+        print(
+            f"sweep: {n} frames of {h}x{w} uint8 = {data_mb:.0f} MB of pixels "
+            f"(float64 copy would be {8 * data_mb / 1024:.1f} GB), file {path.stat().st_size / 2**20:.0f} MB"
+        )
         out = Path(tmp) / "surface.vtp"
-        r = run_measured([sys.executable, "-m", "BoneUSRecon", "reconstruct", str(path), "-o", str(out),
-                          "--json", "-q"])
+        r = run_measured(
+            [
+                sys.executable,
+                "-m",
+                "BoneUSRecon",
+                "reconstruct",
+                str(path),
+                "-o",
+                str(out),
+                "--json",
+                "-q",
+            ]
+        )
         doc = json.loads(r["stdout"])
-        base = run_measured([sys.executable, "-c",
-                             "from BoneUSRecon.cli import build_parser; build_parser();"
-                             "import BoneUSRecon.Logic.pipeline, BoneUSRecon.Logic.sequence_io"])
+        base = run_measured(
+            [
+                sys.executable,
+                "-c",
+                "from BoneUSRecon.cli import build_parser; build_parser();"
+                "import BoneUSRecon.Logic.pipeline, BoneUSRecon.Logic.sequence_io",
+            ]
+        )
         s = doc["summary"]
-        print(f"reconstruct: {s['segmented_frames']} of {s['frames']} frames segmented, grid "
-              f"{s['grid_shape'][0]}x{s['grid_shape'][1]}, fit RMS {s['fit_rms_mm']:.3f} mm; "
-              f"wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, {n / r['wall_s']:.0f} frames/s; "
-              f"stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in doc["timings_s"].items()))
-        print(f"{'':<26}{'maxrss MB':>10}{'peak RSS MB':>12}{'peak anon MB':>13}{'peak file MB':>13}")
+        print(
+            f"reconstruct: {s['segmented_frames']} of {s['frames']} frames segmented, grid "
+            f"{s['grid_shape'][0]}x{s['grid_shape'][1]}, fit RMS {s['fit_rms_mm']:.3f} mm; "
+            f"wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, {n / r['wall_s']:.0f} frames/s; "
+            f"stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in doc["timings_s"].items())
+        )
+        print(
+            f"{'':<26}{'maxrss MB':>10}{'peak RSS MB':>12}{'peak anon MB':>13}{'peak file MB':>13}"
+        )
         for label, m in (("reconstruct", r), ("imports only (overhead)", base)):
-            print(f"{label:<26}{m['maxrss_mb']:>10.0f}{m['peak_rss_mb']:>12.0f}"
-                  f"{m['peak_anon_mb']:>13.0f}{m['peak_file_mb']:>13.0f}")
+            print(
+                f"{label:<26}{m['maxrss_mb']:>10.0f}{m['peak_rss_mb']:>12.0f}"
+                f"{m['peak_anon_mb']:>13.0f}{m['peak_file_mb']:>13.0f}"
+            )
         over = r["peak_rss_mb"] - base["peak_rss_mb"]
-        print(f"peak RSS above the import overhead: {over:.0f} MB = {100 * over / data_mb:.1f}% of the "
-              f"data size; private (anon) above overhead: {r['peak_anon_mb'] - base['peak_anon_mb']:.0f} MB")
+        print(
+            f"peak RSS above the import overhead: {over:.0f} MB = {100 * over / data_mb:.1f}% of the "
+            f"data size; private (anon) above overhead: {r['peak_anon_mb'] - base['peak_anon_mb']:.0f} MB"
+        )
     return 0
 
 

@@ -68,8 +68,11 @@ def make_sweep(folder: Path, n: int, h: int, w: int) -> Path:
     path = folder / f"clavicle_{n}x{h}x{w}.mha"
     if not path.exists():
         t = time.perf_counter()
-        sim = simulate(SimulationParams(bone="clavicle", n_frames=n, width=w, height=h,
-                                        spacing_mm=FOV_WIDTH_MM / w, seed=0))
+        sim = simulate(
+            SimulationParams(
+                bone="clavicle", n_frames=n, width=w, height=h, spacing_mm=FOV_WIDTH_MM / w, seed=0
+            )
+        )
         write_sweep(sim.sweep, path)
         print(f"  simulated {path.name} in {time.perf_counter() - t:.1f} s")
     return path
@@ -99,9 +102,15 @@ def stages_in_process(path: Path, out: Path, profile: bool) -> dict[str, float]:
         print("\n".join("    " + line for line in s.getvalue().splitlines()[:40]))
     tm = recon.timings
     return {
-        "read": t1 - t0, "segment": tm["segment"], "resample": tm["resample"], "fit": tm["fit"],
-        "surface": tm["surface"], "write": t3 - t2, "total": t3 - t0,
-        "cpu": time.process_time() - c0, "reconstruct_other": (t2 - t1) - tm["total"],
+        "read": t1 - t0,
+        "segment": tm["segment"],
+        "resample": tm["resample"],
+        "fit": tm["fit"],
+        "surface": tm["surface"],
+        "write": t3 - t2,
+        "total": t3 - t0,
+        "cpu": time.process_time() - c0,
+        "reconstruct_other": (t2 - t1) - tm["total"],
     }
 
 
@@ -112,8 +121,12 @@ def whole_command(path: Path, out: Path, repeat: int) -> tuple[list[float], list
     for _ in range(repeat):
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "BoneUSRecon", "reconstruct", str(path), "-o", str(out), "-q"],
-                       check=True, cwd=root, stdout=subprocess.DEVNULL)
+        subprocess.run(
+            [sys.executable, "-m", "BoneUSRecon", "reconstruct", str(path), "-o", str(out), "-q"],
+            check=True,
+            cwd=root,
+            stdout=subprocess.DEVNULL,
+        )
         walls.append(time.perf_counter() - t)
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpus.append((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime))
@@ -130,26 +143,47 @@ def skimage_snake(path: Path, n_frames: int | None) -> tuple[float, float, int, 
 
     sweep = read_sweep(path)
     idx = sweep.valid_indices
-    run = idx if not n_frames or n_frames >= idx.size else idx[np.linspace(0, idx.size - 1, n_frames).astype(int)]
+    run = (
+        idx
+        if not n_frames or n_frames >= idx.size
+        else idx[np.linspace(0, idx.size - 1, n_frames).astype(int)]
+    )
     h, w = sweep.height, sweep.width
     init = np.stack([np.full(100, (h - 1) / 2.0), np.linspace(0, w - 1, 100)], axis=1)  # (row, col)
     t, c = time.perf_counter(), time.process_time()
     for _, frame in sweep.iter_frames(run):
         smooth = gaussian(frame, sigma=3, preserve_range=False)
-        active_contour(smooth, init, alpha=0.015, beta=10, gamma=0.001,
-                       boundary_condition="free", max_num_iter=300)
+        active_contour(
+            smooth,
+            init,
+            alpha=0.015,
+            beta=10,
+            gamma=0.001,
+            boundary_condition="free",
+            max_num_iter=300,
+        )
     wall, cpu = time.perf_counter() - t, time.process_time() - c
     scale = idx.size / run.size
     return wall * scale, cpu * scale, int(run.size), int(idx.size)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", nargs="+", default=["150x256x320", "250x480x640"],
-                    help="sweeps as FRAMESxHEIGHTxWIDTH (default: 150x256x320 250x480x640)")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--sizes",
+        nargs="+",
+        default=["150x256x320", "250x480x640"],
+        help="sweeps as FRAMESxHEIGHTxWIDTH (default: 150x256x320 250x480x640)",
+    )
     ap.add_argument("--repeat", type=int, default=3, help="runs of the whole command (default 3)")
-    ap.add_argument("--snake-frames", type=int, default=None,
-                    help="run scikit-image's snake on this many frames and extrapolate (default: all)")
+    ap.add_argument(
+        "--snake-frames",
+        type=int,
+        default=None,
+        help="run scikit-image's snake on this many frames and extrapolate (default: all)",
+    )
     ap.add_argument("--workdir", type=Path, help="keep and reuse the simulated sweeps here")
     ap.add_argument("--profile", action="store_true", help="cProfile the in-process run")
     ap.add_argument("--all-cores", action="store_true", help="do not pin BLAS/OpenMP to one thread")
@@ -159,9 +193,11 @@ def main(argv: list[str] | None = None) -> int:
 
     import skimage
 
-    print(f"bench_speed: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores "
-          f"({'all' if args.all_cores else 'one'} used), Python {platform.python_version()}, "
-          f"numpy {np.__version__}, scikit-image {skimage.__version__}")
+    print(
+        f"bench_speed: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores "
+        f"({'all' if args.all_cores else 'one'} used), Python {platform.python_version()}, "
+        f"numpy {np.__version__}, scikit-image {skimage.__version__}"
+    )
     with tempfile.TemporaryDirectory(prefix="bench_speed_") as tmp:
         folder = args.workdir or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
@@ -172,21 +208,34 @@ def main(argv: list[str] | None = None) -> int:
             path = make_sweep(folder, n, h, w)
             out = Path(tmp) / "surface.vtp"
             st = stages_in_process(path, out, args.profile)
-            print("  in-process stages (s): " + ", ".join(
-                f"{k} {st[k]:.3f}" for k in ("read", "segment", "resample", "fit", "surface", "write")))
-            print(f"  in-process total {st['total']:.2f} s ({st['cpu']:.2f} s CPU): "
-                  f"{n / st['total']:.0f} frames/s; segmentation alone {n / st['segment']:.0f} frames/s")
+            print(
+                "  in-process stages (s): "
+                + ", ".join(
+                    f"{k} {st[k]:.3f}"
+                    for k in ("read", "segment", "resample", "fit", "surface", "write")
+                )
+            )
+            print(
+                f"  in-process total {st['total']:.2f} s ({st['cpu']:.2f} s CPU): "
+                f"{n / st['total']:.0f} frames/s; segmentation alone {n / st['segment']:.0f} frames/s"
+            )
             walls, cpus = whole_command(path, out, args.repeat)
             best, med = min(walls), statistics.median(walls)
-            print(f"  whole command (start-up included), {args.repeat} runs: wall best {best:.2f} s, "
-                  f"median {med:.2f} s, CPU {min(cpus):.2f} s -> {n / best:.1f} frames/s "
-                  f"(median {n / med:.1f}; by CPU {n / min(cpus):.1f})")
+            print(
+                f"  whole command (start-up included), {args.repeat} runs: wall best {best:.2f} s, "
+                f"median {med:.2f} s, CPU {min(cpus):.2f} s -> {n / best:.1f} frames/s "
+                f"(median {n / med:.1f}; by CPU {n / min(cpus):.1f})"
+            )
             sw, sc, ran, total = skimage_snake(path, args.snake_frames)
             note = "" if ran == total else f" (run on {ran} frames, extrapolated to {total})"
-            print(f"  skimage active_contour (gaussian + 100 pts, free, 300 iter): wall {sw:.2f} s, "
-                  f"CPU {sc:.2f} s, {sw / total * 1e3:.0f} ms/frame{note}")
-            print(f"  ratio whole command / skimage snake: wall {best / sw:.3f} (median {med / sw:.3f}), "
-                  f"CPU {min(cpus) / sc:.3f}   [target < 0.25, aim 0.10]")
+            print(
+                f"  skimage active_contour (gaussian + 100 pts, free, 300 iter): wall {sw:.2f} s, "
+                f"CPU {sc:.2f} s, {sw / total * 1e3:.0f} ms/frame{note}"
+            )
+            print(
+                f"  ratio whole command / skimage snake: wall {best / sw:.3f} (median {med / sw:.3f}), "
+                f"CPU {min(cpus) / sc:.3f}   [target < 0.25, aim 0.10]"
+            )
             rows.append((size, n / best, best / sw, min(cpus) / sc))
         print("\nsummary: size, command frames/s (best wall), ratio to skimage (wall), ratio (CPU)")
         for size, fps, rw, rc in rows:
