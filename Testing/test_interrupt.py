@@ -209,6 +209,24 @@ def test_simulate_interrupted_while_writing(tmp_path):
     assert os.listdir(tmp_path) == []
 
 
+def test_segment_interrupted_while_writing_overlays(small_sweep, tmp_path):
+    """Ctrl-C after the points file is written, while the overlays are: both go."""
+    points, overlays = tmp_path / "points.vtp", tmp_path / "overlays"
+    proc = start(["segment", str(small_sweep), "-o", str(points), "--overlay", str(overlays), "-q"])
+    status, out, err = interrupt_when(proc, points.exists)
+    assert_clean_interrupt(status, out, err)
+    assert os.listdir(tmp_path) == []
+
+
+def test_demo_interrupted_after_its_first_files(tmp_path):
+    """Ctrl-C once the demo has written its simulated sweep: the new OUTDIR goes away."""
+    outdir = tmp_path / "demo"
+    proc = start(["demo", str(outdir), "--frames", "30", "--size", "160x128", "--no-table", "-q"])
+    status, out, err = interrupt_when(proc, (outdir / "sweep.mha").exists)
+    assert_clean_interrupt(status, out, err)
+    assert os.listdir(tmp_path) == []
+
+
 def mapped_rss_kb(path: Path) -> int:
     """Resident kB of this process's mappings of ``path`` (from /proc/self/smaps)."""
     total, current = 0, False
