@@ -15,7 +15,13 @@ from pathlib import Path
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 
-__all__ = ["atomic_path", "check_output_path", "check_input_file"]
+__all__ = [
+    "atomic_path",
+    "check_output_path",
+    "check_output_dir",
+    "check_writable_folder",
+    "check_input_file",
+]
 
 
 def check_input_file(path: str | os.PathLike[str]) -> Path:
@@ -61,18 +67,64 @@ def check_output_path(
                 f"unknown output extension {p.suffix or '(none)'!r}; use one of {', '.join(allowed)}",
                 p,
             )
-    parent = p.parent if str(p.parent) else Path(".")
-    if not parent.is_dir():
-        raise BoneUSReconError(f"output folder {str(parent)!r} does not exist", p)
-    # Probe by creating a file: os.access() says yes to root on read-only mounts.
-    try:
-        with tempfile.TemporaryFile(dir=parent):
-            pass
-    except OSError:
-        raise BoneUSReconError(f"output folder {str(parent)!r} is not writable", p) from None
+    check_writable_folder(p.parent if str(p.parent) else Path("."), p, label="output folder")
     if p.is_dir():
         raise BoneUSReconError("output path is a directory", p)
     return p
+
+
+def check_writable_folder(
+    folder: str | os.PathLike[str], subject: str | os.PathLike[str], *, label: str = "folder"
+) -> None:
+    """Check that ``folder`` exists and that files can be created in it.
+
+    Parameters
+    ----------
+    folder : path-like
+        The folder that will receive the output.
+    subject : path-like
+        The output the user named; errors name it.
+    label : str
+        How the message calls ``folder`` (e.g. ``"output folder"``).
+
+    Raises
+    ------
+    BoneUSReconError
+        The folder is missing or not writable.
+    """
+    f = Path(folder)
+    if not f.is_dir():
+        raise BoneUSReconError(f"{label} {str(f)!r} does not exist", subject)
+    # Probe by creating a file: os.access() says yes to root on read-only mounts.
+    try:
+        with tempfile.TemporaryFile(dir=f):
+            pass
+    except OSError:
+        raise BoneUSReconError(f"{label} {str(f)!r} is not writable", subject) from None
+
+
+def check_output_dir(path: str | os.PathLike[str], what: str = "output") -> Path:
+    """Check, before any work, that the folder ``path`` can be written or created.
+
+    The folder may exist (files are written into it) or not (its parent must exist).
+
+    Parameters
+    ----------
+    path : path-like
+        The output folder.
+    what : str
+        What the folder is for, used in the message (``"report"``, ``"overlay"``).
+
+    Raises
+    ------
+    BoneUSReconError
+        A file is in the way, or the folder (or its missing parent) cannot be written.
+    """
+    d = Path(path)
+    if d.exists() and not d.is_dir():
+        raise BoneUSReconError(f"{what} path exists and is not a folder", d)
+    check_writable_folder(d if d.is_dir() else (d.parent if str(d.parent) else Path(".")), d)
+    return d
 
 
 @contextlib.contextmanager

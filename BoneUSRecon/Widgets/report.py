@@ -37,6 +37,7 @@ import numpy as np
 
 from BoneUSRecon import __version__
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.fileio import check_writable_folder
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 
 __all__ = [
@@ -431,11 +432,8 @@ def check_report_folder(path: str | os.PathLike[str]) -> Path:
         holds other things than a BoneUSRecon report.
     """
     outdir = Path(path)
-    parent = outdir.parent if str(outdir.parent) else Path(".")
-    if not parent.is_dir():
-        raise BoneUSReconError(f"folder {str(parent)!r} does not exist", outdir)
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise BoneUSReconError(f"folder {str(parent)!r} is not writable", outdir)
+    # The parent, not the folder: the report is built beside it and renamed into place.
+    check_writable_folder(outdir.parent if str(outdir.parent) else Path("."), outdir)
     if outdir.exists():
         if not outdir.is_dir():
             raise BoneUSReconError("exists and is not a folder", outdir)

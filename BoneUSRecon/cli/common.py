@@ -26,11 +26,17 @@ __all__ = [
     "PROG",
     "add_common_options",
     "add_calibration_option",
+    "check_sweep_args",
+    "read_sweep_args",
+    "parse_size",
     "error",
     "run_guarded",
     "ProgressBar",
     "print_summary",
     "print_json",
+    "json_default",
+    "reconstruction_rows",
+    "evaluation_rows",
     "removed_on_failure",
 ]
 
@@ -61,6 +67,47 @@ def add_calibration_option(parser: argparse.ArgumentParser) -> None:
         help="name of the per-frame pose to use, e.g. ImageToReference or "
         "ProbeToTracker (default: ImageToReference when present)",
     )
+
+
+def check_sweep_args(args: argparse.Namespace) -> None:
+    """Check, before any work, that ``args.sweep`` and ``--calibration`` are readable files."""
+    from BoneUSRecon.Logic.fileio import check_input_file
+
+    check_input_file(args.sweep)
+    if getattr(args, "calibration", None):
+        check_input_file(args.calibration)
+
+
+def read_sweep_args(args: argparse.Namespace, progress: ProgressCallback | None = None) -> Any:
+    """Read ``args.sweep`` with the pose chosen by ``--calibration`` and ``--transform``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options of a command that called :func:`add_calibration_option`.
+    progress : ProgressCallback, optional
+        Reading progress.
+
+    Returns
+    -------
+    Sweep
+    """
+    from BoneUSRecon.Logic.sequence_io import read_sweep
+
+    return read_sweep(
+        args.sweep, calibration=args.calibration, transform=args.transform, progress=progress
+    )
+
+
+def parse_size(text: str, option: str = "--size", example: str = "1100x700") -> tuple[int, int]:
+    """Parse a ``WxH`` size option into ``(width, height)`` pixels."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise BoneUSReconError(f"{option} must look like {example}, got {text!r}") from None
+    return w, h
 
 
 def error(message: str) -> int:
@@ -188,16 +235,40 @@ def print_summary(title: str, rows: Iterable[tuple[str, Any]]) -> None:
         print(f"  {key:<{width}} : {_fmt(value)}")
 
 
+def reconstruction_rows(summary: dict[str, Any]) -> list[tuple[str, Any]]:
+    """Summary rows on frames and grid of a :attr:`Reconstruction.summary` (reconstruct, demo)."""
+    s = summary
+    return [
+        ("frames used", f"{s['segmented_frames']} of {s['valid_frames']} valid ({s['frames']} in file)"),
+        ("frames rejected", f"{s['rejected_frames']} by segmentation, "
+                            f"{len(s['fit_rejected_frames'])} by the robust fit"),
+        ("grid", f"{s['grid_shape'][0]} slices x {s['grid_shape'][1]} rays, "
+                 f"{100 * s['grid_coverage']:.1f}% covered"),
+    ]
+
+
+def evaluation_rows(ev: Any, paper_note: str = "") -> list[tuple[str, Any]]:
+    """Summary rows of an :class:`~BoneUSRecon.Logic.evaluation.Evaluation` (reconstruct, demo)."""
+    return [
+        ("gold points", ev.n),
+        ("distance mean/RMS", f"{ev.mean:.3f} / {ev.rms:.3f} mm{paper_note}"),
+        ("distance median/p95/max", f"{ev.median:.3f} / {ev.p95:.3f} / {ev.max:.3f} mm"),
+        ("within 0.5/1/2 mm", f"{100 * ev.within_0_5:.1f}% / {100 * ev.within_1:.1f}% / "
+                              f"{100 * ev.within_2:.1f}%"),
+    ]
+
+
+def json_default(o: Any) -> Any:
+    """``json.dumps(default=...)`` for numpy arrays and scalars; anything else as text."""
+    import numpy as np
+
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    return str(o)
+
+
 def print_json(obj: Any) -> None:
     """Print ``obj`` as one JSON document on stdout (numpy values converted)."""
-
-    def default(o: Any) -> Any:
-        import numpy as np
-
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        if isinstance(o, np.generic):
-            return o.item()
-        return str(o)
-
-    print(json.dumps(obj, default=default, indent=2))
+    print(json.dumps(obj, default=json_default, indent=2))

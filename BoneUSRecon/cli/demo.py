@@ -9,15 +9,22 @@ OUTDIR. Needs no input file; about 15 s on two cores.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import shutil
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from BoneUSRecon.cli.common import ProgressBar, add_common_options, print_json, print_summary
+from BoneUSRecon.cli.common import (
+    ProgressBar,
+    add_common_options,
+    evaluation_rows,
+    json_default,
+    parse_size,
+    print_json,
+    print_summary,
+    reconstruction_rows,
+    removed_on_failure,
+)
 
 __all__ = ["register", "run", "DEFAULT_OUTDIR"]
 
@@ -65,10 +72,7 @@ def _params(args: argparse.Namespace) -> Any:
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.simulation import SimulationParams, check_params
 
-    try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
-    except ValueError:
-        raise BoneUSReconError(f"--size must look like 320x256, got {args.size!r}") from None
+    w, h = parse_size(args.size, example="320x256")
     # Keep the default 48 x 38 mm field of view when only the pixel count changes.
     spacing = args.spacing if args.spacing is not None else 0.15 * 320 / max(w, 1)
     if not 0.0 <= args.corrupted <= 0.5:
@@ -78,18 +82,6 @@ def _params(args: argparse.Namespace) -> Any:
                               seed=args.seed)
     check_params(params)
     return params
-
-
-@contextlib.contextmanager
-def _removed_on_failure(outdir: Path) -> Iterator[None]:
-    """Delete OUTDIR again if this run created it and then failed: no partial output."""
-    created = not outdir.exists()
-    try:
-        yield
-    except BaseException:
-        if created and outdir.is_dir():
-            shutil.rmtree(outdir, ignore_errors=True)
-        raise
 
 
 def run(args: argparse.Namespace) -> int:
@@ -116,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
             check_report_folder(report_dir)
     params = ReconstructionParams()
 
-    with ProgressBar(quiet=args.quiet or args.json) as bar, _removed_on_failure(outdir):
+    # OUTDIR is removed again if this run created it and then fails: no partial output.
+    with ProgressBar(quiet=args.quiet or args.json) as bar, removed_on_failure(outdir):
         sim = simulate(sim_params, progress=bar)
         files = write_simulation(sim, outdir, progress=bar)
         # Evaluate against the gold points as written (CSV, 1e-6 mm), so that
@@ -138,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
             "timings_s": recon.timings,
         }
         with atomic_path(outdir / "evaluation.json") as tmp:
-            tmp.write_text(json.dumps(doc, indent=2, default=_json_default))
+            tmp.write_text(json.dumps(doc, indent=2, default=json_default))
         files["evaluation"] = outdir / "evaluation.json"
         if report_dir is not None:
             files["report"] = _write_report(recon, report_dir, sim, gold, evaluation, table,
@@ -156,17 +149,10 @@ def run(args: argparse.Namespace) -> int:
     rows: list[tuple[str, Any]] = [
         ("sweep", f"{sim_params.n_frames} frames of {sim_params.width}x{sim_params.height} px, "
                   f"{n_corrupt} corrupted ({caught} of them rejected)"),
-        ("frames used", f"{s['segmented_frames']} of {s['valid_frames']} valid ({s['frames']} in file)"),
-        ("frames rejected", f"{s['rejected_frames']} by segmentation, "
-                            f"{len(s['fit_rejected_frames'])} by the robust fit"),
-        ("grid", f"{s['grid_shape'][0]} slices x {s['grid_shape'][1]} rays, "
-                 f"{100 * s['grid_coverage']:.1f}% covered"),
-        ("gold points", e.n),
-        ("distance mean/RMS", f"{e.mean:.3f} / {e.rms:.3f} mm "
-                              f"(paper: {PAPER_RANGE_MM[0]} to {PAPER_RANGE_MM[1]} mm mean)"),
-        ("distance median/p95/max", f"{e.median:.3f} / {e.p95:.3f} / {e.max:.3f} mm"),
-        ("within 0.5/1/2 mm", f"{100 * e.within_0_5:.1f}% / {100 * e.within_1:.1f}% / "
-                              f"{100 * e.within_2:.1f}%"),
+        *reconstruction_rows(s),
+        *evaluation_rows(
+            e, f" (paper: {PAPER_RANGE_MM[0]} to {PAPER_RANGE_MM[1]} mm mean)"
+        ),
     ]
     if table is not None:
         rows.append(("Table I (e: mean mm)", ", ".join(f"{c}: {m:.3f}" for c, m in table)))
@@ -192,12 +178,3 @@ def _write_report(recon: Any, report_dir: Path, sim: Any, gold: Any, evaluation:
                         title=f"simulated {sim_params.bone} phantom, {sim_params.n_frames} frames, "
                               f"seed {sim_params.seed}")
 
-
-def _json_default(o: Any) -> Any:
-    import numpy as np
-
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)

@@ -11,6 +11,7 @@ from BoneUSRecon.cli.common import (
     add_common_options,
     print_json,
     print_summary,
+    read_sweep_args,
 )
 
 __all__ = ["register", "run", "sweep_info"]
@@ -68,12 +69,8 @@ def sweep_info(sweep: Any) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """Read the sweep and print its summary."""
-    from BoneUSRecon.Logic.sequence_io import read_sweep
-
     with ProgressBar(quiet=args.quiet or args.json) as bar:
-        sweep = read_sweep(
-            args.sweep, calibration=args.calibration, transform=args.transform, progress=bar
-        )
+        sweep = read_sweep_args(args, bar)
     info = sweep_info(sweep)
     if args.json:
         print_json(info)

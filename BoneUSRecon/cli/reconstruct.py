@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 from pathlib import Path
 from typing import Any
 
@@ -12,12 +11,16 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    check_sweep_args,
+    evaluation_rows,
     print_json,
     print_summary,
+    read_sweep_args,
+    reconstruction_rows,
     removed_on_failure,
 )
 
-__all__ = ["register", "run", "add_reconstruction_options", "params_from_args", "check_report_dir"]
+__all__ = ["register", "run", "add_reconstruction_options", "params_from_args"]
 
 POINT_OUT_EXTENSIONS = (".vtp", ".vtk", ".ply", ".csv")
 
@@ -90,27 +93,6 @@ def params_from_args(args: argparse.Namespace) -> Any:
     return dataclasses.replace(p, segmentation=seg, fit=fit, resampling=res)
 
 
-def check_report_dir(path: str | os.PathLike[str]) -> Path:
-    """Check, before any work, that the report folder can be created or written."""
-    from BoneUSRecon.Logic.errors import BoneUSReconError
-
-    d = Path(path)
-    if d.exists() and not d.is_dir():
-        raise BoneUSReconError("report path exists and is not a folder", d)
-    parent = d if d.is_dir() else (d.parent if str(d.parent) else Path("."))
-    if not parent.is_dir():
-        raise BoneUSReconError(f"folder {str(parent)!r} does not exist", d)
-    # Probe by creating a file: os.access() says yes to root on read-only mounts.
-    import tempfile
-
-    try:
-        with tempfile.TemporaryFile(dir=parent):
-            pass
-    except OSError:
-        raise BoneUSReconError(f"folder {str(parent)!r} is not writable", d) from None
-    return d
-
-
 def register(subparsers: Any) -> None:
     """Add the ``reconstruct`` sub-command."""
     p = subparsers.add_parser(
@@ -139,9 +121,8 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Reconstruct and write the surface (and points, report); print the summary."""
     from BoneUSRecon.Logic.evaluation import evaluate_surface
-    from BoneUSRecon.Logic.fileio import check_input_file, check_output_path
+    from BoneUSRecon.Logic.fileio import check_output_path
     from BoneUSRecon.Logic.pipeline import params_to_dict, reconstruct
-    from BoneUSRecon.Logic.sequence_io import read_sweep
     from BoneUSRecon.Logic.vtkio import (
         SURFACE_EXTENSIONS,
         polydata_points,
@@ -151,19 +132,20 @@ def run(args: argparse.Namespace) -> int:
     )
 
     # Everything that can be checked is checked before the (long) work starts.
-    check_input_file(args.sweep)
+    check_sweep_args(args)
     out = check_output_path(args.output, SURFACE_EXTENSIONS)
     pts_out = check_output_path(args.points_out, POINT_OUT_EXTENSIONS) if args.points_out else None
-    report_dir = check_report_dir(args.report) if args.report else None
+    report_dir = None
+    if args.report:
+        from BoneUSRecon.Widgets.report import check_report_folder
+
+        report_dir = check_report_folder(args.report)
     params = params_from_args(args)
     gold = read_points(args.gold) if args.gold else None
 
     # Several outputs: if a later one fails (or Ctrl-C), the earlier ones are removed.
     with ProgressBar(quiet=args.quiet or args.json) as bar, removed_on_failure(out, pts_out, report_dir):
-        sweep = read_sweep(
-            args.sweep, calibration=args.calibration, transform=args.transform, progress=bar
-        )
-        recon = reconstruct(sweep, params, progress=bar)
+        recon = reconstruct(read_sweep_args(args, bar), params, progress=bar)
         evaluation = evaluate_surface(recon.surface, gold) if gold is not None else None
         write_polydata(recon.surface, out)
         if pts_out is not None:
@@ -193,22 +175,14 @@ def run(args: argparse.Namespace) -> int:
         print_json(doc)
         return 0
     rows: list[tuple[str, Any]] = [
-        ("frames used", f"{s['segmented_frames']} of {s['valid_frames']} valid ({s['frames']} in file)"),
-        ("frames rejected", f"{s['rejected_frames']} by segmentation, {len(s['fit_rejected_frames'])} by the robust fit"),
-        ("grid", f"{s['grid_shape'][0]} slices x {s['grid_shape'][1]} rays, {100 * s['grid_coverage']:.1f}% covered"),
+        *reconstruction_rows(s),
         ("resampling distance", f"{s['mean_resampling_distance_mm']:.3f} mm mean"),
         ("fit residual", f"{s['fit_rms_mm']:.3f} mm RMS ({s['fit_outlier_points']} outlier points)"),
         ("surface", f"{s['surface_triangles']} triangles, {s['surface_area_mm2']:.0f} mm^2"),
         ("time", f"{recon.timings['total']:.2f} s"),
     ]
     if evaluation is not None:
-        e = evaluation
-        rows += [
-            ("gold points", e.n),
-            ("distance mean/RMS", f"{e.mean:.3f} / {e.rms:.3f} mm"),
-            ("distance median/p95/max", f"{e.median:.3f} / {e.p95:.3f} / {e.max:.3f} mm"),
-            ("within 0.5/1/2 mm", f"{100 * e.within_0_5:.1f}% / {100 * e.within_1:.1f}% / {100 * e.within_2:.1f}%"),
-        ]
+        rows += evaluation_rows(evaluation)
     rows.append(("written", str(out)))
     if pts_out:
         rows.append(("points", str(pts_out)))

@@ -11,8 +11,10 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    check_sweep_args,
     print_json,
     print_summary,
+    read_sweep_args,
     removed_on_failure,
 )
 
@@ -67,37 +69,25 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Read, segment, write points (and overlays), print a summary."""
     from BoneUSRecon.Logic.errors import BoneUSReconError
-    from BoneUSRecon.Logic.fileio import check_input_file, check_output_path
+    from BoneUSRecon.Logic.fileio import check_output_dir, check_output_path
     from BoneUSRecon.Logic.segmentation import (
         SegmentationParams,
         points_polydata,
         segment_sweep,
     )
-    from BoneUSRecon.Logic.sequence_io import read_sweep
     from BoneUSRecon.Logic.vtkio import SURFACE_EXTENSIONS, write_polydata
 
     # Check everything the user gave before any work.
-    check_input_file(args.sweep)
-    if args.calibration:
-        check_input_file(args.calibration)
+    check_sweep_args(args)
     out = check_output_path(args.output, SURFACE_EXTENSIONS)
     if args.overlay:
-        odir = Path(args.overlay)
-        if odir.exists() and not odir.is_dir():
-            raise BoneUSReconError("overlay path exists and is not a folder", odir)
-        if not odir.parent.is_dir() and str(odir.parent):
-            raise BoneUSReconError(f"folder {str(odir.parent)!r} does not exist", odir)
-        from BoneUSRecon.cli.reconstruct import check_report_dir
-
-        check_report_dir(odir)  # writable? (checked by creating a file)
+        check_output_dir(args.overlay, "overlay")
     if args.overlay_every < 1:
         raise BoneUSReconError(f"--overlay-every must be >= 1, got {args.overlay_every}")
 
     params = dataclasses.replace(SegmentationParams(), method=args.segmenter)
     with ProgressBar(quiet=args.quiet or args.json) as bar:
-        sweep = read_sweep(
-            args.sweep, calibration=args.calibration, transform=args.transform, progress=bar
-        )
+        sweep = read_sweep_args(args, bar)
         result = segment_sweep(sweep, params, progress=bar)
     overlays = []
     # Two outputs: if the overlays fail (or Ctrl-C), the points file is removed again.

@@ -10,7 +10,9 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    check_sweep_args,
     print_json,
+    read_sweep_args,
 )
 from BoneUSRecon.cli.reconstruct import add_reconstruction_options, params_from_args
 
@@ -69,12 +71,11 @@ def run(args: argparse.Namespace) -> int:
     """Reconstruct, refit per count, print (and plot) the table."""
     from BoneUSRecon.Logic.bspline import FitParams
     from BoneUSRecon.Logic.errors import BoneUSReconError
-    from BoneUSRecon.Logic.fileio import check_input_file, check_output_path
+    from BoneUSRecon.Logic.fileio import check_output_path
     from BoneUSRecon.Logic.pipeline import control_point_table, reconstruct
-    from BoneUSRecon.Logic.sequence_io import read_sweep
     from BoneUSRecon.Logic.vtkio import read_points
 
-    check_input_file(args.sweep)
+    check_sweep_args(args)
     plot = check_output_path(args.plot, (".png",)) if args.plot else None
     params = params_from_args(args)
     if args.around is not None:
@@ -88,9 +89,7 @@ def run(args: argparse.Namespace) -> int:
         raise BoneUSReconError("control-point counts repeat")
     gold = read_points(args.gold)
     with ProgressBar(quiet=args.quiet or args.json) as bar:
-        sweep = read_sweep(
-            args.sweep, calibration=args.calibration, transform=args.transform, progress=bar
-        )
+        sweep = read_sweep_args(args, bar)
         recon = reconstruct(sweep, params, progress=bar)
         rows = control_point_table(recon, gold, args.counts, progress=bar)
     if plot is not None:

@@ -13,7 +13,9 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    parse_size,
     print_summary,
+    read_sweep_args,
 )
 
 __all__ = ["register", "run"]
@@ -51,10 +53,7 @@ def register(subparsers: Any) -> None:
 def _size(text: str) -> tuple[int, int]:
     from BoneUSRecon.Logic.errors import BoneUSReconError
 
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise BoneUSReconError(f"--size must look like 1100x700, got {text!r}") from None
+    w, h = parse_size(text, example="1100x700")
     if not (16 <= w <= 8192 and 16 <= h <= 8192):
         raise BoneUSReconError(f"--size {text!r} is out of range (16..8192 pixels per side)")
     return w, h
@@ -73,11 +72,8 @@ def run(args: argparse.Namespace) -> int:
     gold = read_points(args.gold) if args.gold else None
     sweep = None
     if args.sweep:
-        from BoneUSRecon.Logic.sequence_io import read_sweep
-
         with ProgressBar(quiet=args.quiet) as bar:
-            sweep = read_sweep(args.sweep, calibration=args.calibration,
-                               transform=args.transform, progress=bar)
+            sweep = read_sweep_args(args, bar)
 
     from BoneUSRecon.Widgets.viewer import show_surface
 
