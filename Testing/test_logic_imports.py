@@ -90,7 +90,8 @@ def test_slicer_module_helpers_import_without_slicer(lib: str) -> None:
     # The module's Lib files must not import slicer at import time (only inside the
     # functions that need the application), so Slicer can load them before the scene.
     code = (
-        f"import sys; sys.path[:0] = [{str(ROOT / 'BoneSurfaceReconstruction')!r}, {str(ROOT)!r}]\n"
+        # The module's folder (the repository root) on sys.path, as Slicer puts it.
+        f"import sys; sys.path.insert(0, {str(ROOT)!r})\n"
         f"import BoneSurfaceReconstructionLib.{lib}\n"
         "print(sorted(m for m in sys.modules if m == 'slicer' or m.startswith(('slicer.', 'qt', 'ctk'))))"
     )

@@ -1,7 +1,9 @@
 """The 3D Slicer extension, tested without the Slicer application.
 
-* The extension's files: the module file and its Lib compile, CMake lists every Python
-  file of the module, the .ui binds every parameter of the parameter node.
+* The extension's files: a single-module extension whose module file is the only
+  ``.py`` at the repository root (what Slicer and its Extension Wizard scan), the
+  module file and its Lib compile, CMake lists every Python file of the module, the
+  .ui binds every parameter of the parameter node, pip packages only ``BoneUSRecon``.
 * The MRML adapter (:mod:`BoneUSRecon.Widgets.mrml`) against Slicer's real MRML classes
   from the ``slicer-core`` package: scene <-> Sweep poses in mm, the model and point
   nodes it creates, and equality with a direct :mod:`BoneUSRecon.Logic` run.
@@ -16,6 +18,7 @@ import ast
 import importlib
 import py_compile
 import re
+import subprocess
 import sys
 import types
 import xml.etree.ElementTree as ET
@@ -29,10 +32,13 @@ from BoneUSRecon.Logic.sweep import Sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULE = "BoneSurfaceReconstruction"
-MODULE_DIR = ROOT / MODULE
+# A single-module extension: the module file lives at the repository root, which is
+# the folder a developer adds to Slicer's "Additional module paths".
+MODULE_DIR = ROOT
 LIB = MODULE_DIR / f"{MODULE}Lib"
 UI = MODULE_DIR / "Resources" / "UI" / f"{MODULE}.ui"
 
+# Slicer appends the folder of each module it loads to sys.path: do the same.
 if str(MODULE_DIR) not in sys.path:
     sys.path.insert(0, str(MODULE_DIR))
 
@@ -41,12 +47,29 @@ if str(MODULE_DIR) not in sys.path:
 # Extension files
 # ====================================================================================
 def _module_python_files() -> list[str]:
-    """Every .py of the module folder (relative), except its build-time Testing folder."""
-    return sorted(
-        p.relative_to(MODULE_DIR).as_posix()
-        for p in MODULE_DIR.rglob("*.py")
-        if "Testing" not in p.relative_to(MODULE_DIR).parts and "__pycache__" not in p.parts
-    )
+    """The module file and every .py of its Lib package (relative to the root)."""
+    lib = [p.relative_to(MODULE_DIR).as_posix() for p in LIB.rglob("*.py") if "__pycache__" not in p.parts]
+    return sorted([f"{MODULE}.py", *lib])
+
+
+def _slicer_module_candidates(path: Path, depth: int, base: Path = ROOT) -> list[str]:
+    """What Slicer's Extension Wizard offers to load from ``path`` (its
+    ``ModuleInfo.findModules``): ``.py`` files defining a class named like the file,
+    searched ``depth`` folders down, skipping folders that are Python packages."""
+    entries = sorted(path.iterdir())
+    if any(e.name == "__init__.py" for e in entries):
+        return []
+    found: list[str] = []
+    if depth > 0:
+        for e in entries:
+            if e.is_dir() and e.name != "__pycache__":
+                found += _slicer_module_candidates(e, depth - 1, base)
+    for e in entries:
+        if e.is_file() and e.suffix == ".py":
+            tree = ast.parse(e.read_text())
+            if any(isinstance(n, ast.ClassDef) and n.name == e.stem for n in tree.body):
+                found.append(e.relative_to(base).as_posix())
+    return found
 
 
 def _cmake_list(text: str, var: str) -> list[str]:
@@ -87,34 +110,74 @@ def test_module_file_and_lib_compile(tmp_path: Path) -> None:
         py_compile.compile(str(f), cfile=str(tmp_path / (f.name + "c")), doraise=True)
 
 
-def test_module_folder_layout_does_not_shadow_the_package() -> None:
-    # Slicer loads every top-level .py of a module folder as a module (sys.modules[name]):
-    # only the module file may be there, and it must not be called BoneUSRecon.py.
-    top = sorted(p.name for p in MODULE_DIR.glob("*.py"))
+def test_repository_root_holds_only_the_module_file() -> None:
+    # Slicer loads every .py of an Additional module path (not its sub-folders) as a
+    # module (sys.modules[name]): the root may hold only the module file, which must
+    # not be called BoneUSRecon.py (it would shadow the package).
+    top = sorted(p.name for p in ROOT.glob("*.py"))
     assert top == [f"{MODULE}.py"]
-    assert not (MODULE_DIR / "BoneUSRecon.py").exists()
     assert (LIB / "__init__.py").is_file()
+    assert (ROOT / "BoneUSRecon" / "__init__.py").is_file()  # importable from the module's folder
+    assert not (ROOT / MODULE).exists()  # the old module sub-folder is gone
+    # Resources where self.resourcePath() looks: <module folder>/Resources/...
+    assert 'self.resourcePath("UI/BoneSurfaceReconstruction.ui")' in (ROOT / f"{MODULE}.py").read_text()
+    assert UI.is_file() and (ROOT / "Resources" / "Icons" / f"{MODULE}.png").is_file()
+
+
+def test_extension_wizard_finds_exactly_the_module() -> None:
+    # Extension Wizard > Select Extension (the repository root) scans one folder down.
+    assert _slicer_module_candidates(ROOT, depth=1) == [f"{MODULE}.py"]
+
+
+def test_extension_wizard_scan_sees_a_stray_module(tmp_path: Path) -> None:
+    # The scan above must be able to fail: a module-like file in a sub-folder is seen,
+    # one inside a Python package is not.
+    (tmp_path / "Sub").mkdir()
+    (tmp_path / "Sub" / "Stray.py").write_text("class Stray:\n    pass\n")
+    (tmp_path / "Pkg").mkdir()
+    (tmp_path / "Pkg" / "__init__.py").write_text("")
+    (tmp_path / "Pkg" / "Hidden.py").write_text("class Hidden:\n    pass\n")
+    assert _slicer_module_candidates(tmp_path, depth=1, base=tmp_path) == ["Sub/Stray.py"]
 
 
 def test_cmake_lists_every_module_python_file_and_resource() -> None:
-    text = (MODULE_DIR / "CMakeLists.txt").read_text()
+    text = (ROOT / "CMakeLists.txt").read_text()
     scripts = _cmake_list(text, "MODULE_PYTHON_SCRIPTS")
     assert sorted(scripts) == _module_python_files()
     for res in _cmake_list(text, "MODULE_PYTHON_RESOURCES"):
         assert (MODULE_DIR / res).is_file(), res
-    assert "WITH_GENERIC_TESTS" in text and "slicerMacroBuildScriptedModule" in text
+    assert "WITH_GENERIC_TESTS" in text
+    # Single-module extension: the module is built by the top-level CMakeLists, after
+    # Slicer's use file, and there is no module sub-directory.
+    assert text.index("include(${Slicer_USE_FILE})") < text.index("slicerMacroBuildScriptedModule(")
+    assert "add_subdirectory(" not in text
+    assert not list(ROOT.glob("*/CMakeLists.txt"))
     # The library goes beside the module so that `import BoneUSRecon` works installed.
     assert "BoneUSRecon/*.py" in text
-    top = (ROOT / "CMakeLists.txt").read_text()
-    assert f"add_subdirectory({MODULE})" in top
     for key in ("EXTENSION_HOMEPAGE", "EXTENSION_CATEGORY", "EXTENSION_DESCRIPTION", "EXTENSION_ICONURL"):
-        assert re.search(rf"set\({key}\s+\S", top), key
+        assert re.search(rf"set\({key}\s+\S", text), key
+    icon = re.search(r"set\(EXTENSION_ICONURL\s+\"[^\"]*/main/([^\"]+)\"", text)
+    assert icon and (ROOT / icon.group(1)).is_file(), "EXTENSION_ICONURL points at no file of the repository"
 
 
 def test_cmake_check_catches_an_unlisted_file(tmp_path: Path) -> None:
     # The listing check must be able to fail: a file missing from the list is seen.
-    text = (MODULE_DIR / "CMakeLists.txt").read_text().replace("${MODULE_NAME}Lib/selftest.py", "")
+    text = (ROOT / "CMakeLists.txt").read_text().replace("${MODULE_NAME}Lib/selftest.py", "")
     assert sorted(_cmake_list(text, "MODULE_PYTHON_SCRIPTS")) != _module_python_files()
+
+
+def test_pip_packages_only_the_library() -> None:
+    # pyproject's package discovery must take BoneUSRecon and its sub-packages, never
+    # the Slicer module's helper package that now sits beside it at the root.
+    import tomllib
+    from setuptools import find_namespace_packages
+
+    find = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    found = find_namespace_packages(where=str(ROOT), include=find["include"], exclude=find.get("exclude", ()))
+    assert "BoneUSRecon" in found and "BoneUSRecon.Logic" in found
+    assert all(p == "BoneUSRecon" or p.startswith("BoneUSRecon.") for p in found), found
+    everything = find_namespace_packages(where=str(ROOT))
+    assert f"{MODULE}Lib" in everything  # the filter above is what keeps it out
 
 
 def test_ui_binds_every_parameter_with_matching_ranges() -> None:
@@ -205,11 +268,46 @@ def test_dependencies_install_only_what_is_missing(monkeypatch: pytest.MonkeyPat
     assert installed == ["absent-pkg>=1"]  # declined: nothing more installed
 
 
-def test_developer_mode_finds_the_package_one_folder_up() -> None:
-    from BoneSurfaceReconstructionLib import dependencies
+def _slicer_like_interpreter(module_folder: Path, code: str) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter without site-packages (so no installed or
+    editable BoneUSRecon), with only the module's folder appended to sys.path, as Slicer
+    does for a module loaded from Additional module paths."""
+    prelude = f"import sys; sys.path.append({str(module_folder)!r})\n"
+    return subprocess.run(
+        [sys.executable, "-S", "-c", prelude + code], capture_output=True, text=True, timeout=60, cwd=module_folder.parent
+    )
 
-    assert Path(dependencies.repositoryRoot()) == ROOT
-    assert (ROOT / "BoneUSRecon" / "__init__.py").is_file()
+
+def test_developer_mode_imports_the_package_from_the_module_folder() -> None:
+    # Adding the repository root to Additional module paths is enough: the module's
+    # folder is on sys.path and BoneUSRecon is found there, with no sys.path tricks.
+    proc = _slicer_like_interpreter(
+        ROOT,
+        "import importlib.util\n"
+        "from BoneSurfaceReconstructionLib import dependencies\n"
+        "dependencies.requireBoneUSRecon()\n"
+        "print(dependencies.moduleFolder()); print(importlib.util.find_spec('BoneUSRecon').origin)",
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    folder, origin = proc.stdout.strip().splitlines()[-2:]
+    assert Path(folder) == ROOT
+    assert Path(origin) == ROOT / "BoneUSRecon" / "__init__.py"
+
+
+def test_missing_package_beside_the_module_is_one_clear_error(tmp_path: Path) -> None:
+    # The module copied without the library: Apply says where the package must be.
+    import shutil
+
+    shutil.copytree(LIB, tmp_path / LIB.name, ignore=shutil.ignore_patterns("__pycache__"))
+    proc = _slicer_like_interpreter(
+        tmp_path,
+        "from BoneSurfaceReconstructionLib import dependencies\n"
+        "try:\n    dependencies.installRequirements(pipInstall=print)\n"
+        "except RuntimeError as e:\n    print('ERROR', e)\n",
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    assert last.startswith("ERROR the BoneUSRecon package was not found") and str(tmp_path) in last
 
 
 # ====================================================================================

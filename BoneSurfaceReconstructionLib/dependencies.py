@@ -1,11 +1,16 @@
-"""Making BoneUSRecon importable inside Slicer, and its pure-Python needs installed.
+"""Checking that BoneUSRecon is importable inside Slicer, and installing its pure-Python needs.
 
-* Installed extension: the extension's CMake copies the ``BoneUSRecon`` package next to
-  the module file (``lib/Slicer-X.Y/qt-scripted-modules/BoneUSRecon/``), a folder Slicer
-  puts on ``sys.path``: nothing to do.
-* Developer mode (the module folder of a source checkout added to *Additional module
-  paths*): the package sits one folder up, in the repository root, which is added to
-  ``sys.path`` if ``BoneUSRecon`` cannot be imported otherwise.
+``import BoneUSRecon`` needs no ``sys.path`` tricks: Slicer appends the folder of every
+scripted module it loads from outside its own tree to ``sys.path``, and the
+``BoneUSRecon`` package sits in that folder in both set-ups:
+
+* Developer mode: the repository root (which holds the module file) is in
+  *Additional module paths*, or was selected in the Extension Wizard.
+* Installed extension: the extension's CMake copies the package next to the module
+  file (``lib/Slicer-X.Y/qt-scripted-modules/BoneUSRecon/``).
+
+If the package is still missing (the module file copied alone somewhere),
+:func:`requireBoneUSRecon` says so in one line instead of a bare ``ImportError``.
 
 Third-party needs are installed lazily, from the Apply button's path, with
 ``slicer.util.pip_install``. VTK is never installed: Slicer ships its own, and a second
@@ -18,10 +23,9 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import os
-import sys
 from collections.abc import Callable
 
-__all__ = ["REQUIREMENTS", "ensureBoneUSReconImportable", "missingRequirements", "installRequirements"]
+__all__ = ["REQUIREMENTS", "requireBoneUSRecon", "missingRequirements", "installRequirements"]
 
 #: import name -> pip requirement: every third-party package BoneUSRecon.Logic and the
 #: MRML adapter import, except VTK (Slicer's own). numpy comes with Slicer; scipy may
@@ -35,24 +39,26 @@ REQUIREMENTS: dict[str, str] = {
 FORBIDDEN = ("vtk", "pyvista")
 
 
-def repositoryRoot() -> str:
-    """The folder holding both this module's folder and the ``BoneUSRecon`` package."""
-    return os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+def moduleFolder() -> str:
+    """The folder holding the module file: where ``BoneUSRecon`` must be found."""
+    return os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def ensureBoneUSReconImportable() -> str | None:
-    """Make ``import BoneUSRecon`` work; return the folder added to ``sys.path``, if any.
+def requireBoneUSRecon() -> None:
+    """Raise a clear error if ``import BoneUSRecon`` cannot work.
 
     Does not import BoneUSRecon (that would import numpy, scipy... at Slicer startup).
+
+    Raises
+    ------
+    RuntimeError
+        The package is not on ``sys.path`` (normally: not beside the module file).
     """
-    if importlib.util.find_spec("BoneUSRecon") is not None:
-        return None
-    root = repositoryRoot()
-    if os.path.isfile(os.path.join(root, "BoneUSRecon", "__init__.py")) and root not in sys.path:
-        sys.path.insert(0, root)
-        importlib.invalidate_caches()
-        return root
-    return None
+    if importlib.util.find_spec("BoneUSRecon") is None:
+        raise RuntimeError(
+            f"the BoneUSRecon package was not found: it must sit beside the module file in "
+            f"{moduleFolder()} (add the repository root, not a sub-folder, to Additional module paths)"
+        )
 
 
 def missingRequirements() -> list[str]:
@@ -66,6 +72,9 @@ def installRequirements(
 ) -> list[str]:
     """Install the missing requirements (if the user agrees); return what was installed.
 
+    Called before every action that needs the library, so it first checks that
+    BoneUSRecon itself is importable (pip cannot fix that).
+
     Parameters
     ----------
     pipInstall : callable, optional
@@ -76,8 +85,10 @@ def installRequirements(
     Raises
     ------
     RuntimeError
-        The user declined, or a requirement is still missing afterwards.
+        BoneUSRecon is not beside the module, the user declined, or a requirement is
+        still missing afterwards.
     """
+    requireBoneUSRecon()
     missing = missingRequirements()
     if not missing:
         return []

@@ -3,7 +3,7 @@
 Kept in a sub-package because Slicer treats every ``.py`` file beside the module file
 as a module of its own. Nothing here imports ``slicer`` at import time:
 
-* :mod:`.dependencies`: making ``import BoneUSRecon`` work inside Slicer, and installing
+* :mod:`.dependencies`: checking that ``import BoneUSRecon`` works inside Slicer, and installing
   missing pure-Python requirements with Slicer's pip helper (never VTK).
 * :mod:`.parameters`: the module's parameters (defaults, ranges) and their mapping onto
   :class:`BoneUSRecon.Logic.pipeline.ReconstructionParams`.

@@ -15,8 +15,6 @@ from typing import Annotated, Union
 import qt
 import slicer
 import vtk
-from BoneSurfaceReconstructionLib import dependencies
-from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, segmenterNames
 from slicer import (
     vtkMRMLMarkupsFiducialNode,
     vtkMRMLModelNode,
@@ -34,8 +32,8 @@ from slicer.ScriptedLoadableModule import (
 )
 from slicer.util import VTKObservationMixin
 
-# Developer mode: the BoneUSRecon package is in the repository root, one folder up.
-dependencies.ensureBoneUSReconImportable()
+from BoneSurfaceReconstructionLib import dependencies
+from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, segmenterNames
 
 _SEGMENTERS = segmenterNames()
 
@@ -280,7 +278,6 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         import time
 
         from BoneSurfaceReconstructionLib.parameters import calibrationMatrix, reconstructionParams
-
         from BoneUSRecon.Widgets import mrml
 
         if not inputNode:
@@ -317,7 +314,6 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         :return: the vtkMRMLSequenceBrowserNode (frames under their ImageToReference).
         """
         from BoneSurfaceReconstructionLib.parameters import calibrationPath
-
         from BoneUSRecon.Widgets import mrml
 
         nodes = mrml.load_sweep_file(
@@ -403,7 +399,6 @@ class BoneSurfaceReconstructionTest(ScriptedLoadableModuleTest):
     def test_ParameterNodeEntryPoint(self):
         """The parameter-node entry point gives the same surface as the explicit one."""
         from BoneSurfaceReconstructionLib import selftest
-
         from BoneUSRecon.Widgets import mrml
 
         sim = selftest.simulatedSweep(n_frames=30)
