@@ -25,7 +25,7 @@ import importlib.util
 import os
 from collections.abc import Callable
 
-__all__ = ["REQUIREMENTS", "requireBoneUSRecon", "missingRequirements", "installRequirements"]
+__all__ = ["REQUIREMENTS", "moduleFolder", "requireBoneUSRecon", "missingRequirements", "installRequirements"]
 
 #: import name -> pip requirement: every third-party package BoneUSRecon.Logic and the
 #: MRML adapter import, except VTK (Slicer's own). numpy comes with Slicer; scipy may

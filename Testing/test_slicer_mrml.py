@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import ast
 import importlib
+import os
 import py_compile
 import re
 import subprocess
@@ -119,6 +120,8 @@ def test_repository_root_holds_only_the_module_file() -> None:
     assert (LIB / "__init__.py").is_file()
     assert (ROOT / "BoneUSRecon" / "__init__.py").is_file()  # importable from the module's folder
     assert not (ROOT / MODULE).exists()  # the old module sub-folder is gone
+    # Slicer's CLI-module factory scans the same folder for executables.
+    assert not [p.name for p in ROOT.iterdir() if p.is_file() and os.access(p, os.X_OK)]
     # Resources where self.resourcePath() looks: <module folder>/Resources/...
     assert 'self.resourcePath("UI/BoneSurfaceReconstruction.ui")' in (ROOT / f"{MODULE}.py").read_text()
     assert UI.is_file() and (ROOT / "Resources" / "Icons" / f"{MODULE}.png").is_file()
