@@ -80,3 +80,62 @@ def test_python_dash_m_entry_point():
         [sys.executable, "-m", "BoneUSRecon", "--version"], capture_output=True, text=True
     )
     assert r.returncode == 0 and r.stdout.startswith("bone-us-recon ")
+
+
+def test_parser_start_up_loads_no_numerics():
+    # Building the parser (what ``--help`` and every command's start-up do) must not
+    # import numpy, scipy or VTK: that cost ~1 s before any work. The check can fail:
+    # the control import of the simulator does load them.
+    code = (
+        "import sys\n"
+        "from BoneUSRecon.cli import build_parser\n"
+        "build_parser()\n"
+        "heavy = sorted(m for m in ('numpy', 'scipy', 'vtkmodules', 'skimage', 'SimpleITK') "
+        "if m in sys.modules)\n"
+        "import BoneUSRecon.Logic.simulation\n"
+        "print(heavy, 'numpy' in sys.modules)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "[] True"
+
+
+def test_simulate_help_defaults_match_the_simulator():
+    # cli/simulate.py lists the simulator's bones and defaults so that its parser does
+    # not import the simulator; they must stay equal to the real ones.
+    from BoneUSRecon.cli.simulate import BONE_NAMES, SIMULATION_DEFAULTS
+    from BoneUSRecon.Logic.simulation import BONES, SimulationParams
+
+    assert tuple(BONE_NAMES) == tuple(BONES)
+    d = SimulationParams()
+    assert SIMULATION_DEFAULTS == {k: getattr(d, k) for k in SIMULATION_DEFAULTS}
+
+
+def test_shared_summary_rows():
+    from types import SimpleNamespace
+
+    from BoneUSRecon.cli.common import (
+        evaluation_rows,
+        json_default,
+        parse_size,
+        reconstruction_rows,
+    )
+
+    s = {"segmented_frames": 30, "valid_frames": 38, "frames": 40, "rejected_frames": 8,
+         "fit_rejected_frames": [3, 9], "grid_shape": (30, 15), "grid_coverage": 0.987}
+    assert reconstruction_rows(s) == [
+        ("frames used", "30 of 38 valid (40 in file)"),
+        ("frames rejected", "8 by segmentation, 2 by the robust fit"),
+        ("grid", "30 slices x 15 rays, 98.7% covered"),
+    ]
+    ev = SimpleNamespace(n=5, mean=1.25, rms=1.5, median=1.0, p95=2.5, max=3.0,
+                         within_0_5=0.2, within_1=0.4, within_2=0.8)
+    rows = dict(evaluation_rows(ev, " (paper)"))
+    assert rows["distance mean/RMS"] == "1.250 / 1.500 mm (paper)"
+    assert rows["within 0.5/1/2 mm"] == "20.0% / 40.0% / 80.0%"
+    import numpy as np
+
+    assert json_default(np.arange(3)) == [0, 1, 2] and json_default(np.float32(0.5)) == 0.5
+    assert parse_size("320X256") == (320, 256)
+    with pytest.raises(BoneUSReconError, match="must look like 1100x700"):
+        parse_size("big")

@@ -167,6 +167,28 @@ def test_reconstruct_bad_paths_refused(capsys, files, tmp_path):
     )
 
 
+def test_reconstruct_refuses_a_foreign_report_folder_before_the_work(
+    capsys, files, tmp_path, monkeypatch
+):
+    # A folder holding other files is refused up front, not after minutes of work:
+    # reading the sweep would already be too late.
+    import BoneUSRecon.Logic.sequence_io as sequence_io
+
+    def too_late(*args, **kwargs):
+        raise AssertionError("the sweep was read before the report folder was checked")
+
+    monkeypatch.setattr(sequence_io, "read_sweep", too_late)
+    sweep, _ = files
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "thesis.tex").write_text("precious")
+    assert_refused(
+        capsys, ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--report", str(foreign)],
+        "not a BoneUSRecon report", tmp_path,
+    )
+    assert os.listdir(foreign) == ["thesis.tex"]
+
+
 @pytest.mark.skipif(os.geteuid() == 0, reason="root can write anywhere")
 def test_unwritable_output_folder_refused(capsys, files, tmp_path):
     sweep, _ = files

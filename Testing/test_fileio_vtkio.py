@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
-from BoneUSRecon.Logic.fileio import atomic_path, check_input_file, check_output_path
+from BoneUSRecon.Logic.fileio import (
+    atomic_path,
+    check_input_file,
+    check_output_dir,
+    check_output_path,
+)
 from BoneUSRecon.Logic.vtkio import (
     SURFACE_EXTENSIONS,
     points_to_polydata,
@@ -67,6 +72,19 @@ def test_check_output_path_errors(tmp_path):
                 check_output_path(ro / "a.vtp", SURFACE_EXTENSIONS)
     finally:
         ro.chmod(stat.S_IRWXU)
+
+
+def test_check_output_dir(tmp_path):
+    assert check_output_dir(tmp_path / "new") == tmp_path / "new"  # may be created
+    assert check_output_dir(tmp_path) == tmp_path  # or exist
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(BoneUSReconError, match="overlay path exists and is not a folder"):
+        check_output_dir(tmp_path / "f", "overlay")
+    with pytest.raises(BoneUSReconError, match="does not exist"):
+        check_output_dir(tmp_path / "no" / "such")
+    with pytest.raises(BoneUSReconError, match="not writable"):
+        check_output_dir("/sys/new_folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]  # the probes left nothing
 
 
 def test_check_input_file_errors(tmp_path):

@@ -15,11 +15,13 @@ import importlib
 from typing import Any
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
-from BoneUSRecon.Logic.sweep import Sweep
 
 # The public API, imported lazily (PEP 562) so that importing one stage does not load
 # every other (and so that stages importing ``BoneUSRecon.Logic.sweep`` never cycle).
+# Even Sweep: it loads numpy and VTK, and every CLI command's start-up (``--help``)
+# passes through this package via ``Logic.errors``.
 _LAZY = {
+    "Sweep": "sweep",
     "read_sweep": "sequence_io",
     "write_sweep": "sequence_io",
     "read_calibration": "sequence_io",
@@ -44,7 +46,7 @@ _LAZY = {
     "write_polydata": "vtkio",
 }
 
-__all__ = ["BoneUSReconError", "Sweep", *_LAZY]
+__all__ = ["BoneUSReconError", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:
