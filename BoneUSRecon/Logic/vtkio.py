@@ -33,12 +33,17 @@ __all__ = [
     "read_polydata",
     "read_points",
     "write_points_csv",
+    "POINT_OUT_EXTENSIONS",
+    "write_points",
 ]
 
 #: Extensions :func:`write_polydata` understands.
 SURFACE_EXTENSIONS = (".vtp", ".vtk", ".stl", ".ply", ".obj")
 #: Extensions :func:`read_points` understands.
 POINT_EXTENSIONS = (".csv", ".txt", ".vtp", ".vtk", ".stl", ".ply")
+#: Extensions :func:`write_points` understands: formats that keep points without cells
+#: (an STL holds triangles only: a point cloud written to it would be empty).
+POINT_OUT_EXTENSIONS = (".vtp", ".vtk", ".ply", ".csv")
 
 
 def points_to_polydata(
@@ -213,6 +218,33 @@ def write_points_csv(points: np.ndarray, path: str | os.PathLike[str]) -> Path:
         np.savetxt(tmp, np.asarray(points, float).reshape(-1, 3), delimiter=",",
                    header="x,y,z", comments="", fmt="%.6f")
     return p
+
+
+def write_points(pd: vtkPolyData, path: str | os.PathLike[str]) -> Path:
+    """Write a point cloud atomically, in the format named by ``path``'s extension.
+
+    Parameters
+    ----------
+    pd : vtkPolyData
+        The points (e.g. from :func:`points_to_polydata`) with their point arrays.
+    path : path-like
+        ``.vtp`` or ``.vtk`` (every point array kept), ``.ply`` (geometry) or ``.csv``
+        (``x,y,z`` columns in mm).
+
+    Returns
+    -------
+    Path
+        The written file.
+
+    Raises
+    ------
+    BoneUSReconError
+        Unknown extension, unwritable folder, or the writer failing.
+    """
+    p = check_output_path(path, POINT_OUT_EXTENSIONS)
+    if p.suffix.lower() == ".csv":
+        return write_points_csv(polydata_points(pd), p)
+    return write_polydata(pd, p)
 
 
 def _is_number(s: str) -> bool:

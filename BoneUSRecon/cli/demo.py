@@ -55,7 +55,7 @@ def register(subparsers: Any) -> None:
                    help="image size in pixels (default 320x256)")
     p.add_argument("--spacing", type=float, default=None, metavar="MM",
                    help="pixel spacing in mm (default: a 48 x 38 mm field of view)")
-    p.add_argument("--corrupted", type=float, default=0.05, metavar="FRACTION",
+    p.add_argument("--corrupted", "--corrupt", dest="corrupted", type=float, default=0.05, metavar="FRACTION",
                    help="fraction of corrupted frames (default 0.05)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--report", metavar="DIR",

@@ -20,7 +20,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("surface", metavar="SURFACE", help="surface file (.vtp .vtk .stl .ply)")
     p.add_argument("gold", metavar="GOLD", help="gold points: CSV with x,y,z (mm) or a VTK point file")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     p.add_argument("--distances", action="store_true", help="with --json, include every distance")
     add_common_options(p)
     p.set_defaults(func=run)

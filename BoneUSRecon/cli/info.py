@@ -27,7 +27,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("sweep", metavar="SWEEP", help="PLUS sequence file (.mha or .mhd)")
     add_calibration_option(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object instead")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     add_common_options(p)
     p.set_defaults(func=run)
 

@@ -22,8 +22,6 @@ from BoneUSRecon.cli.common import (
 
 __all__ = ["register", "run", "add_reconstruction_options", "params_from_args"]
 
-POINT_OUT_EXTENSIONS = (".vtp", ".vtk", ".ply", ".csv")
-
 
 def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bool = True) -> None:
     """Stage options shared with ``table``: segmenter, degree, control points, rays,
@@ -124,10 +122,10 @@ def run(args: argparse.Namespace) -> int:
     from BoneUSRecon.Logic.fileio import check_output_path
     from BoneUSRecon.Logic.pipeline import params_to_dict, reconstruct
     from BoneUSRecon.Logic.vtkio import (
+        POINT_OUT_EXTENSIONS,
         SURFACE_EXTENSIONS,
-        polydata_points,
         read_points,
-        write_points_csv,
+        write_points,
         write_polydata,
     )
 
@@ -149,10 +147,7 @@ def run(args: argparse.Namespace) -> int:
         evaluation = evaluate_surface(recon.surface, gold) if gold is not None else None
         write_polydata(recon.surface, out)
         if pts_out is not None:
-            if pts_out.suffix.lower() == ".csv":
-                write_points_csv(polydata_points(recon.points), pts_out)
-            else:
-                write_polydata(recon.points, pts_out)
+            write_points(recon.points, pts_out)
         report_index = None
         if report_dir is not None:
             from BoneUSRecon.Widgets.report import write_report

@@ -40,7 +40,7 @@ def register(subparsers: Any) -> None:
         "--output",
         required=True,
         metavar="POINTS",
-        help="output points (.vtp, .vtk, .ply, .stl, .obj)",
+        help="output points (.vtp .vtk with Frame/Intensity/Confidence, .ply, or .csv x,y,z)",
     )
     add_calibration_option(p)
     p.add_argument(
@@ -61,7 +61,7 @@ def register(subparsers: Any) -> None:
         metavar="N",
         help="write one accepted frame's overlay in N (rejected frames always; default 1)",
     )
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     add_common_options(p)
     p.set_defaults(func=run)
 
@@ -75,11 +75,11 @@ def run(args: argparse.Namespace) -> int:
         points_polydata,
         segment_sweep,
     )
-    from BoneUSRecon.Logic.vtkio import SURFACE_EXTENSIONS, write_polydata
+    from BoneUSRecon.Logic.vtkio import POINT_OUT_EXTENSIONS, write_points
 
     # Check everything the user gave before any work.
     check_sweep_args(args)
-    out = check_output_path(args.output, SURFACE_EXTENSIONS)
+    out = check_output_path(args.output, POINT_OUT_EXTENSIONS)
     if args.overlay:
         check_output_dir(args.overlay, "overlay")
     if args.overlay_every < 1:
@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     overlays = []
     # Two outputs: if the overlays fail (or Ctrl-C), the points file is removed again.
     with removed_on_failure(out, args.overlay):
-        write_polydata(points_polydata(result, sweep), out)
+        write_points(points_polydata(result, sweep), out)
         if args.overlay:
             from BoneUSRecon.Widgets.overlay import write_overlays
 

@@ -41,7 +41,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--height", type=int, default=d.height, metavar="H", help=f"image height in pixels (default {d.height})")
     p.add_argument("--spacing", type=float, default=d.spacing_mm, metavar="MM", help=f"pixel spacing in mm (default {d.spacing_mm})")
     p.add_argument(
-        "--corrupt", type=float, default=0.0, metavar="FRACTION",
+        "--corrupted", "--corrupt", dest="corrupt", type=float, default=0.0, metavar="FRACTION",
         help="fraction of corrupted frames: clutter in the shadow, false bone-like echo, "
         "loss of probe contact (default 0)",
     )
@@ -55,7 +55,7 @@ def register(subparsers: Any) -> None:
         "--no-neighbour", dest="neighbour", action="store_false",
         help="forearm bones: do not show the other bone (radius/ulna) beside the target",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object instead")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     add_common_options(p)
     p.set_defaults(func=run)
 

@@ -42,7 +42,7 @@ def register(subparsers: Any) -> None:
         help="control points around the bone, kept fixed (default 5)",
     )
     p.add_argument("--plot", metavar="PNG", help="also plot the table to this PNG file")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     add_common_options(p)
     p.set_defaults(func=run)
 
