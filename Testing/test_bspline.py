@@ -182,8 +182,8 @@ def test_separable_with_missing_entries_is_close_but_not_exact():
 def test_row_medians_match_nanmedian_and_robust_weights_shape():
     import warnings
 
-    from BoneUSRecon.Logic.bspline import _row_medians
-    from BoneUSRecon.Logic.resampling import robust_weights
+    from BoneUSRecon.Logic.robust import robust_weights
+    from BoneUSRecon.Logic.robust import row_medians as _row_medians
 
     rng = np.random.default_rng(0)
     a = rng.uniform(0, 1, (50, 15))

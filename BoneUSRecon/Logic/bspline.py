@@ -58,7 +58,7 @@ from scipy.interpolate import BSpline
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
-from BoneUSRecon.Logic.resampling import robust_weights
+from BoneUSRecon.Logic.robust import mad_scale, robust_weights, row_medians
 
 __all__ = [
     "FitParams",
@@ -483,11 +483,11 @@ def fit_surface(
         for it in range(params.robust_iterations):
             kind = "huber" if (params.robust == "huber" or it < 2) else "tukey"
             r = np.where(present, res, 0.0)
-            scale = _scale(res[w > 0], params.min_scale_mm)
+            scale = mad_scale(res[w > 0], params.min_scale_mm)
             pw = robust_weights(r, scale, kind)
             if params.per_frame:
-                fr = _row_medians(np.where(w0 > 0, res, np.nan))
-                fscale = _scale(fr[(w0 > 0).any(axis=1)], params.min_scale_mm)
+                fr = row_medians(np.where(w0 > 0, res, np.nan))
+                fscale = mad_scale(fr[(w0 > 0).any(axis=1)], params.min_scale_mm)
                 frame_w = robust_weights(fr, fscale, kind)
             new_w = w0 * pw * frame_w[:, None]
             try:
@@ -515,22 +515,3 @@ def fit_surface(
         iterations=iterations,
         method=params.method,
     )
-
-
-def _row_medians(a: np.ndarray) -> np.ndarray:
-    """Median of the finite entries of each row (0 for empty rows), without nanmedian's
-    per-row overhead: sort with NaN last, pick the middle of the finite count."""
-    cnt = np.isfinite(a).sum(axis=1)
-    srt = np.sort(np.where(np.isfinite(a), a, np.inf), axis=1)
-    lo = np.clip((cnt - 1) // 2, 0, a.shape[1] - 1)
-    hi = np.clip(cnt // 2, 0, a.shape[1] - 1)
-    rows = np.arange(a.shape[0])
-    med = 0.5 * (srt[rows, lo] + srt[rows, hi])
-    return np.where(cnt > 0, med, 0.0)
-
-
-def _scale(r: np.ndarray, floor: float) -> float:
-    r = r[np.isfinite(r)]
-    if r.size == 0:
-        return floor
-    return max(float(1.4826 * np.median(np.abs(r))), floor)

@@ -41,9 +41,10 @@ import numpy as np
 from scipy.interpolate import BSpline
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.robust import mad_scale, robust_weights
 from BoneUSRecon.Logic.sweep import Sweep, frame_planes
 
-__all__ = ["ResamplingParams", "ResampledGrid", "resample", "robust_weights"]
+__all__ = ["ResamplingParams", "ResampledGrid", "resample"]
 
 
 #: Upper bound on rays per slice: more rays than a contour has points (a few hundred)
@@ -192,30 +193,6 @@ class ResampledGrid:
         return int(self.points.shape[0]), int(self.points.shape[1])
 
 
-def robust_weights(r: np.ndarray, scale: float, kind: str) -> np.ndarray:
-    """Huber or Tukey biweight weights of non-negative residuals ``r`` at ``scale``.
-
-    Tuning constants give 95% efficiency on Gaussian residuals (Huber 1.345, Tukey
-    4.685 times ``scale``).
-    """
-    r = np.abs(np.asarray(r, dtype=float))
-    if kind == "huber":
-        k = 1.345 * scale
-        return np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
-    if kind == "tukey":
-        c = 4.685 * scale
-        return np.where(r < c, (1.0 - (r / c) ** 2) ** 2, 0.0)
-    raise ValueError(f"unknown robust weight {kind!r}")
-
-
-def _mad_scale(r: np.ndarray, w: np.ndarray | None = None, floor: float = 0.0) -> float:
-    """1.4826 x median absolute residual (residuals are distances, already >= 0)."""
-    r = np.abs(r[np.isfinite(r)] if w is None else r[(w > 0) & np.isfinite(r)])
-    if r.size == 0:
-        return max(floor, 1.0)
-    return max(float(1.4826 * np.median(r)), floor)
-
-
 def _pad(contours: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Stack ragged (K_i, d) arrays into (m, Kmax, d) with NaN padding and a mask."""
     kmax = max(c.shape[0] for c in contours)
@@ -309,7 +286,7 @@ def _fit_axis(
             coef = np.linalg.solve(a + lam * pen, basis.T @ (w[:, None] * c))
             f = BSpline(knots, coef, k, extrapolate=True)
         r = np.linalg.norm(c - f(t), axis=1)
-        scale = _mad_scale(r, w, floor=0.3)  # 0.3 mm: below that, centres are "exact"
+        scale = mad_scale(r[w > 0], floor=0.3, empty=1.0)  # 0.3 mm: below that, centres are "exact"
         w = robust_weights(r, scale, "huber" if it < 2 else "tukey")
         if (w > 0).sum() < max(3, m // 4):  # never let the fit reject most slices
             w = np.maximum(w, 1e-3)

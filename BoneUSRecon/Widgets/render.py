@@ -273,22 +273,14 @@ def make_plotter(
         )
     else:
         actors["surface"] = pl.add_mesh(mesh, color="#d9c8a9", smooth_shading=True)
-    if points is not None:
-        pts = as_pyvista(points)
-        if pts.n_points:
-            actors["points"] = pl.add_mesh(
-                pv.PolyData(np.asarray(pts.points)),
-                color=style.points_color,
-                point_size=_dot_size(pts.n_points, style.point_size),
-                render_points_as_spheres=True,
-            )
-    if gold is not None:
-        g = as_pyvista(gold)
-        if g.n_points:
-            actors["gold"] = pl.add_mesh(
-                pv.PolyData(np.asarray(g.points)),
-                color=style.gold_color,
-                point_size=_dot_size(g.n_points, style.point_size),
+    for name, cloud, color in (("points", points, style.points_color),
+                               ("gold", gold, style.gold_color)):
+        c = as_pyvista(cloud) if cloud is not None else None
+        if c is not None and c.n_points:
+            actors[name] = pl.add_mesh(
+                pv.PolyData(np.asarray(c.points)),
+                color=color,
+                point_size=_dot_size(c.n_points, style.point_size),
                 render_points_as_spheres=True,
             )
     if sweep is not None:
