@@ -82,3 +82,27 @@ def test_segment_writes_csv_and_refuses_stl(capsys, sim_small, tmp_path):
     d, _ = cKDTree(sim_small.gold).query(pts)
     assert len(pts) > 100 and np.median(d) < 1.0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.csv", "s.mha"]
+
+
+def test_cli_and_slicer_module_build_the_same_parameters():
+    # Both go through Logic.pipeline.params_with: same values, same refusals.
+    from BoneUSRecon.cli.reconstruct import params_from_args
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+    from BoneUSRecon.Logic.pipeline import params_to_dict, params_with
+    from BoneUSRecon.Widgets.mrml import make_params
+
+    args = build_parser().parse_args(
+        ["reconstruct", "s.mha", "-o", "b.vtp", "--segmenter", "snake", "--degree", "3", "1",
+         "--control-points", "10", "4", "--rays", "21"]
+    )
+    cli = params_from_args(args)
+    module = make_params(segmenter="snake", degrees=(3, 1), control_points=(10, 4), rays=21)
+    assert params_to_dict(cli) == params_to_dict(module)
+    assert (cli.segmentation.method, cli.fit.degree, cli.fit.control_points, cli.resampling.n_rays) == (
+        "snake", (3, 1), (10, 4), 21)
+    assert params_to_dict(params_with()) != params_to_dict(cli)
+    for kw, match in [({"segmenter": "magic"}, "unknown segmenter 'magic'"),
+                      ({"control_points": (3, 5), "degree": (3, 2)}, "too few"),
+                      ({"rays": 0}, "at least 2 rays")]:
+        with pytest.raises(BoneUSReconError, match=match):
+            params_with(**kw)

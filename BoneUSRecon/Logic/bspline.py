@@ -161,7 +161,21 @@ def _tensor_eval(bu: np.ndarray, ctrl: np.ndarray, bv: np.ndarray) -> np.ndarray
 
 
 def basis_matrix(x: np.ndarray, knots: np.ndarray, degree: int) -> np.ndarray:
-    """Dense B-spline collocation matrix ``B[i, a] = N_a,p(x_i)`` (x clipped to [0, 1])."""
+    """Dense B-spline collocation matrix ``B[i, a] = N_a,p(x_i)`` (x clipped to [0, 1]).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+        Parameter values in [0, 1].
+    knots : ndarray
+        Clamped knot vector (length ``number of basis functions + degree + 1``).
+    degree : int
+        Spline degree ``p``.
+
+    Returns
+    -------
+    ndarray, shape (n, len(knots) - degree - 1)
+    """
     x = np.clip(np.asarray(x, float), knots[degree], knots[-degree - 1])
     return BSpline.design_matrix(x, knots, degree).toarray()
 

@@ -39,6 +39,7 @@ __all__ = [
     "surface_from_contours",
     "control_point_table",
     "params_to_dict",
+    "params_with",
 ]
 
 
@@ -99,6 +100,74 @@ class Reconstruction:
 def params_to_dict(params: Any) -> dict[str, Any]:
     """A (nested) parameter dataclass as a JSON-ready dict."""
     return dataclasses.asdict(params)
+
+
+def params_with(
+    base: ReconstructionParams | None = None,
+    *,
+    segmenter: str | None = None,
+    degree: Sequence[int] | None = None,
+    control_points: Sequence[int] | None = None,
+    rays: int | None = None,
+    fit_method: str | None = None,
+    robust: str | None = None,
+    axis: str | None = None,
+) -> ReconstructionParams:
+    """``base`` with the user's choices: what the CLI options and the Slicer module set.
+
+    Parameters
+    ----------
+    base : ReconstructionParams, optional
+        Values for everything left ``None`` (default: the paper's defaults).
+    segmenter : str, optional
+        A name in :data:`BoneUSRecon.Logic.segmentation.SEGMENTERS`.
+    degree, control_points : (int, int), optional
+        Spline degrees ``(p, q)`` and control points ``(e, f)``, along and around the bone.
+    rays : int, optional
+        Rays per slice.
+    fit_method : {"direct", "separable"}, optional
+    robust : {"tukey", "huber", "none"}, optional
+    axis : {"spline", "line"}, optional
+
+    Returns
+    -------
+    ReconstructionParams
+
+    Raises
+    ------
+    BoneUSReconError
+        Unknown segmenter; absurd values, as refused by :class:`FitParams` and
+        :class:`ResamplingParams` (e.g. fewer control points than degree + 1).
+    """
+    from BoneUSRecon.Logic.segmentation import SEGMENTERS
+
+    p = ReconstructionParams() if base is None else base
+    seg = p.segmentation
+    if segmenter is not None:
+        if segmenter not in SEGMENTERS:
+            raise BoneUSReconError(
+                f"unknown segmenter {segmenter!r}; use one of {', '.join(sorted(SEGMENTERS))}"
+            )
+        seg = dataclasses.replace(seg, method=segmenter)
+    fit_changes: dict[str, Any] = {
+        k: v
+        for k, v in (
+            ("degree", None if degree is None else tuple(int(x) for x in degree)),
+            ("control_points", None if control_points is None else tuple(int(x) for x in control_points)),
+            ("method", fit_method),
+            ("robust", robust),
+        )
+        if v is not None
+    }
+    res_changes: dict[str, Any] = {
+        k: v for k, v in (("n_rays", None if rays is None else int(rays)), ("axis", axis)) if v is not None
+    }
+    return dataclasses.replace(
+        p,
+        segmentation=seg,
+        fit=dataclasses.replace(p.fit, **fit_changes),  # FitParams checks the values
+        resampling=dataclasses.replace(p.resampling, **res_changes),
+    )
 
 
 def surface_from_contours(

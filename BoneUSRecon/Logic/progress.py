@@ -15,6 +15,16 @@ ProgressCallback = Callable[[str, int, int], None]
 
 
 def report(progress: ProgressCallback | None, stage: str, done: int, total: int) -> None:
-    """Call ``progress`` if one was given."""
+    """Call ``progress`` if one was given.
+
+    Parameters
+    ----------
+    progress : ProgressCallback or None
+        The caller's callback; ``None`` makes this a no-op.
+    stage : str
+        Stage name (``"segment"``, ``"fit"``, ...).
+    done, total : int
+        Work done so far and in all, in the stage's own units (frames, steps).
+    """
     if progress is not None:
         progress(stage, done, total)

@@ -93,6 +93,18 @@ def write_polydata(pd: vtkPolyData, path: str | os.PathLike[str]) -> Path:
     array; ``.stl``, ``.ply`` and ``.obj`` keep the geometry (PLY also keeps colours
     when a ``Distance``-derived RGB array is present; it is not for arrays).
 
+    Parameters
+    ----------
+    pd : vtkPolyData
+        The mesh or point cloud.
+    path : path-like
+        Output file; its extension is one of :data:`SURFACE_EXTENSIONS`.
+
+    Returns
+    -------
+    Path
+        The written file.
+
     Raises
     ------
     BoneUSReconError
@@ -212,7 +224,20 @@ def read_points(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def write_points_csv(points: np.ndarray, path: str | os.PathLike[str]) -> Path:
-    """Write ``(K, 3)`` points as CSV with header ``x,y,z`` (mm), atomically."""
+    """Write ``(K, 3)`` points as CSV with header ``x,y,z`` (mm), atomically.
+
+    Parameters
+    ----------
+    points : ndarray, shape (K, 3)
+        Points in mm (written with 1e-6 mm resolution).
+    path : path-like
+        Output ``.csv`` file.
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
     p = check_output_path(path, (".csv",))
     with atomic_path(p) as tmp:
         np.savetxt(tmp, np.asarray(points, float).reshape(-1, 3), delimiter=",",

@@ -34,7 +34,6 @@ geometry is ignored, as PLUS does: ``image_to_reference[k] = ParentTransformToWo
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import weakref
 from collections.abc import Sequence as SequenceABC
@@ -724,46 +723,19 @@ def make_params(
 ) -> Any:
     """A :class:`~BoneUSRecon.Logic.pipeline.ReconstructionParams` with the module's choices.
 
-    Anything left ``None`` keeps the value of ``base`` (default: the paper's defaults).
+    Anything left ``None`` keeps the value of ``base`` (default: the paper's defaults);
+    see :func:`BoneUSRecon.Logic.pipeline.params_with`, which the CLI uses too.
 
     Raises
     ------
     BoneUSReconError
         Unknown segmenter, fewer control points than the degree needs, too few rays.
     """
-    from BoneUSRecon.Logic.pipeline import ReconstructionParams
+    from BoneUSRecon.Logic.pipeline import params_with
 
-    p = ReconstructionParams() if base is None else base
-    if segmenter is not None:
-        from BoneUSRecon.Logic.segmentation import SEGMENTERS
-
-        if segmenter not in SEGMENTERS:
-            raise BoneUSReconError(
-                f"unknown segmenter {segmenter!r}; use one of {', '.join(sorted(SEGMENTERS))}"
-            )
-        p = dataclasses.replace(p, segmentation=dataclasses.replace(p.segmentation, method=segmenter))
-    fit = p.fit
-    if degrees is not None:
-        degrees = (int(degrees[0]), int(degrees[1]))
-        if min(degrees) < 1:
-            raise BoneUSReconError(f"spline degrees must be at least 1, got {degrees}")
-        fit = dataclasses.replace(fit, degree=degrees)
-    if control_points is not None:
-        control_points = (int(control_points[0]), int(control_points[1]))
-        fit = dataclasses.replace(fit, control_points=control_points)
-    deg = tuple(fit.degree)
-    cps = tuple(fit.control_points)
-    if cps[0] <= deg[0] or cps[1] <= deg[1]:
-        raise BoneUSReconError(
-            f"{cps[0]}x{cps[1]} control points are too few for degrees {deg[0]}x{deg[1]}: "
-            "each direction needs at least degree + 1"
-        )
-    p = dataclasses.replace(p, fit=fit)
-    if rays is not None:
-        if int(rays) < 3:
-            raise BoneUSReconError(f"at least 3 rays per frame are needed, got {rays}")
-        p = dataclasses.replace(p, resampling=dataclasses.replace(p.resampling, n_rays=int(rays)))
-    return p
+    return params_with(
+        base, segmenter=segmenter, control_points=control_points, degree=degrees, rays=rays
+    )
 
 
 @dataclass(frozen=True)

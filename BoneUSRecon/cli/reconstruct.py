@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -58,37 +57,17 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
 
 def params_from_args(args: argparse.Namespace) -> Any:
     """Build :class:`ReconstructionParams` from the options (raises on absurd values)."""
-    from BoneUSRecon.Logic.pipeline import ReconstructionParams
+    from BoneUSRecon.Logic.pipeline import params_with
 
-    p = ReconstructionParams()
-    seg = p.segmentation
-    if getattr(args, "segmenter", None):
-        from BoneUSRecon.Logic.errors import BoneUSReconError
-        from BoneUSRecon.Logic.segmentation import SEGMENTERS
-
-        if args.segmenter not in SEGMENTERS:
-            raise BoneUSReconError(
-                f"unknown segmenter {args.segmenter!r}; use one of {', '.join(sorted(SEGMENTERS))}"
-            )
-        seg = dataclasses.replace(seg, method=args.segmenter)
-    fit = p.fit
-    changes: dict[str, Any] = {}
-    if getattr(args, "degree", None):
-        changes["degree"] = tuple(args.degree)
-    if getattr(args, "control_points", None):
-        changes["control_points"] = tuple(args.control_points)
-    if getattr(args, "fit_method", None):
-        changes["method"] = args.fit_method
-    if getattr(args, "robust", None):
-        changes["robust"] = args.robust
-    if changes:
-        fit = dataclasses.replace(fit, **changes)
-    res = p.resampling
-    if getattr(args, "rays", None) is not None:
-        res = dataclasses.replace(res, n_rays=args.rays)
-    if getattr(args, "axis", None):
-        res = dataclasses.replace(res, axis=args.axis)
-    return dataclasses.replace(p, segmentation=seg, fit=fit, resampling=res)
+    return params_with(
+        segmenter=getattr(args, "segmenter", None),
+        degree=getattr(args, "degree", None),
+        control_points=getattr(args, "control_points", None),
+        rays=getattr(args, "rays", None),
+        fit_method=getattr(args, "fit_method", None),
+        robust=getattr(args, "robust", None),
+        axis=getattr(args, "axis", None),
+    )
 
 
 def register(subparsers: Any) -> None:

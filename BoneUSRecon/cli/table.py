@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from typing import Any
 
 from BoneUSRecon.cli.common import (
@@ -69,22 +68,18 @@ def write_table_plot(rows: list[tuple[int, float]], path: Any, title: str = "") 
 
 def run(args: argparse.Namespace) -> int:
     """Reconstruct, refit per count, print (and plot) the table."""
-    from BoneUSRecon.Logic.bspline import FitParams
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.fileio import check_output_path
-    from BoneUSRecon.Logic.pipeline import control_point_table, reconstruct
+    from BoneUSRecon.Logic.pipeline import control_point_table, params_with, reconstruct
     from BoneUSRecon.Logic.vtkio import read_points
 
     check_sweep_args(args)
     plot = check_output_path(args.plot, (".png",)) if args.plot else None
     params = params_from_args(args)
     if args.around is not None:
-        params = dataclasses.replace(
-            params,
-            fit=dataclasses.replace(params.fit, control_points=(params.fit.control_points[0], args.around)),
-        )
+        params = params_with(params, control_points=(params.fit.control_points[0], args.around))
     for e in args.counts:  # refuse absurd counts before the work
-        FitParams(degree=params.fit.degree, control_points=(e, params.fit.control_points[1]))
+        params_with(params, control_points=(e, params.fit.control_points[1]))
     if len(set(args.counts)) != len(args.counts):
         raise BoneUSReconError("control-point counts repeat")
     gold = read_points(args.gold)
