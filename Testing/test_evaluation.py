@@ -84,3 +84,14 @@ def test_bad_gold_refused(gold, match):
 def test_empty_surface_refused():
     with pytest.raises(BoneUSReconError, match="no triangles"):
         evaluate_surface(vtkPolyData(), np.zeros((3, 3)))
+
+
+def test_point_cloud_is_not_a_surface():
+    # Vertex cells only: distances would be to the points, not to a surface.
+    from BoneUSRecon.Logic.vtkio import points_to_polydata
+
+    cloud = points_to_polydata(np.random.default_rng(0).normal(size=(30, 3)))
+    assert cloud.GetNumberOfCells() == 30
+    with pytest.raises(BoneUSReconError, match="no surface triangles"):
+        evaluate_surface(cloud, np.zeros((3, 3)))
+    assert evaluate_surface(square(), np.zeros((1, 3))).n == 1

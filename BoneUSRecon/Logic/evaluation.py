@@ -9,6 +9,7 @@ vertex, so the mesh resolution does not inflate the figures.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,7 +19,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData, vtkStaticCellLocator
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 
-__all__ = ["Evaluation", "evaluate_surface", "point_to_surface_distances"]
+__all__ = ["Evaluation", "evaluate_surface", "point_to_surface_distances", "check_surface"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,6 +67,31 @@ class Evaluation:
         return out
 
 
+def check_surface(surface: vtkPolyData | None, path: str | os.PathLike[str] | None = None) -> None:
+    """Refuse a mesh without triangles (polygons or strips) as a surface to measure to.
+
+    A point cloud has vertex cells: distances to it would be to its points, not to a
+    surface, and read as silently wrong numbers.
+
+    Parameters
+    ----------
+    surface : vtkPolyData or None
+    path : path-like, optional
+        The file it came from, named in the error.
+
+    Raises
+    ------
+    BoneUSReconError
+        No triangles.
+    """
+    if surface is None or surface.GetNumberOfPolys() + surface.GetNumberOfStrips() == 0:
+        raise BoneUSReconError(
+            "no surface triangles (a point cloud or an empty mesh has no triangles to "
+            "measure distances to)",
+            path,
+        )
+
+
 def point_to_surface_distances(
     surface: vtkPolyData, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -74,7 +100,7 @@ def point_to_surface_distances(
     Parameters
     ----------
     surface : vtkPolyData
-        A mesh with at least one cell.
+        A mesh with at least one triangle (polygon or strip).
     points : ndarray, shape (K, 3)
 
     Returns
@@ -82,8 +108,7 @@ def point_to_surface_distances(
     distances : ndarray, shape (K,)
     closest : ndarray, shape (K, 3)
     """
-    if surface is None or surface.GetNumberOfCells() == 0:
-        raise BoneUSReconError("the surface has no triangles to measure distances to")
+    check_surface(surface)
     pts = np.asarray(points, float).reshape(-1, 3)
     loc = vtkStaticCellLocator()
     loc.SetDataSet(surface)

@@ -28,13 +28,11 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Read both files, measure, print."""
-    from BoneUSRecon.Logic.errors import BoneUSReconError
-    from BoneUSRecon.Logic.evaluation import evaluate_surface
+    from BoneUSRecon.Logic.evaluation import check_surface, evaluate_surface
     from BoneUSRecon.Logic.vtkio import read_points, read_polydata
 
     surface = read_polydata(args.surface)
-    if surface.GetNumberOfCells() == 0 or surface.GetNumberOfPolys() + surface.GetNumberOfStrips() == 0:
-        raise BoneUSReconError("the file has no surface triangles", args.surface)
+    check_surface(surface, args.surface)  # before reading the gold points
     gold = read_points(args.gold)
     ev = evaluate_surface(surface, gold)
     if args.json:
