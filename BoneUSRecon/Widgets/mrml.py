@@ -726,6 +726,16 @@ def make_params(
     Anything left ``None`` keeps the value of ``base`` (default: the paper's defaults);
     see :func:`BoneUSRecon.Logic.pipeline.params_with`, which the CLI uses too.
 
+    Parameters
+    ----------
+    base : ReconstructionParams, optional
+    segmenter : str, optional
+        A name in :data:`BoneUSRecon.Logic.segmentation.SEGMENTERS`.
+    control_points, degrees : (int, int), optional
+        ``(e, f)`` and ``(p, q)``, along and around the bone.
+    rays : int, optional
+        Rays per slice.
+
     Raises
     ------
     BoneUSReconError

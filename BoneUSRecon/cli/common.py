@@ -100,7 +100,20 @@ def read_sweep_args(args: argparse.Namespace, progress: ProgressCallback | None 
 
 
 def parse_size(text: str, option: str = "--size", example: str = "1100x700") -> tuple[int, int]:
-    """Parse a ``WxH`` size option into ``(width, height)`` pixels."""
+    """Parse a ``WxH`` size option into ``(width, height)`` pixels.
+
+    Parameters
+    ----------
+    text : str
+        The option's value, e.g. ``"1100x700"`` (``X`` works too).
+    option, example : str
+        The option's name and an example value, for the error message.
+
+    Raises
+    ------
+    BoneUSReconError
+        Not two integers joined by ``x``.
+    """
     from BoneUSRecon.Logic.errors import BoneUSReconError
 
     try:
