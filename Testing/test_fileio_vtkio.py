@@ -112,6 +112,21 @@ def test_write_read_polydata_round_trip(tmp_path, ext):
         assert read_polydata(out).GetPointData().GetArray("Frame") is not None
 
 
+@pytest.mark.parametrize("ext", SURFACE_EXTENSIONS)
+def test_every_written_surface_format_reads_back(tmp_path, ext):
+    # What reconstruct writes, evaluate and view must read (an .obj used to be refused).
+    from vtkmodules.vtkFiltersSources import vtkSphereSource
+
+    src = vtkSphereSource()
+    src.SetRadius(10.0)
+    src.Update()
+    mesh = src.GetOutput()
+    back = read_polydata(write_polydata(mesh, tmp_path / f"s{ext}"))
+    assert back.GetNumberOfPolys() == mesh.GetNumberOfPolys() > 0
+    r = np.linalg.norm(polydata_points(back), axis=1)
+    np.testing.assert_allclose(r, 10.0, atol=1e-4)
+
+
 def test_points_csv_round_trip_and_header_order(tmp_path):
     pts = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.5]])
     write_points_csv(pts, tmp_path / "g.csv")

@@ -16,7 +16,7 @@ import numpy as np
 from vtkmodules.util import numpy_support
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
-from vtkmodules.vtkIOGeometry import vtkOBJWriter, vtkSTLReader, vtkSTLWriter
+from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkOBJWriter, vtkSTLReader, vtkSTLWriter
 from vtkmodules.vtkIOLegacy import vtkPolyDataReader, vtkPolyDataWriter
 from vtkmodules.vtkIOPLY import vtkPLYReader, vtkPLYWriter
 from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLPolyDataWriter
@@ -149,6 +149,7 @@ def read_polydata(path: str | os.PathLike[str]) -> vtkPolyData:
         ".vtk": vtkPolyDataReader,
         ".stl": vtkSTLReader,
         ".ply": vtkPLYReader,
+        ".obj": vtkOBJReader,  # reconstruct writes .obj: evaluate and view read it back
     }
     if ext not in readers:
         raise BoneUSReconError(

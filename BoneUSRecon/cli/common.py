@@ -24,6 +24,9 @@ from BoneUSRecon.Logic.progress import ProgressCallback
 
 __all__ = [
     "PROG",
+    "GOLD_HELP",
+    "SURFACE_HELP",
+    "SWEEP_HELP",
     "add_common_options",
     "add_calibration_option",
     "check_sweep_args",
@@ -41,6 +44,11 @@ __all__ = [
 ]
 
 PROG = "bone-us-recon"
+
+#: Help texts of the inputs several commands take, worded once.
+GOLD_HELP = "gold-standard points: CSV x,y,z (mm) or a VTK point file"
+SURFACE_HELP = "surface file (.vtp .vtk .stl .ply .obj)"
+SWEEP_HELP = "PLUS sequence file (.mha or .mhd)"
 
 
 def add_common_options(parser: argparse.ArgumentParser) -> None:

@@ -57,7 +57,7 @@ def register(subparsers: Any) -> None:
                    help="pixel spacing in mm (default: a 48 x 38 mm field of view)")
     p.add_argument("--corrupted", "--corrupt", dest="corrupted", type=float, default=0.05, metavar="FRACTION",
                    help="fraction of corrupted frames (default 0.05)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
     p.add_argument("--report", metavar="DIR",
                    help="report folder (default OUTDIR/report)")
     p.add_argument("--no-report", action="store_true", help="do not write the HTML report")

@@ -5,7 +5,13 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from BoneUSRecon.cli.common import add_common_options, print_json, print_summary
+from BoneUSRecon.cli.common import (
+    GOLD_HELP,
+    SURFACE_HELP,
+    add_common_options,
+    print_json,
+    print_summary,
+)
 
 __all__ = ["register", "run"]
 
@@ -18,8 +24,8 @@ def register(subparsers: Any) -> None:
         description="Exact point-to-triangle distances from each gold point to the surface: "
         "mean, RMS, median, 95th percentile, maximum, and the share within 0.5, 1 and 2 mm.",
     )
-    p.add_argument("surface", metavar="SURFACE", help="surface file (.vtp .vtk .stl .ply)")
-    p.add_argument("gold", metavar="GOLD", help="gold points: CSV with x,y,z (mm) or a VTK point file")
+    p.add_argument("surface", metavar="SURFACE", help=SURFACE_HELP)
+    p.add_argument("gold", metavar="GOLD", help=GOLD_HELP)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     p.add_argument("--distances", action="store_true", help="with --json, include every distance")
     add_common_options(p)

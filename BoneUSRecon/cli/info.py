@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from BoneUSRecon.cli.common import (
+    SWEEP_HELP,
     ProgressBar,
     add_calibration_option,
     add_common_options,
@@ -25,7 +26,7 @@ def register(subparsers: Any) -> None:
         description="Print the frames, valid frames, image size, pixel spacing, sweep "
         "length, duration, bounds and the transform chain of a PLUS sequence file.",
     )
-    p.add_argument("sweep", metavar="SWEEP", help="PLUS sequence file (.mha or .mhd)")
+    p.add_argument("sweep", metavar="SWEEP", help=SWEEP_HELP)
     add_calibration_option(p)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     add_common_options(p)

@@ -7,6 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from BoneUSRecon.cli.common import (
+    GOLD_HELP,
+    SWEEP_HELP,
     ProgressBar,
     add_calibration_option,
     add_common_options,
@@ -80,7 +82,7 @@ def register(subparsers: Any) -> None:
         ".obj, chosen by extension) with a 'Distance' array (mm to the nearest "
         "segmented point).",
     )
-    p.add_argument("sweep", metavar="SWEEP", help="PLUS sequence file (.mha or .mhd)")
+    p.add_argument("sweep", metavar="SWEEP", help=SWEEP_HELP)
     p.add_argument("-o", "--output", required=True, metavar="SURFACE", help="output surface file")
     add_calibration_option(p)
     add_reconstruction_options(p)
@@ -88,7 +90,7 @@ def register(subparsers: Any) -> None:
         "--points-out", metavar="POINTS",
         help="also write the segmented points (.vtp .vtk .ply with Frame/Intensity/Confidence, or .csv)",
     )
-    p.add_argument("--gold", metavar="GOLD", help="gold-standard points (CSV x,y,z mm or VTK) to evaluate against")
+    p.add_argument("--gold", metavar="GOLD", help=f"{GOLD_HELP}, to evaluate against")
     p.add_argument("--report", metavar="DIR", help="also write an HTML report into this folder")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     add_common_options(p)

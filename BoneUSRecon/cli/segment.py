@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from BoneUSRecon.cli.common import (
+    SWEEP_HELP,
     ProgressBar,
     add_calibration_option,
     add_common_options,
@@ -34,7 +35,7 @@ def register(subparsers: Any) -> None:
         "implausible frames (no shadow, jump, no bone), and write the kept points in "
         "reference millimetres with point arrays Frame, Intensity and Confidence.",
     )
-    p.add_argument("sweep", metavar="SWEEP", help="PLUS sequence file (.mha or .mhd)")
+    p.add_argument("sweep", metavar="SWEEP", help=SWEEP_HELP)
     p.add_argument(
         "-o",
         "--output",

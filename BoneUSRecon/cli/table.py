@@ -6,6 +6,8 @@ import argparse
 from typing import Any
 
 from BoneUSRecon.cli.common import (
+    GOLD_HELP,
+    SWEEP_HELP,
     ProgressBar,
     add_calibration_option,
     add_common_options,
@@ -27,8 +29,8 @@ def register(subparsers: Any) -> None:
         "points along the bone and print the mean distance from the gold points, as in "
         "the paper's Table I.",
     )
-    p.add_argument("sweep", metavar="SWEEP", help="PLUS sequence file (.mha or .mhd)")
-    p.add_argument("--gold", required=True, metavar="GOLD", help="gold points: CSV x,y,z (mm) or VTK")
+    p.add_argument("sweep", metavar="SWEEP", help=SWEEP_HELP)
+    p.add_argument("--gold", required=True, metavar="GOLD", help=GOLD_HELP)
     add_calibration_option(p)
     add_reconstruction_options(p, control_points=False)
     p.add_argument(

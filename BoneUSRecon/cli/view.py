@@ -10,6 +10,9 @@ import argparse
 from typing import Any
 
 from BoneUSRecon.cli.common import (
+    GOLD_HELP,
+    SURFACE_HELP,
+    SWEEP_HELP,
     ProgressBar,
     add_calibration_option,
     add_common_options,
@@ -32,12 +35,12 @@ def register(subparsers: Any) -> None:
         "to show the distance there. With --screenshot, render off-screen to a PNG and "
         "exit.",
     )
-    p.add_argument("surface", metavar="SURFACE", help="surface file (.vtp, .vtk, .stl, .ply)")
+    p.add_argument("surface", metavar="SURFACE", help=SURFACE_HELP)
     p.add_argument("--points", metavar="POINTS",
                    help="segmented points (.vtp/.vtk/.ply or CSV with x,y,z columns)")
-    p.add_argument("--gold", metavar="GOLD", help="gold-standard points (CSV x,y,z or VTK)")
+    p.add_argument("--gold", metavar="GOLD", help=GOLD_HELP)
     p.add_argument("--sweep", metavar="SWEEP",
-                   help="PLUS sequence file (.mha/.mhd): draw its frames as outlines")
+                   help=f"{SWEEP_HELP}: draw its frames as outlines")
     add_calibration_option(p)
     p.add_argument("--screenshot", metavar="PNG",
                    help="render off-screen to this PNG and exit (no window)")
