@@ -17,10 +17,13 @@ import sys
 import traceback
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.progress import ProgressCallback
+
+if TYPE_CHECKING:  # the CLI's start-up must not import numpy/VTK
+    from BoneUSRecon.Logic.sweep import Sweep
 
 __all__ = [
     "PROG",
@@ -86,7 +89,7 @@ def check_sweep_args(args: argparse.Namespace) -> None:
         check_input_file(args.calibration)
 
 
-def read_sweep_args(args: argparse.Namespace, progress: ProgressCallback | None = None) -> Any:
+def read_sweep_args(args: argparse.Namespace, progress: ProgressCallback | None = None) -> Sweep:
     """Read ``args.sweep`` with the pose chosen by ``--calibration`` and ``--transform``.
 
     Parameters

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from BoneUSRecon.cli.common import (
     SWEEP_HELP,
@@ -14,6 +14,9 @@ from BoneUSRecon.cli.common import (
     print_summary,
     read_sweep_args,
 )
+
+if TYPE_CHECKING:
+    from BoneUSRecon.Logic.sweep import Sweep
 
 __all__ = ["register", "run", "sweep_info"]
 
@@ -33,7 +36,7 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run)
 
 
-def sweep_info(sweep: Any) -> dict[str, Any]:
+def sweep_info(sweep: Sweep) -> dict[str, Any]:
     """The facts ``info`` prints, as a JSON-ready dict.
 
     Parameters
