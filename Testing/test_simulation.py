@@ -215,13 +215,14 @@ def _band_means(frame: np.ndarray, contour: np.ndarray, offset_px: float, half: 
 def test_true_contours_lie_on_the_bright_bone_line(sim_small) -> None:
     sw = sim_small.sweep
     sp = sim_small.params.spacing_mm
-    line, shadow, above, peak_off = [], [], [], []
+    line, shadow, above, tail, peak_off = [], [], [], [], []
     for k, c in enumerate(sim_small.true_contours_px):
         assert c.ndim == 2 and c.shape[1] == 2 and len(c) > 10
         assert np.all(np.diff(c[:, 0]) > 0)  # ordered by increasing i
         f = sw.frames[k].astype(float)
         line.append(_band_means(f, c, 0.0).mean())
-        shadow.append(_band_means(f, c, 1.0 / sp).mean())
+        shadow.append(_band_means(f, c, 2.0 / sp).mean())
+        tail.append(_band_means(f, c, 0.6 / sp).mean())
         above.append(_band_means(f, c, -1.5 / sp).mean())
         # The brightest row near the contour is the contour row itself.
         i = c[:, 0].astype(int)
@@ -230,9 +231,15 @@ def test_true_contours_lie_on_the_bright_bone_line(sim_small) -> None:
         peak_off.append(np.median(best - c[:, 1]))
         # The contour in mm lies on the true surface.
         assert sim_small.distance_to_truth(sim_small.contour_mm(k)).max() < 0.01
-    line, shadow, above = map(np.array, (line, shadow, above))
+    line, shadow, above, tail = map(np.array, (line, shadow, above, tail))
     assert line.min() > 130 and line.mean() > 150
-    assert np.all(line > 4 * shadow) and shadow.max() < 40
+    # The shadow (2 mm under the surface) is grey, not black, as on real recordings:
+    # on average 15-50 % of the tissue above, and well under the echo.
+    assert np.all(line > 3 * shadow)
+    assert 0.15 < shadow.mean() / above.mean() < 0.5
+    # The echo is thick below the surface (cortical tail), not above it: 0.6 mm under
+    # the surface is still brighter than the shadow; the peak is on the surface.
+    assert np.all(tail > shadow + 10)
     assert np.all(line > above + 40)  # soft tissue above is mid-grey
     assert np.abs(np.array(peak_off)).max() <= 1.0
 
@@ -270,7 +277,7 @@ def test_forearm_scan_shows_the_other_bone_beside_the_target(sim_factory) -> Non
         assert np.intersect1d(cols, target[3:-3]).size == 0
         # ...a bright bone echo over a dark shadow.
         other = cols[np.abs(a - b)[:, cols].max(0) > 100]
-        assert a[:, other].max() > 180
+        assert a[:, other].max() > 160  # (the edge of the ulna: oblique, so not the brightest)
         assert a[h // 2 :, other].mean() < 0.5 * b[h // 2 :, other].mean()
 
 

@@ -16,6 +16,7 @@ from BoneUSRecon.Logic.segmentation.rejection import (
     frame_evidence,
     frame_verdict,
     neighbour_deviation,
+    trim_kinked_ends,
     trim_unshadowed_ends,
 )
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
@@ -107,6 +108,7 @@ def segment_sweep(
         sp = (float(spacing_all[k, 0]), float(spacing_all[k, 1]))
         det = segment_frame(image, sp, params, prior)
         trim = trim_unshadowed_ends(image, det.points_px, sp, rej.max_shadow_ratio)
+        trim[trim] = trim_kinked_ends(det.points_px[trim], sp)
         if not trim.all():
             det = Detection(
                 det.points_px[trim],

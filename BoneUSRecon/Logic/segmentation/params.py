@@ -113,12 +113,24 @@ class ShadowPathParams:
     """Depth of the region (below the band) whose darkness gates the score, mm (ours)."""
     gate_ratio: float = 0.6
     """Shadow/echo intensity ratio at which the shadow gate reaches 0 (ours: tissue under a layer is >= 60 % as bright)."""
-    min_score: float = 0.3
-    """Score (Dif in [0, 2] times the shadow gate) a pixel needs to pay off over "no bone" (ours: tuned on simulated clavicle, radius, tibia)."""
-    slope_penalty: float = 0.25
-    """Cost per (mm of depth change per mm of lateral step)^2 between neighbouring columns (ours)."""
-    max_slope: float = 1.5
-    """Largest depth change per lateral mm the path may take (ours: ~56 degrees)."""
+    min_score: float = 0.14
+    """Score (Dif in [0, 2] times the shadow gate) a pixel needs to pay off over "no bone" (ours: low enough that the weak oblique flank echoes of the real L14 recording (score 0.1-0.3, the top of the arc 0.4-0.6) stay on the path; was 0.3, which kept only the top 6-17 mm)."""
+    strong_score: float = 0.3
+    """Score of a "strong" column (ours: the former min_score; the top of real and simulated bone scores 0.4-1, a bright tissue layer with tissue under it < 0.25)."""
+    strong_mm: float = 2.0
+    """A contour needs at least this many mm of strong columns (ours: hysteresis, see min_score)."""
+    slope_penalty: float = 0.08
+    """Cost per (mm of depth change per mm of lateral step)^2 between neighbouring columns (ours: small, so steep flanks are not cut off)."""
+    max_slope: float = 2.2
+    """Largest depth change per lateral mm the path may take (ours: ~65 degrees, the flanks of a round bone just before their echo fades; 3.0 let the path climb onto the neighbouring forearm bone in the simulator)."""
+    near_field_mm: float = 2.0
+    """Rows shallower than this are never bone, mm (ours: gel, skin line and lens reverberation; the shallowest simulated bone, the clavicle, lies >= 3 mm deep, and real bone under skin and periosteum is deeper)."""
+    fov_grey: float = 4.0
+    """Grey level (0..255) below which a pixel counts as black, for finding the imaged field of view (ours: scan-converted images are exactly 0 outside it)."""
+    fov_fraction: float = 0.25
+    """A column is inside the field of view when more than this fraction of its pixels are above ``fov_grey`` (ours)."""
+    fov_margin_mm: float = 0.5
+    """Columns this close to the edge of the field of view are ignored too, mm (ours: block averaging mixes them with the black margin)."""
     switch_cost: float = 0.3
     """Cost of entering or leaving the "no bone" state (ours: tuned on simulated bones and the shared real recording)."""
     merge_gap_mm: float = 3.0

@@ -36,6 +36,7 @@ __all__ = [
     "neighbour_deviation",
     "point_shadow_ratio",
     "trim_unshadowed_ends",
+    "trim_kinked_ends",
 ]
 
 
@@ -142,13 +143,18 @@ def trim_unshadowed_ends(
     points_px: np.ndarray,
     spacing: tuple[float, float],
     max_ratio: float,
+    split_mm: float = 1.0,
 ) -> np.ndarray:
-    """Mask keeping the contour minus its unshadowed ends.
+    """Mask keeping the contour minus its unshadowed ends and side branches.
 
     A contour that runs from the bone onto a tissue layer at its edge keeps going
-    where nothing is dark below: those end points are cut, one end at a time, up to
-    the first point with a shadow (ratio at most ``max_ratio`` and at most 2.5 times
-    the contour's median ratio, floor 0.2). Interior points are left to the frame's checks.
+    where nothing is dark below: those end points are cut, up to the first point with a
+    shadow (ratio at most ``max_ratio`` and at most 2.5 times the contour's median
+    ratio, floor 0.2). When such an unshadowed run at least ``split_mm`` long lies
+    *inside* the contour (a fascia bridging the bone and something dark further on,
+    e.g. the shadow of a neighbouring bone), the contour is split there and only the
+    part with the most shadowed points is kept. Shorter interior runs are left to the
+    frame's checks (speckle, a dropout of the echo).
     """
     keep = np.ones(points_px.shape[0], bool)
     if points_px.shape[0] == 0:
@@ -161,8 +167,70 @@ def trim_unshadowed_ends(
     if not shadowed.any():
         return keep  # the whole frame will be judged (and rejected) as unshadowed
     first, last = np.flatnonzero(shadowed)[[0, -1]]
-    keep[:first] = False
-    keep[last + 1 :] = False
+    # Inside the contour, only clearly unshadowed runs split it: well above the
+    # contour's own typical ratio too (coarse images, where the 1-5 mm window is a
+    # few pixels holding the echo's tail, have a high ratio all along the bone).
+    inner = ratio <= max(limit, 1.6 * float(np.median(ratio)))
+    inner[:first] = False
+    inner[last + 1 :] = False
+    idx = np.flatnonzero(inner)
+    # Split between consecutive shadowed points separated by a long unshadowed run.
+    gap_mm = np.diff(points_px[idx, 0]) * float(spacing[0])
+    long_run = (np.diff(idx) > 1) & (gap_mm >= split_mm)
+    parts = np.split(idx, np.flatnonzero(long_run) + 1)
+    best = max(parts, key=len)
+    keep[:] = False
+    keep[best[0] : best[-1] + 1] = True
+    return keep
+
+
+def _slope(x: np.ndarray, z: np.ndarray) -> float:
+    """Least-squares slope dz/dx (0 for fewer than two distinct x)."""
+    if x.size < 2 or np.ptp(x) <= 0:
+        return 0.0
+    xc = x - x.mean()
+    return float((xc * (z - z.mean())).sum() / (xc * xc).sum())
+
+
+def trim_kinked_ends(
+    points_px: np.ndarray,
+    spacing: tuple[float, float],
+    window_mm: float = 1.5,
+    steep: float = 0.8,
+    flat_fraction: float = 0.3,
+    max_cut_mm: float = 6.0,
+) -> np.ndarray:
+    """Mask cutting an end that leaves a steep flank of the bone on a flat line.
+
+    Seen from the probe a bone's cross-section is convex: going outwards from its top
+    the contour gets deeper ever more steeply. A contour whose end instead turns
+    abruptly from a steep flank (outward slope >= ``steep`` over ``window_mm``) to
+    nearly flat (slope <= ``flat_fraction`` of that) has run onto a tissue layer that
+    meets the bone there (a fascia at the level of the bone's flank, whose region
+    below is partly shadowed by the widening bone, so the shadow test cannot tell).
+    The flat part is cut when it is at most ``max_cut_mm`` long.
+    """
+    n = points_px.shape[0]
+    keep = np.ones(n, bool)
+    if n < 6:
+        return keep
+    x = points_px[:, 0] * float(spacing[0])
+    z = points_px[:, 1] * float(spacing[1])
+    # At least ~3 points per slope on coarse images (0.6 mm pixels: 1.5 mm is 2.5 px).
+    step = float(np.median(np.diff(x))) if n > 1 else float(spacing[0])
+    window_mm = max(window_mm, 3.0 * step)
+    for side in (-1, 1):  # -1: left end (outward = decreasing x), 1: right end
+        xo = side * x  # outward coordinate: increases towards this end
+        end = xo.max()
+        best_k, best_drop = -1, 0.0
+        for k in np.flatnonzero((end - xo <= max_cut_mm) & (end - xo >= 0.5 * window_mm)):
+            inner = (xo <= xo[k]) & (xo >= xo[k] - window_mm)
+            outer = (xo >= xo[k]) & (xo <= xo[k] + window_mm)
+            s_in, s_out = _slope(xo[inner], z[inner]), _slope(xo[outer], z[outer])
+            if s_in >= steep and s_out <= flat_fraction * s_in and s_in - s_out > best_drop:
+                best_k, best_drop = int(k), s_in - s_out
+        if best_k >= 0:
+            keep &= side * x <= side * x[best_k]
     return keep
 
 

@@ -15,8 +15,10 @@ of the working image):
    minus ``min_score`` per mm, minus a quadratic slope penalty, with a "no bone" state
    that costs ``switch_cost`` to enter or leave: columns without bone are not forced
    onto a contour.
-4. Runs of bone columns separated by short gaps are merged; the best-scoring group is
-   kept (one bone per sweep, as in the paper).
+4. Runs of bone columns separated by short gaps are merged; the best-scoring group
+   with at least ``strong_mm`` of columns scoring ``strong_score`` is kept (one bone
+   per sweep, as in the paper). This hysteresis lets weak echoes continue a contour
+   (the oblique flanks of real bone) without letting them start one.
 5. Sub-pixel depth: along each kept column, the Gaussian-smoothed full-resolution
    profile's peak near the path, by a parabolic fit through the three samples around
    the maximum.
@@ -35,7 +37,7 @@ from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection,
 from BoneUSRecon.Logic.segmentation.features import column_window_mean, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
-__all__ = ["shadowpath_frame", "bone_score"]
+__all__ = ["shadowpath_frame", "bone_score", "field_of_view"]
 
 _NULL = np.int8(-128)  # back-pointer meaning "came from the no-bone state"
 
@@ -69,10 +71,35 @@ def bone_score(work: np.ndarray, dy: float, params: ShadowPathParams) -> np.ndar
     # Where most of the shadow region is outside the image there is no evidence of a
     # shadow: no score (otherwise the image's bottom rows would look like bone).
     inside = np.clip(h - bot, 0, shadow) / shadow
-    gate *= (inside >= 0.5)[:, None]
+    # Likewise at the top: a band whose region above is cut by the image edge, or in
+    # the near field (coupling gel, skin line, lens reverberation: no bone lies
+    # there), is not scored; the dark gel above the bright skin line would look like
+    # an echo with nothing above it.
+    near = mm_to_px(p.near_field_mm, dy, minimum=0)
+    ok = (inside >= 0.5) & (top - up >= 0) & (j >= near)
+    gate *= ok[:, None]
     np.clip(gate, 0.0, 1.0, out=gate)
     np.maximum(dif, 0.0, out=dif)
     return dif * gate
+
+
+def field_of_view(work: np.ndarray, dx: float, params: ShadowPathParams) -> np.ndarray:
+    """Columns of a working image (values 0..1) inside the imaged field of view, shape (w,).
+
+    A column is inside when more than ``fov_fraction`` of its pixels are brighter than
+    ``fov_grey``; the inside is then shrunk by ``fov_margin_mm`` on each side of every
+    outside run (the edge columns are averaged with the black margin).
+    """
+    p = params
+    inside = (work > p.fov_grey / 255.0).mean(axis=0) > p.fov_fraction
+    k = int(round(p.fov_margin_mm / dx))
+    if k > 0 and not inside.all():
+        # Erosion by k columns (binary, 1-D): a column stays inside only if all its
+        # neighbours within k are inside; the image borders do not erode.
+        pad = np.pad(inside, k, mode="edge")
+        win = sliding_window_view(pad, 2 * k + 1)
+        inside = win.all(axis=1)
+    return inside
 
 
 def _temporal_factor(
@@ -139,7 +166,12 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
 
 
 def _best_group(
-    path: np.ndarray, gain: np.ndarray, dx: float, dy: float, p: ShadowPathParams
+    path: np.ndarray,
+    gain: np.ndarray,
+    score: np.ndarray,
+    dx: float,
+    dy: float,
+    p: ShadowPathParams,
 ) -> np.ndarray:
     """Columns of the best group of bone runs (short gaps with small steps merged)."""
     cols = np.flatnonzero(path >= 0)
@@ -160,6 +192,10 @@ def _best_group(
     best, best_score = cols[:0], -np.inf
     for g in groups:
         sel = np.concatenate([cols[starts[r] : ends[r] + 1] for r in g])
+        # Hysteresis: weak echoes may continue a contour (the oblique flanks of real
+        # bone), but a contour needs some strong evidence to exist at all.
+        if (score[path[sel], sel] >= p.strong_score).sum() * dx < p.strong_mm:
+            continue
         s = float(gain[path[sel], sel].sum())
         if s > best_score:
             best, best_score = sel, s
@@ -210,6 +246,12 @@ def shadowpath_frame(
         work += colmean[q : h * fy : fy]
     work *= np.float32(1.0 / fy)
     score = bone_score(work, dy, p)
+    # Scan-converted recordings (the real L14 sweep) have black margins beside the
+    # imaged sector or rectangle: no bone can be found there, nor right at its edge.
+    outside = ~field_of_view(work, dx, p)
+    if outside.all():
+        return empty_detection(reason="no imaged field of view")
+    score[:, outside] = 0.0
     if prior_px is not None and len(prior_px) >= 2 and p.temporal_weight > 0:
         score = score * _temporal_factor(h, w, fx, fy, dy, np.asarray(prior_px), p)
     gain = (score - p.min_score) * dx
@@ -229,7 +271,7 @@ def shadowpath_frame(
     path = np.full(w, -1, dtype=np.intp)
     sub = _optimal_path(gain[r0:r1, c0:c1], shift_cost, p.switch_cost)
     path[c0:c1] = np.where(sub >= 0, sub + r0, -1)
-    cols = _best_group(path, gain, dx, dy, p)
+    cols = _best_group(path, gain, score, dx, dy, p)
     if cols.size == 0:
         return empty_detection(reason="no bone found")
 

@@ -30,7 +30,7 @@ __all__ = ["Simulation", "simulate", "write_simulation", "check_params", "check_
 
 #: Version of the simulation model, written to ``simulation.json``; bump when the
 #: images or geometry for a given seed change.
-SIMULATOR_VERSION = 1
+SIMULATOR_VERSION = 2
 
 
 @dataclass(frozen=True, eq=False)

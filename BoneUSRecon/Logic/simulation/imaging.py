@@ -11,9 +11,14 @@ The chain, per frame, vectorised over a chunk of frames:
 3. Specular interfaces, added coherently (as complex lines with their own phase):
    fascia lines (bright, thin, no shadow: the distractors) and the bone echo, centred
    on the true bone row of each column with amplitude ``bone_amplitude *
-   cos(incidence) ** specular_exponent`` and a short cortical tail below.
+   (cos(incidence) ** specular_exponent + diffuse_fraction * cos(incidence))``, a
+   cortical tail below (``bone_tail``, ``bone_tail_mm``: the echo is ~0.5-1 mm thick,
+   all below the surface; its *peak* is the true surface), lateral roughness and
+   occasional dropouts (``dropouts_per_cm``).
 4. Acoustic shadow: everything deeper than the bone surface is multiplied by
-   ``shadow_transmission`` (laterally blurred by the beam width).
+   ``shadow_transmission`` (laterally blurred by the beam width); the shadow is grey,
+   not black, as on real recordings, and holds faint reverberation copies of the bone
+   echo (``reverb_amplitude`` every ``reverb_mm``).
 5. Depth attenuation left over after TGC, electronic noise, envelope (``abs``), log
    compression over ``dynamic_range_db`` to 8 bits.
 
@@ -239,7 +244,9 @@ def render_frames(
     bone_amp = (
         ip.bone_amplitude * (cos_c**ip.specular_exponent + ip.diffuse_fraction * cos_c) * present_all
     ).astype(np.float32)
-    tail_tau = 0.25 / sp  # cortical reverberation: the line's soft lower edge, ~0.5 mm
+    tail_tau = ip.bone_tail_mm / sp  # cortical reverberation: the line's soft lower edge
+    reverb_px = ip.reverb_mm / sp
+    sig_drop = 0.8 / sp  # width (sigma) of an echo dropout
 
     # Muscle texture: white noise low-passed by FFT (cheaper than a spatial filter of
     # this ~1 mm width), normalised to unit std.
@@ -273,6 +280,14 @@ def render_frames(
             phases[a] = np.exp(1j * (r.uniform(0, 2 * np.pi, (4, 1)) + np.cumsum(r.normal(0, 0.15, (4, w)), 1)))
             rough[a] = gaussian_filter1d(r.standard_normal(w), 3 * sig_lat)
             frame_rngs.append(r)
+        dropout = np.ones((nc, w), np.float32)
+        for a in range(nc):
+            # Drawn after everything else of the frame so that the other draws (and the
+            # corruption below) are as before; a frame's dropouts follow its own seed.
+            r = frame_rngs[a]
+            n_drop = r.poisson(ip.dropouts_per_cm * w * sp / 10.0)
+            for ic in r.uniform(0, w, n_drop):
+                dropout[a] *= 1.0 - 0.7 * np.exp(-0.5 * ((cols - ic) / sig_drop) ** 2).astype(np.float32)
         noise *= np.float32(np.sqrt(0.5))
         rough = 1 + 0.25 * rough / np.maximum(rough.std(1, keepdims=True), 1e-6)
 
@@ -324,11 +339,20 @@ def render_frames(
 
         def bone_profile(d: np.ndarray) -> np.ndarray:
             core = np.exp(-0.5 * (d / sig_line) ** 2)
-            return core + np.where(d > 0, 0.25 * (1 - core) * np.exp(-np.clip(d, 0, None) / tail_tau), 0.0)
+            tail = ip.bone_tail * (1 - core) * np.exp(-np.clip(d, 0, None) / tail_tau)
+            return core + np.where(d > 0, tail, 0.0)
 
         bone = np.zeros_like(field)
-        _add_band(bone, top_j[ks], bone_amp[ks] * rough * phases[:, 3], bone_profile, 4 * sig_line, 4 * sig_line + 6 * tail_tau)
+        amp_k = bone_amp[ks] * rough * dropout
+        _add_band(bone, top_j[ks], amp_k * phases[:, 3], bone_profile, 4 * sig_line, 4 * sig_line + 6 * tail_tau)
         field += bone
+        # Reverberations inside the shadow: blurred, weaker copies of the bone echo
+        # further down (sound bouncing between the bone and the layers above it).
+        if ip.reverb_amplitude > 0:
+            sig_rev = 2.0 * sig_line
+            for m in (1, 2):
+                amp_r = (ip.reverb_amplitude / m) * amp_k * np.conj(phases[:, 3])
+                _add_band(field, top_j[ks] + m * reverb_px, amp_r, gauss(sig_rev), 4 * sig_rev, 4 * sig_rev)
 
         # corrupted frames (rare: a Python loop over them is fine)
         for a, k in enumerate(ks):

@@ -43,15 +43,37 @@ class ImagingParams:
     fascia_amplitude: float = 6.0
     #: Peak amplitude of the bone echo at normal incidence (the brightest thing).
     bone_amplitude: float = 16.0
-    #: Exponent of cos(incidence) in the bone echo: specular reflection fades fast off-normal.
-    specular_exponent: float = 2.0
+    #: Exponent of cos(incidence) in the bone echo: specular reflection fades fast
+    #: off-normal. 3 (was 2): on the real L14 recording the flanks of the bone at
+    #: ~55-60 degrees are ~10-15 dB weaker than its top (grey ~100 against ~210).
+    specular_exponent: float = 3.0
     #: Diffuse part of the bone echo (fraction of bone_amplitude, times cos(incidence)):
     #: rough cortex still returns a little echo off-normal, so the sides of the bone show dimly.
     diffuse_fraction: float = 0.12
     #: Axial sigma of the bone line (mm): a bit thicker than the PSF (cortical reverberation).
+    #: The peak of this Gaussian core lies exactly on the true surface: the simulator's
+    #: truth is "the surface is the peak of the echo", as the segmenters assume.
     bone_line_mm: float = 0.18
-    #: Amplitude transmitted into the acoustic shadow below bone (bone reflects ~all).
-    shadow_transmission: float = 0.03
+    #: Amplitude of the echo's tail below the surface, relative to its peak: the bright
+    #: band of real bone is ~0.5-1 mm thick, all of it *below* the surface (cortical
+    #: reverberation), so the echo is asymmetric: sharp top, soft bottom.
+    bone_tail: float = 0.45
+    #: Decay length (mm) of that tail.
+    bone_tail_mm: float = 0.4
+    #: Amplitude transmitted into the acoustic shadow below bone. 0.22 (was 0.03, an
+    #: almost black shadow): on the real L14 recording the shadow is grey, its speckle
+    #: at 15-40 % of the tissue's grey level (side lobes, multiple reflections).
+    shadow_transmission: float = 0.22
+    #: Amplitude of reverberation copies of the bone echo inside the shadow, relative to
+    #: the echo (the first at ``reverb_mm`` below, the second at twice that, half as
+    #: strong): the faint bands seen under real bone.
+    reverb_amplitude: float = 0.07
+    #: Spacing of the reverberation copies (mm).
+    reverb_mm: float = 3.0
+    #: Expected number of dropouts of the bone echo per cm of bone line: short stretches
+    #: (sigma ~0.8 mm) where the echo falls to ~30 % (roughness, a tendon or vessel
+    #: in the way), as real bone lines are not uniformly bright.
+    dropouts_per_cm: float = 0.25
     #: Electronic noise floor (amplitude): the faint grain in shadows.
     noise_floor: float = 0.15
     #: Bone points with cos(incidence) below this are not part of the visible contour.
