@@ -310,3 +310,19 @@ def test_unshadowed_ends_are_trimmed():
     keep = trim_unshadowed_ends(img, pts, (s, s), 0.45)
     assert not keep[pts[:, 0] < 34].any()
     assert keep[pts[:, 0] > 46].all()
+
+
+def test_field_of_view_columns():
+    """Black columns (and 0.5 mm next to them) are outside; a dark shadow column is not."""
+    from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+    from BoneUSRecon.Logic.segmentation.shadowpath import field_of_view
+
+    rng = np.random.default_rng(0)
+    work = rng.uniform(0.1, 0.4, (80, 60)).astype(np.float32)
+    work[40:, 25:35] = 0.01  # a deep, nearly black shadow: still imaged
+    work[:, :10] = 0.0
+    work[:, 52:] = 0.0
+    inside = field_of_view(work, 0.25, ShadowPathParams())
+    # 0.5 mm at 0.25 mm per column: two more columns each side are dropped.
+    assert np.array_equal(np.flatnonzero(inside), np.arange(12, 50))
+    assert field_of_view(np.full((20, 30), 0.3, np.float32), 0.25, ShadowPathParams()).all()

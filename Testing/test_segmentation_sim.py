@@ -86,3 +86,18 @@ def test_paper_snake_on_the_simulator(sim_small):
     assert len(r.accepted) >= 0.1 * sim_small.sweep.n_frames
     iters = [c.extras["iterations"] for c in r.contours]
     assert max(iters) <= 300
+
+
+def test_black_margins_are_outside_the_field_of_view(sim_factory):
+    """Scan-converted frames: black columns beside the image; no contour point there."""
+    sim = sim_factory(seed=4, black_margin_px=30)
+    m, w = 30, sim.sweep.width
+    assert not np.asarray(sim.sweep.frames)[:, :, :m].any()
+    assert all(((c[:, 0] >= m) & (c[:, 0] < w - m)).all() for c in sim.true_contours_px)
+    r = segment_sweep(sim.sweep)
+    assert len(r.accepted) >= 0.9 * sim.sweep.n_frames
+    for c in r.accepted:
+        # Not in the margin, nor within the 0.5 mm next to it.
+        assert c.points_px[:, 0].min() >= m and c.points_px[:, 0].max() <= w - 1 - m
+    d = distances(r, sim)
+    assert np.median(d) <= 0.15 and np.percentile(d, 95) <= 0.5 and np.mean(d > 2.0) < 0.01

@@ -9,6 +9,16 @@ Our ground truth for tests, benchmarks and the demo. Small files, one per stage:
 * :mod:`.imaging` -- B-mode image formation (speckle, tissue, bone echo, shadow).
 * :mod:`.corruption` -- frames that fool a per-frame segmenter.
 * :mod:`.core` -- :func:`simulate` and :func:`write_simulation`.
+* :mod:`.augment` -- augmentations of a recorded sweep (mirror, gain, speckle,
+  resampling, crop) with consistent poses, to test on real data without new data.
+
+Simulator version 2 (compared with the real L14 recording): the shadow under bone is
+grey (speckle at ~15-40 % of the tissue's grey level, ``shadow_transmission`` 0.22)
+with faint reverberation copies of the bone echo every 3 mm; the bone echo has a
+~0.5-1 mm tail *below* the surface (its peak stays on the true surface, which is
+what the segmenters report); oblique flanks are weaker (``specular_exponent`` 3);
+the echo has occasional dropouts; optional black margins beside the image
+(``black_margin_px``) as in scan-converted recordings.
 
 Examples
 --------

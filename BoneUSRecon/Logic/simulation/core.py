@@ -162,6 +162,10 @@ def check_params(params: SimulationParams) -> None:
         v = getattr(p, name)
         if not (0.0 <= v <= 1.0):
             raise BoneUSReconError(f"{name.replace('_', ' ')} must be between 0 and 1, got {v}")
+    if not (0 <= int(p.black_margin_px) and 2 * int(p.black_margin_px) <= int(p.width) - 16):
+        raise BoneUSReconError(
+            f"black margins of {p.black_margin_px} px leave less than 16 imaged columns of {p.width}"
+        )
     if p.gold_points < 0 or p.gold_noise_mm < 0:
         raise BoneUSReconError("gold points and gold noise must not be negative")
     spec = BONE_SPECS[p.bone]
@@ -209,7 +213,8 @@ def _sample_gold(
     d = P - m[:, None, :3, 3]
     i = np.einsum("smk,sk->sm", d, m[:, :3, 0]) / np.einsum("sk,sk->s", m[:, :3, 0], m[:, :3, 0])[:, None]
     j = np.einsum("smk,sk->sm", d, m[:, :3, 1]) / np.einsum("sk,sk->s", m[:, :3, 1], m[:, :3, 1])[:, None]
-    seen = (i >= 0) & (i <= params.width - 1) & (j >= 0) & (j <= params.height - 1)
+    m = int(params.black_margin_px)
+    seen = (i >= m) & (i <= params.width - 1 - m) & (j >= 0) & (j <= params.height - 1)
     w = np.where((up >= params.imaging.visible_cos) & seen, area, 0.0).reshape(-1)
     if w.sum() <= 0:
         return np.empty((0, 3))
@@ -286,6 +291,12 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     )
     hidden = {k for k, v in kinds.items() if v == "contact_loss"}
     contours = visible_contours(sections, int(params.height), params.imaging.visible_cos, hidden)
+    m = int(params.black_margin_px)
+    if m > 0:
+        # Scan-converted frames are exactly black outside the imaged area: no bone seen there.
+        frames[:, :, :m] = 0
+        frames[:, :, frames.shape[2] - m :] = 0
+        contours = [c[(c[:, 0] >= m) & (c[:, 0] < frames.shape[2] - m)] for c in contours]
 
     # The part of the bone the sweep imaged: between the extreme sections that showed bone.
     seen = np.array([c.shape[0] > 0 for c in contours])

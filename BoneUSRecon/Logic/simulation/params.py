@@ -123,6 +123,10 @@ class SimulationParams:
     #: transverse forearm scan does: a second bone echo with its own shadow at the
     #: side of the image. It is not part of the truth, the gold points or the contours.
     neighbour: bool = True
+    #: Width (pixels) of the black margin left and right of the imaged area, as in a
+    #: scan-converted recording (the real L14 sweep: 176 columns of 820 on the left).
+    #: No echo there and no bone in the true contours; 0 (default) images every column.
+    black_margin_px: int = 0
     #: Number of digitised gold-standard points (the paper: 1145).
     gold_points: int = 1145
     #: Standard deviation of the digitiser noise, per axis (mm).
