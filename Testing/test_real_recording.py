@@ -89,7 +89,9 @@ AUGMENTATIONS = {
     "0.15mm": lambda s: augment.resample_spacing(s, 0.15),
     "crop": lambda s: augment.crop(s, (40, 560), (150, 700)),
     "all": lambda s: augment.add_speckle(
-        augment.scale_gain(augment.resample_spacing(augment.flip_lateral(s), 0.15), 0.7), 0.3, seed=2
+        augment.scale_gain(augment.resample_spacing(augment.flip_lateral(s), 0.15), 0.7),
+        0.3,
+        seed=2,
     ),
 }
 

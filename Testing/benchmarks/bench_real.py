@@ -37,7 +37,9 @@ AUGMENTATIONS = {
     "0.15mm": lambda s: augment.resample_spacing(s, 0.15),
     "crop": lambda s: augment.crop(s, (40, 560), (150, 700)),
     "all": lambda s: augment.add_speckle(
-        augment.scale_gain(augment.resample_spacing(augment.flip_lateral(s), 0.15), 0.7), 0.3, seed=2
+        augment.scale_gain(augment.resample_spacing(augment.flip_lateral(s), 0.15), 0.7),
+        0.3,
+        seed=2,
     ),
 }
 
@@ -74,7 +76,9 @@ def main() -> None:
     dt = (time.perf_counter() - t) / sw.n_valid
     sx = float(sw.spacing_mm[0])
     ext = [float(np.ptp(c.points_px[:, 0]) * sx) for c in r.accepted]
-    print(f"real: {len(r.accepted)}/{sw.n_valid} frames accepted, {1e3 * dt:.1f} ms/frame (820x616)")
+    print(
+        f"real: {len(r.accepted)}/{sw.n_valid} frames accepted, {1e3 * dt:.1f} ms/frame (820x616)"
+    )
     print(f"  contour extent mm: min {min(ext):.1f} median {np.median(ext):.1f} max {max(ext):.1f}")
     print("  per frame:", " ".join(f"{e:.1f}" for e in ext))
     if args.overlay:
@@ -82,7 +86,9 @@ def main() -> None:
 
         write_overlays(sw.frames, r.contours, args.overlay)
 
-    print(f"{'augmentation':13} {'accepted':>8} {'median':>7} {'p95':>6} {'>2mm%':>6} {'cover':>6} {'beyond':>6}")
+    print(
+        f"{'augmentation':13} {'accepted':>8} {'median':>7} {'p95':>6} {'>2mm%':>6} {'cover':>6} {'beyond':>6}"
+    )
     for name, fn in AUGMENTATIONS.items():
         n, d, cover, beyond = compare(sw, r, fn(sw))
         print(
