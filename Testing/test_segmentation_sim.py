@@ -74,16 +74,15 @@ def test_corrupted_frames_never_reach_the_fit(shadowpath_corrupted, sim_small_co
 def test_paper_snake_on_the_simulator(sim_small):
     r = segment_sweep(sim_small.sweep, SegmentationParams(method="snake"))
     d = distances(r, sim_small)
-    # The paper's method is less accurate than the default but what it keeps is on the
-    # bone. Since the simulator's shadow is grey with reverberation copies of the bone
-    # echo (simulator version 2, as on real recordings), the snake rising from below
-    # is often caught by a reverberation and the frame rejected: it keeps ~15 % of
-    # the frames here (the paper's own failure mode, "noise on the acoustic
-    # shadow"), against >= 50 % on the old black-shadow simulator. The default
-    # segmenter keeps >= 90 % (test_shadowpath_accuracy_mm).
+    # The paper's method is less accurate than the default but finds the bone. Since
+    # the simulator's shadow is grey with reverberation copies of the bone echo
+    # (simulator version 2, as on real recordings), the snake rising from below is
+    # caught by them unless restarted above a contour with shadow on both sides: it
+    # kept 6/40 frames without the restarts, 27/40 with them.
     assert np.median(d) <= 0.5
     assert np.mean(d > 2.0) < 0.05
-    assert len(r.accepted) >= 0.1 * sim_small.sweep.n_frames
+    assert len(r.accepted) >= 0.5 * sim_small.sweep.n_frames
+    assert max(c.extras["restarts"] for c in r.contours) >= 1
     iters = [c.extras["iterations"] for c in r.contours]
     assert max(iters) <= 300
 

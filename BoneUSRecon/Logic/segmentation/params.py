@@ -77,6 +77,10 @@ class SnakeParams:
     """Next frame starts this many reference px below the previous contour's deepest kept point (paper: 50 px)."""
     margin_mm: float = 0.5
     """Lateral margin left free at each image side, mm (ours: avoids the edge columns)."""
+    max_restarts: int = 3
+    """Times the rise is restarted above a contour caught inside the shadow (a reverberation), ours."""
+    restart_above_mm: float = 1.0
+    """A restart begins this far above the caught contour's highest point, mm (ours)."""
 
 
 @dataclass(frozen=True)

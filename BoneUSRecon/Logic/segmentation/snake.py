@@ -238,6 +238,22 @@ def initial_row(
     return float(min(np.max(previous_px[:, 1]) + below, image_height - 1))
 
 
+def _in_shadow(image: np.ndarray, points_px: np.ndarray, spacing: tuple[float, float]) -> bool:
+    """True when the region 1.5-3 mm above the contour is < 1.5x as bright as 1-5 mm below."""
+    from BoneUSRecon.Logic.segmentation.rejection import _band_means
+
+    sy = float(spacing[1])
+    w = image.shape[1]
+    i = np.clip(np.rint(points_px[:, 0]).astype(np.intp), 0, w - 1)
+    j = np.rint(points_px[:, 1]).astype(np.intp)
+    above = _band_means(image, i, j, -3.0, -1.5, sy)
+    below = _band_means(image, i, j, 1.0, 5.0, sy)
+    ok = np.isfinite(above) & np.isfinite(below)
+    if not ok.any():
+        return False
+    return bool(np.median(above[ok]) < 1.5 * max(np.median(below[ok]), 1.0))
+
+
 def snake_frame(
     image: np.ndarray,
     spacing: tuple[float, float],
@@ -270,7 +286,26 @@ def snake_frame(
         run = run_snake(image, spacing, init, params, potential)
         intensity = sample_bilinear(image, run.points_px)
         keep = posterior_choice(run.points_px, intensity, spacing, posterior)
+    # Caught in the shadow: real and simulated shadows are grey and hold reverberation
+    # copies of the bone echo 2-6 mm under it, which hold a snake rising from below.
+    # A contour with shadow above it as well as below (the region above it hardly
+    # brighter than the one below) is such a copy: restart the rise just above it
+    # (ours; at most ``max_restarts`` times).
+    restarts = 0
+    while (
+        keep.any()
+        and restarts < params.max_restarts
+        and _in_shadow(image, run.points_px[keep], spacing)
+    ):
+        restarts += 1
+        init = float(np.min(run.points_px[keep, 1])) - params.restart_above_mm / float(spacing[1])
+        if init <= top:
+            break
+        run = run_snake(image, spacing, init, params, potential)
+        intensity = sample_bilinear(image, run.points_px)
+        keep = posterior_choice(run.points_px, intensity, spacing, posterior)
     extras = {
+        "restarts": restarts,
         "iterations": run.iterations,
         "stopped_by": run.stopped_by,
         "energies": run.energies,
