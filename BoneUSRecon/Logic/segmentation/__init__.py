@@ -20,14 +20,15 @@ distances of the kept points to the true bone surface, all bones pooled):
 segmenter     median    p95       > 2 mm     corrupted frames rejected / harmless
 ============  ========  ========  =========  ====================================
 shadowpath    0.030 mm  0.072 mm  0.30 %     33-83 % / 100 %
-snake         0.227 mm  12.2 mm   23.9 %     67-100 % / 83-100 % (none on clavicle)
+snake         0.150 mm  0.390 mm  1.67 %     67-83 % / 100 %
 ============  ========  ========  =========  ====================================
 
 ("harmless": rejected, or kept with its points on the bone, e.g. the bone found under
 a false echo.) On the version-1 simulator (black shadow, thin echo) shadowpath had
-0.011 / 0.039 mm and the snake 0.120 / 0.301 mm: the paper's snake, rising from
+0.011 / 0.039 mm and the snake 0.120 / 0.301 mm. The paper's snake, rising from
 below, is caught by the reverberations in a grey shadow (the paper's own failure
-mode, "noise on the acoustic shadow").
+mode, "noise on the acoustic shadow": 0.227 / 12.2 mm, 24 % of points > 2 mm)
+unless restarted above a faint contour with shadow on both sides, as it now is.
 
 On the real L14 recording (``Testing/benchmarks/bench_real.py``) shadowpath accepts
 21/21 frames with contours of 16.7-25.1 mm (median 20.8 mm; 6-17 mm before the
