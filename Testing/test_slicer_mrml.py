@@ -496,7 +496,7 @@ def test_reading_restores_the_browser_position(scene) -> None:
     assert nodes.browser.GetSelectedItemNumber() == 5
 
 
-PLUS_DATA = Path("/work/shared/data/plus")
+PLUS_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
 
 
 @pytest.mark.skipif(not (PLUS_DATA / "BoneUltrasound_L14.igs.mha").is_file(), reason="PLUS test data absent")

@@ -26,8 +26,9 @@ from BoneUSRecon.Logic.segmentation import segment_frame, segment_sweep
 from BoneUSRecon.Logic.sequence_io import read_sweep
 from BoneUSRecon.Logic.simulation import SimulationParams, augment, simulate
 
-REAL = Path("/work/shared/data/plus/BoneUltrasound_L14.igs.mha")
-REAL_XML = Path("/work/shared/data/plus/BoneUltrasound_L14_config.xml")
+PLUS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "plus"
+REAL = PLUS_DIR / "BoneUltrasound_L14.igs.mha"
+REAL_XML = PLUS_DIR / "BoneUltrasound_L14_config.xml"
 
 AUGMENTATIONS = {
     "flip": lambda s: augment.flip_lateral(s),

@@ -26,8 +26,9 @@ import numpy as np
 from BoneUSRecon.Logic.segmentation import SEGMENTERS, SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.simulation import BONES, SimulationParams, simulate
 
-REAL = Path("/work/shared/data/plus/BoneUltrasound_L14.igs.mha")
-REAL_XML = Path("/work/shared/data/plus/BoneUltrasound_L14_config.xml")
+PLUS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "plus"
+REAL = PLUS_DIR / "BoneUltrasound_L14.igs.mha"
+REAL_XML = PLUS_DIR / "BoneUltrasound_L14_config.xml"
 
 
 def skimage_seconds_per_frame(frames: np.ndarray, n: int = 5) -> float:
