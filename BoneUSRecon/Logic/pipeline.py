@@ -136,19 +136,13 @@ def params_with(
     Raises
     ------
     BoneUSReconError
-        Unknown segmenter; absurd values, as refused by :class:`FitParams` and
-        :class:`ResamplingParams` (e.g. fewer control points than degree + 1).
+        Unknown segmenter; absurd values, as refused by :class:`SegmentationParams`,
+        :class:`FitParams` and :class:`ResamplingParams` (e.g. fewer control points than degree + 1).
     """
-    from BoneUSRecon.Logic.segmentation import SEGMENTERS
-
     p = ReconstructionParams() if base is None else base
     seg = p.segmentation
     if segmenter is not None:
-        if segmenter not in SEGMENTERS:
-            raise BoneUSReconError(
-                f"unknown segmenter {segmenter!r}; use one of {', '.join(sorted(SEGMENTERS))}"
-            )
-        seg = dataclasses.replace(seg, method=segmenter)
+        seg = dataclasses.replace(seg, method=segmenter)  # SegmentationParams checks the name
     fit_changes: dict[str, Any] = {
         k: v
         for k, v in (

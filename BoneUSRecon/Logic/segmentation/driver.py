@@ -11,7 +11,7 @@ import numpy as np
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.segmentation.detection import Detection
-from BoneUSRecon.Logic.segmentation.params import SegmentationParams
+from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.rejection import (
     frame_evidence,
     frame_verdict,
@@ -42,6 +42,8 @@ def _shadowpath(image, spacing, params, prior):  # type: ignore[no-untyped-def]
 
 #: Segmenters by name. "shadowpath" (default) is the more accurate; "snake" is the paper's.
 SEGMENTERS: dict[str, FrameSegmenter] = {"shadowpath": _shadowpath, "snake": _snake}
+# SegmentationParams checks a name against SEGMENTER_NAMES (numpy-free); keep them one list.
+assert tuple(SEGMENTERS) == SEGMENTER_NAMES
 
 
 def segment_frame(
@@ -51,13 +53,8 @@ def segment_frame(
     prior_px: np.ndarray | None = None,
 ) -> Detection:
     """Run the segmenter named by ``params.method`` on one frame (no rejection)."""
-    try:
-        fn = SEGMENTERS[params.method]
-    except KeyError:
-        raise BoneUSReconError(
-            f"unknown segmenter {params.method!r}; use one of {', '.join(sorted(SEGMENTERS))}"
-        ) from None
-    return fn(np.asarray(image), spacing, params, prior_px)
+    # params.method was checked when the SegmentationParams was made.
+    return SEGMENTERS[params.method](np.asarray(image), spacing, params, prior_px)
 
 
 def segment_sweep(
@@ -86,13 +83,9 @@ def segment_sweep(
     Raises
     ------
     BoneUSReconError
-        Unknown segmenter, or no bone contour in any frame.
+        No valid frame, or no bone contour in any frame (an unknown segmenter is
+        refused by :class:`SegmentationParams` itself).
     """
-    if params.method not in SEGMENTERS:
-        raise BoneUSReconError(
-            f"unknown segmenter {params.method!r}; use one of {', '.join(sorted(SEGMENTERS))}",
-            sweep.source,
-        )
     idx = sweep.valid_indices
     if idx.size == 0:
         raise BoneUSReconError("no valid frame to segment", sweep.source)

@@ -16,8 +16,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from BoneUSRecon.Logic.errors import BoneUSReconError
+
 __all__ = [
     "REFERENCE_PIXEL_MM",
+    "SEGMENTER_NAMES",
     "SnakeParams",
     "PosteriorParams",
     "ShadowPathParams",
@@ -28,6 +31,11 @@ __all__ = [
 #: Size (mm) of one "pixel" of the paper. All pixel-valued parameters below are in
 #: these reference pixels and are converted with the image's own spacing.
 REFERENCE_PIXEL_MM = 0.1
+
+#: Names of the segmenters, the default first (the keys of
+#: :data:`~BoneUSRecon.Logic.segmentation.SEGMENTERS`; here, without numpy, so that a
+#: name is checked once, where the parameters are made).
+SEGMENTER_NAMES = ("shadowpath", "snake")
 
 
 @dataclass(frozen=True)
@@ -191,3 +199,9 @@ class SegmentationParams:
     """The default segmenter."""
     rejection: RejectionParams = field(default_factory=RejectionParams)
     """Confidence and rejection, applied to every segmenter's output."""
+
+    def __post_init__(self) -> None:
+        if self.method not in SEGMENTER_NAMES:
+            raise BoneUSReconError(
+                f"unknown segmenter {self.method!r}; use one of {', '.join(sorted(SEGMENTER_NAMES))}"
+            )
