@@ -21,6 +21,7 @@ __all__ = [
     "check_output_dir",
     "check_writable_folder",
     "check_input_file",
+    "can_create_file_in",
 ]
 
 
@@ -95,12 +96,22 @@ def check_writable_folder(
     f = Path(folder)
     if not f.is_dir():
         raise BoneUSReconError(f"{label} {str(f)!r} does not exist", subject)
-    # Probe by creating a file: os.access() says yes to root on read-only mounts.
+    if not can_create_file_in(f):
+        raise BoneUSReconError(f"{label} {str(f)!r} is not writable", subject)
+
+
+def can_create_file_in(folder: str | os.PathLike[str]) -> bool:
+    """Whether a file can be created in the existing folder ``folder``.
+
+    Probes by creating (and removing) a temporary file: ``os.access()`` says yes to
+    root on read-only mounts.
+    """
     try:
-        with tempfile.TemporaryFile(dir=f):
+        with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError:
-        raise BoneUSReconError(f"{label} {str(f)!r} is not writable", subject) from None
+        return False
+    return True
 
 
 def check_output_dir(path: str | os.PathLike[str], what: str = "output") -> Path:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -16,7 +15,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 
 from BoneUSRecon import __version__
 from BoneUSRecon.Logic.errors import BoneUSReconError
-from BoneUSRecon.Logic.fileio import atomic_path
+from BoneUSRecon.Logic.fileio import atomic_path, can_create_file_in
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, NEIGHBOURS, UP, BoneGeometry
 from BoneUSRecon.Logic.simulation.corruption import choose_corrupted
@@ -391,12 +390,8 @@ def check_output_dir(outdir: str | os.PathLike[str]) -> Path:
             probe = probe.parent
         if not probe.is_dir():
             raise BoneUSReconError(f"cannot create the output folder: {str(probe)!r} is not a folder", out)
-    # Probe by creating a file: os.access() says yes to root on read-only mounts.
-    try:
-        with tempfile.TemporaryFile(dir=probe):
-            pass
-    except OSError:
-        raise BoneUSReconError(f"cannot write in {str(probe)!r}", out) from None
+    if not can_create_file_in(probe):
+        raise BoneUSReconError(f"cannot write in {str(probe)!r}", out)
     return out
 
 
