@@ -92,7 +92,7 @@ def test_parser_start_up_loads_no_numerics():
         "build_parser()\n"
         "heavy = sorted(m for m in ('numpy', 'scipy', 'vtkmodules', 'skimage', 'SimpleITK') "
         "if m in sys.modules)\n"
-        "import BoneUSRecon.Logic.simulation\n"
+        "import BoneUSRecon.Logic.simulation.core\n"
         "print(heavy, 'numpy' in sys.modules)\n"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
@@ -101,14 +101,21 @@ def test_parser_start_up_loads_no_numerics():
 
 
 def test_simulate_help_defaults_match_the_simulator():
-    # cli/simulate.py lists the simulator's bones and defaults so that its parser does
-    # not import the simulator; they must stay equal to the real ones.
-    from BoneUSRecon.cli.simulate import BONE_NAMES, SIMULATION_DEFAULTS
+    # The simulate and demo parsers take the bones and defaults from the light
+    # simulation.params; what they show must be the simulator's own.
     from BoneUSRecon.Logic.simulation import BONES, SimulationParams
+    from BoneUSRecon.Logic.simulation.bones import BONE_SPECS
 
-    assert tuple(BONE_NAMES) == tuple(BONES)
+    parser = build_parser()
+    a = parser.parse_args(["simulate", "ulna", "out"])
     d = SimulationParams()
-    assert SIMULATION_DEFAULTS == {k: getattr(d, k) for k in SIMULATION_DEFAULTS}
+    assert tuple(BONES) == tuple(BONE_SPECS)
+    assert {"n_frames": a.frames, "width": a.width, "height": a.height,
+            "spacing_mm": a.spacing, "seed": a.seed} == {
+        k: getattr(d, k) for k in ("n_frames", "width", "height", "spacing_mm", "seed")}
+    with pytest.raises(SystemExit):
+        parser.parse_args(["demo", "--bone", "femur"])
+    assert parser.parse_args(["demo", "--bone", BONES[0]]).bone == BONES[0]
 
 
 def test_shared_summary_rows():

@@ -35,7 +35,8 @@ PAPER_RANGE_MM = (1.16, 1.71)
 
 def register(subparsers: Any) -> None:
     """Add the ``demo`` sub-command."""
-    from BoneUSRecon.cli.simulate import BONE_NAMES
+    # simulation.params is plain dataclasses: no numpy at the parser's start-up.
+    from BoneUSRecon.Logic.simulation.params import BONES
 
     p = subparsers.add_parser(
         "demo",
@@ -48,7 +49,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("outdir", metavar="OUTDIR", nargs="?", default=DEFAULT_OUTDIR,
                    help=f"output folder, created if needed (default ./{DEFAULT_OUTDIR})")
-    p.add_argument("--bone", choices=BONE_NAMES, default="clavicle", help="simulated bone (default clavicle)")
+    p.add_argument("--bone", choices=BONES, default="clavicle", help="simulated bone (default clavicle)")
     p.add_argument("--frames", type=int, default=150, metavar="N",
                    help="frames in the sweep (default 150; the paper: 50 to 250)")
     p.add_argument("--size", metavar="WxH", default="320x256",

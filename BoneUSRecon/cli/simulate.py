@@ -13,18 +13,16 @@ from BoneUSRecon.cli.common import (
     removed_on_failure,
 )
 
-__all__ = ["register", "run", "BONE_NAMES", "SIMULATION_DEFAULTS"]
-
-#: :data:`BoneUSRecon.Logic.simulation.BONES` and the :class:`SimulationParams` defaults
-#: shown in ``--help``, listed here so that building the parser (every command's
-#: start-up) does not import the simulator and scipy (~0.7 s); a test keeps them equal.
-BONE_NAMES = ("radius", "ulna", "tibia", "humerus", "clavicle")
-SIMULATION_DEFAULTS = {"n_frames": 150, "width": 320, "height": 256, "spacing_mm": 0.15, "seed": 0}
+__all__ = ["register", "run"]
 
 
 def register(subparsers: Any) -> None:
     """Add the ``simulate`` sub-command."""
-    d = argparse.Namespace(**SIMULATION_DEFAULTS)
+    # simulation.params is plain dataclasses: listing the bones and defaults from it
+    # keeps the parser's start-up free of numpy and scipy.
+    from BoneUSRecon.Logic.simulation.params import BONES, SimulationParams
+
+    d = SimulationParams()
     p = subparsers.add_parser(
         "simulate",
         help="simulate a tracked freehand sweep over a bone, with its true surface",
@@ -34,7 +32,7 @@ def register(subparsers: Any) -> None:
         "the imaged upper surface, with noise) and OUTDIR/simulation.json (parameters, "
         "corrupted frames). Deterministic for a seed.",
     )
-    p.add_argument("bone", metavar="BONE", help=f"one of: {', '.join(BONE_NAMES)}")
+    p.add_argument("bone", metavar="BONE", help=f"one of: {', '.join(BONES)}")
     p.add_argument("outdir", metavar="OUTDIR", help="output folder (created if missing)")
     p.add_argument("--frames", type=int, default=d.n_frames, metavar="N", help=f"number of frames (default {d.n_frames})")
     p.add_argument("--width", type=int, default=d.width, metavar="W", help=f"image width in pixels (default {d.width})")

@@ -28,22 +28,33 @@ Examples
 True
 """
 
-from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, BoneGeometry, BoneSpec
-from BoneUSRecon.Logic.simulation.core import (
-    SIMULATOR_VERSION,
-    Simulation,
-    check_output_dir,
-    check_params,
-    simulate,
-    simulation_info,
-    write_simulation,
-)
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
 from BoneUSRecon.Logic.simulation.params import (
     BONES,
     CORRUPTION_KINDS,
     ImagingParams,
     SimulationParams,
 )
+
+# The names and parameters above need no numpy (params.py is plain dataclasses), so
+# the CLI's parsers list the bones and defaults from them at start-up; the simulator
+# itself (numpy, scipy, VTK) is imported lazily (PEP 562), as in BoneUSRecon.Logic.
+_LAZY = {
+    "BONE_SPECS": "bones",
+    "BoneGeometry": "bones",
+    "BoneSpec": "bones",
+    "SIMULATOR_VERSION": "core",
+    "Simulation": "core",
+    "check_output_dir": "core",
+    "check_params": "core",
+    "simulate": "core",
+    "simulation_info": "core",
+    "write_simulation": "core",
+}
 
 __all__ = [
     "BONES",
@@ -61,3 +72,15 @@ __all__ = [
     "simulation_info",
     "write_simulation",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
