@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.simulation import augment
@@ -58,49 +57,12 @@ def test_real_contours_cover_the_flanks_inside_the_field_of_view(real):
     assert np.median(np.abs(np.diff(depth))) < 1.0
 
 
-def _compare(sw, r, aug):
-    """Distances (mm) of the augmented sweep's points to the original contours, coverage, overhang."""
-    ref = {c.frame: c.points_mm(sw) for c in r.accepted}
-    r2 = segment_sweep(aug)
-    dist, cover, beyond = [], [], []
-    for c in r2.accepted:
-        if c.frame not in ref:
-            continue
-        a = ref[c.frame]
-        # The original contour as a dense polyline (points ~0.25 mm apart).
-        t = np.linspace(0, len(a) - 1, 20 * len(a))
-        dense = np.column_stack([np.interp(t, np.arange(len(a)), a[:, q]) for q in range(3)])
-        p = c.points_mm(aug)
-        d, k = cKDTree(dense).query(p)
-        # Points beyond the ends of the original contour (one runs further down a
-        # flank than the other) have no counterpart: judged by ``beyond`` only.
-        inside = (k > 0) & (k < len(dense) - 1)
-        dist.append(d[inside])
-        beyond.append(np.mean(~inside))
-        cover.append(np.mean(cKDTree(p).query(dense)[0] < 0.5))
-    return r2, np.concatenate(dist), np.array(cover), np.array(beyond)
-
-
-AUGMENTATIONS = {
-    "flip": lambda s: augment.flip_lateral(s),
-    "gain-30%": lambda s: augment.scale_gain(s, 0.7),
-    "gain+30%": lambda s: augment.scale_gain(s, 1.3),
-    "speckle": lambda s: augment.add_speckle(s, 0.3, seed=1),
-    "0.15mm": lambda s: augment.resample_spacing(s, 0.15),
-    "crop": lambda s: augment.crop(s, (40, 560), (150, 700)),
-    "all": lambda s: augment.add_speckle(
-        augment.scale_gain(augment.resample_spacing(augment.flip_lateral(s), 0.15), 0.7),
-        0.3,
-        seed=2,
-    ),
-}
-
-
-@pytest.mark.parametrize("name", list(AUGMENTATIONS))
+@pytest.mark.parametrize("name", list(augment.RECORDING_AUGMENTATIONS))
 def test_augmented_recording_gives_the_same_bone(real, name):
     sw, r = real
-    aug = AUGMENTATIONS[name](sw)
-    r2, d, cover, beyond = _compare(sw, r, aug)
+    aug = augment.RECORDING_AUGMENTATIONS[name](sw)
+    r2 = segment_sweep(aug)
+    d, cover, beyond = augment.contour_agreement(sw, r, aug, r2)
     assert len(r2.accepted) >= 20
     # On the same curve where both contours are (measured medians 0.004-0.03 mm).
     assert np.median(d) <= 0.1

@@ -20,7 +20,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from BoneUSRecon.Logic.segmentation import segment_frame, segment_sweep
 from BoneUSRecon.Logic.sequence_io import read_sweep
@@ -29,40 +28,6 @@ from BoneUSRecon.Logic.simulation import SimulationParams, augment, simulate
 PLUS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "plus"
 REAL = PLUS_DIR / "BoneUltrasound_L14.igs.mha"
 REAL_XML = PLUS_DIR / "BoneUltrasound_L14_config.xml"
-
-AUGMENTATIONS = {
-    "flip": lambda s: augment.flip_lateral(s),
-    "gain-30%": lambda s: augment.scale_gain(s, 0.7),
-    "gain+30%": lambda s: augment.scale_gain(s, 1.3),
-    "speckle": lambda s: augment.add_speckle(s, 0.3, seed=1),
-    "0.15mm": lambda s: augment.resample_spacing(s, 0.15),
-    "crop": lambda s: augment.crop(s, (40, 560), (150, 700)),
-    "all": lambda s: augment.add_speckle(
-        augment.scale_gain(augment.resample_spacing(augment.flip_lateral(s), 0.15), 0.7),
-        0.3,
-        seed=2,
-    ),
-}
-
-
-def compare(sw, r, aug):
-    """(accepted, distances on the common part, cover per frame, beyond per frame)."""
-    ref = {c.frame: c.points_mm(sw) for c in r.accepted}
-    r2 = segment_sweep(aug)
-    dist, cover, beyond = [], [], []
-    for c in r2.accepted:
-        if c.frame not in ref:
-            continue
-        a = ref[c.frame]
-        t = np.linspace(0, len(a) - 1, 20 * len(a))
-        dense = np.column_stack([np.interp(t, np.arange(len(a)), a[:, q]) for q in range(3)])
-        p = c.points_mm(aug)
-        d, k = cKDTree(dense).query(p)
-        inside = (k > 0) & (k < len(dense) - 1)
-        dist.append(d[inside])
-        beyond.append(np.mean(~inside))
-        cover.append(np.mean(cKDTree(p).query(dense)[0] < 0.5))
-    return len(r2.accepted), np.concatenate(dist), np.array(cover), np.array(beyond)
 
 
 def main() -> None:
@@ -90,8 +55,11 @@ def main() -> None:
     print(
         f"{'augmentation':13} {'accepted':>8} {'median':>7} {'p95':>6} {'>2mm%':>6} {'cover':>6} {'beyond':>6}"
     )
-    for name, fn in AUGMENTATIONS.items():
-        n, d, cover, beyond = compare(sw, r, fn(sw))
+    for name, fn in augment.RECORDING_AUGMENTATIONS.items():
+        aug = fn(sw)
+        r2 = segment_sweep(aug)
+        n = len(r2.accepted)
+        d, cover, beyond = augment.contour_agreement(sw, r, aug, r2)
         print(
             f"{name:13} {n:8d} {np.median(d):7.3f} {np.percentile(d, 95):6.3f} "
             f"{100 * np.mean(d > 2):6.2f} {np.median(cover):6.2f} {np.median(beyond):6.2f}"

@@ -11,11 +11,26 @@ sweep compare directly, in mm, with those of the original.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
 import numpy as np
+from scipy.spatial import cKDTree
 
 from BoneUSRecon.Logic.sweep import Sweep
 
-__all__ = ["flip_lateral", "scale_gain", "add_speckle", "resample_spacing", "crop"]
+if TYPE_CHECKING:
+    from BoneUSRecon.Logic.segmentation.result import SegmentationResult
+
+__all__ = [
+    "flip_lateral",
+    "scale_gain",
+    "add_speckle",
+    "resample_spacing",
+    "crop",
+    "RECORDING_AUGMENTATIONS",
+    "contour_agreement",
+]
 
 
 def _with(sweep: Sweep, frames: np.ndarray, a: np.ndarray | None = None) -> Sweep:
@@ -85,3 +100,68 @@ def crop(sweep: Sweep, rows: tuple[int, int], cols: tuple[int, int]) -> Sweep:
     a = np.eye(4)
     a[0, 3], a[1, 3] = cols[0], rows[0]
     return _with(sweep, sweep.frames[:, rows[0] : rows[1], cols[0] : cols[1]], a)
+
+
+#: The augmentations the shared L14 recording (820 x 616 pixels) is checked with, by
+#: ``Testing/test_real_recording.py`` and ``Testing/benchmarks/bench_real.py`` alike
+#: (the crop's rows and columns are chosen for that image size).
+RECORDING_AUGMENTATIONS: dict[str, Callable[[Sweep], Sweep]] = {
+    "flip": lambda s: flip_lateral(s),
+    "gain-30%": lambda s: scale_gain(s, 0.7),
+    "gain+30%": lambda s: scale_gain(s, 1.3),
+    "speckle": lambda s: add_speckle(s, 0.3, seed=1),
+    "0.15mm": lambda s: resample_spacing(s, 0.15),
+    "crop": lambda s: crop(s, (40, 560), (150, 700)),
+    "all": lambda s: add_speckle(
+        scale_gain(resample_spacing(flip_lateral(s), 0.15), 0.7),
+        0.3,
+        seed=2,
+    ),
+}
+
+
+def contour_agreement(
+    sweep: Sweep,
+    result: SegmentationResult,
+    augmented: Sweep,
+    augmented_result: SegmentationResult,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How well the contours of an augmented sweep match the original's, in reference mm.
+
+    Parameters
+    ----------
+    sweep, result : Sweep, SegmentationResult
+        The original sweep and its segmentation.
+    augmented, augmented_result : Sweep, SegmentationResult
+        An augmented copy (poses kept consistent) and its segmentation.
+
+    Returns
+    -------
+    distances : ndarray
+        Distances (mm) of the augmented contours' points to the original contour of
+        the same frame, for the points within its ends, all frames pooled.
+    cover : ndarray
+        Per frame both accepted: the share of the original contour (a dense polyline)
+        with an augmented point closer than 0.5 mm.
+    beyond : ndarray
+        Per frame both accepted: the share of augmented points beyond the ends of the
+        original contour.
+    """
+    ref = {c.frame: c.points_mm(sweep) for c in result.accepted}
+    dist, cover, beyond = [], [], []
+    for c in augmented_result.accepted:
+        if c.frame not in ref:
+            continue
+        a = ref[c.frame]
+        # The original contour as a dense polyline (points ~0.25 mm apart).
+        t = np.linspace(0, len(a) - 1, 20 * len(a))
+        dense = np.column_stack([np.interp(t, np.arange(len(a)), a[:, q]) for q in range(3)])
+        p = c.points_mm(augmented)
+        d, k = cKDTree(dense).query(p)
+        # Points beyond the ends of the original contour (one runs further down a
+        # flank than the other) have no counterpart: judged by ``beyond`` only.
+        inside = (k > 0) & (k < len(dense) - 1)
+        dist.append(d[inside])
+        beyond.append(np.mean(~inside))
+        cover.append(np.mean(cKDTree(p).query(dense)[0] < 0.5))
+    return np.concatenate(dist), np.array(cover), np.array(beyond)
