@@ -512,71 +512,44 @@ def test_unknown_output_extension(capsys, bad, surface, tmp_path, argv_fn):
 # -- evaluate and view inputs ----------------------------------------------------------
 
 
-def test_evaluate_and_view_refuse_bad_inputs(capsys, bad, surface, tmp_path):
+@pytest.mark.parametrize(
+    ("argv", "names", "problem"),
+    [
+        (["evaluate", "{surface}", "{empty_gold}"], "header_only.csv", "no points"),
+        (["evaluate", "{garbage}", "{gold}"], "garbage.mha", "unknown surface format"),
+        (["evaluate", "{out}/none.vtp", "{gold}"], "none.vtp", "no such file"),
+        (
+            ["reconstruct", "{good}", "-o", "{out}/s.vtp", "--gold", "{empty_gold}"],
+            "header_only.csv",
+            "no points",
+        ),
+        (
+            ["view", "{surface}", "--screenshot", "{out}/v.png", "--gold", "{empty_gold}"],
+            "header_only.csv",
+            "no points",
+        ),
+        (
+            ["view", "{surface}", "--screenshot", "{out}/v.png", "--sweep", "{garbage}"],
+            "garbage.mha",
+            "not a MetaIO metafile",
+        ),
+    ],
+    ids=[
+        "evaluate-empty-gold",
+        "evaluate-garbage-surface",
+        "evaluate-missing-surface",
+        "reconstruct-empty-gold",
+        "view-empty-gold",
+        "view-garbage-sweep",
+    ],
+)
+def test_evaluate_and_view_refuse_bad_inputs(capsys, bad, surface, tmp_path, argv, names, problem):
+    files = {**{k: str(v) for k, v in bad.items()}, "surface": surface, "out": tmp_path}
     refused(
         capsys,
-        ["evaluate", str(surface), str(bad["empty_gold"]), "-q"],
-        names="header_only.csv",
-        problem="no points",
-        outdir=tmp_path,
-    )
-    refused(
-        capsys,
-        ["evaluate", str(bad["garbage"]), str(bad["gold"]), "-q"],
-        names="garbage.mha",
-        problem="unknown surface format",
-        outdir=tmp_path,
-    )
-    refused(
-        capsys,
-        ["evaluate", str(tmp_path / "none.vtp"), str(bad["gold"]), "-q"],
-        names="none.vtp",
-        problem="no such file",
-        outdir=tmp_path,
-    )
-    refused(
-        capsys,
-        [
-            "reconstruct",
-            str(bad["good"]),
-            "-o",
-            str(tmp_path / "s.vtp"),
-            "--gold",
-            str(bad["empty_gold"]),
-            "-q",
-        ],
-        names="header_only.csv",
-        problem="no points",
-        outdir=tmp_path,
-    )
-    refused(
-        capsys,
-        [
-            "view",
-            str(surface),
-            "--screenshot",
-            str(tmp_path / "v.png"),
-            "--gold",
-            str(bad["empty_gold"]),
-            "-q",
-        ],
-        names="header_only.csv",
-        problem="no points",
-        outdir=tmp_path,
-    )
-    refused(
-        capsys,
-        [
-            "view",
-            str(surface),
-            "--screenshot",
-            str(tmp_path / "v.png"),
-            "--sweep",
-            str(bad["garbage"]),
-            "-q",
-        ],
-        names="garbage.mha",
-        problem="not a MetaIO metafile",
+        [*(a.format(**files) for a in argv), "-q"],
+        names=names,
+        problem=problem,
         outdir=tmp_path,
     )
 
