@@ -11,9 +11,7 @@ the CLI, the Slicer module and the viewer are shells over it.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
+from BoneUSRecon.Logic._lazy import lazy_attributes
 from BoneUSRecon.Logic.errors import BoneUSReconError
 
 # The public API, imported lazily (PEP 562) so that importing one stage does not load
@@ -48,14 +46,4 @@ _LAZY = {
 
 __all__ = ["BoneUSReconError", *_LAZY]
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(importlib.import_module(f"BoneUSRecon.Logic.{_LAZY[name]}"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, __all__)

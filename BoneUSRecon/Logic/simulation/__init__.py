@@ -30,9 +30,7 @@ True
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
+from BoneUSRecon.Logic._lazy import lazy_attributes
 from BoneUSRecon.Logic.simulation.params import (
     BONES,
     CORRUPTION_KINDS,
@@ -73,14 +71,4 @@ __all__ = [
     "write_simulation",
 ]
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, __all__)
