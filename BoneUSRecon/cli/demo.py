@@ -35,8 +35,8 @@ PAPER_RANGE_MM = (1.16, 1.71)
 
 def register(subparsers: Any) -> None:
     """Add the ``demo`` sub-command."""
-    # simulation.params is plain dataclasses: no numpy at the parser's start-up.
-    from BoneUSRecon.Logic.simulation.params import BONES
+    # simulation.names imports nothing: the parser's start-up stays light.
+    from BoneUSRecon.Logic.simulation.names import BONES
 
     p = subparsers.add_parser(
         "demo",

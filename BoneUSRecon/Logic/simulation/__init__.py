@@ -31,17 +31,14 @@ True
 from __future__ import annotations
 
 from BoneUSRecon.Logic._lazy import lazy_attributes
-from BoneUSRecon.Logic.simulation.params import (
-    BONES,
-    CORRUPTION_KINDS,
-    ImagingParams,
-    SimulationParams,
-)
+from BoneUSRecon.Logic.simulation.names import BONES, CORRUPTION_KINDS
 
-# The names and parameters above need no numpy (params.py is plain dataclasses), so
-# the CLI's parsers list the bones and defaults from them at start-up; the simulator
-# itself (numpy, scipy, VTK) is imported lazily (PEP 562), as in BoneUSRecon.Logic.
+# The rest is imported lazily (PEP 562), as in BoneUSRecon.Logic: the simulator loads
+# numpy, scipy and VTK, and even params.py costs ~9 ms, while the CLI's parsers only
+# list the names (see .names).
 _LAZY = {
+    "ImagingParams": "params",
+    "SimulationParams": "params",
     "BONE_SPECS": "bones",
     "BoneGeometry": "bones",
     "BoneSpec": "bones",

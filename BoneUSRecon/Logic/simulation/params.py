@@ -4,13 +4,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+# BONES and the reference sweep's defaults live in the import-free names.py (the CLI's
+# parsers list them at start-up).
+from BoneUSRecon.Logic.simulation.names import (
+    BONES,
+    CORRUPTION_KINDS,
+    DEFAULT_BONE,
+    DEFAULT_FRAMES,
+    DEFAULT_HEIGHT,
+    DEFAULT_SEED,
+    DEFAULT_SPACING_MM,
+    DEFAULT_WIDTH,
+)
+
 __all__ = ["BONES", "CORRUPTION_KINDS", "ImagingParams", "SimulationParams"]
-
-#: The bones the simulator knows (the long bones of the paper's introduction).
-BONES = ("radius", "ulna", "tibia", "humerus", "clavicle")
-
-#: Kinds of corrupted frames: the failures of a per-frame segmenter.
-CORRUPTION_KINDS = ("shadow_clutter", "false_echo", "contact_loss")
 
 
 @dataclass(frozen=True)
@@ -89,22 +96,22 @@ class SimulationParams:
     """
 
     #: Which bone (one of :data:`BONES`).
-    bone: str = "clavicle"
+    bone: str = DEFAULT_BONE
     #: Number of frames (the paper: 50 to 250 images per sweep).
-    n_frames: int = 150
+    n_frames: int = DEFAULT_FRAMES
     #: Image width in pixels (columns, lateral).
-    width: int = 320
+    width: int = DEFAULT_WIDTH
     #: Image height in pixels (rows, depth).
-    height: int = 256
+    height: int = DEFAULT_HEIGHT
     #: Pixel spacing (mm), the same along columns and rows.
-    spacing_mm: float = 0.15
+    spacing_mm: float = DEFAULT_SPACING_MM
     #: Fraction of frames corrupted (clutter in shadow, false echo, contact loss); the
     #: paper saw ~10 % bad frames on real forearms.
     corrupted_fraction: float = 0.0
     #: Fraction of frames flagged invalid (tracking lost: TransformStatus INVALID).
     invalid_fraction: float = 0.0
     #: Random seed: everything random (motion, tissue, speckle, corruption, gold) follows it.
-    seed: int = 0
+    seed: int = DEFAULT_SEED
     #: Sweep from the far end of the bone back to the near end.
     reverse: bool = False
     #: Standard deviation of each probe tilt angle (degrees): freehand slices are not parallel.
