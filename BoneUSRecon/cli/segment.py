@@ -19,11 +19,12 @@ from BoneUSRecon.cli.common import (
     removed_on_failure,
 )
 
+# Imports nothing more (the segmentation package loads its segmenters lazily): the
+# parser's start-up stays light. Re-exported for the tests.
+from BoneUSRecon.Logic.segmentation import SEGMENTER_NAMES
+
 __all__ = ["register", "run", "SEGMENTER_NAMES"]
 
-#: Names of :data:`BoneUSRecon.Logic.segmentation.SEGMENTERS` (listed here so that
-#: building the parser does not import the segmentation stack; a test keeps them equal).
-SEGMENTER_NAMES = ("shadowpath", "snake")
 
 
 def register(subparsers: Any) -> None:

@@ -41,21 +41,36 @@ the rejection checks), 30-60x faster than ``skimage.segmentation.active_contour`
 (100 points, 300 iterations, free ends) on the same frames. Hence it is the default.
 """
 
-from BoneUSRecon.Logic.segmentation.detection import Detection
-from BoneUSRecon.Logic.segmentation.driver import SEGMENTERS, segment_frame, segment_sweep
-from BoneUSRecon.Logic.segmentation.params import (
-    REFERENCE_PIXEL_MM,
-    PosteriorParams,
-    RejectionParams,
-    SegmentationParams,
-    ShadowPathParams,
-    SnakeParams,
-)
-from BoneUSRecon.Logic.segmentation.polydata import points_polydata
-from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
+from __future__ import annotations
+
+from BoneUSRecon.Logic._lazy import lazy_attributes
+
+#: Names of the segmenters, the default first: the keys of :data:`SEGMENTERS`. Here,
+#: importing nothing, so that the CLI's parsers list them at start-up;
+#: :class:`SegmentationParams` checks a name against them.
+SEGMENTER_NAMES = ("shadowpath", "snake")
+
+# The rest is imported lazily (PEP 562), as in BoneUSRecon.Logic: the segmenters load
+# numpy, scipy and VTK, and even params.py (its frozen dataclasses) costs ~14 ms.
+_LAZY = {
+    "SEGMENTERS": "driver",
+    "segment_frame": "driver",
+    "segment_sweep": "driver",
+    "Detection": "detection",
+    "REFERENCE_PIXEL_MM": "params",
+    "SegmentationParams": "params",
+    "SnakeParams": "params",
+    "PosteriorParams": "params",
+    "ShadowPathParams": "params",
+    "RejectionParams": "params",
+    "points_polydata": "polydata",
+    "FrameContour": "result",
+    "SegmentationResult": "result",
+}
 
 __all__ = [
     "SEGMENTERS",
+    "SEGMENTER_NAMES",
     "REFERENCE_PIXEL_MM",
     "SegmentationParams",
     "SnakeParams",
@@ -69,3 +84,5 @@ __all__ = [
     "segment_sweep",
     "points_polydata",
 ]
+
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, __all__)

@@ -42,7 +42,7 @@ def _shadowpath(image, spacing, params, prior):  # type: ignore[no-untyped-def]
 
 #: Segmenters by name. "shadowpath" (default) is the more accurate; "snake" is the paper's.
 SEGMENTERS: dict[str, FrameSegmenter] = {"shadowpath": _shadowpath, "snake": _snake}
-# SegmentationParams checks a name against SEGMENTER_NAMES (numpy-free); keep them one list.
+# SegmentationParams checks a name against SEGMENTER_NAMES (import-free); keep them one list.
 assert tuple(SEGMENTERS) == SEGMENTER_NAMES
 
 

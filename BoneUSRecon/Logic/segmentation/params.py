@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.segmentation import SEGMENTER_NAMES
 
 __all__ = [
     "REFERENCE_PIXEL_MM",
@@ -31,11 +32,6 @@ __all__ = [
 #: Size (mm) of one "pixel" of the paper. All pixel-valued parameters below are in
 #: these reference pixels and are converted with the image's own spacing.
 REFERENCE_PIXEL_MM = 0.1
-
-#: Names of the segmenters, the default first (the keys of
-#: :data:`~BoneUSRecon.Logic.segmentation.SEGMENTERS`; here, without numpy, so that a
-#: name is checked once, where the parameters are made).
-SEGMENTER_NAMES = ("shadowpath", "snake")
 
 
 @dataclass(frozen=True)
