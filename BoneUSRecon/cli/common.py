@@ -32,6 +32,7 @@ __all__ = [
     "SWEEP_HELP",
     "add_common_options",
     "add_calibration_option",
+    "add_json_option",
     "check_sweep_args",
     "read_sweep_args",
     "parse_size",
@@ -77,6 +78,13 @@ def add_calibration_option(parser: argparse.ArgumentParser) -> None:
         metavar="NAME",
         help="name of the per-frame pose to use, e.g. ImageToReference or "
         "ProbeToTracker (default: ImageToReference when present)",
+    )
+
+
+def add_json_option(parser: argparse.ArgumentParser) -> None:
+    """``--json``: print one JSON object (see :func:`print_json`) instead of the summary."""
+    parser.add_argument(
+        "--json", action="store_true", help="print one JSON object instead of the summary"
     )
 
 

@@ -17,6 +17,7 @@ from typing import Any
 from BoneUSRecon.cli.common import (
     ProgressBar,
     add_common_options,
+    add_json_option,
     evaluation_rows,
     json_default,
     parse_size,
@@ -64,7 +65,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-report", action="store_true", help="do not write the HTML report")
     p.add_argument("--no-table", action="store_true",
                    help="skip the Table I curve (refits with 5, 10, 15, 20 control points)")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
 

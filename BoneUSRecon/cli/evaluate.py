@@ -9,6 +9,7 @@ from BoneUSRecon.cli.common import (
     GOLD_HELP,
     SURFACE_HELP,
     add_common_options,
+    add_json_option,
     print_json,
     print_summary,
 )
@@ -26,7 +27,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("surface", metavar="SURFACE", help=SURFACE_HELP)
     p.add_argument("gold", metavar="GOLD", help=GOLD_HELP)
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    add_json_option(p)
     p.add_argument("--distances", action="store_true", help="with --json, include every distance")
     add_common_options(p)
     p.set_defaults(func=run)

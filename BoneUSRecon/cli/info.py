@@ -10,6 +10,7 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    add_json_option,
     print_json,
     print_summary,
     read_sweep_args,
@@ -31,7 +32,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("sweep", metavar="SWEEP", help=SWEEP_HELP)
     add_calibration_option(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
 

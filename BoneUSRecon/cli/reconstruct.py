@@ -12,6 +12,7 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    add_json_option,
     check_sweep_args,
     evaluation_rows,
     print_json,
@@ -92,7 +93,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--gold", metavar="GOLD", help=f"{GOLD_HELP}, to evaluate against")
     p.add_argument("--report", metavar="DIR", help="also write an HTML report into this folder")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
 

@@ -12,6 +12,7 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    add_json_option,
     check_sweep_args,
     print_json,
     print_summary,
@@ -63,7 +64,7 @@ def register(subparsers: Any) -> None:
         metavar="N",
         help="write one accepted frame's overlay in N (rejected frames always; default 1)",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
 

@@ -8,6 +8,7 @@ from typing import Any
 from BoneUSRecon.cli.common import (
     ProgressBar,
     add_common_options,
+    add_json_option,
     print_json,
     print_summary,
     removed_on_failure,
@@ -56,7 +57,7 @@ def register(subparsers: Any) -> None:
         "--no-neighbour", dest="neighbour", action="store_false",
         help="forearm bones: do not show the other bone (radius/ulna) beside the target",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
 

@@ -11,6 +11,7 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    add_json_option,
     check_sweep_args,
     print_json,
     read_sweep_args,
@@ -43,7 +44,7 @@ def register(subparsers: Any) -> None:
         help="control points around the bone, kept fixed (default 5)",
     )
     p.add_argument("--plot", metavar="PNG", help="also plot the table to this PNG file")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
 
