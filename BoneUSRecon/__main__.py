@@ -1,8 +1,6 @@
 """``python -m BoneUSRecon`` runs the ``bone-us-recon`` command line."""
 
-import sys
-
-from BoneUSRecon.cli import main
+from BoneUSRecon.cli import entry_point
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry_point()

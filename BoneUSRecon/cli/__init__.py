@@ -17,7 +17,7 @@ from typing import NoReturn
 from BoneUSRecon import __version__
 from BoneUSRecon.cli.common import PROG, run_guarded
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "entry_point", "build_parser"]
 
 # Order is the order shown in --help.
 COMMANDS = (
@@ -73,5 +73,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_guarded(args.func, args)
 
 
+def entry_point() -> None:
+    """The ``bone-us-recon`` executable: :func:`main`, then exit with its status.
+
+    After an interrupt the outputs are already removed and the message printed, so
+    the process leaves at once (``os._exit``) instead of running the interpreter's
+    finalisation, where a second Ctrl-C (or one still pending from a worker thread)
+    would end it by SIGINT (status -2) instead of the promised 130.
+    """
+    status = main()
+    if status == 130:
+        import os
+
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(130)
+    sys.exit(status)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry_point()
