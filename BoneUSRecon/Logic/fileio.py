@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
@@ -22,7 +22,12 @@ __all__ = [
     "check_writable_folder",
     "check_input_file",
     "can_create_file_in",
+    "check_distinct_paths",
 ]
+
+#: What :func:`check_distinct_paths` takes: ``{label: path}`` (``None`` paths are
+#: skipped) or plain paths (then the path is its own label).
+PathsArg = Mapping[str, "str | os.PathLike[str] | None"] | Iterable["str | os.PathLike[str] | None"]
 
 
 def check_input_file(path: str | os.PathLike[str]) -> Path:
@@ -173,3 +178,101 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+def _labelled(paths: PathsArg | None) -> list[tuple[str, Path]]:
+    if paths is None:
+        return []
+    if isinstance(paths, Mapping):
+        items = paths.items()
+    else:
+        items = ((os.fspath(p), p) for p in paths if p is not None)
+    return [(str(label), Path(p)) for label, p in items if p is not None and str(p) != ""]
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name the same file: same inode when both exist (hard
+    links, symbolic links, ``./x`` vs ``x``), else the same resolved path."""
+    with contextlib.suppress(OSError):
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    return os.path.normcase(os.path.realpath(a)) == os.path.normcase(os.path.realpath(b))
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` lies inside ``folder`` (resolved; the folder itself excluded)."""
+    p = Path(os.path.normcase(os.path.realpath(path)))
+    f = Path(os.path.normcase(os.path.realpath(folder)))
+    return p != f and f in p.parents
+
+
+def check_distinct_paths(
+    *,
+    inputs: PathsArg | None = None,
+    outputs: PathsArg | None = None,
+    output_folders: PathsArg | None = None,
+) -> None:
+    """Refuse, before any work, an output that would overwrite an input or another output.
+
+    Every command that writes files calls this once with everything it reads and
+    everything it writes, so that e.g. ``reconstruct S.mha -o s.vtp --gold g.csv
+    --points-out g.csv`` stops with one line instead of replacing the gold points.
+
+    Parameters
+    ----------
+    inputs : mapping of label to path, or iterable of paths, optional
+        Files the command reads, e.g. ``{"SWEEP": args.sweep, "--gold": args.gold}``.
+        ``None`` values (options not given) are skipped.
+    outputs : mapping or iterable, optional
+        Files (or folders filled with named files) the command writes. Each must
+        differ from every input and from every other output.
+    output_folders : mapping or iterable, optional
+        Folders the command replaces as a whole (e.g. the HTML report folder). Besides
+        differing from every input and output, no input or other output may lie inside
+        one (it would be deleted with the folder's old contents).
+
+    Raises
+    ------
+    BoneUSReconError
+        Naming the path and the two options that collide.
+
+    Examples
+    --------
+    >>> check_distinct_paths(inputs={"--gold": "g.csv"}, outputs={"-o": "s.vtp"})
+    >>> check_distinct_paths(inputs={"--gold": "g.csv"}, outputs={"--points-out": "g.csv"})
+    Traceback (most recent call last):
+    ...
+    BoneUSRecon.Logic.errors.BoneUSReconError: g.csv: --points-out would overwrite the input --gold; choose another output path
+    """
+    ins = _labelled(inputs)
+    outs = _labelled(outputs)
+    folders = _labelled(output_folders)
+    written = outs + folders
+    for i, (label, path) in enumerate(written):
+        for in_label, in_path in ins:
+            if _same_path(path, in_path):
+                raise BoneUSReconError(
+                    f"{label} would overwrite the input {in_label}; choose another output path",
+                    path,
+                )
+        for other_label, other in written[:i]:
+            if _same_path(path, other):
+                raise BoneUSReconError(
+                    f"{label} and {other_label} name the same path; give each output its own",
+                    path,
+                )
+    for f_label, folder in folders:
+        for label, path in ins:
+            if _inside(path, folder):
+                raise BoneUSReconError(
+                    f"the input {label} lies inside the folder {f_label}, which is replaced "
+                    "as a whole; choose another folder",
+                    path,
+                )
+        for label, path in outs + [x for x in folders if x[1] is not folder]:
+            if _inside(path, folder):
+                raise BoneUSReconError(
+                    f"{label} lies inside the folder {f_label}, which is replaced as a "
+                    "whole; choose another folder",
+                    path,
+                )

@@ -20,6 +20,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
+
+# The one check that no output overwrites an input or another output: every command
+# that writes calls it (re-exported here so commands import it with their other helpers).
+from BoneUSRecon.Logic.fileio import check_distinct_paths
 from BoneUSRecon.Logic.progress import ProgressCallback
 
 if TYPE_CHECKING:  # the CLI's start-up must not import numpy/VTK
@@ -34,6 +38,7 @@ __all__ = [
     "add_calibration_option",
     "add_json_option",
     "check_sweep_args",
+    "check_distinct_paths",
     "read_sweep_args",
     "parse_size",
     "error",

@@ -18,6 +18,7 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_common_options,
     add_json_option,
+    check_distinct_paths,
     evaluation_rows,
     json_default,
     parse_size,
@@ -30,6 +31,9 @@ from BoneUSRecon.cli.common import (
 __all__ = ["register", "run", "DEFAULT_OUTDIR"]
 
 DEFAULT_OUTDIR = "bone-us-recon-demo"
+#: File that marks a folder as written by ``demo``: only such (or empty, or new)
+#: folders are written into without ``--force``.
+DEMO_MARKER = ".bone-us-recon-demo"
 #: The paper's Table I range of mean distances on its clavicle phantom (mm).
 PAPER_RANGE_MM = (1.16, 1.71)
 
@@ -63,11 +67,38 @@ def register(subparsers: Any) -> None:
     p.add_argument("--report", metavar="DIR",
                    help="report folder (default OUTDIR/report)")
     p.add_argument("--no-report", action="store_true", help="do not write the HTML report")
+    p.add_argument("--force", action="store_true",
+                   help="write into OUTDIR even if it holds files the demo did not write "
+                   "(files named like the demo's outputs are replaced)")
     p.add_argument("--no-table", action="store_true",
                    help="skip the Table I curve (refits with 5, 10, 15, 20 control points)")
     add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
+
+
+def check_demo_folder(outdir: Path, force: bool = False) -> None:
+    """Refuse an existing folder holding files the demo did not write, unless ``force``.
+
+    The demo writes ``sweep.mha``, ``gold.csv`` and more under fixed names; in a folder
+    of someone's own data those would be silently replaced. A new folder, an empty one
+    or an earlier demo's (it holds :data:`DEMO_MARKER`) is fine.
+
+    Raises
+    ------
+    BoneUSReconError
+        The folder holds other files and ``force`` is false.
+    """
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+
+    if force or not outdir.is_dir() or (outdir / DEMO_MARKER).exists():
+        return
+    if any(outdir.iterdir()):
+        raise BoneUSReconError(
+            "folder holds files the demo did not write; choose a new or empty folder, "
+            "or pass --force to replace the demo's files in it",
+            outdir,
+        )
 
 
 def _params(args: argparse.Namespace) -> Any:
@@ -101,11 +132,13 @@ def run(args: argparse.Namespace) -> int:
     outdir = Path(args.outdir)
     if outdir.exists() and not outdir.is_dir():
         raise BoneUSReconError("output path exists and is not a folder", outdir)
+    check_demo_folder(outdir, force=args.force)
     report_dir = None
     if not args.no_report:
         from BoneUSRecon.Widgets.report import check_report_folder
 
         report_dir = Path(args.report) if args.report else outdir / "report"
+        check_distinct_paths(outputs={"OUTDIR": outdir}, output_folders={"--report": report_dir})
         if report_dir.exists() or report_dir.parent.is_dir():  # else OUTDIR is made below
             check_report_folder(report_dir)
     params = ReconstructionParams()
@@ -114,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
     with ProgressBar(quiet=args.quiet or args.json) as bar, removed_on_failure(outdir):
         sim = simulate(sim_params, progress=bar)
         files = write_simulation(sim, outdir, progress=bar)
+        (outdir / DEMO_MARKER).write_text("written by bone-us-recon demo\n")
         # Evaluate against the gold points as written (CSV, 1e-6 mm), so that
         # ``bone-us-recon evaluate surface.vtp gold.csv`` gives the very same numbers.
         gold = read_points(files["gold"])

@@ -13,6 +13,7 @@ from BoneUSRecon.cli.common import (
     add_calibration_option,
     add_common_options,
     add_json_option,
+    check_distinct_paths,
     check_sweep_args,
     evaluation_rows,
     print_json,
@@ -113,6 +114,11 @@ def run(args: argparse.Namespace) -> int:
 
     # Everything that can be checked is checked before the (long) work starts.
     check_sweep_args(args)
+    check_distinct_paths(
+        inputs={"SWEEP": args.sweep, "--calibration": args.calibration, "--gold": args.gold},
+        outputs={"-o": args.output, "--points-out": args.points_out},
+        output_folders={"--report": args.report},
+    )
     out = check_output_path(args.output, SURFACE_EXTENSIONS)
     pts_out = check_output_path(args.points_out, POINT_OUT_EXTENSIONS) if args.points_out else None
     report_dir = None

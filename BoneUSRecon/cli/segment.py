@@ -13,6 +13,7 @@ from BoneUSRecon.cli.common import (
     add_calibration_option,
     add_common_options,
     add_json_option,
+    check_distinct_paths,
     check_sweep_args,
     print_json,
     print_summary,
@@ -82,6 +83,10 @@ def run(args: argparse.Namespace) -> int:
 
     # Check everything the user gave before any work.
     check_sweep_args(args)
+    check_distinct_paths(
+        inputs={"SWEEP": args.sweep, "--calibration": args.calibration},
+        outputs={"-o": args.output, "--overlay": args.overlay},
+    )
     out = check_output_path(args.output, POINT_OUT_EXTENSIONS)
     if args.overlay:
         check_output_dir(args.overlay, "overlay")

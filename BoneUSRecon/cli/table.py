@@ -12,6 +12,7 @@ from BoneUSRecon.cli.common import (
     add_calibration_option,
     add_common_options,
     add_json_option,
+    check_distinct_paths,
     check_sweep_args,
     print_json,
     read_sweep_args,
@@ -77,6 +78,10 @@ def run(args: argparse.Namespace) -> int:
     from BoneUSRecon.Logic.vtkio import read_points
 
     check_sweep_args(args)
+    check_distinct_paths(
+        inputs={"SWEEP": args.sweep, "--calibration": args.calibration, "--gold": args.gold},
+        outputs={"--plot": args.plot},
+    )
     plot = check_output_path(args.plot, (".png",)) if args.plot else None
     params = params_from_args(args)
     if args.around is not None:

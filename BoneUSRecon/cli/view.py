@@ -16,6 +16,7 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_calibration_option,
     add_common_options,
+    check_distinct_paths,
     parse_size,
     print_summary,
     read_sweep_args,
@@ -68,6 +69,11 @@ def run(args: argparse.Namespace) -> int:
     from BoneUSRecon.Logic.vtkio import read_points, read_polydata
 
     size = _size(args.size)
+    check_distinct_paths(
+        inputs={"SURFACE": args.surface, "--points": args.points, "--gold": args.gold,
+                "--sweep": args.sweep, "--calibration": args.calibration},
+        outputs={"--screenshot": args.screenshot},
+    )
     if args.screenshot:
         check_output_path(args.screenshot, (".png",))
     surface = read_polydata(args.surface)
