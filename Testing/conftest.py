@@ -8,6 +8,7 @@ Fixtures are read-only by convention: never modify a simulation's arrays in a te
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -22,6 +23,27 @@ SMALL: dict[str, Any] = {
     "height": 128,
     "spacing_mm": 0.3,
 }
+
+#: Real data shipped in the repository (BSD 3-Clause, see its LICENSE): the PLUS
+#: recording BoneUltrasound_L14 and its device-set configuration.
+SAMPLE_DATA = Path(__file__).resolve().parents[1] / "Resources" / "SampleData"
+
+
+def sample_data(name: str) -> Path:
+    """The file ``name`` of ``Resources/SampleData``; raises (never skips) when missing.
+
+    The recording is part of the repository so that the real-data tests run on every
+    clone and in CI: a missing file is a broken checkout, not a reason to skip.
+    """
+    path = SAMPLE_DATA / name
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: sample data missing from the checkout")
+    return path
+
+
+#: The real recording (21 frames of 820 x 616 at 0.085 mm) and its calibration.
+REAL_MHA = sample_data("BoneUltrasound_L14.igs.mha")
+REAL_XML = sample_data("BoneUltrasound_L14_config.xml")
 
 _CACHE: dict[tuple[tuple[str, Any], ...], Simulation] = {}
 

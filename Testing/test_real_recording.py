@@ -14,19 +14,12 @@ grey, with weaker oblique flanks. There is no ground truth, so:
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import REAL_MHA, REAL_XML  # Resources/SampleData, in the repository
 
 from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.simulation import augment
-
-PLUS_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
-REAL_MHA = PLUS_DIR / "BoneUltrasound_L14.igs.mha"
-REAL_XML = PLUS_DIR / "BoneUltrasound_L14_config.xml"
-
-pytestmark = pytest.mark.skipif(not REAL_MHA.is_file(), reason="shared PLUS recording absent")
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from conftest import REAL_MHA, REAL_XML  # Resources/SampleData, in the repository
 from scipy.spatial.transform import Rotation
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
@@ -23,10 +24,6 @@ from BoneUSRecon.Logic.sequence_io import (
     write_sweep,
 )
 from BoneUSRecon.Logic.sweep import Sweep
-
-PLUS_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
-REAL_MHA = PLUS_DIR / "BoneUltrasound_L14.igs.mha"
-REAL_XML = PLUS_DIR / "BoneUltrasound_L14_config.xml"
 
 N, H, W = 6, 10, 14
 SPACING = 0.2  # mm per pixel of the synthetic calibration
@@ -509,10 +506,6 @@ REAL_CALIB = np.array(
     ]
 )
 
-needs_real = pytest.mark.skipif(not REAL_MHA.exists(), reason="shared PLUS data not present")
-
-
-@needs_real
 def test_real_recording():
     s = read_sweep(REAL_MHA, calibration=REAL_XML)
     assert (s.n_frames, s.width, s.height, s.n_valid) == (21, 820, 616, 21)
@@ -539,7 +532,6 @@ def test_real_recording():
     assert np.array_equal(s.frames, truth)
 
 
-@needs_real
 def test_real_recording_all_poses_match_simpleitk_metadata():
     """Every frame's pose, recomposed from the fields as SimpleITK reads them."""
     s = read_sweep(REAL_MHA, calibration=REAL_XML)
@@ -557,7 +549,6 @@ def test_real_recording_all_poses_match_simpleitk_metadata():
         assert s.timestamps[k] == float(reader.GetMetaData(f"Seq_Frame{k:04d}_Timestamp"))
 
 
-@needs_real
 def test_real_recording_round_trip(tmp_path):
     s = read_sweep(REAL_MHA, calibration=REAL_XML)
     back = read_sweep(write_sweep(s, tmp_path / "real.mha", compress=True))

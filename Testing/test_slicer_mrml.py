@@ -496,10 +496,9 @@ def test_reading_restores_the_browser_position(scene) -> None:
     assert nodes.browser.GetSelectedItemNumber() == 5
 
 
-PLUS_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
+from conftest import SAMPLE_DATA as PLUS_DATA  # noqa: E402  (Resources/SampleData)
 
 
-@pytest.mark.skipif(not (PLUS_DATA / "BoneUltrasound_L14.igs.mha").is_file(), reason="PLUS test data absent")
 def test_real_plus_recording_roundtrip(scene) -> None:
     # A real tracked recording read by the io module (pose chain + PLUS calibration,
     # whose k column is not a unit normal) survives the trip through the scene.
@@ -516,7 +515,6 @@ def test_real_plus_recording_roundtrip(scene) -> None:
     np.testing.assert_allclose(read.spacing_mm, sweep.spacing_mm, rtol=1e-12)
 
 
-@pytest.mark.skipif(not (PLUS_DATA / "BoneUltrasound_L14.igs.mha").is_file(), reason="PLUS test data absent")
 def test_load_sweep_file_puts_the_reader_result_in_the_scene(scene) -> None:
     from BoneUSRecon.Logic.sequence_io import read_sweep
 
@@ -801,7 +799,6 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
     assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == n_models
 
 
-@pytest.mark.skipif(not (PLUS_DATA / "BoneUltrasound_L14.igs.mha").is_file(), reason="PLUS test data absent")
 def test_module_logic_loads_a_plus_file(module_logic, scene, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(slicer, "mrmlScene", scene, raising=False)
     logic = module_logic.BoneSurfaceReconstructionLogic()

@@ -15,6 +15,7 @@ all 21 frames with their contours).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -25,9 +26,11 @@ from BoneUSRecon.Logic.segmentation import segment_frame, segment_sweep
 from BoneUSRecon.Logic.sequence_io import read_sweep
 from BoneUSRecon.Logic.simulation import SimulationParams, augment, simulate
 
-PLUS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "plus"
-REAL = PLUS_DIR / "BoneUltrasound_L14.igs.mha"
-REAL_XML = PLUS_DIR / "BoneUltrasound_L14_config.xml"
+# The recording shipped in Resources/SampleData, found by the tests' helper.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from conftest import REAL_MHA, REAL_XML  # noqa: E402
+
+REAL = REAL_MHA
 
 
 def main() -> None:

@@ -17,6 +17,7 @@ Targets for the default: median <= 0.15 mm, p95 <= 0.5 mm, < 1 % beyond 2 mm,
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -26,9 +27,11 @@ import numpy as np
 from BoneUSRecon.Logic.segmentation import SEGMENTERS, SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.simulation import BONES, SimulationParams, simulate
 
-PLUS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "plus"
-REAL = PLUS_DIR / "BoneUltrasound_L14.igs.mha"
-REAL_XML = PLUS_DIR / "BoneUltrasound_L14_config.xml"
+# The recording shipped in Resources/SampleData, found by the tests' helper.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from conftest import REAL_MHA, REAL_XML  # noqa: E402
+
+REAL = REAL_MHA
 
 
 def skimage_seconds_per_frame(frames: np.ndarray, n: int = 5) -> float:
