@@ -12,11 +12,11 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
 from BoneUSRecon.Logic.fileio import atomic_path
 
-__all__ = ["overlay_image", "write_overlay", "write_overlays"]
+__all__ = ["overlay_image", "write_overlay", "write_overlays", "label_font_size", "label_lines"]
 
 GREEN = (40, 230, 60)
 RED = (255, 50, 40)
@@ -75,9 +75,67 @@ def overlay_image(
             draw.ellipse((x - r, y - r, x + r, y + r), outline=colour)
     if label:
         colour = (255, 255, 255) if accepted else RED
-        draw.rectangle((0, 0, img.width, 12), fill=(0, 0, 0))
-        draw.text((2, 0), label, fill=colour)
+        size = label_font_size(img.width)
+        font = _font(size)
+        line_h = size + 3
+        # The banner never covers more than a third of the image (tiny frames).
+        max_lines = max(1, min(3, (img.height // 3) // line_h))
+        lines = label_lines(label, img.width - 2 * _PAD, size, max_lines=max_lines)
+        draw.rectangle((0, 0, img.width, 4 + line_h * len(lines)), fill=(0, 0, 0))
+        for k, line in enumerate(lines):
+            draw.text((_PAD, 2 + k * line_h), line, fill=colour, font=font)
     return img
+
+
+_PAD = 4  # pixels between the banner's text and the image edge
+
+
+def label_font_size(width: int) -> int:
+    """Banner font size (pixels) for an image ``width`` pixels wide.
+
+    A 26th of the width: the report shows frames about 320 pixels wide whatever
+    their size, so an 820-pixel frame's label (31 px) still reads at about 12 px
+    there; never below 12 px, so small frames' labels stay legible at full size.
+    """
+    return max(12, round(width / 26))
+
+
+def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
+    # Pillow >= 10.1 ships a scalable default font; older ones only the 11 px bitmap.
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # pragma: no cover - old Pillow
+        return ImageFont.load_default()
+
+
+def label_lines(label: str, width: int, size: int, max_lines: int = 3) -> list[str]:
+    """``label`` broken into lines no wider than ``width`` pixels in the banner font.
+
+    Long rejection reasons wrap instead of running off a small frame; past
+    ``max_lines`` the last line ends with an ellipsis (the full reason is in the
+    summary and the report's caption).
+    """
+    font = _font(size)
+    words = label.split()
+    lines: list[str] = []
+    for word in words:
+        trial = f"{lines[-1]} {word}" if lines else word
+        if lines and font.getlength(trial) <= width:
+            lines[-1] = trial
+        else:
+            lines.append(word)
+    if len(lines) > max_lines:
+        last = " ".join(lines[max_lines - 1 :])
+        while last and font.getlength(last + "...") > width:
+            last = last[:-1]
+        lines = lines[: max_lines - 1] + [last.rstrip() + "..."]
+    # A single word wider than the image (rare): cut it to fit.
+    out = []
+    for line in lines:
+        while len(line) > 1 and font.getlength(line) > width:
+            line = line[:-1]
+        out.append(line)
+    return out
 
 
 def _step(points_px: np.ndarray) -> float:

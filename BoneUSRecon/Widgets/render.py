@@ -42,6 +42,9 @@ __all__ = [
     "render_views",
     "render_error_map",
     "set_camera",
+    "add_scale_bar",
+    "add_orientation_marker",
+    "nice_length",
     "scene_points",
     "screenshot",
     "png_bytes",
@@ -197,13 +200,120 @@ def view_directions(
     return {"top": (n, up), "oblique": (d2 / np.linalg.norm(d2), up1)}
 
 
+#: Where the colour bar sits (normalised viewport): horizontal, centred, near the
+#: bottom, since bones are long and lie horizontally.
+_BAR = {"position_x": 0.3, "position_y": 0.035, "height": 0.075, "width": 0.4}
+
+
 def _bar_args(title: str, style: Style) -> dict[str, Any]:
-    # Horizontal, below the data: bones are long and lie horizontally.
-    return {"title": title, "color": style.text_color, "vertical": False,
-            "position_x": 0.25, "position_y": 0.03, "height": 0.09, "width": 0.5,
-            "fmt": "%.2f", "n_labels": 5,
-            # Fixed sizes: VTK's automatic ones let the title overlap the labels.
-            "title_font_size": 16, "label_font_size": 14}
+    # No VTK title: vtkScalarBarActor puts it on the side of the tick labels, where
+    # it overlaps them. _add_bar_title writes it above the bar; the labels go below.
+    return {"title": "", "color": style.text_color, "vertical": False, **_BAR,
+            "fmt": "%.2f", "n_labels": 5, "label_font_size": 14, "title_font_size": 1}
+
+
+def _add_bar_title(pl: pv.Plotter, title: str, style: Style) -> None:
+    """Put the colour bar's tick labels below it and ``title`` above it (no overlap)."""
+    from vtkmodules.vtkRenderingCore import vtkTextActor
+
+    for bar in pl.scalar_bars.values():
+        bar.SetTextPositionToPrecedeScalarBar()  # labels below the colour strip
+    text = vtkTextActor()
+    text.SetInput(title)
+    prop = text.GetTextProperty()
+    prop.SetFontSize(16)
+    prop.SetColor(_rgb(style.text_color))
+    prop.SetJustificationToCentered()
+    prop.SetVerticalJustificationToBottom()
+    text.GetPositionCoordinate().SetCoordinateSystemToNormalizedViewport()
+    text.SetPosition(_BAR["position_x"] + _BAR["width"] / 2,
+                     _BAR["position_y"] + _BAR["height"] + 0.005)
+    pl.add_actor(text, name="bar-title", reset_camera=False)
+
+
+def _rgb(color: str) -> tuple[float, float, float]:
+    from matplotlib.colors import to_rgb
+
+    r, g, b = to_rgb(color)
+    return (r, g, b)
+
+
+def nice_length(mm: float) -> float:
+    """The largest 1, 2 or 5 times a power of ten not above ``mm`` (a scale bar length).
+
+    >>> nice_length(37.0), nice_length(9.9), nice_length(0.3)
+    (20.0, 5.0, 0.2)
+    """
+    if not np.isfinite(mm) or mm <= 0:
+        return 1.0
+    p = 10.0 ** np.floor(np.log10(mm))
+    return float(max(m * p for m in (1.0, 2.0, 5.0) if m * p <= mm * (1 + 1e-9)))
+
+
+def add_scale_bar(pl: pv.Plotter, style: Style = DEFAULT_STYLE, *, fraction: float = 0.15) -> float:
+    """Draw a scale bar (a line of a round length in mm, labelled) at the lower right.
+
+    Exact for the parallel projection :func:`set_camera` uses: one window pixel is
+    ``2 * parallel_scale / window height`` mm at every depth. Call it after the camera
+    is set (again after each change); it replaces the previous bar.
+
+    Returns
+    -------
+    float
+        The bar's length in mm.
+    """
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+    from vtkmodules.vtkRenderingCore import (
+        vtkActor2D,
+        vtkCoordinate,
+        vtkPolyDataMapper2D,
+        vtkTextActor,
+    )
+
+    width, height = pl.window_size
+    mm_per_px = 2.0 * float(pl.camera.parallel_scale) / max(height, 1)
+    length = nice_length(fraction * width * mm_per_px)
+    px = length / mm_per_px
+    x1, y = width - 30.0, 28.0
+    x0 = x1 - px
+    pts = vtkPoints()
+    for xy in ((x0, y + 6), (x0, y), (x1, y), (x1, y + 6)):
+        pts.InsertNextPoint(xy[0], xy[1], 0.0)
+    lines = vtkCellArray()
+    lines.InsertNextCell(4, [0, 1, 2, 3])
+    poly = vtkPolyData()
+    poly.SetPoints(pts)
+    poly.SetLines(lines)
+    mapper = vtkPolyDataMapper2D()
+    mapper.SetInputData(poly)
+    coord = vtkCoordinate()
+    coord.SetCoordinateSystemToDisplay()
+    mapper.SetTransformCoordinate(coord)
+    bar = vtkActor2D()
+    bar.SetMapper(mapper)
+    bar.GetProperty().SetColor(_rgb(style.text_color))
+    bar.GetProperty().SetLineWidth(2)
+    label = vtkTextActor()
+    label.SetInput(f"{length:g} mm")
+    prop = label.GetTextProperty()
+    prop.SetFontSize(15)
+    prop.SetColor(_rgb(style.text_color))
+    prop.SetJustificationToCentered()
+    label.SetDisplayPosition(int((x0 + x1) / 2), int(y + 8))
+    pl.add_actor(bar, name="scale-bar", reset_camera=False)
+    pl.add_actor(label, name="scale-bar-label", reset_camera=False)
+    return length
+
+
+def add_orientation_marker(pl: pv.Plotter) -> None:
+    """An x/y/z axes triad of the reference frame in the lower-left corner.
+
+    It turns with the camera, so a reader sees how the view is oriented (the sweep's
+    reference coordinates are the tracker's, not a patient's: hence x, y, z).
+    """
+    pl.add_axes(viewport=(0.0, 0.0, 0.14, 0.28), line_width=2, color="black",
+                xlabel="x", ylabel="y", zlabel="z")
 
 
 def _dot_size(n: int, largest: float) -> float:
@@ -271,6 +381,8 @@ def make_plotter(
             show_scalar_bar=scalar_bar,
             scalar_bar_args=_bar_args("Distance (mm)", style) if scalar_bar else None,
         )
+        if scalar_bar:
+            _add_bar_title(pl, "Distance (mm)", style)
     else:
         actors["surface"] = pl.add_mesh(mesh, color="#d9c8a9", smooth_shading=True)
     for name, cloud, color in (("points", points, style.points_color),
@@ -294,6 +406,7 @@ def make_plotter(
             )
     if title:
         pl.add_text(title, position="upper_left", font_size=10, color=style.text_color)
+    add_orientation_marker(pl)
     return pl, actors
 
 
@@ -441,6 +554,7 @@ def render_views(
                 need = w * np.ptp(fit @ up) / span * 1.08 / 0.85  # margin, scalar bar
                 pl.window_size = [w, int(np.clip(need, 0.35 * w, window_size[1]))]
             set_camera(pl, fit, d, up)
+            add_scale_bar(pl, style)
             out[name] = screenshot(pl)
         return out
     finally:
@@ -525,11 +639,12 @@ def render_error_map(
                 g, scalars="gold distance", cmap="coolwarm", clim=(0.0, hi),
                 point_size=_dot_size(g.n_points, style.point_size + 2),
                 render_points_as_spheres=True,
-                scalar_bar_args=_bar_args(
-                    "gold point to surface (mm" + (f", {hi:.2f} or more in dark red)"
-                                                   if top > hi else ")"), style),
+                scalar_bar_args=_bar_args("", style),
             ),
         }
+        _add_bar_title(pl, "gold point to surface (mm" + (f"; {hi:.2f} or more: dark red)"
+                                                          if top > hi else ")"), style)
+        add_orientation_marker(pl)
         pts = np.asarray(mesh.points, dtype=float)
         d, up = view_directions(pts, _toward_probe(sweep))[view]
         fit = scene_points(actors)
@@ -538,6 +653,7 @@ def render_error_map(
         need = w * np.ptp(fit @ up) / span * 1.08 / 0.85
         pl.window_size = [w, int(np.clip(need, 0.35 * w, window_size[1]))]
         set_camera(pl, fit, d, up)
+        add_scale_bar(pl, style)
         return screenshot(pl)
     finally:
         pl.close()

@@ -24,11 +24,9 @@ import html
 import json
 import os
 import platform
-import re
 import shutil
 import sys
 import tempfile
-from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -39,6 +37,7 @@ from BoneUSRecon import __version__
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.fileio import check_writable_folder
 from BoneUSRecon.Logic.progress import ProgressCallback, report
+from BoneUSRecon.Logic.reasons import count_reasons, format_reason_counts
 
 __all__ = [
     "write_report",
@@ -47,6 +46,9 @@ __all__ = [
     "software_versions",
     "histogram_png",
     "table_png",
+    "table_figure",
+    "human_label",
+    "human_value",
     "sample_frames",
     "REPORT_MARKER",
     "PAPER_TABLE_I",
@@ -114,7 +116,7 @@ def sweep_summary(sweep: Any, segmentation: Any = None) -> dict[str, Any]:
         "frames": sweep.n_frames,
         "valid_frames": sweep.n_valid,
         "invalid_frames": sweep.n_frames - sweep.n_valid,
-        "invalid_reasons": dict(Counter(_short_reason(r) for r in sweep.invalid_reasons.values())),
+        "invalid_reasons": count_reasons(sweep.invalid_reasons),
         "width": sweep.width,
         "height": sweep.height,
         "spacing_mm": [sx, sy],
@@ -143,17 +145,8 @@ def sweep_summary(sweep: Any, segmentation: Any = None) -> dict[str, Any]:
         out["segmentation_method"] = getattr(segmentation, "method", "")
         out["frames_used"] = sum(1 for c in contours if c.accepted)
         out["frames_rejected"] = len(rejected)
-        out["rejected_reasons"] = dict(Counter(_short_reason(r) for r in rejected.values()))
+        out["rejected_reasons"] = count_reasons(rejected)
     return out
-
-
-def _short_reason(reason: str) -> str:
-    """A reason without its frame-specific numbers, so that reasons can be counted."""
-    text = str(reason) or "unspecified"
-    for sep in (":", "(", ";"):
-        text = text.split(sep)[0]
-    text = re.sub(r"[-+]?\d+(\.\d+)?", "#", text)
-    return " ".join(text.split()) or "unspecified"
 
 
 def software_versions() -> dict[str, str]:
@@ -212,8 +205,20 @@ def histogram_png(distances: np.ndarray, evaluation: dict[str, Any] | None = Non
     return _fig_png(fig)
 
 
-def table_png(table: Sequence[tuple[int, float]]) -> bytes:
-    """The Table I curve (mean distance against control points) with the paper's values."""
+def table_png(table: Sequence[tuple[int, float]], title: str = "") -> bytes:
+    """The Table I curve (mean distance against control points) with the paper's values.
+
+    PNG bytes of :func:`table_figure` (the report and ``table --plot`` draw the same).
+    """
+    return _fig_png(table_figure(table, title))
+
+
+def table_figure(table: Sequence[tuple[int, float]], title: str = "") -> Any:
+    """The Table I curve as a matplotlib Figure, its distance axis starting at 0 mm.
+
+    From zero so that the height of a point is its distance: a curve from 0.23 to
+    0.26 mm must not look as steep as the paper's 1.16 to 1.71 mm.
+    """
     counts = np.array([c for c, _ in table], dtype=float)
     means = np.array([m for _, m in table], dtype=float)
     fig = _figure((6.0, 3.6))
@@ -228,8 +233,8 @@ def table_png(table: Sequence[tuple[int, float]]) -> bytes:
     ax.set_xticks(sorted(set(counts.astype(int).tolist()) | set(pc)))
     ax.grid(alpha=0.3)
     ax.legend(frameon=False)
-    ax.set_title("Table I: mean distance against the number of control points")
-    return _fig_png(fig)
+    ax.set_title(title or "Table I: mean distance against the number of control points")
+    return fig
 
 
 def sample_frames(segmentation: Any, n_accepted: int = 6, n_rejected: int = 4,
@@ -268,10 +273,11 @@ def _overlay_image(sweep: Any, contour: Any, truth_px: np.ndarray | None = None,
     """One contour overlay (:func:`BoneUSRecon.Widgets.overlay.overlay_image`) as RGB."""
     from BoneUSRecon.Widgets.overlay import overlay_image
 
+    # Short: the caption under the picture gives the reason in full.
     if not contour.accepted:
-        label = f"frame {contour.frame}: REJECTED ({contour.reason or 'no reason'})"
+        label = f"frame {contour.frame}: REJECTED"
     elif fit_rejected:
-        label = f"frame {contour.frame}: outlier, discarded by the surface fit"
+        label = f"frame {contour.frame}: fit outlier"
     else:
         label = f"frame {contour.frame}: accepted"
     scale = max(1, int(np.ceil(min_width / max(sweep.width, 1))))
@@ -300,7 +306,8 @@ font-size:.9em;max-width:1000px}img{max-width:100%;border:1px solid #eee}
 .grid{display:flex;flex-wrap:wrap;gap:10px}.grid figure{width:32%;margin:0}
 .rejected figcaption{color:#c0392b;font-weight:bold}.rejected img{border:3px solid #e74c3c}
 .outlier figcaption{color:#b9770e;font-weight:bold}.outlier img{border:3px solid #f39c12}pre{background:#f7f7f7;padding:.8em;
-overflow-x:auto;font-size:.85em}.big{font-size:1.25em}
+overflow-x:auto;font-size:.85em}.big{font-size:1.25em;margin-bottom:.2em}
+.caveat{color:#555;margin-top:0;max-width:60em}
 """
 
 
@@ -332,7 +339,7 @@ def _range(s: dict[str, float], unit: str, digits: int = 2) -> str:
 
 
 def _counts(d: dict[str, int]) -> str:
-    return "; ".join(f"{html.escape(k)}: {v}" for k, v in sorted(d.items(), key=lambda kv: -kv[1]))
+    return html.escape(format_reason_counts(d))
 
 
 def _sweep_rows(s: dict[str, Any]) -> list[tuple[str, str]]:
@@ -479,6 +486,7 @@ def write_report(
     progress: ProgressCallback | None = None,
     truth_px: Sequence[np.ndarray] | None = None,
     title: str | None = None,
+    simulated: bool = False,
 ) -> Path:
     """Write the HTML report of a reconstruction into the folder ``outdir``.
 
@@ -506,6 +514,9 @@ def write_report(
         simulation's ``true_contours_px``; drawn in yellow on the overlays.
     title : str, optional
         What was reconstructed (default: the sweep's file name).
+    simulated : bool
+        The sweep is simulated: the headline says why its accuracy is not comparable
+        with the paper's real-phantom figures.
 
     Returns
     -------
@@ -569,7 +580,20 @@ def write_report(
     surface_html = "".join(figs_html)
     n_vert = int(recon.surface.GetNumberOfPoints())
     n_pts = 0 if getattr(recon, "points", None) is None else int(recon.points.GetNumberOfPoints())
-    surface_html += (f"<p>{n_vert} surface vertices, {n_pts} segmented points.</p>")
+    surface_html += (f"<p>{n_vert} surface vertices, {n_pts} segmented points. "
+                     "A scale bar (lower right) gives the size; the x, y, z triad (lower "
+                     "left) the orientation of the sweep's reference frame.</p>")
+    cover = recon_summary.get("grid_coverage")
+    grid = recon_summary.get("grid_shape")
+    cover_text = (f" ({100 * float(cover):.0f} % of the {grid[0]} slices x {grid[1]} rays "
+                  "grid holds a contour point)" if cover is not None and grid else "")
+    surface_html += (
+        '<p id="holes-note"><b>Notches and holes in the surface</b> are where no '
+        f"segmented contour supports it{cover_text}: the surface is trimmed to the data "
+        "rather than extrapolated. They appear where a ray around the bone met no contour "
+        "(the bone's flanks, steep to the beam, often return no echo) and beyond the "
+        "first and last slices with a contour; rejected frames leave gaps between "
+        "slices, which the fit bridges.</p>")
 
     # Accuracy against gold points.
     accuracy_html = ""
@@ -588,10 +612,19 @@ def write_report(
             figures["gold_errors"] = _png(render_error_map(recon.surface, gold_pts, ev_dist,
                                                            sweep=sweep))
         tick()
+        caveat = (
+            "This sweep is simulated: it has no tracking, calibration, registration or "
+            "speed-of-sound error, which the paper's figure includes and which would "
+            "add to this one on a real phantom, so the two are not like for like."
+            if simulated else
+            "The paper's figure includes its tracking, calibration and registration "
+            "error; compare with it only for a like experiment."
+        )
         accuracy_html = (
             f'<p class="big">Mean distance from the gold points to the surface: '
             f'<b id="headline-mean">{_num(ev.get("mean_mm"), 2)} mm</b> '
-            f"(the paper reports 1.16 to 1.71 mm on its clavicle phantom).</p>"
+            f"(the paper reports 1.16 to 1.71 mm on its real clavicle phantom).</p>"
+            f'<p id="headline-caveat" class="caveat">{caveat}</p>'
             + _accuracy_rows(ev)
             + _img("histogram", figures["histogram"], "histogram of distances",
                    "Distances from each gold point to the nearest point of the surface.")
@@ -671,9 +704,10 @@ def write_report(
     if overlay_html:
         sections.append(f'<h2 id="overlay-section">Contours on sample frames</h2>{overlay_html}')
     if recon_summary or timings:
-        rows = [(k, html.escape(_fmt_value(v))) for k, v in recon_summary.items()
-                if v is not None and v != ""]
-        rows += [(f"time: {k}", f"{_num(v, 2)} s") for k, v in timings.items()]
+        rows = [(human_label(k), html.escape(human_value(k, v)))
+                for k, v in recon_summary.items() if v is not None and v != "" and k != "source"]
+        rows += [(f"time: {_TIME_LABELS.get(k, human_label(k))}", f"{_num(v, 2)} s")
+                 for k, v in timings.items()]
         sections.append(f'<h2 id="recon-section">Reconstruction</h2>{_kv_table(rows, "reconstruction")}')
     sections.append(f'<h2 id="parameters-section">Parameters</h2><details><summary>'
                     "every parameter of this run (JSON; also in report.json)</summary>"
@@ -693,6 +727,68 @@ def write_report(
         (tmp / "index.html").write_text(page, encoding="utf-8")
     report(progress, "report", total, total)
     return out / "index.html"
+
+
+#: Labels of :attr:`Reconstruction.summary` keys on the page (keys not listed here,
+#: e.g. added later, get :func:`human_label`'s generic form).
+_RECON_LABELS = {
+    "frames": "frames in the file",
+    "valid_frames": "frames with a usable pose and image",
+    "segmented_frames": "frames with an accepted bone contour",
+    "rejected_frames": "frames rejected by the segmentation",
+    "rejected": "rejected frames (frame: reason)",
+    "segmenter": "segmenter",
+    "segmented_points": "segmented contour points",
+    "grid_shape": "resampling grid (slices x rays)",
+    "grid_coverage": "grid cells holding a contour point",
+    "mean_resampling_distance_mm": "mean distance from a grid point to its contour",
+    "axis_length_mm": "length of the central axis",
+    "degree": "B-spline degrees (along x around)",
+    "control_points": "control points (along x around)",
+    "fit_method": "least-squares method",
+    "fit_rms_mm": "fit residual, RMS of the kept points",
+    "fit_rms_all_mm": "fit residual, RMS of all points",
+    "fit_outlier_points": "points down-weighted as outliers",
+    "fit_rejected_frames": "frames discarded by the robust fit",
+    "surface_points": "surface vertices",
+    "surface_triangles": "surface triangles",
+    "surface_area_mm2": "surface area",
+}
+_TIME_LABELS = {"segment": "segmentation", "resample": "resampling", "fit": "surface fit",
+                "surface": "meshing", "total": "total"}
+_UNITS = (("_mm2", "mm\u00b2"), ("_mm", "mm"), ("_deg", "deg"), ("_px", "px"), ("_s", "s"))
+
+
+def human_label(key: str) -> str:
+    """A page label for a summary key: ``"fit_rms_mm"`` -> ``"fit residual, RMS ..."``.
+
+    Known keys have a written label; any other loses its unit suffix (shown with the
+    value by :func:`human_value`) and its underscores.
+    """
+    if key in _RECON_LABELS:
+        return _RECON_LABELS[key]
+    for suffix, _ in _UNITS:
+        if key.endswith(suffix):
+            key = key[: -len(suffix)]
+            break
+    return key.replace("_", " ").strip() or "value"
+
+
+def human_value(key: str, value: Any) -> str:
+    """A summary value as text, with the unit its key names (``_mm``, ``_mm2``, ...)."""
+    if key in ("grid_shape", "degree", "control_points") and isinstance(value, (list, tuple)):
+        return " x ".join(str(v) for v in value)
+    if key.endswith("coverage") and isinstance(value, float):
+        return f"{100 * value:.1f} %"
+    if key == "rejected" and isinstance(value, dict):
+        return "; ".join(f"frame {k}: {v}" for k, v in value.items()) or "none"
+    if isinstance(value, (list, tuple)) and not value:
+        return "none"
+    text = _fmt_value(value)
+    for suffix, unit in _UNITS:
+        if key.endswith(suffix) and isinstance(value, (int, float)):
+            return f"{text} {unit}"
+    return text
 
 
 def _fmt_value(v: Any) -> str:

@@ -266,7 +266,9 @@ def _fmt(value: Any) -> str:
 def print_summary(title: str, rows: Iterable[tuple[str, Any]]) -> None:
     """Print ``title`` then aligned ``key: value`` lines on stdout."""
     rows = list(rows)
-    width = max((len(k) for k, _ in rows), default=0)
+    # Keys align up to a width; a longer one (e.g. a long rejection reason) just
+    # pushes its own value, instead of padding every line of the summary.
+    width = min(max((len(k) for k, _ in rows), default=0), 26)
     print(title)
     for key, value in rows:
         print(f"  {key:<{width}} : {_fmt(value)}")

@@ -151,7 +151,8 @@ def run(args: argparse.Namespace) -> int:
         # Evaluate against the gold points as written (CSV, 1e-6 mm), so that
         # ``bone-us-recon evaluate surface.vtp gold.csv`` gives the very same numbers.
         gold = read_points(files["gold"])
-        recon = reconstruct(sim.sweep, params, progress=bar)
+        # The sweep as written: summaries and the report name its file, not "(in memory)".
+        recon = reconstruct(sim.sweep.replace(source=files["sweep"]), params, progress=bar)
         evaluation = evaluate_surface(recon.surface, gold)
         table = None if args.no_table else control_point_table(recon, gold, progress=bar)
         files["surface"] = write_polydata(recon.surface, outdir / "surface.vtp")
@@ -211,6 +212,7 @@ def _write_report(recon: Any, report_dir: Path, sim: Any, gold: Any, evaluation:
                   "reconstruction": params_to_dict(params)}
     return write_report(recon, report_dir, gold=gold, evaluation=evaluation, table=table,
                         parameters=parameters, progress=bar, truth_px=sim.true_contours_px,
+                        simulated=True,
                         title=f"simulated {sim_params.bone} phantom, {sim_params.n_frames} frames, "
                               f"seed {sim_params.seed}")
 

@@ -74,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     """Read, segment, write points (and overlays), print a summary."""
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.fileio import check_output_dir, check_output_path
+    from BoneUSRecon.Logic.reasons import count_reasons
     from BoneUSRecon.Logic.segmentation import (
         SegmentationParams,
         points_polydata,
@@ -110,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
     summary = result.summary()
     summary.update(
         {
+            # Counted by kind (numbers stripped) in one place, whatever the rules' wording.
+            "rejection_reasons": count_reasons(result.rejected),
             "output": str(out),
             "rejected_frames": {str(k): v for k, v in result.rejected.items()},
             "segment_s": result.timings.get("segment_s"),
@@ -131,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         ("output", summary["output"]),
     ]
     for reason, n in summary["rejection_reasons"].items():
-        rows.append((f"  {reason}", n))
+        rows.append((f"  rejected: {reason}", n))
     if args.overlay:
         rows.append(("overlays", f"{len(overlays)} PNG in {args.overlay}"))
     print_summary(f"{Path(args.sweep).name}: bone contours", rows)

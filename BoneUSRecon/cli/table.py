@@ -51,23 +51,17 @@ def register(subparsers: Any) -> None:
 
 
 def write_table_plot(rows: list[tuple[int, float]], path: Any, title: str = "") -> None:
-    """Plot mean distance against control points to a PNG, atomically (Agg, no pyplot)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    """Plot mean distance against control points to a PNG, atomically.
 
+    The report's figure (:func:`BoneUSRecon.Widgets.report.table_figure`): distance
+    axis from 0 mm, the paper's Table I beside this run's curve.
+    """
     from BoneUSRecon.Logic.fileio import atomic_path
+    from BoneUSRecon.Widgets.report import table_png
 
-    fig = Figure(figsize=(5, 3.5), dpi=120)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    ax.plot([r[0] for r in rows], [r[1] for r in rows], "o-")
-    ax.set_xlabel("control points along the bone (e)")
-    ax.set_ylabel("mean gold-to-surface distance (mm)")
-    ax.set_title(title or "Table I")
-    ax.grid(True, alpha=0.3)
-    fig.tight_layout()
+    data = table_png(rows, title)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+        tmp.write_bytes(data)
 
 
 def run(args: argparse.Namespace) -> int:
