@@ -34,6 +34,7 @@ __all__ = [
     "Style",
     "has_display",
     "use_offscreen_backend",
+    "preload_rendering",
     "as_pyvista",
     "distance_array",
     "sweep_outlines",
@@ -90,6 +91,43 @@ def use_offscreen_backend() -> None:
     """
     if not has_display():
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+#: VTK modules pyvista loads lazily at the first render (vtk 9.6, pyvista 0.49):
+#: imported up front by :func:`preload_rendering`. Names missing from another VTK
+#: build are skipped.
+_LAZY_VTK_MODULES = (
+    "vtkRenderingCore", "vtkRenderingOpenGL2", "vtkRenderingContext2D",
+    "vtkRenderingContextOpenGL2", "vtkRenderingFreeType", "vtkRenderingAnnotation",
+    "vtkRenderingVolume", "vtkRenderingVolumeOpenGL2", "vtkRenderingUI",
+    "vtkRenderingMatplotlib", "vtkRenderingHyperTreeGrid", "vtkInteractionStyle",
+    "vtkInteractionWidgets", "vtkChartsCore", "vtkViewsCore", "vtkViewsContext2D",
+    "vtkPythonContext2D", "vtkImagingMath", "vtkIOImage",
+)
+
+
+def preload_rendering() -> None:
+    """Import pyvista and VTK's rendering modules now, before a command's long work.
+
+    VTK's compiled modules turn any exception raised while they import their
+    dependencies into ``ImportError: Failed to load vtk...``; a Ctrl-C landing in
+    such an import (pyvista imports them lazily, at the first render: in the middle
+    of ``reconstruct --report``) then looked like an internal error. Importing them
+    while the command starts makes that window short and early; the CLI also treats
+    any failure after a SIGINT as the interruption it is
+    (:func:`BoneUSRecon.cli.common.run_guarded`).
+    """
+    import importlib
+
+    use_offscreen_backend()
+    import pyvista  # noqa: F401
+    import pyvista.plotting  # noqa: F401
+
+    for name in _LAZY_VTK_MODULES:
+        try:
+            importlib.import_module(f"vtkmodules.{name}")
+        except ModuleNotFoundError:
+            continue
 
 
 def as_pyvista(data: Any) -> pv.PolyData:

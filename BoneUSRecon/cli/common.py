@@ -13,7 +13,9 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -153,20 +155,58 @@ def error(message: str) -> int:
     return 2
 
 
+class _SigintSeen:
+    """SIGINT handler that remembers it fired, then raises KeyboardInterrupt as usual.
+
+    Some extension modules replace an exception raised inside them by their own: VTK's
+    compiled modules report a KeyboardInterrupt that lands while they import as
+    ``ImportError: Failed to load vtk...``. Knowing that Ctrl-C was pressed, the
+    command reports the interruption whatever exception it arrives as.
+    """
+
+    def __init__(self) -> None:
+        self.fired = False
+
+    def __call__(self, signum: int, frame: object) -> None:
+        self.fired = True
+        raise KeyboardInterrupt
+
+
+def _interrupted() -> int:
+    print(f"\n{PROG}: interrupted; no output was written", file=sys.stderr)
+    return 130
+
+
 def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    """Run a sub-command, turning every failure into a one-line message and a status."""
+    """Run a sub-command, turning every failure into a one-line message and a status.
+
+    Ctrl-C gives exit status 130 even when it surfaces as another exception (see
+    :class:`_SigintSeen`).
+    """
+    sigint = _SigintSeen()
+    previous = None
+    # Only in the main thread and over Python's default handler (not over a caller's).
+    if (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    ):
+        previous = signal.signal(signal.SIGINT, sigint)
     try:
         return int(func(args) or 0)
-    except BoneUSReconError as exc:
-        return error(str(exc))
     except KeyboardInterrupt:
-        print(f"\n{PROG}: interrupted; no output was written", file=sys.stderr)
-        return 130
-    except (OSError, MemoryError) as exc:
-        name = getattr(exc, "filename", None)
-        msg = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
-        return error(f"{name}: {msg}" if name else msg)
-    except Exception as exc:  # an internal bug: still one line unless --debug
+        return _interrupted()
+    except BaseException as exc:
+        if sigint.fired:
+            return _interrupted()
+        if isinstance(exc, BoneUSReconError):
+            return error(str(exc))
+        if isinstance(exc, (OSError, MemoryError)):
+            name = getattr(exc, "filename", None)
+            msg = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+            return error(f"{name}: {msg}" if name else msg)
+        if not isinstance(exc, Exception):  # SystemExit and the like pass through
+            raise
+        # An internal bug: still one line unless --debug.
         if getattr(args, "debug", False):
             traceback.print_exc()
         else:
@@ -176,6 +216,9 @@ def run_guarded(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
                 file=sys.stderr,
             )
         return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
 
 
 def _state(p: Path) -> tuple[int, int, int] | None:

@@ -141,6 +141,9 @@ def run(args: argparse.Namespace) -> int:
         check_distinct_paths(outputs={"OUTDIR": outdir}, output_folders={"--report": report_dir})
         if report_dir.exists() or report_dir.parent.is_dir():  # else OUTDIR is made below
             check_report_folder(report_dir)
+        from BoneUSRecon.Widgets.render import preload_rendering
+
+        preload_rendering()  # a Ctrl-C during the work must not land in VTK's imports
     params = ReconstructionParams()
 
     # OUTDIR is removed again if this run created it and then fails: no partial output.

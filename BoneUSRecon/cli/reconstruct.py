@@ -126,6 +126,9 @@ def run(args: argparse.Namespace) -> int:
         from BoneUSRecon.Widgets.report import check_report_folder
 
         report_dir = check_report_folder(args.report)
+        from BoneUSRecon.Widgets.render import preload_rendering
+
+        preload_rendering()  # a Ctrl-C during the work must not land in VTK's imports
     params = params_from_args(args)
     gold = read_points(args.gold) if args.gold else None
 
