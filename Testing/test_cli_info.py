@@ -17,7 +17,6 @@ from test_sequence_io import (
     bad_case,
     image_to_probe,
     make_file,
-    needs_real,
     simple_sweep,
     tracked_transforms,
     write_xml,
@@ -76,7 +75,6 @@ def test_info_text(tmp_path, capsys):
     assert json.loads(out)["transform"] == "ProbeToTracker * ImageToProbe"
 
 
-@needs_real
 def test_info_real_recording(capsys):
     status, out, _ = run_cli(capsys, REAL_MHA, "--calibration", REAL_XML, "--json")
     info = json.loads(out)

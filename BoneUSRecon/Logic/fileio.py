@@ -23,6 +23,7 @@ __all__ = [
     "check_input_file",
     "can_create_file_in",
     "check_distinct_paths",
+    "json_ready",
 ]
 
 #: What :func:`check_distinct_paths` takes: ``{label: path}`` (``None`` paths are
@@ -178,6 +179,35 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+def json_ready(obj: object, digits: int = 12) -> object:
+    """``obj`` with numpy values made plain and floats rounded to ``digits`` significant digits.
+
+    Binary floating point prints 0.15 computed as 3 * 0.05 as ``0.15000000000000002``;
+    12 significant digits keep every measured value (a 1e-12 relative change is far
+    below any pixel, pose or distance error) and print it as people write it.
+
+    Examples
+    --------
+    >>> json_ready({"spacing_mm": [3 * 0.05, 0.1 + 0.2], "n": 3})
+    {'spacing_mm': [0.15, 0.3], 'n': 3}
+    """
+    import math
+
+    if isinstance(obj, dict):
+        return {str(k) if not isinstance(k, str) else k: json_ready(v, digits) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v, digits) for v in obj]
+    if hasattr(obj, "tolist") and hasattr(obj, "dtype"):  # numpy array or scalar
+        return json_ready(obj.tolist(), digits)
+    if isinstance(obj, bool) or obj is None or isinstance(obj, (int, str)):
+        return obj
+    if isinstance(obj, float):
+        return float(f"{obj:.{digits}g}") if math.isfinite(obj) else obj
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    return obj
 
 
 def _labelled(paths: PathsArg | None) -> list[tuple[str, Path]]:

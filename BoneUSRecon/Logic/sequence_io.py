@@ -636,6 +636,7 @@ def sweep_transforms(
             if ab and key[: -len("Transform")] not in edges:
                 edges[key[: -len("Transform")]] = ab
                 sources[key[: -len("Transform")]] = "header"
+    file_edges = sorted(edges)
     calib: np.ndarray | None = None
     if calibration is not None:
         calib = read_calibration(calibration)
@@ -667,14 +668,23 @@ def sweep_transforms(
         raise BoneUSReconError(
             f"the file has no {target_name} transform (it has: {have})", path
         )
+    if steps is None and not file_edges:
+        # A plain image stack: no calibration can give it poses.
+        raise BoneUSReconError(
+            "no transforms in the file: it is a plain image (a 3D volume or a stack of "
+            "frames), not a tracked sweep; a PLUS sequence records a pose per frame "
+            "(e.g. ProbeToTrackerTransform, ImageToReferenceTransform)",
+            path,
+        )
     if steps is None:
         if target_name == "ImageToReference":
             missing = [
                 t for t in ("ReferenceToTracker", "ProbeToTracker", "ImageToProbe") if t not in edges
             ]
+            # The calibration only helps when it is the one missing link.
             hint = (
                 " (give the probe calibration with --calibration XML)"
-                if "ImageToProbe" in missing
+                if missing == ["ImageToProbe"]
                 else ""
             )
             raise BoneUSReconError(

@@ -35,7 +35,7 @@ import numpy as np
 
 from BoneUSRecon import __version__
 from BoneUSRecon.Logic.errors import BoneUSReconError
-from BoneUSRecon.Logic.fileio import check_writable_folder
+from BoneUSRecon.Logic.fileio import check_writable_folder, json_ready
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.reasons import count_reasons, format_reason_counts
 
@@ -723,7 +723,8 @@ def write_report(
         (tmp / "figures").mkdir()
         for name, data in figures.items():
             (tmp / "figures" / f"{name}.png").write_bytes(data)
-        (tmp / "report.json").write_text(json.dumps(_jsonable(numbers), indent=2, default=str))
+        (tmp / "report.json").write_text(
+            json.dumps(json_ready(_jsonable(numbers)), indent=2, default=str))
         (tmp / "index.html").write_text(page, encoding="utf-8")
     report(progress, "report", total, total)
     return out / "index.html"

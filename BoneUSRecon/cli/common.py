@@ -44,6 +44,7 @@ __all__ = [
     "read_sweep_args",
     "parse_size",
     "error",
+    "notice",
     "run_guarded",
     "ProgressBar",
     "print_summary",
@@ -120,9 +121,20 @@ def read_sweep_args(args: argparse.Namespace, progress: ProgressCallback | None 
     """
     from BoneUSRecon.Logic.sequence_io import read_sweep
 
-    return read_sweep(
+    sweep = read_sweep(
         args.sweep, calibration=args.calibration, transform=args.transform, progress=progress
     )
+    if args.calibration and "ImageToProbe" not in (sweep.transform_name or ""):
+        notice(
+            f"{args.calibration}: --calibration not used: the sweep's own "
+            f"{sweep.transform_name} poses already map pixels to millimetres"
+        )
+    return sweep
+
+
+def notice(message: str) -> None:
+    """Print a one-line note on stderr (something the user asked for was not done)."""
+    print(f"{PROG}: note: {' '.join(str(message).split())}", file=sys.stderr)
 
 
 def parse_size(text: str, option: str = "--size", example: str = "1100x700") -> tuple[int, int]:
@@ -352,5 +364,8 @@ def json_default(o: Any) -> Any:
 
 
 def print_json(obj: Any) -> None:
-    """Print ``obj`` as one JSON document on stdout (numpy values converted)."""
-    print(json.dumps(obj, default=json_default, indent=2))
+    """Print ``obj`` as one JSON document on stdout (numpy values converted, floats
+    rounded to 12 significant digits by :func:`~BoneUSRecon.Logic.fileio.json_ready`)."""
+    from BoneUSRecon.Logic.fileio import json_ready
+
+    print(json.dumps(json_ready(obj), default=json_default, indent=2))

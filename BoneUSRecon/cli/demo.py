@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct, evaluate, write; print where everything is."""
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.evaluation import evaluate_surface
-    from BoneUSRecon.Logic.fileio import atomic_path
+    from BoneUSRecon.Logic.fileio import atomic_path, json_ready
     from BoneUSRecon.Logic.pipeline import ReconstructionParams, control_point_table, reconstruct
     from BoneUSRecon.Logic.simulation import simulate, write_simulation
     from BoneUSRecon.Logic.vtkio import read_points, write_polydata
@@ -171,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
             "timings_s": recon.timings,
         }
         with atomic_path(outdir / "evaluation.json") as tmp:
-            tmp.write_text(json.dumps(doc, indent=2, default=json_default))
+            tmp.write_text(json.dumps(json_ready(doc), indent=2, default=json_default))
         files["evaluation"] = outdir / "evaluation.json"
         if report_dir is not None:
             files["report"] = _write_report(recon, report_dir, sim, gold, evaluation, table,

@@ -39,10 +39,13 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
         help="B-spline degrees along and around the bone (default 2 2: quadratic)",
     )
     if control_points:
-        p.add_argument(
-            "--control-points", nargs=2, type=int, metavar=("E", "F"),
-            help="control points along and around the bone (default 15 5)",
-        )
+        # --along/--around, as in ``table``; --control-points E F still works (hidden).
+        p.add_argument("--along", type=int, metavar="E",
+                       help="control points along the bone (default 15)")
+        p.add_argument("--around", type=int, metavar="F",
+                       help="control points around the bone (default 5)")
+        p.add_argument("--control-points", nargs=2, type=int, metavar=("E", "F"),
+                       help=argparse.SUPPRESS)
     p.add_argument("--rays", type=int, metavar="N", help="rays per slice (default 15)")
     p.add_argument(
         "--fit-method", choices=("direct", "separable"),
@@ -61,12 +64,17 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
 
 def params_from_args(args: argparse.Namespace) -> Any:
     """Build :class:`ReconstructionParams` from the options (raises on absurd values)."""
-    from BoneUSRecon.Logic.pipeline import params_with
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams, params_with
 
+    control_points = getattr(args, "control_points", None)
+    along, around = getattr(args, "along", None), getattr(args, "around", None)
+    if along is not None or around is not None:
+        e, f = control_points or ReconstructionParams().fit.control_points
+        control_points = (e if along is None else along, f if around is None else around)
     return params_with(
         segmenter=getattr(args, "segmenter", None),
         degree=getattr(args, "degree", None),
-        control_points=getattr(args, "control_points", None),
+        control_points=control_points,
         rays=getattr(args, "rays", None),
         fit_method=getattr(args, "fit_method", None),
         robust=getattr(args, "robust", None),

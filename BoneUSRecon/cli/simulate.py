@@ -9,6 +9,7 @@ from BoneUSRecon.cli.common import (
     ProgressBar,
     add_common_options,
     add_json_option,
+    parse_size,
     print_json,
     print_summary,
     removed_on_failure,
@@ -39,8 +40,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("bone", metavar="BONE", help=f"one of: {', '.join(names.BONES)}")
     p.add_argument("outdir", metavar="OUTDIR", help="output folder (created if missing)")
     p.add_argument("--frames", type=int, default=d.n_frames, metavar="N", help=f"number of frames (default {d.n_frames})")
-    p.add_argument("--width", type=int, default=d.width, metavar="W", help=f"image width in pixels (default {d.width})")
-    p.add_argument("--height", type=int, default=d.height, metavar="H", help=f"image height in pixels (default {d.height})")
+    p.add_argument("--size", metavar="WxH", default=f"{d.width}x{d.height}",
+                   help=f"image size in pixels, as in demo and view (default {d.width}x{d.height})")
+    # Earlier spellings, still accepted (not shown in --help): they override --size.
+    p.add_argument("--width", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--height", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--spacing", type=float, default=d.spacing_mm, metavar="MM", help=f"pixel spacing in mm (default {d.spacing_mm})")
     p.add_argument(
         "--corrupted", "--corrupt", dest="corrupt", type=float, default=0.0, metavar="FRACTION",
@@ -72,11 +76,12 @@ def run(args: argparse.Namespace) -> int:
         write_simulation,
     )
 
+    width, height = parse_size(args.size, example="320x256")
     params = SimulationParams(
         bone=str(args.bone).lower(),
         n_frames=args.frames,
-        width=args.width,
-        height=args.height,
+        width=args.width if args.width is not None else width,
+        height=args.height if args.height is not None else height,
         spacing_mm=args.spacing,
         corrupted_fraction=args.corrupt,
         invalid_fraction=args.invalid,

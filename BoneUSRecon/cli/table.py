@@ -35,11 +35,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--gold", required=True, metavar="GOLD", help=GOLD_HELP)
     add_calibration_option(p)
     add_reconstruction_options(p, control_points=False)
+    # --along/--around, as in ``reconstruct``; --control-points E... still works (hidden).
     p.add_argument(
-        "--control-points", dest="counts", nargs="+", type=int,
+        "--along", dest="counts", nargs="+", type=int,
         metavar="E", default=[5, 10, 15, 20],
         help="numbers of control points along the bone to try (default 5 10 15 20)",
     )
+    p.add_argument("--control-points", dest="counts", nargs="+", type=int,
+                   default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     p.add_argument(
         "--around", type=int, metavar="F",
         help="control points around the bone, kept fixed (default 5)",

@@ -175,7 +175,7 @@ def check_params(params: SimulationParams) -> None:
     if need > have:
         raise BoneUSReconError(
             f"the image is {have:.1f} mm deep but the {p.bone} lies {spec.depth_mm:g} mm under the skin "
-            f"(needs about {need:.0f} mm to show it and its shadow); raise --height or --spacing"
+            f"(needs about {need:.0f} mm to show it and its shadow); raise the height in --size, or --spacing"
         )
 
 
