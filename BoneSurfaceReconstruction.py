@@ -2,7 +2,7 @@
 
 Layout after Slicer's scripted-module template: module metadata, parameter node,
 Widget, Logic, Test. The Logic is a thin adapter: the scene <-> library conversion
-lives in ``BoneUSRecon.Widgets.mrml`` and the computation in ``BoneUSRecon.Logic``;
+lives in ``BoneSurfaceReconstructionLib.mrml`` and the computation in ``BoneUSRecon.Logic``;
 helpers live in ``BoneSurfaceReconstructionLib`` (never beside this file: Slicer would
 load each ``.py`` there as a module).
 """
@@ -10,7 +10,7 @@ load each ``.py`` there as a module).
 import logging
 import os
 import pathlib
-from typing import Annotated, Union
+from typing import Annotated, Optional, Union
 
 import qt
 import slicer
@@ -32,8 +32,13 @@ from slicer.ScriptedLoadableModule import (
 )
 from slicer.util import VTKObservationMixin
 
+# This file and BoneSurfaceReconstructionLib stay importable by Python 3.9 (Slicer 5.8
+# and earlier), so that such a Slicer shows why the module cannot run instead of a
+# SyntaxError; the library itself needs Python 3.10 (dependencies.MIN_PYTHON).
 from BoneSurfaceReconstructionLib import dependencies
 from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, segmenterNames
+
+_UNSUPPORTED = dependencies.unsupportedReason()
 
 _SEGMENTERS = segmenterNames()
 
@@ -70,6 +75,17 @@ class BoneSurfaceReconstruction(ScriptedLoadableModule):
             "template (Jean-Christophe Fillion-Robin, Kitware; Andras Lasso, PerkLab; "
             "Steve Pieper, Isomics)."
         )
+        if _UNSUPPORTED:
+            self.parent.helpText = _UNSUPPORTED + "\n\n" + self.parent.helpText
+        else:
+            # The PLUS recording shipped with the module, in the Sample Data module.
+            slicer.app.connect("startupCompleted()", _registerSampleData)
+
+
+def _registerSampleData() -> None:
+    from BoneSurfaceReconstructionLib import sampledata
+
+    sampledata.registerSampleData()
 
 
 #
@@ -123,6 +139,12 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
 
     def setup(self) -> None:
         ScriptedLoadableModuleWidget.setup(self)
+        if _UNSUPPORTED:  # say why, instead of a panel that cannot work
+            label = qt.QLabel(_UNSUPPORTED)
+            label.wordWrap = True
+            self.layout.addWidget(label)
+            self.layout.addStretch(1)
+            return
         uiWidget = slicer.util.loadUI(self.resourcePath("UI/BoneSurfaceReconstruction.ui"))
         self.layout.addWidget(uiWidget)
         self.ui = slicer.util.childWidgetVariables(uiWidget)
@@ -165,7 +187,7 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
             if browser:
                 self._parameterNode.inputNode = browser
 
-    def setParameterNode(self, inputParameterNode: BoneSurfaceReconstructionParameterNode | None) -> None:
+    def setParameterNode(self, inputParameterNode: Optional[BoneSurfaceReconstructionParameterNode]) -> None:  # noqa: UP045 (Python 3.9)
         if self._parameterNode:
             self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
             self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
@@ -196,7 +218,10 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
                 )
             finally:
                 dialog.close()
-            self.ui.resultLabel.text = self.logic.summaryText(result)
+            # Cancel is not a failure: no error dialog, the outputs are left as they were.
+            self.ui.resultLabel.text = (
+                _("Cancelled.") if result is None else self.logic.summaryText(result)
+            )
 
     def onLoadSweepButton(self) -> None:
         """Read a PLUS file with BoneUSRecon's reader (pose chain, calibration, status
@@ -217,13 +242,13 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
                 name=browser.GetName(), n=browser.GetNumberOfItems()
             )
 
-    @staticmethod
-    def _progressCallback(dialog):
-        """A plain ``progress(stage, done, total)`` callback driving a Qt progress dialog."""
+    def _progressCallback(self, dialog):
+        """A plain ``progress(stage, done, total)`` callback driving a Qt progress dialog;
+        its Cancel button only sets the logic's flag, which the logic polls."""
 
         def progress(stage, done, total):
             if dialog.wasCanceled:
-                raise RuntimeError(_("Cancelled by the user."))
+                self.logic.requestCancel()
             dialog.labelText = f"{stage}: {done}/{total}"
             dialog.value = int(100 * done / total) if total else 0
             slicer.app.processEvents()
@@ -243,6 +268,16 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
 
     def __init__(self) -> None:
         ScriptedLoadableModuleLogic.__init__(self)
+        self._cancelRequested = False
+
+    def requestCancel(self) -> None:
+        """Ask the running :meth:`process` to stop at its next progress step.
+
+        A flag, polled through the progress callback (``BoneUSRecon.Logic.progress.
+        cancellable``): the work stops within one frame, :meth:`process` returns None
+        and no output node is created or changed.
+        """
+        self._cancelRequested = True
 
     def getParameterNode(self):
         return BoneSurfaceReconstructionParameterNode(super().getParameterNode())
@@ -273,12 +308,14 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         :param outputSurface: model node to fill (new if None).
         :param outputPoints: model or markups fiducial node to fill (new if None).
         :param progress: callable(stage, done, total).
-        :return: BoneUSRecon.Widgets.mrml.MRMLReconstruction
+        :return: BoneSurfaceReconstructionLib.mrml.MRMLReconstruction, or None when
+            cancelled (:meth:`requestCancel`).
         """
         import time
 
+        from BoneSurfaceReconstructionLib import mrml
         from BoneSurfaceReconstructionLib.parameters import calibrationMatrix, reconstructionParams
-        from BoneUSRecon.Widgets import mrml
+        from BoneUSRecon.Logic.progress import Cancelled, cancellable
 
         if not inputNode:
             raise ValueError(_("Input sweep is invalid."))
@@ -294,15 +331,22 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         )
         startTime = time.time()
         logging.info("Bone surface reconstruction started")
-        result = mrml.reconstruct_from_scene(
-            inputNode,
-            transform_sequence=transformSequence,
-            calibration=calibration,
-            params=params,
-            surface_node=outputSurface,
-            points_node=outputPoints,
-            progress=progress,
-        )
+        self._cancelRequested = False
+        try:
+            result = mrml.reconstruct_from_scene(
+                inputNode,
+                transform_sequence=transformSequence,
+                calibration=calibration,
+                params=params,
+                surface_node=outputSurface,
+                points_node=outputPoints,
+                progress=cancellable(lambda: self._cancelRequested, progress),
+            )
+        except Cancelled as exc:
+            logging.info(f"Bone surface reconstruction {exc}")
+            return None
+        finally:
+            self._cancelRequested = False
         logging.info(f"Bone surface reconstruction completed in {time.time() - startTime:.2f} seconds")
         return result
 
@@ -313,8 +357,8 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         :param calibration: PLUS configuration XML (Image->Probe), or None / empty path.
         :return: the vtkMRMLSequenceBrowserNode (frames under their ImageToReference).
         """
+        from BoneSurfaceReconstructionLib import mrml
         from BoneSurfaceReconstructionLib.parameters import calibrationPath
-        from BoneUSRecon.Widgets import mrml
 
         nodes = mrml.load_sweep_file(
             path, slicer.mrmlScene, calibration=calibrationPath(calibration), progress=progress
@@ -337,6 +381,8 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
             outputPoints=p.outputPoints,
             progress=progress,
         )
+        if result is None:  # cancelled
+            return None
         p.outputSurface = result.surface_node
         p.outputPoints = result.points_node
         return result
@@ -373,6 +419,9 @@ class BoneSurfaceReconstructionTest(ScriptedLoadableModuleTest):
         slicer.mrmlScene.Clear()
 
     def runTest(self):
+        if _UNSUPPORTED:
+            self.delayDisplay(_UNSUPPORTED)
+            return
         self.setUp()
         self.test_SimulatedSweepAccuracy()
         self.setUp()
@@ -398,8 +447,7 @@ class BoneSurfaceReconstructionTest(ScriptedLoadableModuleTest):
 
     def test_ParameterNodeEntryPoint(self):
         """The parameter-node entry point gives the same surface as the explicit one."""
-        from BoneSurfaceReconstructionLib import selftest
-        from BoneUSRecon.Widgets import mrml
+        from BoneSurfaceReconstructionLib import mrml, selftest
 
         sim = selftest.simulatedSweep(n_frames=30)
         nodes = mrml.sweep_to_scene(sim.sweep, slicer.mrmlScene, name="Sweep")

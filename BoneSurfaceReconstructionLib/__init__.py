@@ -9,6 +9,13 @@ as a module of its own. Nothing here imports ``slicer`` at import time:
   :class:`BoneUSRecon.Logic.pipeline.ReconstructionParams`.
 * :mod:`.selftest`: the simulated-sweep check shared by the module's self-test and the
   pytest suite.
+* :mod:`.mrml`: the MRML adapter, scene nodes <-> :mod:`BoneUSRecon.Logic` (the
+  module reaches the library through it and Logic, never through BoneUSRecon.Widgets).
+* :mod:`.sampledata`: the shipped PLUS recording in Slicer's Sample Data module.
+
+What the module file imports when Slicer loads it (``dependencies``, ``parameters``)
+stays importable by Python 3.9, so that an old Slicer shows why the module cannot run
+(:func:`.dependencies.unsupportedReason`) instead of a SyntaxError.
 """
 
-__all__ = ["dependencies", "parameters", "selftest"]
+__all__ = ["dependencies", "mrml", "parameters", "sampledata", "selftest"]

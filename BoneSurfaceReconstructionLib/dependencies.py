@@ -1,21 +1,20 @@
-"""Checking that BoneUSRecon is importable inside Slicer, and installing its pure-Python needs.
+"""What the module needs from Slicer: a recent enough Python, BoneUSRecon beside the
+module file, and the packages of ``Resources/requirements.txt``.
 
 ``import BoneUSRecon`` needs no ``sys.path`` tricks: Slicer appends the folder of every
 scripted module it loads from outside its own tree to ``sys.path``, and the
-``BoneUSRecon`` package sits in that folder in both set-ups:
+``BoneUSRecon`` package sits in that folder (developer mode: the repository root in
+*Additional module paths*; installed extension: CMake copies it beside the module
+file). If it is missing, :func:`requireBoneUSRecon` says so in one line.
 
-* Developer mode: the repository root (which holds the module file) is in
-  *Additional module paths*, or was selected in the Extension Wizard.
-* Installed extension: the extension's CMake copies the package next to the module
-  file (``lib/Slicer-X.Y/qt-scripted-modules/BoneUSRecon/``).
+Third-party packages are installed lazily, when an action first needs them, the Slicer
+way: ``slicer.packaging.pip_ensure`` with the requirements file (Slicer 5.11 and later:
+it checks, asks the user, installs with progress and offers a restart), else
+``slicer.util.pip_install`` per missing requirement after asking. VTK is never
+installed.
 
-If the package is still missing (the module file copied alone somewhere),
-:func:`requireBoneUSRecon` says so in one line instead of a bare ``ImportError``.
-
-Third-party needs are installed lazily, from the Apply button's path, with
-``slicer.util.pip_install``. VTK is never installed: Slicer ships its own, and a second
-VTK in Slicer's Python breaks it; for the same reason pyvista (which depends on vtk) is
-not a requirement of the module (only BoneUSRecon's viewer uses it).
+This file must stay importable by Python 3.9 (Slicer 5.8 and earlier), so that the
+module can say which Slicer it needs instead of failing with a SyntaxError.
 """
 
 from __future__ import annotations
@@ -23,20 +22,30 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import os
+import re
+import sys
 from collections.abc import Callable
+from typing import Any
 
-__all__ = ["REQUIREMENTS", "moduleFolder", "requireBoneUSRecon", "missingRequirements", "installRequirements"]
+__all__ = [
+    "MIN_PYTHON",
+    "MIN_SLICER",
+    "REQUIREMENTS_FILE",
+    "REQUIREMENTS",
+    "unsupportedReason",
+    "moduleFolder",
+    "requireBoneUSRecon",
+    "missingRequirements",
+    "installRequirements",
+]
 
-#: import name -> pip requirement: every third-party package BoneUSRecon.Logic and the
-#: MRML adapter import, except VTK (Slicer's own). numpy comes with Slicer; scipy may
-#: not. Testing/test_slicer_mrml.py checks this list against their import statements.
-REQUIREMENTS: dict[str, str] = {
-    "numpy": "numpy",
-    "scipy": "scipy>=1.11",
-}
+#: BoneUSRecon needs Python 3.10 (``X | Y`` types, ``zip(strict=True)``). Slicer 5.8
+#: and earlier run Python 3.9; Slicer 5.10 and later run Python 3.10+.
+MIN_PYTHON = (3, 10)
+MIN_SLICER = "5.10"
 
-#: Never installed into Slicer's Python, whatever a requirement pulls in.
-FORBIDDEN = ("vtk", "pyvista")
+#: Never installed into Slicer's Python, whatever the requirements file says.
+FORBIDDEN = ("vtk", "pyvista", "slicer-core")
 
 
 def moduleFolder() -> str:
@@ -44,16 +53,64 @@ def moduleFolder() -> str:
     return os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+#: The module's pip requirements, one per line (read by Slicer's own tools too).
+REQUIREMENTS_FILE = os.path.join(moduleFolder(), "Resources", "requirements.txt")
+
+
+def _requirement_name(req: str) -> str:
+    return re.split(r"[\s\[<>=!~;]", req.strip(), maxsplit=1)[0].lower()
+
+
+def _read_requirements(path: str = REQUIREMENTS_FILE) -> dict[str, str]:
+    """``{import name: requirement}`` from the requirements file (comments skipped)."""
+    out: dict[str, str] = {}
+    if not os.path.isfile(path):  # the module copied without its Resources: said later
+        return out
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            req = line.split("#", 1)[0].strip()
+            if req:
+                # The import names of these packages are their distribution names.
+                out[_requirement_name(req).replace("-", "_")] = req
+    return out
+
+
+#: import name -> pip requirement, from :data:`REQUIREMENTS_FILE`.
+REQUIREMENTS = _read_requirements()
+
+
+def unsupportedReason(version_info: Any = None) -> str | None:
+    """Why this Slicer cannot run the module (one sentence), or None if it can.
+
+    Parameters
+    ----------
+    version_info : sequence of int, optional
+        Python's version (default: the running one's ``sys.version_info``).
+    """
+    v = tuple(sys.version_info if version_info is None else version_info)[:2]
+    if v >= MIN_PYTHON:
+        return None
+    return (
+        f"Bone Surface Reconstruction needs Slicer {MIN_SLICER} or later (Python "
+        f"{MIN_PYTHON[0]}.{MIN_PYTHON[1]}+); this Slicer runs Python {v[0]}.{v[1]}. "
+        "Please install a recent Slicer from https://download.slicer.org."
+    )
+
+
 def requireBoneUSRecon() -> None:
-    """Raise a clear error if ``import BoneUSRecon`` cannot work.
+    """Raise a clear error if this Slicer or ``import BoneUSRecon`` cannot work.
 
     Does not import BoneUSRecon (that would import numpy, scipy... at Slicer startup).
 
     Raises
     ------
     RuntimeError
-        The package is not on ``sys.path`` (normally: not beside the module file).
+        Python too old, or the package is not on ``sys.path`` (normally: not beside
+        the module file).
     """
+    reason = unsupportedReason()
+    if reason:
+        raise RuntimeError(reason)
     if importlib.util.find_spec("BoneUSRecon") is None:
         raise RuntimeError(
             f"the BoneUSRecon package was not found: it must sit beside the module file in "
@@ -69,42 +126,58 @@ def missingRequirements() -> list[str]:
 def installRequirements(
     pipInstall: Callable[[str], object] | None = None,
     confirm: Callable[[str], bool] | None = None,
+    slicerModule: Any = None,
 ) -> list[str]:
-    """Install the missing requirements (if the user agrees); return what was installed.
+    """Install the missing requirements (if the user agrees); return what was missing.
 
     Called before every action that needs the library, so it first checks that
-    BoneUSRecon itself is importable (pip cannot fix that).
+    BoneUSRecon itself can be imported (pip cannot fix that).
 
     Parameters
     ----------
     pipInstall : callable, optional
-        ``slicer.util.pip_install`` by default.
+        Install one requirement; given, it replaces Slicer's tools (tests).
     confirm : callable, optional
-        Asked with a message before installing; returning False raises.
+        Asked before ``slicer.util.pip_install``; returning False raises.
+        ``pip_ensure`` asks the user itself.
+    slicerModule : module, optional
+        The ``slicer`` module (default: imported here, only inside Slicer).
 
     Raises
     ------
     RuntimeError
-        BoneUSRecon is not beside the module, the user declined, or a requirement is
-        still missing afterwards.
+        Slicer too old, BoneUSRecon not beside the module, the user declined, or a
+        requirement is still missing afterwards.
     """
     requireBoneUSRecon()
+    if not os.path.isfile(REQUIREMENTS_FILE):
+        raise RuntimeError(f"{REQUIREMENTS_FILE}: missing beside the module file")
     missing = missingRequirements()
     if not missing:
         return []
-    if any(req.split("[")[0].split(">")[0].split("=")[0].strip().lower() in FORBIDDEN for req in missing):
+    if any(_requirement_name(req) in FORBIDDEN for req in missing):
         raise RuntimeError(f"refusing to pip-install {missing} into Slicer (Slicer ships VTK)")
-    if confirm is not None and not confirm(
+    message = (
         "Bone Surface Reconstruction needs these Python packages, which will now be "
         f"installed into Slicer: {', '.join(missing)}. Continue?"
-    ):
-        raise RuntimeError(f"missing Python packages: {', '.join(missing)}")
+    )
+    packaging = None
     if pipInstall is None:
-        import slicer  # only inside Slicer
-
-        pipInstall = slicer.util.pip_install
-    for req in missing:
-        pipInstall(req)
+        if slicerModule is None:
+            import slicer as slicerModule  # only inside Slicer
+        packaging = getattr(slicerModule, "packaging", None)
+        if packaging is None or not hasattr(packaging, "pip_ensure"):
+            packaging = None
+            pipInstall = slicerModule.util.pip_install
+    if packaging is not None:  # Slicer 5.11+: its own check, prompt, progress, restart
+        packaging.pip_ensure(
+            packaging.load_requirements(REQUIREMENTS_FILE), requester="Bone Surface Reconstruction"
+        )
+    else:
+        if confirm is not None and not confirm(message):
+            raise RuntimeError(f"missing Python packages: {', '.join(missing)}")
+        for req in missing:
+            pipInstall(req)
     importlib.invalidate_caches()
     still = missingRequirements()
     if still:

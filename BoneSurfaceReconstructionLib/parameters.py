@@ -94,7 +94,7 @@ def reconstructionParams(
     ``None`` keeps the library's default. Raises ``BoneUSReconError`` (a ValueError) for
     combinations the fit cannot use (fewer control points than degree + 1).
     """
-    from BoneUSRecon.Widgets.mrml import make_params
+    from BoneSurfaceReconstructionLib.mrml import make_params
 
     return make_params(
         segmenter=segmenter,

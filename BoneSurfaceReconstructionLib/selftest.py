@@ -40,7 +40,7 @@ class SelfTestResult:
     seconds: float
     """Wall time of the reconstruction through the scene."""
     nodes: Any = field(default=None, repr=False, compare=False)
-    """The :class:`BoneUSRecon.Widgets.mrml.MRMLReconstruction`."""
+    """The :class:`BoneSurfaceReconstructionLib.mrml.MRMLReconstruction`."""
 
     def failures(self) -> list[str]:
         """Which :data:`ACCURACY` thresholds were exceeded (empty when all pass)."""
@@ -85,9 +85,9 @@ def runSelfTest(
     """
     import time
 
+    from BoneSurfaceReconstructionLib import mrml
     from BoneUSRecon.Logic.evaluation import evaluate_surface
     from BoneUSRecon.Logic.vtkio import polydata_points
-    from BoneUSRecon.Widgets import mrml
 
     sim = simulation if simulation is not None else simulatedSweep()
     nodes = mrml.sweep_to_scene(sim.sweep, scene, name="SimulatedSweep")

@@ -86,10 +86,10 @@ def test_segment_writes_csv_and_refuses_stl(capsys, sim_small, tmp_path):
 
 def test_cli_and_slicer_module_build_the_same_parameters():
     # Both go through Logic.pipeline.params_with: same values, same refusals.
+    from BoneSurfaceReconstructionLib.mrml import make_params
     from BoneUSRecon.cli.reconstruct import params_from_args
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.pipeline import params_to_dict, params_with
-    from BoneUSRecon.Widgets.mrml import make_params
 
     args = build_parser().parse_args(
         ["reconstruct", "s.mha", "-o", "b.vtp", "--segmenter", "snake", "--degree", "3", "1",

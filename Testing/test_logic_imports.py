@@ -80,12 +80,12 @@ def test_logic_and_all_submodules_import_without_slicer_qt_or_rendering() -> Non
 def test_mrml_adapter_imports_without_slicer() -> None:
     # The adapter imports slicer lazily (only to reach the Sequences logic), so the
     # library, its CLI and its docs can import it on machines without Slicer.
-    _, modules = _import_in_fresh_interpreter("BoneUSRecon.Widgets.mrml")
+    _, modules = _import_in_fresh_interpreter("BoneSurfaceReconstructionLib.mrml")
     assert not [m for m in modules if m == "slicer" or m.startswith(("slicer.", "slicer_core"))]
     assert not [m for m in modules if m.startswith("vtkmodules.vtkRendering")]
 
 
-@pytest.mark.parametrize("lib", ["dependencies", "parameters", "selftest"])
+@pytest.mark.parametrize("lib", ["dependencies", "parameters", "selftest", "mrml", "sampledata"])
 def test_slicer_module_helpers_import_without_slicer(lib: str) -> None:
     # The module's Lib files must not import slicer at import time (only inside the
     # functions that need the application), so Slicer can load them before the scene.

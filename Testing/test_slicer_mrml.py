@@ -4,7 +4,7 @@
   ``.py`` at the repository root (what Slicer and its Extension Wizard scan), the
   module file and its Lib compile, CMake lists every Python file of the module, the
   .ui binds every parameter of the parameter node, pip packages only ``BoneUSRecon``.
-* The MRML adapter (:mod:`BoneUSRecon.Widgets.mrml`) against Slicer's real MRML classes
+* The MRML adapter (:mod:`BoneSurfaceReconstructionLib.mrml`) against Slicer's real MRML classes
   from the ``slicer-core`` package: scene <-> Sweep poses in mm, the model and point
   nodes it creates, and equality with a direct :mod:`BoneUSRecon.Logic` run.
 * The module's Logic class (explicit and parameter-node entry points) on a real scene,
@@ -245,7 +245,7 @@ def test_requirements_cover_every_third_party_import_of_the_library() -> None:
     # import (VTK excepted: Slicer ships it), or Apply would fail with ImportError.
     from BoneSurfaceReconstructionLib import dependencies
 
-    files = [*(ROOT / "BoneUSRecon" / "Logic").rglob("*.py"), ROOT / "BoneUSRecon" / "Widgets" / "mrml.py"]
+    files = [*(ROOT / "BoneUSRecon" / "Logic").rglob("*.py"), LIB / "mrml.py"]
     names: set[str] = set()
     for f in files:
         for node in ast.walk(ast.parse(f.read_text())):
@@ -276,8 +276,10 @@ def _slicer_like_interpreter(module_folder: Path, code: str) -> subprocess.Compl
     editable BoneUSRecon), with only the module's folder appended to sys.path, as Slicer
     does for a module loaded from Additional module paths."""
     prelude = f"import sys; sys.path.append({str(module_folder)!r})\n"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # no other BoneUSRecon
     return subprocess.run(
-        [sys.executable, "-S", "-c", prelude + code], capture_output=True, text=True, timeout=60, cwd=module_folder.parent
+        [sys.executable, "-S", "-c", prelude + code], capture_output=True, text=True, timeout=60,
+        cwd=module_folder.parent, env=env,
     )
 
 
@@ -320,8 +322,8 @@ slicer = pytest.importorskip("slicer")  # the PyPI package slicer-core (test ext
 from vtkmodules.vtkCommonMath import vtkMatrix4x4  # noqa: E402
 from vtkmodules.vtkCommonTransforms import vtkGeneralTransform  # noqa: E402
 
+from BoneSurfaceReconstructionLib import mrml  # noqa: E402
 from BoneUSRecon.Logic.sweep import matrix_to_vtk, vtk_to_matrix  # noqa: E402
-from BoneUSRecon.Widgets import mrml  # noqa: E402
 
 
 def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -826,3 +828,31 @@ def test_module_logic_raises_value_errors(module_logic, scene) -> None:
     volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "NotASweep")
     with pytest.raises(ValueError, match="single image"):
         logic.process(volume)
+
+
+def test_module_logic_cancel_is_a_flag_not_a_failure(module_logic, small_sim, scene) -> None:
+    # The Widget's Cancel button only calls requestCancel(); the logic polls the flag at
+    # every progress step, stops, returns None and creates no node (no "Failed" dialog).
+    nodes = mrml.sweep_to_scene(small_sim.sweep, scene)
+    logic = module_logic.BoneSurfaceReconstructionLogic()
+    n_models = scene.GetNumberOfNodesByClass("vtkMRMLModelNode")
+    steps: list[str] = []
+
+    def progress(stage: str, done: int, total: int) -> None:
+        steps.append(stage)
+        if len(steps) == 3:
+            logic.requestCancel()  # what the Widget does when Cancel is pressed
+
+    assert logic.process(nodes.browser, progress=progress) is None
+    assert len(steps) == 3  # stopped at the next step
+    assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == n_models
+    p = types.SimpleNamespace(
+        inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
+        segmenter=module_logic._SEGMENTERS[0], controlPointsU=10, controlPointsV=5,
+        degreeU=2, degreeV=2, rays=15, outputSurface=None, outputPoints=None,
+    )
+    logic.requestCancel()  # a stale request is cleared when a run starts
+    steps.clear()
+    assert logic.processParameterNode(p, progress=progress) is None
+    assert p.outputSurface is None and p.outputPoints is None  # outputs untouched
+    assert logic.process(nodes.browser) is not None  # the flag does not stick

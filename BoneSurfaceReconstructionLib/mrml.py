@@ -1,6 +1,8 @@
 """MRML adapter: Slicer scene nodes <-> :mod:`BoneUSRecon.Logic`.
 
-The one place in BoneUSRecon that knows 3D Slicer's scene (MRML). It works on the
+Part of the Slicer module's helpers (not of the pip-installed library): the module's
+Logic reaches the library through it and :mod:`BoneUSRecon.Logic`, never through
+:mod:`BoneUSRecon.Widgets`. The one place that knows 3D Slicer's scene (MRML). It works on the
 nodes it is given (any ``vtkMRMLScene``: the Slicer application's, or one built with the
 ``slicer-core`` package from PyPI) and imports :mod:`slicer` only inside the one
 function that needs Slicer's Sequences logic, so importing this module never loads
