@@ -64,7 +64,7 @@ class Style:
     #: Colour of the gold-standard points.
     gold_color: str = "black"
     #: Colour of valid frame outlines, and of invalid ones.
-    outline_color: str = "#8a8a8a"
+    outline_color: str = "#b4b4b4"
     invalid_outline_color: str = "#ff9500"
     #: On-screen size of points, in pixels.
     point_size: float = 5.0
@@ -269,6 +269,25 @@ def _add_bar_title(pl: pv.Plotter, title: str, style: Style) -> None:
     pl.add_actor(text, name="bar-title", reset_camera=False)
 
 
+#: The colour bar's box in pixels (bottom margin, height, strip share of the height):
+#: fixed in pixels because its tick labels are (14 px); a box in window fractions
+#: squeezes the labels onto the strip in some window heights.
+_BAR_PX = {"bottom": 8, "height": 40, "bar_ratio": 0.32}
+
+
+def _layout_bar(pl: pv.Plotter) -> None:
+    """Size the colour bar and its title for the current window height (see _BAR_PX)."""
+    height = max(int(pl.window_size[1]), 1)
+    y0, h = _BAR_PX["bottom"] / height, _BAR_PX["height"] / height
+    for bar in pl.scalar_bars.values():
+        bar.SetPosition(_BAR["position_x"], y0)
+        bar.SetHeight(h)
+        bar.SetBarRatio(_BAR_PX["bar_ratio"])
+    title = pl.actors.get("bar-title")
+    if title is not None:
+        title.SetPosition(_BAR["position_x"] + _BAR["width"] / 2, y0 + h + 3 / height)
+
+
 def _rgb(color: str) -> tuple[float, float, float]:
     from matplotlib.colors import to_rgb
 
@@ -436,8 +455,9 @@ def make_plotter(
     if sweep is not None:
         valid, invalid = sweep_outlines(sweep)
         if valid.n_points:
-            actors["frames"] = pl.add_mesh(valid, color=style.outline_color, line_width=1,
-                                           opacity=0.6)
+            # Opaque (a light grey, not a translucent one): translucent geometry makes
+            # VTK lay the colour bar's tick labels out over its strip.
+            actors["frames"] = pl.add_mesh(valid, color=style.outline_color, line_width=1)
         if invalid.n_points:
             actors["invalid_frames"] = pl.add_mesh(
                 invalid, color=style.invalid_outline_color, line_width=1.5
@@ -461,7 +481,7 @@ def _toward_probe(sweep: Sweep | None) -> np.ndarray | None:
 
 
 def set_camera(pl: pv.Plotter, points: np.ndarray, direction: np.ndarray, up: np.ndarray,
-               *, margin: float = 1.08, reserve_bottom: float = 0.15,
+               *, margin: float = 1.08, reserve_bottom: float = 0.2,
                reserve_top: float = 0.0) -> None:
     """Look at ``points`` from ``direction`` (parallel projection), filling the window.
 
@@ -589,7 +609,7 @@ def render_views(
             if fit_height:
                 w = int(window_size[0])
                 span = np.ptp(fit @ np.cross(up, d)) or 1.0
-                need = w * np.ptp(fit @ up) / span * 1.08 / 0.85  # margin, scalar bar
+                need = w * np.ptp(fit @ up) / span * 1.08 / 0.8  # margin, colour bar with title and labels
                 pl.window_size = [w, int(np.clip(need, 0.35 * w, window_size[1]))]
             set_camera(pl, fit, d, up)
             add_scale_bar(pl, style)
@@ -603,6 +623,7 @@ def screenshot(pl: pv.Plotter) -> np.ndarray:
     """Render the plotter now and return its image as ``(H, W, 3)`` uint8."""
     # pyvista's screenshot() renders only the first time; later camera changes need an
     # explicit render (which, conversely, does nothing before the first one).
+    _layout_bar(pl)
     pl.render()
     return np.asarray(pl.screenshot(None, return_img=True))[..., :3].copy()
 
@@ -688,7 +709,7 @@ def render_error_map(
         fit = scene_points(actors)
         w = int(window_size[0])
         span = np.ptp(fit @ np.cross(up, d)) or 1.0
-        need = w * np.ptp(fit @ up) / span * 1.08 / 0.85
+        need = w * np.ptp(fit @ up) / span * 1.08 / 0.8
         pl.window_size = [w, int(np.clip(need, 0.35 * w, window_size[1]))]
         set_camera(pl, fit, d, up)
         add_scale_bar(pl, style)
