@@ -30,20 +30,32 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     sim = simulate(SimulationParams(bone="clavicle", n_frames=100, corrupted_fraction=0.05, seed=0))
     recon = reconstruct(sim.sweep)
-    top = render_views(recon.surface, points=recon.points, sweep=sim.sweep, views=("oblique",),
-                       window_size=(900, 420), fit_height=True)["oblique"]
+    top = render_views(
+        recon.surface,
+        points=recon.points,
+        sweep=sim.sweep,
+        views=("oblique",),
+        window_size=(900, 420),
+        fit_height=True,
+    )["oblique"]
     save_png(top, OUT / "surface_distance.png")
-    frames = render_views(recon.surface, sweep=sim.sweep, views=("oblique",),
-                          window_size=(900, 480), show_frames=True)["oblique"]
+    frames = render_views(
+        recon.surface, sweep=sim.sweep, views=("oblique",), window_size=(900, 480), show_frames=True
+    )["oblique"]
     save_png(frames, OUT / "sweep_planes.png")
 
     data = ROOT / "Resources" / "SampleData"
-    real = read_sweep(data / "BoneUltrasound_L14.igs.mha",
-                      calibration=data / "BoneUltrasound_L14_config.xml")
+    real = read_sweep(
+        data / "BoneUltrasound_L14.igs.mha", calibration=data / "BoneUltrasound_L14_config.xml"
+    )
     seg = segment_sweep(real)
     c = seg.contours[len(seg.contours) // 2]
-    img = overlay_image(real.frames[c.frame], c.points_px, accepted=c.accepted,
-                        label=f"BoneUltrasound_L14, frame {c.frame}: shadowpath contour")
+    img = overlay_image(
+        real.frames[c.frame],
+        c.points_px,
+        accepted=c.accepted,
+        label=f"BoneUltrasound_L14, frame {c.frame}: shadowpath contour",
+    )
     save_png(np.asarray(img.resize((img.width // 2, img.height // 2))), OUT / "real_contour.png")
     for p in sorted(OUT.glob("*.png")):
         print(f"{p.relative_to(ROOT)}: {p.stat().st_size // 1024} KB")
