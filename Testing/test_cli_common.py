@@ -110,7 +110,8 @@ def test_simulate_help_defaults_match_the_simulator():
     a = parser.parse_args(["simulate", "ulna", "out"])
     d = SimulationParams()
     assert tuple(BONES) == tuple(BONE_SPECS)
-    assert {"n_frames": a.frames, "width": a.width, "height": a.height,
+    width, height = (int(v) for v in a.size.split("x"))  # --size WxH (issue 12)
+    assert {"n_frames": a.frames, "width": width, "height": height,
             "spacing_mm": a.spacing, "seed": a.seed} == {
         k: getattr(d, k) for k in ("n_frames", "width", "height", "spacing_mm", "seed")}
     with pytest.raises(SystemExit):
