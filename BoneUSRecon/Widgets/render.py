@@ -363,13 +363,18 @@ def add_scale_bar(pl: pv.Plotter, style: Style = DEFAULT_STYLE, *, fraction: flo
     return length
 
 
-def add_orientation_marker(pl: pv.Plotter) -> None:
-    """An x/y/z axes triad of the reference frame in the lower-left corner.
+#: Where the orientation triad goes (normalised viewport): lower left by default.
+LOWER_LEFT = (0.0, 0.0, 0.14, 0.28)
+UPPER_RIGHT = (0.86, 0.72, 1.0, 1.0)
+
+
+def add_orientation_marker(pl: pv.Plotter, viewport: Sequence[float] = LOWER_LEFT) -> None:
+    """An x/y/z axes triad of the reference frame in a corner (``viewport``).
 
     It turns with the camera, so a reader sees how the view is oriented (the sweep's
     reference coordinates are the tracker's, not a patient's: hence x, y, z).
     """
-    pl.add_axes(viewport=(0.0, 0.0, 0.14, 0.28), line_width=2, color="black",
+    pl.add_axes(viewport=tuple(viewport), line_width=2, color="black",
                 xlabel="x", ylabel="y", zlabel="z")
 
 
@@ -391,6 +396,7 @@ def make_plotter(
     clim: Sequence[float] | None = None,
     scalar_bar: bool = True,
     title: str | None = None,
+    axes_viewport: Sequence[float] = LOWER_LEFT,
 ) -> tuple[pv.Plotter, dict[str, Any]]:
     """A plotter showing the surface, its points, the gold points and the sweep.
 
@@ -406,6 +412,8 @@ def make_plotter(
         Render without a window (for screenshots).
     clim : (float, float), optional
         Colour range in mm; ``[0, max Distance]`` by default.
+    axes_viewport : (x0, y0, x1, y1)
+        Corner of the x/y/z orientation triad (:func:`add_orientation_marker`).
 
     Returns
     -------
@@ -464,7 +472,7 @@ def make_plotter(
             )
     if title:
         pl.add_text(title, position="upper_left", font_size=10, color=style.text_color)
-    add_orientation_marker(pl)
+    add_orientation_marker(pl, axes_viewport)
     return pl, actors
 
 

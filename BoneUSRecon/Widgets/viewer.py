@@ -127,6 +127,7 @@ def show_surface(
         window_size=window_size,
         style=style,
         title=title,
+        axes_viewport=render.UPPER_RIGHT,  # the legend and check boxes are lower left
     )
     try:
         pts = np.asarray(mesh.points, dtype=float)
@@ -135,6 +136,7 @@ def show_surface(
         if out is not None:
             _legend(pl, actors, style)  # the window has labelled check boxes instead
             render.set_camera(pl, fit, d, up, reserve_top=0.06)
+            render.add_scale_bar(pl, style)  # exact for this still image's camera
             image = render.screenshot(pl)
             return render.save_png(image, out)
         _add_interaction(pl, mesh, actors, gold, style)

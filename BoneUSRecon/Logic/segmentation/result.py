@@ -88,10 +88,10 @@ class SegmentationResult:
 
     def summary(self) -> dict[str, Any]:
         """Counts and rejection reasons, for the CLI and the report."""
-        reasons: dict[str, int] = {}
-        for r in self.rejected.values():
-            key = r.split(" (")[0]
-            reasons[key] = reasons.get(key, 0) + 1
+        from BoneUSRecon.Logic.reasons import count_reasons
+
+        # Counted by kind, numbers stripped, in the one place every summary uses.
+        reasons = count_reasons(self.rejected)
         return {
             "method": self.method,
             "frames": len(self.contours),
