@@ -7,9 +7,11 @@
 * :mod:`.report`: :func:`~.report.write_report`, a self-contained HTML report of a
   reconstruction.
 * :mod:`.overlay`: contours drawn on B-mode frames (PNG, Pillow).
-* :mod:`.mrml`: the adapter between Slicer's MRML scene and BoneUSRecon.
+
+The adapter between Slicer's MRML scene and BoneUSRecon is the Slicer module's own
+(``BoneSurfaceReconstructionLib.mrml``): the module never imports this package.
 
 Submodules are imported on demand: importing this package loads nothing heavy.
 """
 
-__all__ = ["render", "viewer", "report", "overlay", "mrml"]
+__all__ = ["render", "viewer", "report", "overlay"]
