@@ -1,6 +1,6 @@
 """The default segmenter on the one real recording, and on augmentations of it.
 
-The shared PLUS recording (21 frames of 820 x 616 at 0.085 mm, a scan-converted
+The PLUS recording shipped in Resources/SampleData (21 frames of 820 x 616 at 0.085 mm, a scan-converted
 linear probe with black margins beside the image) shows a round bone whose shadow is
 grey, with weaker oblique flanks. There is no ground truth, so:
 

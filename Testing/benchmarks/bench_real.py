@@ -1,4 +1,4 @@
-"""Real-data benchmark: the default segmenter on the shared PLUS recording and on augmentations of it.
+"""Real-data benchmark: the default segmenter on the PLUS recording shipped in Resources/SampleData and on augmentations of it.
 
 Prints, for the recording itself, the frames accepted, the per-frame contour extent
 (mm) and the time per frame; then, for each augmentation (mirror, gain -30 % / +30 %,

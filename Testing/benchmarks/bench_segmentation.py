@@ -7,7 +7,7 @@ the share of kept points farther than 2 mm, the share of corrupted frames reject
 ("harmless"), and frames per second; then the time per frame of
 ``skimage.segmentation.active_contour`` (100 points, 300 iterations, free ends) on the
 same frames, as a ratio. Also times the default segmenter on 480x640 frames and runs
-both segmenters on the shared real PLUS recording (overlays written with --overlay).
+both segmenters on the real PLUS recording in Resources/SampleData (overlays written with --overlay).
 
 Run: ``python Testing/benchmarks/bench_segmentation.py [--frames 60] [--overlay DIR]``
 Targets for the default: median <= 0.15 mm, p95 <= 0.5 mm, < 1 % beyond 2 mm,
