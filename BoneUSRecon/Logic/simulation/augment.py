@@ -31,7 +31,6 @@ __all__ = [
     "RECORDING_AUGMENTATIONS",
     "HARD_AUGMENTATIONS",
     "tissue_level",
-    "tissue_above",
     "harden",
     "contour_agreement",
 ]
@@ -142,23 +141,6 @@ def tissue_level(
     return np.maximum(gaussian_filter1d(level, smooth_mm / spacing_mm, mode="nearest"), 1.0)
 
 
-def tissue_above(frames: np.ndarray, spacing_mm: float, above_mm: tuple[float, float] = (1.0, 3.0)) -> np.ndarray:
-    """Mean grey of the tissue ``above_mm`` (from, to) above each pixel, averaged over 1 mm
-    laterally, (N, H, W); the first rows (nothing above) take the first defined value."""
-    from scipy.ndimage import uniform_filter
-
-    f = np.asarray(frames, np.float32)
-    n0, n1 = (max(1, int(round(v / spacing_mm))) for v in above_mm)
-    size = n1 - n0 + 1
-    # A centred box of ``size`` rows, moved down so that it ends n0 rows above the pixel.
-    box = uniform_filter(f, (1, size, max(1, int(round(1.0 / spacing_mm)))))
-    shift = n0 + size // 2
-    a = np.empty_like(box)
-    a[:, shift:] = box[:, :-shift]
-    a[:, :shift] = box[:, :1]
-    return a
-
-
 def harden(
     sweep: Sweep,
     *,
@@ -212,13 +194,17 @@ def harden(
         out = np.where(shadow, f * gain + deficit * noise, f)
         if reverb > 0 and shadow.any():
             # The line just above the shadow (within 1.5 mm), copied down into it.
-            near = maximum_filter1d(shadow, max(1, int(round(1.5 / sp))), axis=1, origin=-(int(round(1.5 / sp)) // 2))
+            near = maximum_filter1d(
+                shadow, max(1, int(round(1.5 / sp))), axis=1, origin=-(int(round(1.5 / sp)) // 2)
+            )
             excess = np.where(near & ~shadow, np.clip(out - t, 0.0, None), 0.0).astype(np.float32)
             step = max(1, int(round(reverb_mm / sp)))
             band = np.zeros_like(out)
             for m in range(1, reverb_copies + 1):
                 if m * step < f.shape[1]:
-                    band[:, m * step :] += np.float32(reverb * 0.75 ** (m - 1)) * excess[:, : -m * step]
+                    band[:, m * step :] += (
+                        np.float32(reverb * 0.75 ** (m - 1)) * excess[:, : -m * step]
+                    )
             out = np.where(shadow, out + band, out)
     if echo_ratio is not None:
         m = tissue_level(out, sp, upper_half=False)[:, None]
