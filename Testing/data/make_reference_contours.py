@@ -243,7 +243,7 @@ def reference(name: str) -> tuple[object, dict[int, np.ndarray]]:
             med = np.median(img[:, cfg["cols"][0] : cfg["cols"][1]], axis=1)
             n0, n1 = int(round(1.0 / sp)), int(round(8.0 / sp))
             dark = np.zeros(i.size, bool)
-            for q, (c, r) in enumerate(zip(i, j)):
+            for q, (c, r) in enumerate(zip(i, j, strict=True)):
                 rr = np.arange(r + n0, min(r + n1, img.shape[0]))
                 dark[q] = rr.size > 0 and img[rr, c].mean() < cfg["shadowed"] * max(
                     np.mean(med[rr]), 1.0
