@@ -207,7 +207,9 @@ def harden(
                     )
             out = np.where(shadow, out + band, out)
     if echo_ratio is not None:
-        m = tissue_level(out, sp, upper_half=False)[:, None]
+        # The typical tissue grey at each depth, of the recording as it came (the
+        # lifted shadow would raise it).
+        m = tissue_level(f, sp, upper_half=False)[:, None]
         for k in range(f.shape[0]):
             rho = out[k] / m
             top = float(np.percentile(rho[lit], echo_percentile))

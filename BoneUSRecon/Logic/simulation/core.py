@@ -19,7 +19,7 @@ from BoneUSRecon.Logic.fileio import atomic_path, can_create_file_in
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, NEIGHBOURS, UP, BoneGeometry
 from BoneUSRecon.Logic.simulation.corruption import choose_corrupted
-from BoneUSRecon.Logic.simulation.hard import crest_of, effective_params, hard_scene
+from BoneUSRecon.Logic.simulation.hard import HardScene, crest_of, effective_params, hard_scene
 from BoneUSRecon.Logic.simulation.hard import echo_strength as hard_echo_strength
 from BoneUSRecon.Logic.simulation.imaging import render_frames
 from BoneUSRecon.Logic.simulation.motion import ProbePath, probe_path
@@ -68,6 +68,10 @@ class Simulation:
     neighbour : BoneGeometry or None
         The other forearm bone shown beside the target (a distractor; not in the
         truth, the gold points or the contours), when there is one.
+    hard_scene : HardScene or None
+        With ``realism="hard"``: where the hard conditions were drawn, in pixels per
+        frame (fascia, no-contact gap, vessel, far cortex; see :mod:`.hard`): the
+        look-alikes a segmenter must not take for bone. None at standard realism.
     """
 
     sweep: Sweep
@@ -83,6 +87,7 @@ class Simulation:
     sections: BoneSections
     swept_range_mm: tuple[float, float]
     neighbour: BoneGeometry | None = None
+    hard_scene: HardScene | None = None
 
     def truth_polydata(self) -> vtkPolyData:
         """The true bone surface as triangles with outward point ``Normals``."""
@@ -359,6 +364,7 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         sections=sections,
         swept_range_mm=swept,
         neighbour=other,
+        hard_scene=scene,
     )
 
 

@@ -260,24 +260,34 @@ def _slopes(sweep: Sweep, contours_px: Mapping[int, np.ndarray]) -> dict[int, np
 
 
 def score_simulation(
-    result: SegmentationResult, sim: Simulation, *, cover_mm: float = COVER_MM
+    result: SegmentationResult,
+    sim: Simulation,
+    *,
+    cover_mm: float = COVER_MM,
+    beyond_mm: float = 1.5,
 ) -> SweepScore:
     """Score a segmentation of a simulated sweep against its exact truth.
 
-    Distances are to the analytic bone surface; the true contour of a frame is its
-    visible contour (``sim.true_contours_px``); every valid frame is scored.
+    Distances are to the analytic bone surface (exact), for points within ``beyond_mm``
+    of the frame's true visible contour (``sim.true_contours_px``: a flank followed a
+    little further than the visible limit still counts at its true distance); farther
+    from it, the distance to that contour: the far cortex, deep in the shadow, lies on
+    the bone's surface too but is not the imaged surface. Every valid frame is scored.
     """
     sw = sim.sweep
     frames = [k for k in range(sw.n_frames) if sw.valid[k]]
     px = {k: sim.true_contours_px[k] for k in frames if len(sim.true_contours_px[k])}
     truth = {k: sw.to_reference(k, c) for k, c in px.items()}
+
+    def dist(k: int, p: np.ndarray) -> np.ndarray:
+        d = sim.distance_to_truth(p)
+        if k not in truth:
+            return d
+        dc = polyline_distance(p, truth[k])
+        return np.where(dc <= beyond_mm, d, dc)
+
     return score_frames(
-        _kept_mm(result, sw),
-        truth,
-        frames,
-        lambda k, p: sim.distance_to_truth(p),
-        _slopes(sw, px),
-        cover_mm=cover_mm,
+        _kept_mm(result, sw), truth, frames, dist, _slopes(sw, px), cover_mm=cover_mm
     )
 
 
