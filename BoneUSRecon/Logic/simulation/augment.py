@@ -146,7 +146,7 @@ def harden(
     *,
     echo_ratio: float | None = 1.3,
     shadow_ratio: float | None = 0.65,
-    reverb: float = 0.6,
+    reverb: float = 0.35,
     reverb_mm: float = 2.5,
     reverb_copies: int = 3,
     echo_percentile: float = 99.9,
@@ -163,7 +163,7 @@ def harden(
       mid-grey, 0.65 of the tissue at its depth (the cadaver's level), still textured.
       A recording whose shadow is already that grey is left as it is.
     * ``reverb``: in the lifted shadow, ``reverb_copies`` copies of the bright excess over
-      ``T`` in the 1.5 mm just above the shadow (the bone line), shifted down by
+      ``T`` in the 3.5 mm just above the shadow (the bone line), shifted down by
       ``m * reverb_mm``, the m-th at ``reverb * 0.75 ** (m - 1)``: equally spaced bands.
     * ``echo_ratio``: grey above the typical tissue grey at its depth ``M(j)`` (the plain
       per-row median, ``tissue_level(upper_half=False)``) is compressed in ratio,
@@ -176,7 +176,7 @@ def harden(
     None (or 0 for ``reverb``) skips a step. The black margins of a scan-converted
     recording stay black. Poses are unchanged (no pixel moves).
     """
-    from scipy.ndimage import maximum_filter1d, uniform_filter
+    from scipy.ndimage import uniform_filter
 
     sp = float(np.mean(sweep.spacing_mm))
     f = np.asarray(sweep.frames, np.float32)
@@ -193,10 +193,16 @@ def harden(
         noise = np.random.default_rng(seed).gamma(2.0, 0.5, f.shape).astype(np.float32)
         out = np.where(shadow, f * gain + deficit * noise, f)
         if reverb > 0 and shadow.any():
-            # The line just above the shadow (within 1.5 mm), copied down into it.
-            near = maximum_filter1d(
-                shadow, max(1, int(round(1.5 / sp))), axis=1, origin=-(int(round(1.5 / sp)) // 2)
+            # The line just above the shadow (within 3.5 mm: the 3 mm box puts the
+            # shadow's edge ~1.5 mm below the bone line), copied down into it.
+            n = max(1, int(round(3.5 / sp)))
+            cs = np.concatenate(
+                [np.zeros_like(shadow[:, :1], np.int32), np.cumsum(shadow, axis=1, dtype=np.int32)],
+                axis=1,
             )
+            h = f.shape[1]
+            hi = np.minimum(np.arange(h) + n + 1, h)
+            near = (cs[:, hi] - cs[:, 1 : h + 1]) > 0  # any shadow 1..n rows below
             excess = np.where(near & ~shadow, np.clip(out - t, 0.0, None), 0.0).astype(np.float32)
             step = max(1, int(round(reverb_mm / sp)))
             band = np.zeros_like(out)
