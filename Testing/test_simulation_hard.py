@@ -262,3 +262,12 @@ def test_cli_simulate_realism_hard(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit) as exc:  # argparse's own choice check
         main(["simulate", "tibia", str(bad), "--realism", "cadaver"])
     assert exc.value.code == 2 and not bad.exists()
+
+
+def test_true_profile_includes_the_invisible_flanks(hard_tibia) -> None:
+    sim = hard_tibia
+    for k in (0, sim.sweep.n_frames - 1):
+        pts, slope, visible = sim.true_profile(k)
+        vis = sim.true_contours_px[k]
+        assert np.array_equal(pts[visible], vis)  # the visible contour is part of the profile
+        assert slope[visible].max() <= 71.0 and slope.max() >= slope[visible].max()

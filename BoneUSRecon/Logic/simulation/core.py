@@ -121,6 +121,28 @@ class Simulation:
         """The true visible contour of ``frame`` in reference mm, shape (K, 3)."""
         return self.sweep.to_reference(frame, self.true_contours_px[frame])
 
+    def true_profile(self, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The bone under every column of ``frame`` that meets it, visible or not.
+
+        Returns
+        -------
+        points_px : ndarray (K, 2)
+            ``(i, j)``: the column and the (sub-pixel) row of the first bone surface its
+            beam meets, ordered by ``i`` (the target bone only).
+        slope_deg : ndarray (K,)
+            In-plane slope of that surface (degrees from the image's lateral axis).
+        visible : ndarray of bool (K,)
+            Whether the point is part of the true visible contour (``true_contours_px``).
+        """
+        from BoneUSRecon.Logic.simulation.scoring import contour_slopes_deg
+
+        j = self.sections.top_j[frame]
+        i = np.flatnonzero(np.isfinite(j) & (np.nan_to_num(j, nan=-1.0) >= 0) & (np.nan_to_num(j, nan=-1.0) <= self.sweep.height - 1))
+        pts = np.column_stack([i.astype(float), j[i]]) if i.size else np.empty((0, 2))
+        sx, sy = (float(v) for v in self.sweep.spacing_mm)
+        visible = np.isin(i, self.true_contours_px[frame][:, 0].astype(int))
+        return pts, contour_slopes_deg(pts * [sx, sy]), visible
+
     def contours_mm(self) -> list[tuple[int, np.ndarray]]:
         """``(frame, (K, 3) mm)`` for every valid frame with a visible bone, in frame order.
 
