@@ -215,14 +215,14 @@ def harden(
     if echo_ratio is not None:
         # The typical tissue grey at each depth, of the recording as it came (the
         # lifted shadow would raise it).
-        m = tissue_level(f, sp, upper_half=False)[:, None]
+        level = tissue_level(f, sp, upper_half=False)[:, None]
         for k in range(f.shape[0]):
-            rho = out[k] / m
+            rho = out[k] / level
             top = float(np.percentile(rho[lit], echo_percentile))
             if top <= echo_ratio:
                 continue  # already as faint as asked
             gamma = np.float32(np.log(echo_ratio) / np.log(top))
-            out[k] = np.where(rho > 1.0, m * rho**gamma, out[k])
+            out[k] = np.where(rho > 1.0, level * rho**gamma, out[k])
     out = np.where(lit[None], out, 0.0)
     return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
 

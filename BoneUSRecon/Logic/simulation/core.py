@@ -323,8 +323,8 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         # The neighbouring bone's echo keeps the standard angle law.
         ip = params.imaging
         c2 = np.clip(cos_inc, 0, 1)
-        strength = np.where(use2, c2**ip.specular_exponent + ip.diffuse_fraction * c2, scene.strength)
-        scene = replace(scene, strength=strength)
+        both = np.where(use2, c2**ip.specular_exponent + ip.diffuse_fraction * c2, scene.strength)
+        scene = replace(scene, strength=both)
     frames = render_frames(
         path.image_to_reference, top_j, cos_inc, params, kinds, progress, tissue_top_j=sections.top_j, scene=scene
     )
