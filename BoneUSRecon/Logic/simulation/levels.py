@@ -88,7 +88,9 @@ def echo_levels(
         per["shadow"].append(float(np.median(shadow)) if shadow.size else np.nan)
         per["beside"].append(float(np.median(lit)) if lit.size else np.nan)
     a = {k: np.array(v, float) for k, v in per.items()}
-    out = {name: float(np.nanmedian(v)) if np.isfinite(v).any() else np.nan for name, v in a.items()}
+    out = {
+        name: float(np.nanmedian(v)) if np.isfinite(v).any() else np.nan for name, v in a.items()
+    }
     with np.errstate(divide="ignore", invalid="ignore"):
         ratios = {
             "echo_to_above": a["echo"] / a["above"],
