@@ -271,3 +271,11 @@ def test_true_profile_includes_the_invisible_flanks(hard_tibia) -> None:
         vis = sim.true_contours_px[k]
         assert np.array_equal(pts[visible], vis)  # the visible contour is part of the profile
         assert slope[visible].max() <= 71.0 and slope.max() >= slope[visible].max()
+
+
+def test_hard_is_deterministic_per_seed(hard_tibia) -> None:
+    again = simulate(SimulationParams(bone="tibia", realism="hard", **SMALL))
+    assert np.array_equal(again.sweep.frames, hard_tibia.sweep.frames)
+    assert np.array_equal(again.gold, hard_tibia.gold)
+    other = simulate(SimulationParams(bone="tibia", realism="hard", **{**SMALL, "seed": 2}))
+    assert not np.array_equal(other.sweep.frames, hard_tibia.sweep.frames)
