@@ -67,14 +67,16 @@ def test_trimmed_to_where_there_was_data():
     pd = surface_polydata(fit, grid)
     pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
     rel_y = pts[:, 1] - axis_point(pts[:, 0])[:, 1]
-    hole = (pts[:, 0] > 23.5) & (pts[:, 0] < 36.5) & (rel_y > 1.5)
+    # frames 15..24 lie at x = 23.1..36.9 mm; the edge is smoothed over the 3 mm window
+    hole = (pts[:, 0] > 25.0) & (pts[:, 0] < 35.0) & (rel_y > 1.5)
     assert not hole.any()
     # the hole is ~9-10 slice gaps x half the 120 deg arc: ~95 mm^2 of the 754 mm^2
     full_area = RADIUS * np.deg2rad(120) * 60.0
     assert 0.83 * full_area < surface_area(pd) < 0.9 * full_area
     # max_distance_mm trims too; and nothing left is an error
     near = surface_polydata(fit, grid, params=SurfaceParams(max_distance_mm=0.6))
-    assert arr(near, "Distance").max() <= 0.6
+    # cut along triangle edges where the (non-linear) distance crosses 0.6 mm
+    assert arr(near, "Distance").max() <= 0.6 + SurfaceParams().step_mm
     assert surface_area(near) < 0.8 * surface_area(pd)
     with pytest.raises(BoneUSReconError, match="no part"):
         surface_polydata(fit, grid, params=SurfaceParams(max_distance_mm=1e-6))
@@ -104,8 +106,9 @@ def test_unknown_extension_refused_and_nothing_written(tube, tmp_path):
 def test_bad_surface_params_refused():
     with pytest.raises(BoneUSReconError):
         SurfaceParams(step_mm=0)
-    with pytest.raises(BoneUSReconError):
-        SurfaceParams(coverage_threshold=0)
+    for bad in ({"support_window_mm": -1}, {"gap_factor": 0}, {"max_distance_mm": 0}):
+        with pytest.raises(BoneUSReconError, match=next(iter(bad))):
+            SurfaceParams(**bad)
 
 
 def test_long_gaps_between_slices_are_not_bridged():
