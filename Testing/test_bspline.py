@@ -146,6 +146,8 @@ def test_robust_fit_ignores_false_frames_and_outlier_points():
         ({"control_points": (2, 5)}, "too few for degree"),
         ({"method": "magic"}, "unknown fit method"),
         ({"robust": "cauchy"}, "unknown robust"),
+        ({"thin_weight": -1.0}, "thin_weight must be >= 0, got -1.0"),
+        ({"thin_share": 0.0}, "thin_share must be in"),
     ],
 )
 def test_bad_parameters_refused(kwargs, match):
@@ -229,3 +231,12 @@ def test_fit_is_equivariant_under_rigid_motion():
     )
     assert np.allclose(a.weights, b.weights, atol=1e-9)
     assert a.frame_weights[4] == 0
+
+
+def test_thin_penalty_changes_nothing_on_a_complete_grid():
+    # every direction of the control net is determined: plain least squares, exactly
+    surf, u, v, pts, rng = known_surface(seed=5)
+    noisy = pts + rng.normal(scale=0.2, size=pts.shape)
+    a = fit_surface(noisy, FitParams(robust="none", thin_weight=0.0, smoothing=0.0), u=u, v=v)
+    b = fit_surface(noisy, FitParams(robust="none", thin_weight=1.0, smoothing=0.0), u=u, v=v)
+    assert np.allclose(a.surface.control_points, b.surface.control_points, atol=1e-9)

@@ -136,7 +136,7 @@ class FitParams:
     min_scale_mm: float = 0.15
     smoothing: float = 1e-8
     thin_weight: float = 1.0
-    thin_share: float = 0.02
+    thin_share: float = 0.005
 
     def __post_init__(self) -> None:
         p, q = (int(x) for x in self.degree)
