@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -267,3 +269,14 @@ def test_thin_data_penalty_leaves_covered_data_alone():
         assert np.nanmax(fit.residuals[ok]) < 0.05 and fit.n_outliers == 0
         pts = numpy_support.vtk_to_numpy(surface_polydata(fit, grid).GetPoints().GetData())
         assert np.abs(np.linalg.norm(pts - axis_point(pts[:, 0]), axis=1) - RADIUS).max() < 0.1
+
+
+def test_a_wild_fit_does_not_make_a_huge_mesh():
+    # The mesh is sized on the spline inside the support; should the fit go wild there,
+    # the data's own extent caps the sampling (at 3x what it asks for).
+    fit, grid = tube_fit(m=40)
+    ctrl = fit.surface.control_points.copy()
+    ctrl[5:10, 2] *= 40.0  # a fold of metres in the middle of the net
+    wild = dataclasses.replace(fit, surface=dataclasses.replace(fit.surface, control_points=ctrl))
+    normal = surface_polydata(fit, grid).GetNumberOfCells()
+    assert surface_polydata(wild, grid).GetNumberOfCells() < 12 * normal

@@ -164,7 +164,14 @@ def _window_stat(x: np.ndarray, s: np.ndarray, half: float, stat: float | str) -
     vals = np.where(idx < b[:, None], x[np.minimum(idx, x.size - 1)], np.nan)
     if stat == "mean":
         return np.nanmean(vals, axis=1)
-    return np.nanquantile(vals, float(stat), axis=1)
+    # Row quantiles with linear interpolation, vectorised (np.nanquantile along an
+    # axis loops in Python over the rows: 0.8 s for 1,000 slices).
+    vals = np.sort(vals, axis=1)  # NaN last
+    pos = ((b - a) - 1) * float(stat)
+    lo = np.floor(pos).astype(int)
+    hi = np.minimum(lo + 1, (b - a) - 1)
+    r = np.arange(s.size)
+    return vals[r, lo] + (pos - lo) * (vals[r, hi] - vals[r, lo])
 
 
 def surface_support(
@@ -237,6 +244,15 @@ def surface_support(
     return Support(s, u, lo_f, hi_f, raw_lo, raw_hi, spans)
 
 
+def _data_size(grid: ResampledGrid) -> tuple[float, float]:
+    """Extent of the grid's data (mm): along the axis, and the longest row around it."""
+    p = grid.points
+    step = np.linalg.norm(np.diff(p, axis=1), axis=-1)  # NaN where a ray missed
+    around = float(np.nanmax(np.nansum(step, axis=1))) if np.isfinite(step).any() else 0.0
+    along = float(grid.axis_position[-1] - grid.axis_position[0])
+    return along, around
+
+
 def _field(support: Support, s: np.ndarray, v: np.ndarray, mm_per_v: float) -> np.ndarray:
     """Signed distance-like support field (mm, > 0 inside) on the grid ``s x v``."""
     lo = np.interp(s, support.position, support.lo)
@@ -248,7 +264,11 @@ def _field(support: Support, s: np.ndarray, v: np.ndarray, mm_per_v: float) -> n
 
 
 def _sampling(
-    fit: FitResult, support: Support, step: float, margin: float = 0.0
+    fit: FitResult,
+    support: Support,
+    step: float,
+    margin: float = 0.0,
+    data_size: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Regular u and v samples over the support's extent, ``step`` mm apart on the surface.
 
@@ -280,6 +300,11 @@ def _sampling(
     v0, v1 = max(0.0, v0 - margin / mm_per_v), min(1.0, v1 + margin / mm_per_v)
     nu = int(np.clip(np.ceil(along / step) + 1, 2, MAX_SAMPLES[0]))
     nv = int(np.clip(np.ceil(mm_per_v * (v1 - v0) / step) + 1, 2, MAX_SAMPLES[1]))
+    if data_size is not None:
+        # A fit gone wild inside the support must not make a mesh of millions of
+        # triangles: at most 3x the samples the data's own extent asks for.
+        nu = min(nu, int(3 * np.ceil(data_size[0] / step)) + 10)
+        nv = min(nv, int(3 * np.ceil(data_size[1] / step)) + 10)
     return np.linspace(u0, u1, nu), np.linspace(v0, v1, nv), mm_per_v
 
 
@@ -426,7 +451,9 @@ def surface_polydata(
         Nothing left after trimming.
     """
     support = surface_support(fit, grid, params)
-    us, vs, mm_per_v = _sampling(fit, support, params.step_mm, params.margin_mm)
+    us, vs, mm_per_v = _sampling(
+        fit, support, params.step_mm, params.margin_mm, None if grid is None else _data_size(grid)
+    )
     nu, nv = us.size, vs.size
     field = _field(support, np.interp(us, support.u, support.position), vs, mm_per_v)
     field += params.margin_mm
