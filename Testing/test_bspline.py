@@ -42,7 +42,9 @@ def test_averaging_knots_are_clamped_and_average_the_data():
 @pytest.mark.parametrize("degree", [(1, 1), (2, 2), (3, 2)])
 def test_known_surface_recovered_to_round_off(method, degree):
     surf, u, v, pts, _ = known_surface(p=degree[0], q=degree[1])
-    fit = fit_surface(pts, FitParams(degree=degree, method=method, robust="none", smoothing=0.0), u=u, v=v)
+    fit = fit_surface(
+        pts, FitParams(degree=degree, method=method, robust="none", smoothing=0.0), u=u, v=v
+    )
     assert np.abs(fit.surface.control_points - surf.control_points).max() < 1e-9
     assert fit.rms_mm < 1e-10
     # evaluate agrees with scipy's own tensor-product evaluator
@@ -76,8 +78,15 @@ def test_direct_fit_matches_fitpack_weighted_lsq_oracle():
     for k in range(3):
         # FITPACK minimises sum (w_i r_i)^2, so it gets sqrt of our weights.
         oracle = LSQBivariateSpline(
-            uu[ok], vv[ok], noisy[ok][:, k], ku[3:-3], kv[3:-3], w=np.sqrt(w[ok]),
-            kx=2, ky=2, bbox=[0, 1, 0, 1],
+            uu[ok],
+            vv[ok],
+            noisy[ok][:, k],
+            ku[3:-3],
+            kv[3:-3],
+            w=np.sqrt(w[ok]),
+            kx=2,
+            ky=2,
+            bbox=[0, 1, 0, 1],
         )
         assert np.abs(oracle(u, v) - ours[..., k]).max() < 1e-9
 
@@ -87,7 +96,9 @@ def test_separable_equals_direct_for_complete_grid_and_separable_weights():
     noisy = pts + rng.normal(scale=0.3, size=pts.shape)
     w = np.outer(rng.uniform(0.3, 1, u.size), rng.uniform(0.3, 1, v.size))  # a_i b_j
     d = fit_surface(noisy, FitParams(robust="none", smoothing=0.0), u=u, v=v, weights=w)
-    s = fit_surface(noisy, FitParams(method="separable", robust="none", smoothing=0.0), u=u, v=v, weights=w)
+    s = fit_surface(
+        noisy, FitParams(method="separable", robust="none", smoothing=0.0), u=u, v=v, weights=w
+    )
     assert np.abs(d.surface.control_points - s.surface.control_points).max() < 1e-9
 
 
@@ -135,6 +146,8 @@ def test_robust_fit_ignores_false_frames_and_outlier_points():
         ({"control_points": (2, 5)}, "too few for degree"),
         ({"method": "magic"}, "unknown fit method"),
         ({"robust": "cauchy"}, "unknown robust"),
+        ({"thin_weight": -1.0}, "thin_weight must be >= 0, got -1.0"),
+        ({"thin_share": 0.0}, "thin_share must be in"),
     ],
 )
 def test_bad_parameters_refused(kwargs, match):
@@ -157,10 +170,12 @@ def test_unsupported_control_points_refused_without_smoothing_and_held_with_it()
     holed = pts.copy()
     holed[15:25] = np.nan  # a long gap: some control points have no data under them
     with pytest.raises(BoneUSReconError, match="do not determine"):
-        fit_surface(holed, FitParams(robust="none", smoothing=0.0), u=u, v=v)
-    fit = fit_surface(holed, FitParams(robust="none"), u=u, v=v)
+        fit_surface(holed, FitParams(robust="none", smoothing=0.0, thin_weight=0.0), u=u, v=v)
     ok = np.isfinite(holed).all(-1)
-    assert np.abs(fit.surface.evaluate(u, v)[ok] - pts[ok]).max() < 1e-3
+    for params in (FitParams(robust="none", thin_weight=0.0), FitParams(robust="none")):
+        # held by the tiny smoothing, or by the thin-data penalty (no bias on the data)
+        fit = fit_surface(holed, params, u=u, v=v)
+        assert np.abs(fit.surface.evaluate(u, v)[ok] - pts[ok]).max() < 1e-3
 
 
 def test_separable_with_missing_entries_is_close_but_not_exact():
@@ -211,6 +226,17 @@ def test_fit_is_equivariant_under_rigid_motion():
     shift = np.array([5.0, -3.0, 100.0])
     a = fit_surface(noisy, FitParams(), u=u, v=v)
     b = fit_surface(noisy @ rot.T + shift, FitParams(), u=u, v=v)
-    assert np.allclose(a.surface.control_points @ rot.T + shift, b.surface.control_points, atol=1e-6)
+    assert np.allclose(
+        a.surface.control_points @ rot.T + shift, b.surface.control_points, atol=1e-6
+    )
     assert np.allclose(a.weights, b.weights, atol=1e-9)
     assert a.frame_weights[4] == 0
+
+
+def test_thin_penalty_changes_nothing_on_a_complete_grid():
+    # every direction of the control net is determined: plain least squares, exactly
+    surf, u, v, pts, rng = known_surface(seed=5)
+    noisy = pts + rng.normal(scale=0.2, size=pts.shape)
+    a = fit_surface(noisy, FitParams(robust="none", thin_weight=0.0, smoothing=0.0), u=u, v=v)
+    b = fit_surface(noisy, FitParams(robust="none", thin_weight=1.0, smoothing=0.0), u=u, v=v)
+    assert np.allclose(a.surface.control_points, b.surface.control_points, atol=1e-9)

@@ -20,12 +20,12 @@ def axis_point(x: np.ndarray) -> np.ndarray:
     return np.stack([x, 3.0 * np.sin(x / 20.0), -12.0 + 0 * x], axis=-1)
 
 
-def tube_sweep(m: int = 40, tilt_deg: float = 8.0, seed: int = 0):
+def tube_sweep(m: int = 40, tilt_deg: float = 8.0, seed: int = 0, length: float = 60.0):
     """Frames across the tube (planes ~perpendicular to x, tilted a little, random
-    in-plane offsets), with the true contour of each slice: the upper 140 deg arc of
-    the circle of radius RADIUS around the axis point in the plane."""
+    in-plane offsets) over ``length`` mm, with the true contour of each slice: the upper
+    140 deg arc of the circle of radius RADIUS around the axis point in the plane."""
     rng = np.random.default_rng(seed)
-    xs = np.linspace(0, 60, m)
+    xs = np.linspace(0, length, m)
     mats, contours, centres = [], [], []
     for k, x in enumerate(xs):
         a = np.deg2rad(tilt_deg) * np.sin(k / 5.0)  # yaw about z: planes not parallel
@@ -34,9 +34,12 @@ def tube_sweep(m: int = 40, tilt_deg: float = 8.0, seed: int = 0):
         c = axis_point(x)
         # image centre near the bone top, with some jitter (freehand)
         off = rng.normal(scale=1.0, size=2)
-        origin = c + np.array([0, 0, RADIUS - 6.0]) - (W / 2 * SPACING + off[0]) * lat - (
-            H / 4 * SPACING + off[1]
-        ) * down
+        origin = (
+            c
+            + np.array([0, 0, RADIUS - 6.0])
+            - (W / 2 * SPACING + off[0]) * lat
+            - (H / 4 * SPACING + off[1]) * down
+        )
         m4 = np.eye(4)
         m4[:3, 0] = lat * SPACING
         m4[:3, 1] = down * SPACING
@@ -66,9 +69,13 @@ def test_grid_points_lie_on_contours_and_centres_on_axis():
     assert np.nanmax(np.abs(r - RADIUS)) < 0.005
     # updated centres lie in their slice planes and close to the true axis
     assert np.abs(grid.centres - centres[grid.frames]).max() < 0.1
-    n = np.cross(sweep.image_to_reference[grid.frames, :3, 0], sweep.image_to_reference[grid.frames, :3, 1])
+    n = np.cross(
+        sweep.image_to_reference[grid.frames, :3, 0], sweep.image_to_reference[grid.frames, :3, 1]
+    )
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    plane_off = np.einsum("md,md->m", grid.centres - sweep.image_to_reference[grid.frames, :3, 3], n)
+    plane_off = np.einsum(
+        "md,md->m", grid.centres - sweep.image_to_reference[grid.frames, :3, 3], n
+    )
     assert np.abs(plane_off).max() < 1e-6
     # resampled vertices sit between original points ~0.15 mm apart
     assert 0.0 < grid.mean_resampling_distance_mm < 0.05
@@ -115,7 +122,10 @@ def test_false_contours_do_not_move_the_axis():
 def test_missed_rays_are_nan_not_invented():
     sweep, contours, _ = tube_sweep()
     # half the arc missing in some slices: rays on that side must miss
-    cut = [(k, p[p @ np.array([0, 1.0, 0]) < axis_point(p[0, 0])[1]] if k % 4 == 0 else p) for k, p in contours]
+    cut = [
+        (k, p[p @ np.array([0, 1.0, 0]) < axis_point(p[0, 0])[1]] if k % 4 == 0 else p)
+        for k, p in contours
+    ]
     grid = resample(cut, sweep, ResamplingParams(angle_span_deg=120, angle_centre_deg=0))
     rows = {int(f): i for i, f in enumerate(grid.frames)}
     for k in range(0, 40, 4):
@@ -127,7 +137,9 @@ def test_missed_rays_are_nan_not_invented():
 
 def test_explicit_angle_step_and_rays():
     sweep, contours, _ = tube_sweep()
-    grid = resample(contours, sweep, ResamplingParams(n_rays=7, angle_step_deg=20, angle_centre_deg=0))
+    grid = resample(
+        contours, sweep, ResamplingParams(n_rays=7, angle_step_deg=20, angle_centre_deg=0)
+    )
     assert grid.points.shape[1] == 7
     assert np.allclose(np.rad2deg(grid.angles), np.arange(-60, 61, 20))
     assert np.isfinite(grid.points).all()

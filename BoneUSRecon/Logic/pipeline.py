@@ -82,7 +82,8 @@ class Reconstruction:
     summary : dict
         Frames used and rejected, grid coverage, fit residual, ... (JSON-ready).
     timings : dict[str, float]
-        Seconds per stage (``segment``, ``resample``, ``fit``, ``surface``, ``total``).
+        Seconds per stage (``segment``, ``resample``, ``fit``, ``surface``, ``points``:
+        the segmented points' polydata, ``total``).
     params : ReconstructionParams
     """
 
@@ -147,14 +148,19 @@ def params_with(
         k: v
         for k, v in (
             ("degree", None if degree is None else tuple(int(x) for x in degree)),
-            ("control_points", None if control_points is None else tuple(int(x) for x in control_points)),
+            (
+                "control_points",
+                None if control_points is None else tuple(int(x) for x in control_points),
+            ),
             ("method", fit_method),
             ("robust", robust),
         )
         if v is not None
     }
     res_changes: dict[str, Any] = {
-        k: v for k, v in (("n_rays", None if rays is None else int(rays)), ("axis", axis)) if v is not None
+        k: v
+        for k, v in (("n_rays", None if rays is None else int(rays)), ("axis", axis))
+        if v is not None
     }
     return dataclasses.replace(
         p,
@@ -273,7 +279,9 @@ def reconstruct(
         if exc.path is None and sweep.source is not None:
             raise BoneUSReconError(exc.message, sweep.source) from None
         raise
+    t1 = time.perf_counter()
     points = points_polydata(seg, sweep)
+    timings["points"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     summary = _summary(sweep, seg, grid, fit, surf, params)
     return Reconstruction(
@@ -299,6 +307,7 @@ def _summary(
 ) -> dict[str, Any]:
     rejected = seg.rejected
     down = grid.frames[fit.frame_weights <= 0]
+    area = surface_area(surf)
     return {
         "source": str(sweep.source) if sweep.source else None,
         "frames": sweep.n_frames,
@@ -321,7 +330,8 @@ def _summary(
         "fit_rejected_frames": [int(k) for k in down],
         "surface_points": int(surf.GetNumberOfPoints()),
         "surface_triangles": int(surf.GetNumberOfCells()),
-        "surface_area_mm2": surface_area(surf),
+        "surface_area_mm2": area,
+        "surface_triangles_per_mm2": surf.GetNumberOfCells() / area if area > 0 else 0.0,
     }
 
 

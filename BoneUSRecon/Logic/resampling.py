@@ -126,7 +126,9 @@ class ResamplingParams:
         if self.axis not in ("spline", "line"):
             raise BoneUSReconError(f"unknown axis model {self.axis!r}; use 'spline' or 'line'")
         if self.angle_span_deg is not None and not 0 < self.angle_span_deg < 360:
-            raise BoneUSReconError(f"angle span must be in (0, 360) degrees, got {self.angle_span_deg}")
+            raise BoneUSReconError(
+                f"angle span must be in (0, 360) degrees, got {self.angle_span_deg}"
+            )
         if self.angle_step_deg is not None and not (
             0 < self.angle_step_deg * (self.n_rays - 1) < 360
         ):
@@ -160,6 +162,10 @@ class ResampledGrid:
         Arc length (mm) of the centres along the axis: the natural u parameter.
     axis_weights : ndarray, shape (m,)
         Robust weight of each slice's raw centre in the axis fit (0 = outlier).
+    extent : ndarray, shape (m, 2)
+        Angles (radians, as ``angles``) of the contour's two ends seen from the updated
+        centre: where the data stop between rays. The mesh is trimmed there, not at the
+        last ray that hit (:mod:`BoneUSRecon.Logic.surface`).
     mean_resampling_distance_mm : float
         Mean distance (mm) from the grid vertices to the nearer original contour point
         of the segment they lie on.
@@ -175,6 +181,7 @@ class ResampledGrid:
     lateral: np.ndarray
     axis_position: np.ndarray
     axis_weights: np.ndarray
+    extent: np.ndarray
     mean_resampling_distance_mm: float
 
     @property
@@ -203,9 +210,7 @@ def _pad(contours: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return out, np.isfinite(out).all(axis=-1)
 
 
-def _circle_centres(
-    xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float
-) -> np.ndarray:
+def _circle_centres(xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float) -> np.ndarray:
     """Batched Kasa circle fit; chord fallback where degenerate. Returns (m, 2)."""
     x = np.where(mask, xy[..., 0], 0.0)
     y = np.where(mask, xy[..., 1], 0.0)
@@ -237,9 +242,7 @@ def _circle_centres(
     return np.where(good[:, None], np.stack([cx, cy], axis=1), fallback)
 
 
-def _fit_axis(
-    t: np.ndarray, c: np.ndarray, params: ResamplingParams
-) -> tuple[object, np.ndarray]:
+def _fit_axis(t: np.ndarray, c: np.ndarray, params: ResamplingParams) -> tuple[object, np.ndarray]:
     """Robust axis c(t): penalised cubic spline or line, IRLS Huber then Tukey.
 
     The spline is a P-spline (Eilers & Marx): cubic B-splines with knots every
@@ -258,9 +261,7 @@ def _fit_axis(
     if not use_line:
         n_int = max(1, int(np.ceil(length / params.axis_bandwidth_mm)))
         k = 3
-        knots = np.r_[
-            np.full(k, t[0]), np.linspace(t[0], t[-1], n_int + 1), np.full(k, t[-1])
-        ]
+        knots = np.r_[np.full(k, t[0]), np.linspace(t[0], t[-1], n_int + 1), np.full(k, t[-1])]
         basis = BSpline.design_matrix(t, knots, k).toarray()  # (m, nb)
         nb = basis.shape[1]
         d2 = np.diff(np.eye(nb), 2, axis=0)
@@ -350,7 +351,12 @@ def resample(
     t = (img_centre - mean) @ direction
     order = np.argsort(t, kind="stable")
     frames, origin, lateral, up, normal, t = (
-        frames[order], origin[order], lateral[order], up[order], normal[order], t[order]
+        frames[order],
+        origin[order],
+        lateral[order],
+        up[order],
+        normal[order],
+        t[order],
     )
     pts3, mask = _pad([items[o][1] for o in order])
     # Strictly increasing t for the spline (frames at the same position happen when
@@ -380,10 +386,10 @@ def resample(
     crel = centres - origin
     cxy = np.stack([np.einsum("md,md->m", crel, lateral), np.einsum("md,md->m", crel, up)], 1)
     q = xy - cxy[:, None, :]  # contour points relative to the updated centre
+    theta = np.where(mask, np.arctan2(q[..., 0], q[..., 1]), np.nan)
+    lo, hi = np.nanmin(theta, axis=1), np.nanmax(theta, axis=1)
 
     if params.rays == "extent":
-        theta = np.where(mask, np.arctan2(q[..., 0], q[..., 1]), np.nan)
-        lo, hi = np.nanmin(theta, axis=1), np.nanmax(theta, axis=1)
         # A hair inside the ends so the end rays cross the end segments.
         eps = 1e-7 * np.maximum(hi - lo, 1e-9)
         ray_angles = np.linspace(lo + eps, hi - eps, int(params.n_rays), axis=1)  # (m, n)
@@ -400,9 +406,7 @@ def resample(
     d = np.stack([np.sin(ray_angles), np.cos(ray_angles)], axis=-1)  # (m, n, 2)
     pts2 = radius[..., None] * d  # (m, n, 2) relative to centre
     grid = (
-        centres[:, None, :]
-        + pts2[..., 0:1] * lateral[:, None, :]
-        + pts2[..., 1:2] * up[:, None, :]
+        centres[:, None, :] + pts2[..., 0:1] * lateral[:, None, :] + pts2[..., 1:2] * up[:, None, :]
     )
     # Drop slices no ray hit: they carry no information for the fit.
     keep = np.isfinite(radius).any(axis=1)
@@ -412,7 +416,7 @@ def resample(
             "needed (check the angle span)",
             sweep.source,
         )
-    mean_dist = float(np.nanmean(near)) if np.isfinite(near).any() else float('nan')
+    mean_dist = float(np.nanmean(near)) if np.isfinite(near).any() else float("nan")
 
     centres_k = centres[keep]
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centres_k, axis=0), axis=1))]
@@ -427,6 +431,7 @@ def resample(
         lateral=lateral[keep],
         axis_position=arc,
         axis_weights=axis_w[keep],
+        extent=np.stack([lo, hi], axis=1)[keep],
         mean_resampling_distance_mm=mean_dist,
     )
 
