@@ -5,7 +5,7 @@ Conventions (used everywhere in BoneUSRecon):
 * ``frames`` has shape ``(N, H, W)``: frame ``k``, row ``j`` (depth, 0 nearest the
   transducer), column ``i`` (lateral, along the transducer): the PLUS ``MF``
   orientation (image x along the marked side of the transducer, image y pointing
-  away from it), which is the one PLUS calibrations and poses refer to. Frames are ``uint8`` (see :mod:`BoneUSRecon.Logic.sequence_io` for how
+  away from it), which is the one PLUS calibrations and poses refer to. Frames are ``uint8`` (see :mod:`BoneUSRecon.Logic.metaio` for how
   other pixel types are brought to 0..255). The array may be a read-only memory map;
   code must never modify it in place nor copy it whole into floating point.
 * ``image_to_reference[k]`` is a 4x4 matrix mapping the homogeneous pixel index
