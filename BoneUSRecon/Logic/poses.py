@@ -246,11 +246,15 @@ def sweep_transforms(
     ab = split_transform_name(target_name)
     if ab is None:
         raise BoneUSReconError(
-            f"--transform {transform!r} is not a transform name like ImageToReference", path
+            f"the pose {transform!r} is not a transform name like ImageToReference",
+            path,
+            parameter="transform",
         )
     a, b = ab
     if a == b:
-        raise BoneUSReconError(f"--transform {transform!r} maps a frame to itself", path)
+        raise BoneUSReconError(
+            f"the pose {transform!r} maps a frame to itself", path, parameter="transform"
+        )
     if a == "Image":
         steps = find_chain(edges, "Image", b)
     elif target_name in edges:
@@ -277,16 +281,14 @@ def sweep_transforms(
                 if t not in edges
             ]
             # The calibration only helps when it is the one missing link.
-            hint = (
-                " (give the probe calibration with --calibration XML)"
-                if missing == ["ImageToProbe"]
-                else ""
-            )
+            calibration_helps = missing == ["ImageToProbe"]
+            hint = "; give a calibration (ImageToProbe) file" if calibration_helps else ""
             raise BoneUSReconError(
                 "no usable transform: no ImageToReferenceTransform and cannot compose "
                 "inv(ReferenceToTracker) * ProbeToTracker * ImageToProbe: missing "
-                f"{', '.join(missing) or 'a link'}{hint}; the file has: {have}",
+                f"{', '.join(missing) or 'a link'}; the file has: {have}{hint}",
                 path,
+                parameter="calibration" if calibration_helps else None,
             )
         goal = b if a == "Image" else a
         raise BoneUSReconError(
