@@ -127,8 +127,7 @@ def sweep_summary(sweep: Any, segmentation: Any = None) -> dict[str, Any]:
     }
     if idx.size >= 2:
         m = sweep.image_to_reference[idx]
-        centre = np.array([(sweep.width - 1) / 2, (sweep.height - 1) / 2, 0.0, 1.0])
-        c = m[:, :3, :] @ centre
+        c = sweep.image_centres(idx)
         _, _, normal = frame_planes(m)
         # Planes, not oriented normals: a flipped frame is not tilted by 180 degrees.
         cos_pair = np.abs(np.sum(normal[1:] * normal[:-1], axis=1)).clip(0.0, 1.0)
