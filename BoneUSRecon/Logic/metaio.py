@@ -370,6 +370,7 @@ def _inflate(hdr: MetaHeader) -> np.ndarray:
             f"from {stored} bytes of compressed data",
             hdr.data_file,
         )
+    out: np.ndarray
     if expected > _INFLATE_TO_DISK_BYTES:
         # Backed by an anonymous temporary file: the OS pages it, RAM stays bounded.
         tmp = tempfile.TemporaryFile(prefix="boneusrecon-inflate-")
