@@ -31,6 +31,14 @@ class BoneUSReconError(ValueError):
     parameter : str, optional
         The Logic function's argument the problem is about (e.g. ``"calibration"``),
         for front ends that name it their own way.
+
+    Examples
+    --------
+    >>> err = BoneUSReconError("DimSize disagrees\\nwith the data", "s.mha")
+    >>> str(err), err.path, err.parameter
+    ('s.mha: DimSize disagrees with the data', 's.mha', None)
+    >>> isinstance(err, ValueError)
+    True
     """
 
     def __init__(
