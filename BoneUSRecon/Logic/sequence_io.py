@@ -39,7 +39,7 @@ __all__ = [
     "sweep_transforms",
 ]
 
-# The private names BoneUSRecon.Logic.live imported from here before the split.
+# Aliases for callers that import the chain search from here (BoneUSRecon.Logic.live).
 _find_path = find_chain
 _split_name = split_transform_name
 
