@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +19,8 @@ from BoneUSRecon.Logic.fileio import atomic_path, can_create_file_in
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, NEIGHBOURS, UP, BoneGeometry
 from BoneUSRecon.Logic.simulation.corruption import choose_corrupted
+from BoneUSRecon.Logic.simulation.hard import HardScene, crest_of, effective_params, hard_scene
+from BoneUSRecon.Logic.simulation.hard import echo_strength as hard_echo_strength
 from BoneUSRecon.Logic.simulation.imaging import render_frames
 from BoneUSRecon.Logic.simulation.motion import ProbePath, probe_path
 from BoneUSRecon.Logic.simulation.params import BONES, SimulationParams
@@ -66,6 +68,10 @@ class Simulation:
     neighbour : BoneGeometry or None
         The other forearm bone shown beside the target (a distractor; not in the
         truth, the gold points or the contours), when there is one.
+    hard_scene : HardScene or None
+        With ``realism="hard"``: where the hard conditions were drawn, in pixels per
+        frame (fascia, no-contact gap, vessel, far cortex; see :mod:`.hard`): the
+        look-alikes a segmenter must not take for bone. None at standard realism.
     """
 
     sweep: Sweep
@@ -81,6 +87,7 @@ class Simulation:
     sections: BoneSections
     swept_range_mm: tuple[float, float]
     neighbour: BoneGeometry | None = None
+    hard_scene: HardScene | None = None
 
     def truth_polydata(self) -> vtkPolyData:
         """The true bone surface as triangles with outward point ``Normals``."""
@@ -113,6 +120,28 @@ class Simulation:
     def contour_mm(self, frame: int) -> np.ndarray:
         """The true visible contour of ``frame`` in reference mm, shape (K, 3)."""
         return self.sweep.to_reference(frame, self.true_contours_px[frame])
+
+    def true_profile(self, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The bone under every column of ``frame`` that meets it, visible or not.
+
+        Returns
+        -------
+        points_px : ndarray (K, 2)
+            ``(i, j)``: the column and the (sub-pixel) row of the first bone surface its
+            beam meets, ordered by ``i`` (the target bone only).
+        slope_deg : ndarray (K,)
+            In-plane slope of that surface (degrees from the image's lateral axis).
+        visible : ndarray of bool (K,)
+            Whether the point is part of the true visible contour (``true_contours_px``).
+        """
+        from BoneUSRecon.Logic.simulation.scoring import contour_slopes_deg
+
+        j = self.sections.top_j[frame]
+        i = np.flatnonzero(np.isfinite(j) & (np.nan_to_num(j, nan=-1.0) >= 0) & (np.nan_to_num(j, nan=-1.0) <= self.sweep.height - 1))
+        pts = np.column_stack([i.astype(float), j[i]]) if i.size else np.empty((0, 2))
+        sx, sy = (float(v) for v in self.sweep.spacing_mm)
+        visible = np.isin(i, self.true_contours_px[frame][:, 0].astype(int))
+        return pts, contour_slopes_deg(pts * [sx, sy]), visible
 
     def contours_mm(self) -> list[tuple[int, np.ndarray]]:
         """``(frame, (K, 3) mm)`` for every valid frame with a visible bone, in frame order.
@@ -170,12 +199,13 @@ def check_params(params: SimulationParams) -> None:
     spec = BONE_SPECS[p.bone]
     if 2 * p.sweep_margin_mm >= spec.length_mm:
         raise BoneUSReconError(f"sweep margin {p.sweep_margin_mm} mm leaves nothing of the {spec.length_mm} mm {p.bone} to sweep")
-    need = spec.depth_mm + 3 * p.depth_jitter_mm + 4.0
+    depth = max(p.hard.depth_mm) if p.has("depth_ramp") else spec.depth_mm
+    need = depth + 3 * p.depth_jitter_mm + 4.0
     have = p.height * p.spacing_mm
     if need > have:
         raise BoneUSReconError(
-            f"the image is {have:.1f} mm deep but the {p.bone} lies {spec.depth_mm:g} mm under the skin "
-            f"(needs about {need:.0f} mm to show it and its shadow); raise the height in --size, or --spacing"
+            f"the image is {have:.1f} mm deep but the {p.bone} lies {depth:g} mm under the skin "
+            f"(needs about {need:.0f} mm to show it and its shadow); raise the image height or the pixel spacing"
         )
 
 
@@ -267,13 +297,16 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     >>> sim.sweep.frames.shape
     (10, 64, 64)
     """
-    params = SimulationParams() if params is None else params
-    check_params(params)
+    asked = SimulationParams() if params is None else params
+    check_params(asked)
+    # The hard realism preset's imaging levels (the same params when standard).
+    params = effective_params(asked)
     seed = int(params.seed)
-    geom = BoneGeometry(BONE_SPECS[params.bone])
+    geom = BoneGeometry(BONE_SPECS[params.bone], crest=crest_of(params))
     report(progress, "geometry", 0, 3)
     path = probe_path(geom, params, np.random.default_rng([seed, 1]))
-    sections = bone_sections(geom, path.image_to_reference, path.s, int(params.width))
+    hard = params.realism == "hard"
+    sections = bone_sections(geom, path.image_to_reference, path.s, int(params.width), far=hard)
     top_j, cos_inc = sections.top_j, sections.cos_incidence
     other = _neighbour(geom, params)
     if other is not None:
@@ -285,11 +318,26 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         cos_inc = np.where(use2, sec2.cos_incidence, cos_inc)
     report(progress, "geometry", 1, 3)
     kinds = choose_corrupted(int(params.n_frames), float(params.corrupted_fraction), np.random.default_rng([seed, 4]))
+    scene = hard_scene(params, geom, path, sections, np.random.default_rng([seed, 7])) if hard else None
+    if scene is not None and other is not None:
+        # The neighbouring bone's echo keeps the standard angle law.
+        ip = params.imaging
+        c2 = np.clip(cos_inc, 0, 1)
+        both = np.where(use2, c2**ip.specular_exponent + ip.diffuse_fraction * c2, scene.strength)
+        scene = replace(scene, strength=both)
     frames = render_frames(
-        path.image_to_reference, top_j, cos_inc, params, kinds, progress, tissue_top_j=sections.top_j
+        path.image_to_reference, top_j, cos_inc, params, kinds, progress, tissue_top_j=sections.top_j, scene=scene
     )
     hidden = {k for k, v in kinds.items() if v == "contact_loss"}
-    contours = visible_contours(sections, int(params.height), params.imaging.visible_cos, hidden)
+    strength = None if scene is None else hard_echo_strength(params, geom, path.s, sections.cos_incidence)
+    contours = visible_contours(
+        sections,
+        int(params.height),
+        params.imaging.visible_cos,
+        hidden,
+        strength=strength,
+        min_strength=params.hard.visible_strength,
+    )
     m = int(params.black_margin_px)
     if m > 0:
         # Scan-converted frames are exactly black outside the imaged area: no bone seen there.
@@ -326,7 +374,7 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     report(progress, "geometry", 3, 3)
     return Simulation(
         sweep=sweep,
-        params=params,
+        params=asked,
         truth_vertices=verts,
         truth_faces=faces,
         gold=gold,
@@ -338,6 +386,7 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         sections=sections,
         swept_range_mm=swept,
         neighbour=other,
+        hard_scene=scene,
     )
 
 
