@@ -18,9 +18,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: Modules reported on, not only followed: the readers and the Sweep.
+#: Modules reported on, not only followed: the readers, the Sweep, the evaluation.
 CHECKED = [
     "BoneUSRecon/Logic/errors.py",
+    "BoneUSRecon/Logic/evaluation.py",
     "BoneUSRecon/Logic/metaio.py",
     "BoneUSRecon/Logic/poses.py",
     "BoneUSRecon/Logic/sequence_io.py",
