@@ -86,6 +86,21 @@ def test_info_real_recording(capsys):
     assert info["bounds_mm"][1] - info["bounds_mm"][0] > 40  # a 70 x 52 mm image, tilted
 
 
+def test_info_names_the_options_the_logic_message_is_about(tmp_path, capsys):
+    # The Logic says "a calibration (ImageToProbe) file" and "the pose"; the CLI adds
+    # the option that gives each.
+    path = make_file(tmp_path / "s.mha", transforms=tracked_transforms())
+    status, _, err = run_cli(capsys, path, "-q")
+    assert status == 2
+    assert err.rstrip().endswith("give a calibration (ImageToProbe) file (--calibration XML)")
+    status, _, err = run_cli(capsys, path, "-q", "--transform", "reference")
+    assert status == 2
+    assert err == (
+        f"bone-us-recon: error: {path}: the pose 'reference' is not a transform "
+        "name like ImageToReference (--transform)\n"
+    )
+
+
 @pytest.mark.parametrize("name", BAD_NAMES)
 def test_info_bad_input_one_line_exit_2(tmp_path, capsys, name):
     path, kw, match = bad_case(tmp_path, name)

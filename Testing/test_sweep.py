@@ -66,6 +66,20 @@ def test_geometry_in_mm():
     assert s.corners_mm().shape == (5, 4, 3)
 
 
+def test_image_centres_are_the_middle_of_the_corners():
+    # An affine pose maps the pixel grid's middle to the mean of its four corners, an
+    # independent way to the same point; tilted, scaled frames in arbitrary places.
+    rng = np.random.default_rng(3)
+    mats = np.stack([pose(rng.uniform(-40, 40, 3), (0.1, 0.15), rng.uniform(-9, 9, 3))
+                     for _ in range(6)])
+    s = Sweep(np.zeros((6, 8, 12), np.uint8), mats, np.zeros(6), np.ones(6, bool))
+    s = s.replace(valid=np.array([True, False, True, True, False, True]))
+    assert np.allclose(s.image_centres(), s.corners_mm().mean(axis=1))
+    assert np.allclose(s.image_centres([1, 4]), s.corners_mm(np.array([1, 4])).mean(axis=1))
+    c = s.image_centres()
+    assert s.sweep_length_mm() == pytest.approx(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
+
+
 def test_invalid_frames_are_left_out():
     s = make().replace(valid=np.array([True, True, True, False, False]))
     assert s.n_valid == 3 and s.valid_indices.tolist() == [0, 1, 2]

@@ -7,43 +7,15 @@ Data flows one way::
 each a module of pure functions on numpy arrays with a thin VTK edge
 (``vtkImageData``, ``vtkTransform``, ``vtkPolyData``). :mod:`.pipeline` chains them;
 the CLI, the Slicer module and the viewer are shells over it.
+
+The public names are listed once, in ``__init__.pyi``: type checkers read their real
+types there, and :func:`lazy_loader.attach_stub` imports each on first use (as
+scikit-image does), so that every CLI command's start-up (``--help``), which passes
+through this package via ``Logic.errors``, loads no numpy, SciPy or VTK.
 """
 
 from __future__ import annotations
 
-from BoneUSRecon.Logic._lazy import lazy_attributes
-from BoneUSRecon.Logic.errors import BoneUSReconError
+import lazy_loader
 
-# The public API, imported lazily (PEP 562) so that importing one stage does not load
-# every other (and so that stages importing ``BoneUSRecon.Logic.sweep`` never cycle).
-# Even Sweep: it loads numpy and VTK, and every CLI command's start-up (``--help``)
-# passes through this package via ``Logic.errors``.
-_LAZY = {
-    "Sweep": "sweep",
-    "read_sweep": "sequence_io",
-    "write_sweep": "sequence_io",
-    "read_calibration": "sequence_io",
-    "simulate": "simulation",
-    "SimulationParams": "simulation",
-    "segment_sweep": "segmentation",
-    "SegmentationParams": "segmentation",
-    "resample": "resampling",
-    "ResamplingParams": "resampling",
-    "fit_surface": "bspline",
-    "FitParams": "bspline",
-    "surface_polydata": "surface",
-    "SurfaceParams": "surface",
-    "evaluate_surface": "evaluation",
-    "Evaluation": "evaluation",
-    "reconstruct": "pipeline",
-    "ReconstructionParams": "pipeline",
-    "Reconstruction": "pipeline",
-    "control_point_table": "pipeline",
-    "read_points": "vtkio",
-    "read_polydata": "vtkio",
-    "write_polydata": "vtkio",
-}
-
-__all__ = ["BoneUSReconError", *_LAZY]
-
-__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, __all__)
+__getattr__, __dir__, __all__ = lazy_loader.attach_stub(__name__, __file__)

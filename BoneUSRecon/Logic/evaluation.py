@@ -120,9 +120,11 @@ def point_to_surface_distances(
     # One locator query per point (~10 us each, C++ inside); VTK has no batched
     # closest-point query, and the vectorised vtkImplicitPolyDataDistance is slower.
     for k, p in enumerate(pts.tolist()):
-        loc.FindClosestPoint(p, cp, cell, sub, dist2)
+        # VTK's stubs type these out-parameters as plain int/float, not as the
+        # ``reference`` objects VTK's Python wrapping requires.
+        loc.FindClosestPoint(p, cp, cell, sub, dist2)  # type: ignore[call-overload]
         closest[k] = cp
-        d2[k] = dist2.get()
+        d2[k] = dist2.get()  # type: ignore[misc, call-overload]  # stub: get() -> object
     return np.sqrt(d2), closest
 
 

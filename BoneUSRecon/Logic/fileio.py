@@ -213,6 +213,7 @@ def json_ready(obj: object, digits: int = 12) -> object:
 def _labelled(paths: PathsArg | None) -> list[tuple[str, Path]]:
     if paths is None:
         return []
+    items: Iterable[tuple[str, str | os.PathLike[str] | None]]
     if isinstance(paths, Mapping):
         items = paths.items()
     else:

@@ -49,9 +49,13 @@ def reason_key(reason: object) -> str:
     'only slices with a bone contour'
     >>> reason_key(None), reason_key("  ")
     ('unspecified', 'unspecified')
+    >>> reason_key(": odd: text"), reason_key("odd")
+    ('odd', 'odd')
     """
     text = "" if reason is None else str(reason)
     text = re.sub(r"\([^)]*\)|\[[^\]]*\]", " ", text)  # bracketed details
+    # Leading separators first, so that the key of a key is the key itself.
+    text = text.lstrip(" ,.-:;#")
     head = re.split(r"[:;]", text, maxsplit=1)[0]
     text = head if head.strip() else text
     text = _NUMBER.sub(" ", text)

@@ -5,7 +5,7 @@ Conventions (used everywhere in BoneUSRecon):
 * ``frames`` has shape ``(N, H, W)``: frame ``k``, row ``j`` (depth, 0 nearest the
   transducer), column ``i`` (lateral, along the transducer): the PLUS ``MF``
   orientation (image x along the marked side of the transducer, image y pointing
-  away from it), which is the one PLUS calibrations and poses refer to. Frames are ``uint8`` (see :mod:`BoneUSRecon.Logic.sequence_io` for how
+  away from it), which is the one PLUS calibrations and poses refer to. Frames are ``uint8`` (see :mod:`BoneUSRecon.Logic.metaio` for how
   other pixel types are brought to 0..255). The array may be a read-only memory map;
   code must never modify it in place nor copy it whole into floating point.
 * ``image_to_reference[k]`` is a 4x4 matrix mapping the homogeneous pixel index
@@ -197,13 +197,35 @@ class Sweep:
         pts = self.corners_mm().reshape(-1, 3)
         return np.column_stack([pts.min(0), pts.max(0)]).reshape(-1)
 
+    def image_centres(self, frames: np.ndarray | None = None) -> np.ndarray:
+        """Where each frame is: its image centre in reference mm, shape ``(K, 3)``.
+
+        The centre is pixel ``((W - 1) / 2, (H - 1) / 2)``, the middle of the pixel grid
+        (pixel centres at integer indices). Valid frames by default, else ``frames``
+        (indices). The one definition used for the sweep length, the slice gaps and the
+        ordering of slices along the sweep.
+
+        Examples
+        --------
+        >>> m = np.tile(np.diag([0.5, 0.5, 1.0, 1.0]), (3, 1, 1))
+        >>> m[:, 0, 3] = [0.0, 2.0, 4.0]  # the probe moves 2 mm along x per frame
+        >>> s = Sweep(np.zeros((3, 5, 9), np.uint8), m, np.zeros(3), np.ones(3, bool))
+        >>> s.image_centres()
+        array([[2., 1., 0.],
+               [4., 1., 0.],
+               [6., 1., 0.]])
+        >>> s.sweep_length_mm()
+        4.0
+        """
+        idx = self.valid_indices if frames is None else np.asarray(frames, dtype=int)
+        centre = np.array([(self.width - 1) / 2, (self.height - 1) / 2, 0.0, 1.0])
+        return np.einsum("nab,b->na", self.image_to_reference[idx, :3, :], centre)
+
     def sweep_length_mm(self) -> float:
         """Path length of the image centre over the valid frames, in mm."""
-        idx = self.valid_indices
-        if idx.size < 2:
+        if self.n_valid < 2:
             return 0.0
-        centre = np.array([(self.width - 1) / 2, (self.height - 1) / 2])
-        c = np.einsum("nab,b->na", self.image_to_reference[idx, :3, :], np.r_[centre, 0, 1])
+        c = self.image_centres()
         return float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
 
     def duration_s(self) -> float:

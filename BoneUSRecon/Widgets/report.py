@@ -127,8 +127,7 @@ def sweep_summary(sweep: Any, segmentation: Any = None) -> dict[str, Any]:
     }
     if idx.size >= 2:
         m = sweep.image_to_reference[idx]
-        centre = np.array([(sweep.width - 1) / 2, (sweep.height - 1) / 2, 0.0, 1.0])
-        c = m[:, :3, :] @ centre
+        c = sweep.image_centres(idx)
         _, _, normal = frame_planes(m)
         # Planes, not oriented normals: a flipped frame is not tilted by 180 degrees.
         cos_pair = np.abs(np.sum(normal[1:] * normal[:-1], axis=1)).clip(0.0, 1.0)
@@ -543,23 +542,77 @@ def write_report(
     report(progress, "report", 0, total)
     summary = sweep_summary(sweep, seg)
     figures: dict[str, bytes] = {}
-    sections: list[str] = []
-    numbers: dict[str, Any] = {"sweep": summary}
-
-    # Headline numbers and the reconstruction's own summary.
+    # report.json lists these in insertion order: sweep, reconstruction, timings_s, then
+    # each section's numbers in the order the sections are built.
     recon_summary = _jsonable(dict(getattr(recon, "summary", {}) or {}))
     timings = _jsonable(dict(getattr(recon, "timings", {}) or {}))
-    numbers["reconstruction"] = recon_summary
-    numbers["timings_s"] = timings
+    numbers: dict[str, Any] = {
+        "sweep": summary,
+        "reconstruction": recon_summary,
+        "timings_s": timings,
+    }
 
-    # Surface, two viewpoints (paper Fig. 4).
+    surface_html = _surface_section(recon, recon_summary, figures, numbers)
+    tick()
+    accuracy_html = ""
+    if has_gold:
+        accuracy_html = _accuracy_section(recon, gold, evaluation, simulated, figures, numbers)
+        tick()
+    table_html = ""
+    if table:
+        table_html = _table_section(table, figures, numbers)
+        tick()
+    overlay_html = ""
+    if seg is not None:
+        overlay_html = _overlay_section(recon, summary, recon_summary, truth_px, figures)
+    tick()
+    if parameters is None:
+        p = getattr(recon, "params", None)
+        parameters = _jsonable(p) if p is not None else {}
+    versions = software_versions()
+    numbers["parameters"] = _jsonable(parameters)
+    numbers["versions"] = versions
+    tick()
+
+    source = title or summary.get("source") or "in-memory sweep"
+    sections = [_title_section(source)]
+    if has_gold:
+        sections.append(_section("accuracy-section", "Accuracy against the gold points",
+                                 accuracy_html))
+    sections.append(_section("surface-section", "Surface", surface_html))
+    if table_html:
+        sections.append(_section("table-section", "Table I: control points", table_html))
+    sections.append(_sweep_section(summary, figures))
+    if overlay_html:
+        sections.append(_section("overlay-section", "Contours on sample frames", overlay_html))
+    if recon_summary or timings:
+        sections.append(_reconstruction_section(recon_summary, timings))
+    sections.append(_parameters_section(parameters))
+    sections.append(_versions_section(versions))
+    _write_folder(out, figures, numbers, _page(source, sections))
+    report(progress, "report", total, total)
+    return out / "index.html"
+
+
+# -- the sections ----------------------------------------------------------------------
+# Each builds one part of the page: it returns the part's HTML and adds its pictures to
+# ``figures`` (name -> PNG bytes) and its numbers to ``numbers`` (for report.json).
+def _section(section_id: str, heading: str, body: str) -> str:
+    return f'<h2 id="{section_id}">{heading}</h2>{body}'
+
+
+def _surface_section(
+    recon: Any, recon_summary: dict[str, Any], figures: dict[str, bytes], numbers: dict[str, Any]
+) -> str:
+    """The surface from two viewpoints, coloured by ``Distance`` (paper Fig. 4)."""
     from BoneUSRecon.Widgets.render import distance_array, render_views
 
+    sweep = recon.sweep
     views = render_views(recon.surface, points=getattr(recon, "points", None), sweep=sweep,
                          window_size=(1000, 620), fit_height=True)
+    # The sweep section's picture, rendered here with the surface's scene settings.
     figures["sweep"] = _png(render_views(recon.surface, sweep=sweep, views=("oblique",),
                                          window_size=(1000, 560), show_frames=True)["oblique"])
-    tick()
     dist = distance_array(recon.surface)
     surf_caption = ("Reconstructed surface coloured by <i>Distance</i>, the distance (mm) "
                     "from each vertex to the nearest segmented point; red dots are the "
@@ -583,11 +636,16 @@ def write_report(
     surface_html += (f"<p>{n_vert} surface vertices, {n_pts} segmented points. "
                      "A scale bar (lower right) gives the size; the x, y, z triad (lower "
                      "left) the orientation of the sweep's reference frame.</p>")
+    return surface_html + _holes_note(recon_summary)
+
+
+def _holes_note(recon_summary: dict[str, Any]) -> str:
+    """Why the surface has notches and holes (trimmed to the data), with the grid cover."""
     cover = recon_summary.get("grid_coverage")
     grid = recon_summary.get("grid_shape")
     cover_text = (f" ({100 * float(cover):.0f} % of the {grid[0]} slices x {grid[1]} rays "
                   "grid holds a contour point)" if cover is not None and grid else "")
-    surface_html += (
+    return (
         '<p id="holes-note"><b>Notches and holes in the surface</b> are where no '
         f"segmented contour supports it{cover_text}: the surface is trimmed to the data "
         "rather than extrapolated. They appear where a ray around the bone met no contour "
@@ -595,130 +653,150 @@ def write_report(
         "first and last slices with a contour; rejected frames leave gaps between "
         "slices, which the fit bridges.</p>")
 
-    # Accuracy against gold points.
-    accuracy_html = ""
-    if has_gold:
-        if evaluation is None:
-            from BoneUSRecon.Logic.evaluation import evaluate_surface
 
-            evaluation = evaluate_surface(recon.surface, np.asarray(gold, dtype=float))
-        ev, ev_dist = _evaluation_dict(evaluation)
-        numbers["evaluation"] = ev
-        figures["histogram"] = histogram_png(ev_dist, ev)
-        gold_pts = np.asarray(gold, dtype=float) if gold is not None else None
-        if gold_pts is not None and len(gold_pts) == len(ev_dist):
-            from BoneUSRecon.Widgets.render import render_error_map
+def _accuracy_section(
+    recon: Any,
+    gold: np.ndarray | None,
+    evaluation: Any,
+    simulated: bool,
+    figures: dict[str, bytes],
+    numbers: dict[str, Any],
+) -> str:
+    """Headline mean distance, the accuracy table, the histogram and the error map."""
+    if evaluation is None:
+        from BoneUSRecon.Logic.evaluation import evaluate_surface
 
-            figures["gold_errors"] = _png(render_error_map(recon.surface, gold_pts, ev_dist,
-                                                           sweep=sweep))
-        tick()
-        caveat = (
-            "This sweep is simulated: it has no tracking, calibration, registration or "
-            "speed-of-sound error, which the paper's figure includes and which would "
-            "add to this one on a real phantom, so the two are not like for like."
-            if simulated else
-            "The paper's figure includes its tracking, calibration and registration "
-            "error; compare with it only for a like experiment."
-        )
-        accuracy_html = (
-            f'<p class="big">Mean distance from the gold points to the surface: '
-            f'<b id="headline-mean">{_num(ev.get("mean_mm"), 2)} mm</b> '
-            f"(the paper reports 1.16 to 1.71 mm on its real clavicle phantom).</p>"
-            f'<p id="headline-caveat" class="caveat">{caveat}</p>'
-            + _accuracy_rows(ev)
-            + _img("histogram", figures["histogram"], "histogram of distances",
-                   "Distances from each gold point to the nearest point of the surface.")
-            + (_img("gold-errors", figures["gold_errors"], "gold points by distance",
-                    "Where the surface is off: the gold points coloured by their distance "
-                    "to the (grey) surface, seen from the probe's side.")
-               if "gold_errors" in figures else "")
-        )
+        evaluation = evaluate_surface(recon.surface, np.asarray(gold, dtype=float))
+    ev, ev_dist = _evaluation_dict(evaluation)
+    numbers["evaluation"] = ev
+    figures["histogram"] = histogram_png(ev_dist, ev)
+    gold_pts = np.asarray(gold, dtype=float) if gold is not None else None
+    if gold_pts is not None and len(gold_pts) == len(ev_dist):
+        from BoneUSRecon.Widgets.render import render_error_map
 
-    # Table I.
-    table_html = ""
-    if table:
-        table = [(int(c), float(m)) for c, m in table]
-        numbers["table_i"] = [{"control_points": c, "mean_mm": m} for c, m in table]
-        figures["table_i"] = table_png(table)
-        tick()
-        table_html = _table_i(table) + _img(
-            "table-i", figures["table_i"], "Table I curve",
-            "Mean gold-to-surface distance when the surface is refitted with e control "
-            "points along the bone (the paper's Table I).")
+        figures["gold_errors"] = _png(render_error_map(recon.surface, gold_pts, ev_dist,
+                                                       sweep=recon.sweep))
+    caveat = (
+        "This sweep is simulated: it has no tracking, calibration, registration or "
+        "speed-of-sound error, which the paper's figure includes and which would "
+        "add to this one on a real phantom, so the two are not like for like."
+        if simulated else
+        "The paper's figure includes its tracking, calibration and registration "
+        "error; compare with it only for a like experiment."
+    )
+    return (
+        f'<p class="big">Mean distance from the gold points to the surface: '
+        f'<b id="headline-mean">{_num(ev.get("mean_mm"), 2)} mm</b> '
+        f"(the paper reports 1.16 to 1.71 mm on its real clavicle phantom).</p>"
+        f'<p id="headline-caveat" class="caveat">{caveat}</p>'
+        + _accuracy_rows(ev)
+        + _img("histogram", figures["histogram"], "histogram of distances",
+               "Distances from each gold point to the nearest point of the surface.")
+        + (_img("gold-errors", figures["gold_errors"], "gold points by distance",
+                "Where the surface is off: the gold points coloured by their distance "
+                "to the (grey) surface, seen from the probe's side.")
+           if "gold_errors" in figures else "")
+    )
 
-    # Contour overlays.
-    overlay_html = ""
-    if seg is not None:
-        by_frame = {c.frame: c for c in seg.contours}
-        fit_rej = [int(f) for f in (recon_summary.get("fit_rejected_frames") or [])]
-        tiles = []
-        for k in sample_frames(seg, fit_rejected=fit_rej):
-            c = by_frame[k]
-            truth = truth_px[k] if truth_px is not None and k < len(truth_px) else None
-            outlier = bool(c.accepted and k in fit_rej)
-            data = _png(_overlay_image(sweep, c, truth, fit_rejected=outlier))
-            figures[f"frame_{k:04d}"] = data
-            conf = _num(getattr(c, "confidence", float("nan")), 2)
-            if not c.accepted:
-                cap = f"frame {k}: REJECTED: {html.escape(c.reason or 'no reason given')}"
-            elif outlier:
-                cap = (f"frame {k}: accepted by the segmentation (confidence {conf}), "
-                       "discarded as an outlier by the robust surface fit")
-            else:
-                cap = f"frame {k}: accepted, {len(c.points_px)} points, confidence {conf}"
-            cls = "rejected" if not c.accepted else ("outlier" if outlier else "")
-            tiles.append(_img(f"frame-{k:04d}", data, f"frame {k}", cap, cls))
-        n_rej = summary.get("frames_rejected", 0)
-        overlay_html = (f"<p>{len(tiles)} frames of {len(by_frame)} segmented "
-                        f"({n_rej} rejected in all, {len(fit_rej)} more discarded by the robust fit; "
-                        "rejected frames are outlined in red, fit outliers in orange, "
-                        "accepted contours drawn in green"
-                        + ("; the true contour in yellow" if truth_px is not None else "")
-                        + ").</p>"
-                        f'<div class="grid">{"".join(tiles)}</div>')
-    tick()
 
-    # Parameters and versions.
-    if parameters is None:
-        p = getattr(recon, "params", None)
-        parameters = _jsonable(p) if p is not None else {}
-    params_json = json.dumps(_jsonable(parameters), indent=2, default=str)
-    versions = software_versions()
-    numbers["parameters"] = _jsonable(parameters)
-    numbers["versions"] = versions
-    tick()
+def _table_section(
+    table: Sequence[tuple[int, float]], figures: dict[str, bytes], numbers: dict[str, Any]
+) -> str:
+    """The Table I curve: mean distance against the number of control points."""
+    table = [(int(c), float(m)) for c, m in table]
+    numbers["table_i"] = [{"control_points": c, "mean_mm": m} for c, m in table]
+    figures["table_i"] = table_png(table)
+    return _table_i(table) + _img(
+        "table-i", figures["table_i"], "Table I curve",
+        "Mean gold-to-surface distance when the surface is refitted with e control "
+        "points along the bone (the paper's Table I).")
 
+
+def _overlay_section(
+    recon: Any,
+    summary: dict[str, Any],
+    recon_summary: dict[str, Any],
+    truth_px: Sequence[np.ndarray] | None,
+    figures: dict[str, bytes],
+) -> str:
+    """Contours drawn on a sample of frames: accepted, rejected and fit outliers."""
+    seg = recon.segmentation
+    by_frame = {c.frame: c for c in seg.contours}
+    fit_rej = [int(f) for f in (recon_summary.get("fit_rejected_frames") or [])]
+    tiles = []
+    for k in sample_frames(seg, fit_rejected=fit_rej):
+        c = by_frame[k]
+        truth = truth_px[k] if truth_px is not None and k < len(truth_px) else None
+        outlier = bool(c.accepted and k in fit_rej)
+        data = _png(_overlay_image(recon.sweep, c, truth, fit_rejected=outlier))
+        figures[f"frame_{k:04d}"] = data
+        conf = _num(getattr(c, "confidence", float("nan")), 2)
+        if not c.accepted:
+            cap = f"frame {k}: REJECTED: {html.escape(c.reason or 'no reason given')}"
+        elif outlier:
+            cap = (f"frame {k}: accepted by the segmentation (confidence {conf}), "
+                   "discarded as an outlier by the robust surface fit")
+        else:
+            cap = f"frame {k}: accepted, {len(c.points_px)} points, confidence {conf}"
+        cls = "rejected" if not c.accepted else ("outlier" if outlier else "")
+        tiles.append(_img(f"frame-{k:04d}", data, f"frame {k}", cap, cls))
+    n_rej = summary.get("frames_rejected", 0)
+    return (f"<p>{len(tiles)} frames of {len(by_frame)} segmented "
+            f"({n_rej} rejected in all, {len(fit_rej)} more discarded by the robust fit; "
+            "rejected frames are outlined in red, fit outliers in orange, "
+            "accepted contours drawn in green"
+            + ("; the true contour in yellow" if truth_px is not None else "")
+            + ").</p>"
+            f'<div class="grid">{"".join(tiles)}</div>')
+
+
+def _title_section(source: Any) -> str:
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    source = title or summary.get("source") or "in-memory sweep"
-    sections.append(f"<h1>Bone surface reconstruction</h1><p class='sub'>"
-                    f"{html.escape(str(source))} &middot; BoneUSRecon {__version__} &middot; {now}</p>")
-    if has_gold:
-        sections.append(f'<h2 id="accuracy-section">Accuracy against the gold points</h2>{accuracy_html}')
-    sections.append(f'<h2 id="surface-section">Surface</h2>{surface_html}')
-    if table_html:
-        sections.append(f'<h2 id="table-section">Table I: control points</h2>{table_html}')
-    sections.append(f'<h2 id="sweep-section">Sweep</h2>{_kv_table(_sweep_rows(summary), "sweep")}'
+    return (f"<h1>Bone surface reconstruction</h1><p class='sub'>"
+            f"{html.escape(str(source))} &middot; BoneUSRecon {__version__} &middot; {now}</p>")
+
+
+def _sweep_section(summary: dict[str, Any], figures: dict[str, bytes]) -> str:
+    """The sweep's numbers and its image planes around the surface."""
+    return _section("sweep-section", "Sweep", _kv_table(_sweep_rows(summary), "sweep")
                     + _img("sweep", figures["sweep"], "the sweep's image planes",
                            "The image planes of the sweep (grey; frames without a usable "
                            "pose in orange) around the reconstructed surface."))
-    if overlay_html:
-        sections.append(f'<h2 id="overlay-section">Contours on sample frames</h2>{overlay_html}')
-    if recon_summary or timings:
-        rows = [(human_label(k), html.escape(human_value(k, v)))
-                for k, v in recon_summary.items() if v is not None and v != "" and k != "source"]
-        rows += [(f"time: {_TIME_LABELS.get(k, human_label(k))}", f"{_num(v, 2)} s")
-                 for k, v in timings.items()]
-        sections.append(f'<h2 id="recon-section">Reconstruction</h2>{_kv_table(rows, "reconstruction")}')
-    sections.append(f'<h2 id="parameters-section">Parameters</h2><details><summary>'
-                    "every parameter of this run (JSON; also in report.json)</summary>"
+
+
+def _reconstruction_section(recon_summary: dict[str, Any], timings: dict[str, Any]) -> str:
+    """The reconstruction's summary and the time of each stage."""
+    rows = [(human_label(k), html.escape(human_value(k, v)))
+            for k, v in recon_summary.items() if v is not None and v != "" and k != "source"]
+    rows += [(f"time: {_TIME_LABELS.get(k, human_label(k))}", f"{_num(v, 2)} s")
+             for k, v in timings.items()]
+    return _section("recon-section", "Reconstruction", _kv_table(rows, "reconstruction"))
+
+
+def _parameters_section(parameters: Any) -> str:
+    params_json = json.dumps(_jsonable(parameters), indent=2, default=str)
+    return _section("parameters-section", "Parameters",
+                    "<details><summary>every parameter of this run (JSON; also in "
+                    "report.json)</summary>"
                     f'<pre id="parameters">{html.escape(params_json)}</pre></details>')
-    sections.append(f'<h2 id="versions-section">Software</h2>'
-                    f'{_kv_table([(k, html.escape(v)) for k, v in versions.items()], "versions")}')
-    page = ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+
+
+def _versions_section(versions: dict[str, str]) -> str:
+    rows = [(k, html.escape(v)) for k, v in versions.items()]
+    return _section("versions-section", "Software", _kv_table(rows, "versions"))
+
+
+def _page(source: Any, sections: Sequence[str]) -> str:
+    return ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
             "<meta name='viewport' content='width=device-width, initial-scale=1'>"
             f"<title>BoneUSRecon report: {html.escape(Path(str(source)).name)}</title>"
             f"<style>{_CSS}</style></head><body>\n" + "\n".join(sections) + "\n</body></html>\n")
 
+
+def _write_folder(
+    out: Path, figures: dict[str, bytes], numbers: dict[str, Any], page: str
+) -> None:
+    """Write the page, its pictures and report.json, atomically (see :func:`_atomic_dir`)."""
     with _atomic_dir(out) as tmp:
         (tmp / "figures").mkdir()
         for name, data in figures.items():
@@ -726,8 +804,6 @@ def write_report(
         (tmp / "report.json").write_text(
             json.dumps(json_ready(_jsonable(numbers)), indent=2, default=str))
         (tmp / "index.html").write_text(page, encoding="utf-8")
-    report(progress, "report", total, total)
-    return out / "index.html"
 
 
 #: Labels of :attr:`Reconstruction.summary` keys on the page (keys not listed here,

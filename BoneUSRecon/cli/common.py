@@ -42,6 +42,7 @@ __all__ = [
     "check_sweep_args",
     "check_distinct_paths",
     "read_sweep_args",
+    "with_option_names",
     "parse_size",
     "error",
     "notice",
@@ -121,15 +122,50 @@ def read_sweep_args(args: argparse.Namespace, progress: ProgressCallback | None 
     """
     from BoneUSRecon.Logic.sequence_io import read_sweep
 
-    sweep = read_sweep(
-        args.sweep, calibration=args.calibration, transform=args.transform, progress=progress
-    )
+    with with_option_names({"calibration": "--calibration XML", "transform": "--transform"}):
+        sweep = read_sweep(
+            args.sweep, calibration=args.calibration, transform=args.transform, progress=progress
+        )
     if args.calibration and "ImageToProbe" not in (sweep.transform_name or ""):
         notice(
             f"{args.calibration}: --calibration not used: the sweep's own "
             f"{sweep.transform_name} poses already map pixels to millimetres"
         )
     return sweep
+
+
+@contextlib.contextmanager
+def with_option_names(options: dict[str, str]) -> Iterator[None]:
+    """Add the command-line option to Logic errors about one of its arguments.
+
+    Logic messages speak of files and values (the Slicer module shows them too); an
+    error whose :attr:`~BoneUSRecon.Logic.errors.BoneUSReconError.parameter` is a key
+    of ``options`` is raised again with that option named at the end.
+
+    Parameters
+    ----------
+    options : dict
+        Logic argument name -> option as the user types it, e.g.
+        ``{"calibration": "--calibration XML"}``.
+
+    Examples
+    --------
+    >>> with with_option_names({"transform": "--transform"}):
+    ...     raise BoneUSReconError("the pose 'X' is not a transform name", "s.mha",
+    ...                            parameter="transform")
+    Traceback (most recent call last):
+    ...
+    BoneUSRecon.Logic.errors.BoneUSReconError: s.mha: the pose 'X' is not a transform name (--transform)
+    """
+    try:
+        yield
+    except BoneUSReconError as exc:
+        flag = options.get(exc.parameter or "")
+        if flag is None:
+            raise
+        raise BoneUSReconError(
+            f"{exc.message} ({flag})", exc.path, parameter=exc.parameter
+        ) from None
 
 
 def notice(message: str) -> None:
