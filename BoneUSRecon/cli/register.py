@@ -1,0 +1,250 @@
+"""``bone-us-recon register SOURCE TARGET -o TRANSFORM``: rigid registration to a bone model."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from BoneUSRecon.cli.common import (
+    SURFACE_HELP,
+    add_common_options,
+    add_json_option,
+    print_json,
+    print_summary,
+    removed_on_failure,
+)
+
+__all__ = [
+    "register",
+    "run",
+    "add_registration_options",
+    "registration_params",
+    "check_distinct_outputs",
+]
+
+TRANSFORM_HELP = (
+    "output transform SOURCE->TARGET: .txt (4x4 matrix, row-major, mm) or .tfm/.h5 (ITK "
+    "transform that 3D Slicer loads as a linear transform; see the README for the LPS and "
+    "direction conventions)"
+)
+
+
+def add_registration_options(p: argparse.ArgumentParser, *, prefix: str = "") -> None:
+    """Initial alignment and coordinate options, shared by ``register`` and
+    ``reconstruct --register-to``."""
+    p.add_argument(
+        f"--{prefix}landmarks",
+        nargs=2,
+        metavar=("SRC.csv", "TGT.csv"),
+        help="paired landmarks (CSV x,y,z in mm, the same points in the same order; at "
+        "least 3, not on one line) for the initial alignment",
+    )
+    p.add_argument(
+        f"--{prefix}init",
+        metavar="MATRIX",
+        help="initial SOURCE->TARGET transform (.txt 4x4 or .tfm/.h5); default the identity "
+        "(the source is already roughly, within ~15 mm / 15 deg, in the model's frame)",
+    )
+    p.add_argument(
+        f"--{prefix}search",
+        action="store_true",
+        help="no initial alignment known: search over the principal axes' ambiguities",
+    )
+    p.add_argument(
+        "--ras",
+        action="store_true",
+        help="the inputs' coordinates are RAS, not LPS (only changes .tfm/.h5 files)",
+    )
+
+
+def registration_params(args: argparse.Namespace, prefix: str = "") -> Any:
+    """:class:`RegistrationParams` from the options (the initial alignment method)."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+    from BoneUSRecon.Logic.registration import RegistrationParams
+
+    a = prefix.replace("-", "_")
+    chosen = [n for n in ("landmarks", "init", "search") if getattr(args, a + n, None)]
+    if len(chosen) > 1:
+        raise BoneUSReconError(
+            "choose one initial alignment: "
+            + ", ".join(f"--{prefix}{n}" for n in chosen)
+            + " were all given"
+        )
+    method = (
+        "search"
+        if getattr(args, a + "search", False)
+        else "landmarks"
+        if getattr(args, a + "landmarks", None)
+        else "identity"
+    )
+    return RegistrationParams(init=method)
+
+
+def check_distinct_outputs(outputs: list[str | None], inputs: list[str | None]) -> None:
+    """Refuse an output path that is also an input, or two outputs on one path.
+
+    (A shared check for every command is being added elsewhere; this is register's.)
+    """
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+
+    def same(a: str, b: str) -> bool:
+        pa, pb = Path(a), Path(b)
+        try:
+            if pa.exists() and pb.exists():
+                return os.path.samefile(pa, pb)
+        except OSError:
+            pass
+        return pa.resolve() == pb.resolve()
+
+    outs = [o for o in outputs if o]
+    ins = [i for i in inputs if i]
+    for k, o in enumerate(outs):
+        for i in ins:
+            if same(o, i):
+                raise BoneUSReconError("output path is also an input; choose another name", o)
+        for o2 in outs[k + 1 :]:
+            if same(o, o2):
+                raise BoneUSReconError("two outputs were given the same path", o)
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``register`` sub-command."""
+    p = subparsers.add_parser(
+        "register",
+        help="rigidly register a reconstructed surface (or points) to a bone model",
+        description="Find the rigid transform mapping SOURCE coordinates (a reconstructed "
+        "surface or segmented points) onto TARGET (a bone model from CT or MRI, in mm): "
+        "an initial alignment (identity, --init, --landmarks or --search), then robust "
+        "point-to-plane ICP. Prints the residuals, the inlier share and how well the "
+        "surface constrains each degree of freedom; a result that should not be trusted "
+        "(e.g. a featureless shaft that can slide along its axis) is flagged UNRELIABLE "
+        "with the reasons.",
+    )
+    p.add_argument(
+        "source",
+        metavar="SOURCE",
+        help=f"the reconstructed {SURFACE_HELP}, or points (.csv x,y,z mm)",
+    )
+    p.add_argument("target", metavar="TARGET", help=f"bone model {SURFACE_HELP}, in mm")
+    p.add_argument("-o", "--output", required=True, metavar="TRANSFORM", help=TRANSFORM_HELP)
+    add_registration_options(p)
+    p.add_argument(
+        "--registered",
+        metavar="OUT",
+        help="also write SOURCE moved into TARGET's frame (.vtp .vtk .ply .stl .obj)",
+    )
+    add_json_option(p)
+    add_common_options(p)
+    p.set_defaults(func=run)
+
+
+def read_source(path: str) -> tuple[Any, Any, Any]:
+    """The source as ``(points (K, 3), normals or None, polydata or None)``."""
+    import numpy as np
+    from vtkmodules.util import numpy_support
+
+    from BoneUSRecon.Logic.vtkio import read_points, read_polydata
+
+    if Path(path).suffix.lower() in (".csv", ".txt"):
+        return read_points(path), None, None
+    pd = read_polydata(path)
+    arr = pd.GetPointData().GetNormals()
+    normals = numpy_support.vtk_to_numpy(arr).astype(float) if arr is not None else None
+    return numpy_support.vtk_to_numpy(pd.GetPoints().GetData()).astype(np.float64), normals, pd
+
+
+def run_registration(
+    args: argparse.Namespace,
+    points: Any,
+    normals: Any,
+    source_path: str | None,
+    *,
+    prefix: str = "",
+    target: str,
+) -> Any:
+    """Read the model, landmarks and initial matrix named by the options; register."""
+    from BoneUSRecon.Logic.registration import model_from_polydata
+    from BoneUSRecon.Logic.registration import register as do_register
+    from BoneUSRecon.Logic.transform_io import read_transform
+    from BoneUSRecon.Logic.vtkio import read_points, read_polydata
+
+    a = prefix.replace("-", "_")
+    params = registration_params(args, prefix)
+    model = model_from_polydata(read_polydata(target), target)
+    coords = "RAS" if args.ras else "LPS"
+    lm = getattr(args, a + "landmarks", None)
+    landmarks = (read_points(lm[0]), read_points(lm[1])) if lm else None
+    init_path = getattr(args, a + "init", None)
+    init = read_transform(init_path, coordinates=coords) if init_path else None
+    return do_register(
+        points,
+        model,
+        params,
+        source_normals=normals,
+        init=init,
+        landmarks=landmarks,
+        source_path=source_path,
+        model_path=target,
+    )
+
+
+def registration_rows(reg: Any) -> list[tuple[str, Any]]:
+    """Summary rows of a :class:`Registration` (register, reconstruct --register-to)."""
+    return [(k, v) for k, v in reg.summary_rows()]
+
+
+def warn_unreliable(reg: Any) -> None:
+    """One stderr line when the result should not be trusted (the transform is still written)."""
+    if not reg.reliable:
+        print(
+            f"bone-us-recon: warning: registration UNRELIABLE: {'; '.join(reg.reasons)}",
+            file=sys.stderr,
+        )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Register SOURCE to TARGET; write the transform (and the moved source)."""
+    from BoneUSRecon.Logic.fileio import check_input_file, check_output_path
+    from BoneUSRecon.Logic.registration import transform_polydata
+    from BoneUSRecon.Logic.transform_io import TRANSFORM_EXTENSIONS, write_transform
+    from BoneUSRecon.Logic.vtkio import SURFACE_EXTENSIONS, points_to_polydata, write_polydata
+
+    inputs = [args.source, args.target, args.init, *(args.landmarks or [])]
+    for f in inputs:
+        if f:
+            check_input_file(f)
+    out = check_output_path(args.output, TRANSFORM_EXTENSIONS)
+    moved_out = check_output_path(args.registered, SURFACE_EXTENSIONS) if args.registered else None
+    check_distinct_outputs([args.output, args.registered], inputs)
+    registration_params(args)  # conflicting options refused before any reading
+
+    points, normals, pd = read_source(args.source)
+    reg = run_registration(args, points, normals, args.source, target=args.target)
+    with removed_on_failure(out, moved_out):
+        write_transform(reg.matrix, out, coordinates="RAS" if args.ras else "LPS")
+        if moved_out is not None:
+            write_polydata(
+                transform_polydata(
+                    pd if pd is not None else points_to_polydata(points), reg.matrix
+                ),
+                moved_out,
+            )
+    if args.json:
+        print_json(
+            {
+                "output": str(out),
+                "registered": str(moved_out) if moved_out else None,
+                **reg.as_dict(),
+            }
+        )
+    else:
+        rows = registration_rows(reg)
+        rows.append(("written", str(out)))
+        if moved_out:
+            rows.append(("registered source", str(moved_out)))
+        print_summary(f"Registered {Path(args.source).name} to {Path(args.target).name}", rows)
+    warn_unreliable(reg)
+    return 0
