@@ -55,7 +55,7 @@ __all__ = [
     "check_units",
     "register",
     "register_polydata",
-    "estimate_normals",
+    "patch_normal",
     "transform_points",
     "transform_polydata",
     "rigid_error",
@@ -125,6 +125,10 @@ class RegistrationParams:
         A source point pairs only with model points whose normal is within this angle
         of its own (degrees): 60, well beyond the 15 deg of a poor start, well short of
         the 180 deg of the far side of a thin bone.
+    patch_normal_angle_deg : float
+        The same for a source without normals, whose points all take the patch's mean
+        normal (:func:`patch_normal`; degrees). 80: the top of a shaft seen by a
+        sweep has normals up to ~70 deg from its mean; the far side is beyond 110.
     start_rolls_deg, start_shifts_mm : tuple of float
         Besides the initial alignment, ICP also starts rolled by +- each angle about
         the source's long axis and shifted by +- each distance along it (every
@@ -151,6 +155,7 @@ class RegistrationParams:
     search_offsets_mm: float = 10.0
     search_rolls: int = 8
     max_normal_angle_deg: float = 60.0
+    patch_normal_angle_deg: float = 80.0
     start_rolls_deg: tuple[float, ...] = (15.0,)
     start_shifts_mm: tuple[float, ...] = (10.0,)
     coarse_iterations: int = 20
@@ -173,6 +178,7 @@ class RegistrationParams:
             "max_sliding_mm",
             "search_offsets_mm",
             "max_normal_angle_deg",
+            "patch_normal_angle_deg",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
@@ -641,20 +647,21 @@ class _IcpState:
 
 @dataclass(frozen=True, eq=False)
 class _Cloud:
-    """Source points with their outward unit normals (None: not known)."""
+    """Source points with unit normals and the angle a model normal may differ by."""
 
     points: np.ndarray
-    normals: np.ndarray | None
+    normals: np.ndarray
+    max_angle_deg: float
 
     def subset(self, k: int) -> _Cloud:
         """A deterministic random subset of at most ``k`` points."""
         if len(self.points) <= k:
             return self
         idx = np.sort(np.random.default_rng(0).choice(len(self.points), size=k, replace=False))
-        return _Cloud(self.points[idx], None if self.normals is None else self.normals[idx])
+        return _Cloud(self.points[idx], self.normals[idx], self.max_angle_deg)
 
     def flipped(self) -> _Cloud:
-        return _Cloud(self.points, None if self.normals is None else -self.normals)
+        return _Cloud(self.points, -self.normals, self.max_angle_deg)
 
 
 #: Nearest model points considered per source point: the nearest one that faces the
@@ -669,7 +676,7 @@ def _match(
 
     A source point pairs with the nearest model point within ``gate`` that is not on
     the model's open border and, when the source has normals, whose normal is within
-    ``max_normal_angle_deg`` of the source's: a patch pushed inside a thin bone would
+    ``src.max_angle_deg`` of the source's: a patch pushed inside a thin bone would
     otherwise pair with the far side of the bone and flip onto it.
     """
     p = transform_points(m, src.points)
@@ -677,10 +684,9 @@ def _match(
     good = np.isfinite(d)
     jj = np.where(good, idx, 0)
     good &= ~model.border[jj]
-    if src.normals is not None:
-        ns = src.normals @ m[:3, :3].T
-        cosang = np.einsum("kj,kij->ki", ns, model.normals[jj])
-        good &= cosang >= np.cos(np.radians(params.max_normal_angle_deg))
+    ns = src.normals @ m[:3, :3].T
+    cosang = np.einsum("kj,kij->ki", ns, model.normals[jj])
+    good &= cosang >= np.cos(np.radians(src.max_angle_deg))
     ok = good.any(axis=1)
     first = np.argmax(good, axis=1)
     j = jj[np.arange(len(p)), first][ok]
@@ -831,32 +837,17 @@ def _reasons(q: dict[str, Any], st: _IcpState, params: RegistrationParams) -> li
     return reasons
 
 
-def estimate_normals(points: np.ndarray, k: int = 12) -> np.ndarray:
-    """Unit normals of a point cloud from the local covariance of ``k`` neighbours.
+def patch_normal(points: np.ndarray) -> np.ndarray:
+    """The mean normal of a point cloud seen from one side: its least principal axis.
 
-    Oriented consistently with the cloud's least principal axis (a patch seen from one
-    side, as an ultrasound sweep sees a bone, is a height field over its mean plane);
-    which side is out stays unknown, so :func:`register` tries both.
-
-    Parameters
-    ----------
-    points : ndarray (K, 3)
-    k : int
-        Neighbours per point (12: the usual choice for point-cloud normals).
-
-    Returns
-    -------
-    ndarray (K, 3)
+    An ultrasound sweep sees the bone from the probe's side only, so its points form a
+    patch whose local normals stay within ~70 deg of this axis, while the far side of
+    the bone faces away. (Local normals from neighbours are no substitute: segmented
+    points lie on contours ~0.1-0.3 mm apart within a frame and 1-3 mm apart across
+    frames, so their neighbourhoods are lines, whose normal is undefined.) Which side
+    is out is unknown: :func:`register` tries both.
     """
-    p = np.asarray(points, float).reshape(-1, 3)
-    k = int(min(k, len(p)))
-    _, idx = cKDTree(p).query(p, k=k)
-    nb = p[idx] - p[idx].mean(axis=1, keepdims=True)
-    cov = np.einsum("kni,knj->kij", nb, nb)
-    _, vecs = np.linalg.eigh(cov)
-    n = vecs[:, :, 0]
-    _, axes, _ = _principal_axes(p)
-    return n * np.where(n @ axes[2] < 0, -1.0, 1.0)[:, None]
+    return _principal_axes(np.asarray(points, float).reshape(-1, 3))[1][2]
 
 
 def _search_inits(
@@ -1002,7 +993,8 @@ def register(
     source_normals : ndarray (K, 3), optional
         Outward normals of the source (a reconstructed surface has them, pointing to
         the probe). Without them they are estimated from the points' neighbours
-        (:func:`estimate_normals`) and both of their sides are tried.
+        the source is taken as a patch seen from one side: its :func:`patch_normal`
+        stands for every point's (within ``patch_normal_angle_deg``), both sides tried.
     init : ndarray (4, 4), optional
         Initial SOURCE -> TARGET matrix for ``init="identity"`` (default the identity).
     landmarks : (ndarray (K, 3), ndarray (K, 3)), optional
@@ -1039,8 +1031,9 @@ def register(
         good = np.isfinite(length) & (length > 0)
         nrm = np.where(good[:, None], nrm / np.where(good, length, 1.0)[:, None], 0.0)
     else:
-        nrm = estimate_normals(src)
-    cloud = _Cloud(src, nrm)
+        nrm = np.broadcast_to(patch_normal(src), src.shape)
+    angle = params.max_normal_angle_deg if oriented else params.patch_normal_angle_deg
+    cloud = _Cloud(src, np.ascontiguousarray(nrm), angle)
     sub = cloud.subset(params.max_source_points)
     lm_rms = None
     method = "landmarks" if landmarks is not None else params.init

@@ -248,3 +248,67 @@ def run(args: argparse.Namespace) -> int:
         print_summary(f"Registered {Path(args.source).name} to {Path(args.target).name}", rows)
     warn_unreliable(reg)
     return 0
+
+
+# ---- reconstruct --register-to MODEL ---------------------------------------------------
+def add_register_to_options(p: argparse.ArgumentParser) -> None:
+    """``--register-to MODEL --transform-out TRANSFORM`` (+ initial alignment) for ``reconstruct``."""
+    p.add_argument(
+        "--register-to",
+        metavar="MODEL",
+        help="also register the reconstructed surface to this bone model (.vtp .vtk .stl .ply .obj, mm)",
+    )
+    p.add_argument(
+        "--transform-out", metavar="TRANSFORM", help=f"with --register-to: the {TRANSFORM_HELP}"
+    )
+    add_registration_options(p, prefix="register-")
+
+
+def check_register_to(args: argparse.Namespace, outputs: list[Any], inputs: list[Any]) -> Any:
+    """Check the ``--register-to`` options before any work; the transform's output path or None."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+    from BoneUSRecon.Logic.fileio import check_input_file, check_output_path
+    from BoneUSRecon.Logic.transform_io import TRANSFORM_EXTENSIONS
+
+    given = [
+        n
+        for n in ("register_landmarks", "register_init", "register_search", "transform_out")
+        if getattr(args, n)
+    ]
+    if not args.register_to:
+        if given:
+            raise BoneUSReconError(f"--{given[0].replace('_', '-')} needs --register-to MODEL")
+        return None
+    if not args.transform_out:
+        raise BoneUSReconError("--register-to needs --transform-out TRANSFORM (.txt, .tfm or .h5)")
+    reg_inputs = [args.register_to, args.register_init, *(args.register_landmarks or [])]
+    for f in reg_inputs:
+        if f:
+            check_input_file(f)
+    out = check_output_path(args.transform_out, TRANSFORM_EXTENSIONS)
+    check_distinct_outputs(
+        [*[str(o) for o in outputs if o], args.transform_out], [*inputs, *reg_inputs]
+    )
+    registration_params(args, "register-")
+    return out
+
+
+def register_reconstruction(args: argparse.Namespace, surface: Any, transform_out: Any) -> Any:
+    """Register the reconstructed surface (its normals used) and write the transform."""
+    from vtkmodules.util import numpy_support
+
+    from BoneUSRecon.Logic.transform_io import write_transform
+    from BoneUSRecon.Logic.vtkio import polydata_points
+
+    arr = surface.GetPointData().GetNormals()
+    normals = numpy_support.vtk_to_numpy(arr).astype(float) if arr is not None else None
+    reg = run_registration(
+        args,
+        polydata_points(surface),
+        normals,
+        args.sweep,
+        prefix="register-",
+        target=args.register_to,
+    )
+    write_transform(reg.matrix, transform_out, coordinates="RAS" if args.ras else "LPS")
+    return reg
