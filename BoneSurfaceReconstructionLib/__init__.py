@@ -9,6 +9,8 @@ as a module of its own. Nothing here imports ``slicer`` at import time:
   :class:`BoneUSRecon.Logic.pipeline.ReconstructionParams`.
 * :mod:`.selftest`: the simulated-sweep check shared by the module's self-test and the
   pytest suite.
+* :mod:`.registration`: registering the reconstructed surface to a bone model node
+  (output: a linear transform node and the registered model, with quality figures).
 """
 
-__all__ = ["dependencies", "parameters", "selftest"]
+__all__ = ["dependencies", "parameters", "registration", "selftest"]

@@ -33,6 +33,9 @@ __all__ = ["REQUIREMENTS", "moduleFolder", "requireBoneUSRecon", "missingRequire
 REQUIREMENTS: dict[str, str] = {
     "numpy": "numpy",
     "scipy": "scipy>=1.11",
+    # Logic.transform_io writes ITK transform files with it; Slicer ships SimpleITK, so
+    # inside Slicer this is found and never installed.
+    "SimpleITK": "SimpleITK>=2.3",
 }
 
 #: Never installed into Slicer's Python, whatever a requirement pulls in.
