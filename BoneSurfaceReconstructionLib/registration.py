@@ -64,7 +64,11 @@ def registerModelToModel(
     :param landmarks: ``(source (K, 3), target (K, 3))`` RAS points, optional.
     :raises BoneUSReconError: (a ValueError) bad nodes, units, landmarks, or no overlap.
     """
-    from BoneUSRecon.Logic.registration import RegistrationParams, register_polydata, transform_polydata
+    from BoneUSRecon.Logic.registration import (
+        RegistrationParams,
+        register_polydata,
+        transform_polydata,
+    )
     from BoneUSRecon.Logic.sweep import matrix_to_vtk
     from BoneUSRecon.Widgets.mrml import show_surface
 

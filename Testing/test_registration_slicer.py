@@ -59,7 +59,9 @@ def test_slicer_reads_our_itk_file_as_the_source_to_target_transform(scene, tmp_
     p_lps = np.array([3.0, -20.0, 7.0])
     p_ras = p_lps * [-1, -1, 1]
     moved = node.GetTransformToParent().TransformPoint(*p_ras)
-    np.testing.assert_allclose(np.array(moved) * [-1, -1, 1], transform_points(t, p_lps[None])[0], atol=1e-9)
+    np.testing.assert_allclose(
+        np.array(moved) * [-1, -1, 1], transform_points(t, p_lps[None])[0], atol=1e-9
+    )
 
 
 @pytest.mark.parametrize("ext", [".tfm", ".h5"])
@@ -99,12 +101,17 @@ def test_register_model_nodes_in_the_scene(scene, sim_small, recon) -> None:
     placement = _rigid([1, 0, 0], 30.0, [0.0, 20.0, 0.0], [0, 0, 0])
     parent.SetMatrixTransformToParent(matrix_to_vtk(placement))
     target = scene.AddNewNodeByClass("vtkMRMLModelNode", "BoneModel")
-    target.SetAndObservePolyData(triangles_to_polydata(transform_points(np.linalg.inv(placement) @ truth, v), f))
+    target.SetAndObservePolyData(
+        triangles_to_polydata(transform_points(np.linalg.inv(placement) @ truth, v), f)
+    )
     target.SetAndObserveTransformNodeID(parent.GetID())
 
     out = registerModelToModel(source, target)
     world_truth = truth  # source is in world already; target's world = placement @ local
-    assert rigid_error(_to_parent(out.transformNode), world_truth, sim_small.gold)["tre_median_mm"] <= 0.5
+    assert (
+        rigid_error(_to_parent(out.transformNode), world_truth, sim_small.gold)["tre_median_mm"]
+        <= 0.5
+    )
     assert out.transformNode.GetAttribute("BoneUSRecon.registration.reliable") == "True"
     np.testing.assert_allclose(
         slicer.util.arrayFromModelPoints(out.registeredNode),
@@ -114,7 +121,9 @@ def test_register_model_nodes_in_the_scene(scene, sim_small, recon) -> None:
     assert "residual RMS" in summaryText(out)
     # A second run refills the same nodes.
     n = scene.GetNumberOfNodesByClass("vtkMRMLLinearTransformNode")
-    again = registerModelToModel(source, target, transformNode=out.transformNode, registeredNode=out.registeredNode)
+    again = registerModelToModel(
+        source, target, transformNode=out.transformNode, registeredNode=out.registeredNode
+    )
     assert again.transformNode is out.transformNode
     assert scene.GetNumberOfNodesByClass("vtkMRMLLinearTransformNode") == n
 
