@@ -322,8 +322,14 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
 
             from BoneSurfaceReconstructionLib.registration import registerModelToModel
 
+            # The segmented points (in world coordinates, as the surface) are registered:
+            # they lie on the imaged bone, the fitted surface only near it.
             registration = registerModelToModel(
-                result.surface_node, targetModel, transformNode=outputTransform, registeredNode=registeredModel
+                result.surface_node,
+                targetModel,
+                transformNode=outputTransform,
+                registeredNode=registeredModel,
+                sourcePoints=result.reconstruction.points,
             )
             result = dataclasses.replace(result, registration=registration)
         return result

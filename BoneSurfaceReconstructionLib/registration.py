@@ -52,10 +52,15 @@ def registerModelToModel(
     params: Any = None,
     init: Any = None,
     landmarks: Any = None,
+    sourcePoints: Any = None,
 ) -> SceneRegistration:
     """Rigidly register ``sourceNode``'s surface onto ``targetNode`` (both model nodes).
 
-    :param sourceNode: the reconstructed surface (its ``Normals`` are used when present).
+    :param sourceNode: the reconstructed surface (its ``Normals`` are used when present);
+        the registered model is this surface moved onto the target.
+    :param sourcePoints: optional ``vtkPolyData`` of the segmented points, in world
+        coordinates, registered instead of the surface's vertices (more accurate along
+        a shaft: see ``BoneUSRecon.cli.register.register_reconstruction``).
     :param targetNode: the bone model (CT or MRI, mm).
     :param transformNode: linear transform node to fill (new if None).
     :param registeredNode: model node for the moved source (new if None).
@@ -75,7 +80,7 @@ def registerModelToModel(
     source = _worldPolyData(sourceNode, "source")
     target = _worldPolyData(targetNode, "target")
     reg = register_polydata(
-        source,
+        source if sourcePoints is None else sourcePoints,
         target,
         params if params is not None else RegistrationParams(),
         init=init,

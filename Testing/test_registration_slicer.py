@@ -107,6 +107,11 @@ def test_register_model_nodes_in_the_scene(scene, sim_small, recon) -> None:
     target.SetAndObserveTransformNodeID(parent.GetID())
 
     out = registerModelToModel(source, target)
+    with_points = registerModelToModel(source, target, sourcePoints=recon.points)
+    assert (
+        rigid_error(_to_parent(with_points.transformNode), truth, sim_small.gold)["tre_median_mm"]
+        <= 0.5
+    )
     world_truth = truth  # source is in world already; target's world = placement @ local
     assert (
         rigid_error(_to_parent(out.transformNode), world_truth, sim_small.gold)["tre_median_mm"]

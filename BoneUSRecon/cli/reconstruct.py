@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         recon = reconstruct(read_sweep_args(args, bar), params, progress=bar)
         reg = None
         if transform_out is not None:
-            reg = reg_cli.register_reconstruction(args, recon.surface, transform_out)
+            reg = reg_cli.register_reconstruction(args, recon, transform_out)
         evaluation = evaluate_surface(recon.surface, gold) if gold is not None else None
         write_polydata(recon.surface, out)
         if pts_out is not None:

