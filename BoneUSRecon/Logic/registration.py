@@ -161,7 +161,7 @@ class RegistrationParams:
     patch_normal_angle_deg: float = 80.0
     start_rolls_deg: tuple[float, ...] = (15.0,)
     start_shifts_mm: tuple[float, ...] = (10.0,)
-    coarse_iterations: int = 20
+    coarse_iterations: int = 12
     coarse_points: int = 300
 
     def __post_init__(self) -> None:
@@ -920,60 +920,56 @@ def _score(src: _Cloud, model: BoneModel, m: np.ndarray, params: RegistrationPar
     return float(e.mean())
 
 
-def _better_side(src: _Cloud, model: BoneModel, m0: np.ndarray, params: RegistrationParams) -> bool:
-    """Whether the flipped patch normal fits better (short ICP from ``m0`` with each)."""
-    coarse = src.subset(params.coarse_points)
-    scores = []
-    for c in (coarse, coarse.flipped()):
-        st = _icp(c, model, m0, params, max_iterations=params.coarse_iterations, tolerance_mm=0.01)
-        scores.append(_score(c, model, st.matrix, params))
-    return scores[1] < scores[0]
-
-
 def _best_of(
-    src: _Cloud, model: BoneModel, starts: list[np.ndarray], params: RegistrationParams
-) -> tuple[_IcpState, tuple[float, float, float] | None]:
+    src: _Cloud,
+    model: BoneModel,
+    starts: list[tuple[np.ndarray, bool]],
+    params: RegistrationParams,
+) -> tuple[_IcpState, bool, tuple[float, float, float] | None]:
     """ICP from the best of ``starts``, and a distinct alternative fitting about as well.
 
-    Each start runs a short ICP on a subset of ``coarse_points``, ranked by
+    Each start (a matrix, and whether the source's normals are flipped: a patch normal
+    has no known side) runs a short ICP on a subset of ``coarse_points``, ranked by
     :func:`_score`; the best is refined on ``src``. The best-ranked start that ended
     more than ``max_sliding_mm`` away runs on (on the subset): if it stays that far
     with a residual within a factor 2 of the best's (floored at the noise), the surface
-    matches in two places and the answer is ambiguous. Returns ``(state, None)`` or
-    ``(state, (distance mm, alternative RMS, best RMS))``.
+    matches in two places and the answer is ambiguous. Returns ``(state, flipped,
+    None)`` or ``(state, flipped, (distance mm, alternative RMS, best RMS))``.
     """
-    coarse = src.subset(params.coarse_points)
-    pts = coarse.points
+    sides = {False: src.subset(params.coarse_points)}
+    sides[True] = sides[False].flipped()
+    pts = sides[False].points
     ranked = []
-    for m in starts:
+    for m, flip in starts:
         # Ranking needs the basin, not the last micron: a looser tolerance.
-        stc = _icp(
-            coarse, model, m, params, max_iterations=params.coarse_iterations, tolerance_mm=0.01
-        )
-        ranked.append((_score(coarse, model, stc.matrix, params), stc.matrix))
+        c = sides[flip]
+        stc = _icp(c, model, m, params, max_iterations=params.coarse_iterations, tolerance_mm=0.01)
+        ranked.append((_score(c, model, stc.matrix, params), stc.matrix, flip))
     ranked.sort(key=lambda t: t[0])
-    best = _icp(src, model, ranked[0][1], params)
-    b_score = _score(coarse, model, best.matrix, params)
+    b_flip = ranked[0][2]
+    best = _icp(src.flipped() if b_flip else src, model, ranked[0][1], params)
+    b_score = _score(sides[b_flip], model, best.matrix, params)
     floor = params.noise_floor_mm**2
 
     def apart(m: np.ndarray) -> float:
         d = transform_points(m, pts) - transform_points(best.matrix, pts)
         return float(np.median(np.linalg.norm(d, axis=1)))
 
-    for sc, m in ranked[1:]:
+    for sc, m, flip in ranked[1:]:
         if sc > 2.0 * max(b_score, floor) + floor:
             break
         if apart(m) <= params.max_sliding_mm:
             continue
-        other = _icp(coarse, model, m, params, max_iterations=2 * params.coarse_iterations)
-        a_score = _score(coarse, model, other.matrix, params)
+        other = _icp(sides[flip], model, m, params, max_iterations=2 * params.coarse_iterations)
+        a_score = _score(sides[flip], model, other.matrix, params)
         dist = apart(other.matrix)
         if dist > params.max_sliding_mm and a_score <= 2.0 * max(b_score, floor):
             if a_score < b_score:  # the alternative is the better one: refine it instead
-                best, a_score, b_score = _icp(src, model, other.matrix, params), b_score, a_score
-            return best, (dist, float(np.sqrt(a_score)), float(np.sqrt(b_score)))
+                best = _icp(src.flipped() if flip else src, model, other.matrix, params)
+                a_score, b_score, b_flip = b_score, a_score, flip
+            return best, b_flip, (dist, float(np.sqrt(a_score)), float(np.sqrt(b_score)))
         break
-    return best, None
+    return best, b_flip, None
 
 
 def register(
@@ -1078,11 +1074,10 @@ def register(
                 source_path,
             )
         mats = [m0, *_local_starts(sub.points, m0, params)]
-    # A patch normal has no known side: the side fitting best from the first start is kept.
-    if not oriented and _better_side(sub, model, mats[0], params):
-        cloud, sub = cloud.flipped(), sub.flipped()
-    st, alt = _best_of(sub, model, mats, params)
-    q = _quality(cloud, model, st, params)
+    # A patch normal has no known side: every start is tried with both.
+    starts = [(m, flip) for m in mats for flip in ((False,) if oriented else (False, True))]
+    st, flipped, alt = _best_of(sub, model, starts, params)
+    q = _quality(cloud.flipped() if flipped else cloud, model, st, params)
     if q["inlier_share"] < params.min_overlap:
         raise BoneUSReconError(
             f"registration failed: only {100 * q['inlier_share']:.0f}% of the source points fit the model "
