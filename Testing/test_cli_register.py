@@ -307,3 +307,32 @@ def test_ras_coordinates_conjugate_the_itk_file(tmp_path) -> None:
     )
     d = np.diag([-1.0, -1, 1, 1])
     np.testing.assert_allclose(read_transform(tmp_path / "ras.tfm"), d @ m @ d, atol=1e-9)
+
+
+def test_unreliable_result_is_written_and_flagged_on_stderr(capsys, tmp_path) -> None:
+    from BoneUSRecon.Logic.simulation.bones import BoneGeometry, BoneSpec
+
+    g = BoneGeometry(
+        BoneSpec("cylinder", 120.0, (16.0, 16.0), (16.0, 16.0), 5.0, 0.0, 0.5, 0.0, 0.0, 0.0)
+    )
+    v, f = g.closed_mesh(*g.closed_mesh_params(5_000))
+    s, phi = np.meshgrid(np.linspace(35, 85, 40), np.linspace(np.pi / 2 - 0.9, np.pi / 2 + 0.9, 20))
+    write_points_csv(g.surface(s.ravel(), phi.ravel()), tmp_path / "patch.csv")
+    write_polydata(triangles_to_polydata(v, f), tmp_path / "cyl.stl")
+    code, stdout, err = run(
+        capsys,
+        [
+            "register",
+            str(tmp_path / "patch.csv"),
+            str(tmp_path / "cyl.stl"),
+            "-o",
+            str(tmp_path / "T.txt"),
+        ],
+    )
+    assert code == 0 and (tmp_path / "T.txt").is_file()
+    assert "reliable                : NO" in stdout or "NO:" in stdout
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "bone-us-recon: warning: registration UNRELIABLE"
+    )
+    assert "translation along the bone's long axis" in lines[0]

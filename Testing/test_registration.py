@@ -296,3 +296,12 @@ def test_register_polydata_uses_the_surface_normals(sim_small, recon, mesh) -> N
     assert rigid_error(reg.matrix, truth, sim_small.gold)["tre_median_mm"] <= 0.5
     d = reg.as_dict()
     assert d["reliable"] is True and len(d["matrix"]) == 4 and len(d["directions"]) == 6
+
+
+def test_simulation_bone_model_polydata_is_a_closed_model(sim_small) -> None:
+    pd = sim_small.bone_model_polydata(5_000)
+    assert abs(pd.GetNumberOfPolys() - 5_000) < 200
+    model = model_from_polydata(pd)
+    assert model.n_border_edges == 0
+    # every vertex of the tube lies on the analytic bone
+    assert sim_small.distance_to_truth(model.vertices[:-2]).max() < 1e-6
