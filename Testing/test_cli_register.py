@@ -137,11 +137,20 @@ def test_register_json_from_points_with_an_initial_matrix(capsys, files, tmp_pat
             str(out),
             "--init",
             str(init),
+            "--registered",
+            str(tmp_path / "moved.csv"),
             "--json",
         ],
     )
     assert code == 0, err
     doc = json.loads(stdout)
+    from BoneUSRecon.Logic.vtkio import read_points
+
+    np.testing.assert_allclose(
+        read_points(tmp_path / "moved.csv"),
+        transform_points(np.array(doc["matrix"]), read_points(files["points"])),
+        atol=1e-5,
+    )
     assert (
         doc["output"] == str(out)
         and len(doc["eigenvalues"]) == 6
@@ -228,6 +237,10 @@ def test_reconstruct_register_to_in_one_step(capsys, files, tmp_path) -> None:
             "4 and 2 points",
         ),
         (["register", "{surface}", "{model}", "-o", "{out}/T.vtp"], "unknown output extension"),
+        (
+            ["register", "{points}", "{model}", "-o", "{out}/T.txt", "--registered", "{out}/m.stl"],
+            "point set",
+        ),
         (
             ["register", "{surface}", "{model}", "-o", "{out}/T.txt", "--registered", "{surface}"],
             "also an input",

@@ -73,12 +73,8 @@ def registration_params(args: argparse.Namespace, prefix: str = "") -> Any:
             + ", ".join(f"--{prefix}{n}" for n in chosen)
             + " were all given"
         )
-    method = (
-        "search"
-        if getattr(args, a + "search", False)
-        else "landmarks"
-        if getattr(args, a + "landmarks", None)
-        else "identity"
+    method = {"search": "search", "landmarks": "landmarks"}.get(
+        chosen[0] if chosen else "", "identity"
     )
     return RegistrationParams(init=method)
 
@@ -134,7 +130,8 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--registered",
         metavar="OUT",
-        help="also write SOURCE moved into TARGET's frame (.vtp .vtk .ply .stl .obj)",
+        help="also write SOURCE moved into TARGET's frame (a surface: .vtp .vtk .ply .stl "
+        ".obj; points: .vtp .vtk .ply .csv)",
     )
     add_json_option(p)
     add_common_options(p)
@@ -191,11 +188,6 @@ def run_registration(
     )
 
 
-def registration_rows(reg: Any) -> list[tuple[str, Any]]:
-    """Summary rows of a :class:`Registration` (register, reconstruct --register-to)."""
-    return [(k, v) for k, v in reg.summary_rows()]
-
-
 def warn_unreliable(reg: Any) -> None:
     """One stderr line when the result should not be trusted (the transform is still written)."""
     if not reg.reliable:
@@ -207,31 +199,47 @@ def warn_unreliable(reg: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Register SOURCE to TARGET; write the transform (and the moved source)."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.fileio import check_input_file, check_output_path
     from BoneUSRecon.Logic.registration import transform_polydata
     from BoneUSRecon.Logic.transform_io import TRANSFORM_EXTENSIONS, write_transform
-    from BoneUSRecon.Logic.vtkio import SURFACE_EXTENSIONS, points_to_polydata, write_polydata
+    from BoneUSRecon.Logic.vtkio import (
+        POINT_OUT_EXTENSIONS,
+        SURFACE_EXTENSIONS,
+        points_to_polydata,
+        write_points,
+        write_polydata,
+    )
 
     inputs = [args.source, args.target, args.init, *(args.landmarks or [])]
     for f in inputs:
         if f:
             check_input_file(f)
     out = check_output_path(args.output, TRANSFORM_EXTENSIONS)
-    moved_out = check_output_path(args.registered, SURFACE_EXTENSIONS) if args.registered else None
+    moved_out = None
+    if args.registered:
+        moved_out = check_output_path(args.registered, {*SURFACE_EXTENSIONS, *POINT_OUT_EXTENSIONS})
     check_distinct_outputs([args.output, args.registered], inputs)
     registration_params(args)  # conflicting options refused before any reading
 
     points, normals, pd = read_source(args.source)
+    surface = pd is not None and pd.GetNumberOfPolys() + pd.GetNumberOfStrips() > 0
+    if moved_out is not None:
+        allowed = SURFACE_EXTENSIONS if surface else POINT_OUT_EXTENSIONS
+        if moved_out.suffix.lower() not in allowed:
+            raise BoneUSReconError(
+                f"the source is a {'surface' if surface else 'point set'}: write it as one of "
+                + ", ".join(allowed),
+                moved_out,
+            )
     reg = run_registration(args, points, normals, args.source, target=args.target)
     with removed_on_failure(out, moved_out):
         write_transform(reg.matrix, out, coordinates="RAS" if args.ras else "LPS")
         if moved_out is not None:
-            write_polydata(
-                transform_polydata(
-                    pd if pd is not None else points_to_polydata(points), reg.matrix
-                ),
-                moved_out,
+            moved = transform_polydata(
+                pd if pd is not None else points_to_polydata(points), reg.matrix
             )
+            (write_polydata if surface else write_points)(moved, moved_out)
     if args.json:
         print_json(
             {
@@ -241,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
             }
         )
     else:
-        rows = registration_rows(reg)
+        rows = list(reg.summary_rows())
         rows.append(("written", str(out)))
         if moved_out:
             rows.append(("registered source", str(moved_out)))
