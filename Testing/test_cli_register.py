@@ -349,3 +349,36 @@ def test_unreliable_result_is_written_and_flagged_on_stderr(capsys, tmp_path) ->
         "bone-us-recon: warning: registration UNRELIABLE"
     )
     assert "translation along the bone's long axis" in lines[0]
+
+
+def test_json_is_strict_even_when_a_direction_is_unbounded(capsys, tmp_path) -> None:
+    from BoneUSRecon.Logic.simulation.bones import BoneGeometry, BoneSpec
+
+    g = BoneGeometry(
+        BoneSpec("cylinder", 120.0, (16.0, 16.0), (16.0, 16.0), 5.0, 0.0, 0.5, 0.0, 0.0, 0.0)
+    )
+    v, f = g.closed_mesh(*g.closed_mesh_params(5_000))
+    s, phi = np.meshgrid(np.linspace(35, 85, 40), np.linspace(np.pi / 2 - 0.9, np.pi / 2 + 0.9, 20))
+    write_points_csv(g.surface(s.ravel(), phi.ravel()), tmp_path / "patch.csv")
+    write_polydata(triangles_to_polydata(v, f), tmp_path / "cyl.stl")
+    argv = [
+        "register",
+        str(tmp_path / "patch.csv"),
+        str(tmp_path / "cyl.stl"),
+        "-o",
+        str(tmp_path / "T.txt"),
+        "--json",
+    ]
+    code, stdout, _ = run(capsys, argv)
+    assert code == 0
+    doc = json.loads(stdout, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+    assert doc["reliable"] is False and (doc["sliding_mm"][0] is None or doc["sliding_mm"][0] > 1e4)
+    # an exactly singular direction (infinite sliding, infinite condition) is null in JSON
+    import dataclasses
+
+    from BoneUSRecon.Logic.registration import Registration
+
+    fields = {f.name: doc[f.name] for f in dataclasses.fields(Registration) if f.name in doc}
+    fields.update(condition=float("inf"), sliding_mm=np.array([np.inf, 1.0, 1, 1, 1, 1]))
+    strict = json.dumps(Registration(**fields).as_dict(), allow_nan=False)
+    assert json.loads(strict)["condition"] is None

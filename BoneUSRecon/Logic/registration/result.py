@@ -71,14 +71,17 @@ class Registration:
     seconds: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain-Python summary (JSON-ready)."""
-        d = asdict(self)
-        for k, v in d.items():
-            if isinstance(v, np.ndarray):
-                d[k] = v.tolist()
-            elif isinstance(v, tuple):
-                d[k] = list(v)
-        return d
+        """Plain-Python summary (strict JSON: an unbounded sliding range or condition
+        is ``None``, as JSON has no infinity)."""
+
+        def plain(v: Any) -> Any:
+            if isinstance(v, (np.ndarray, list, tuple)):
+                return [plain(x) for x in (v.tolist() if isinstance(v, np.ndarray) else v)]
+            if isinstance(v, (float, np.floating)):
+                return float(v) if np.isfinite(v) else None
+            return v
+
+        return {k: plain(v) for k, v in asdict(self).items()}
 
     def summary_rows(self) -> list[tuple[str, str]]:
         """``(key, value)`` lines for a human summary (CLI, Slicer panel)."""
