@@ -329,7 +329,7 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
                 targetModel,
                 transformNode=outputTransform,
                 registeredNode=registeredModel,
-                sourcePoints=result.reconstruction.points,
+                reconstruction=result.reconstruction,
             )
             result = dataclasses.replace(result, registration=registration)
         return result

@@ -52,15 +52,16 @@ def registerModelToModel(
     params: Any = None,
     init: Any = None,
     landmarks: Any = None,
-    sourcePoints: Any = None,
+    reconstruction: Any = None,
 ) -> SceneRegistration:
     """Rigidly register ``sourceNode``'s surface onto ``targetNode`` (both model nodes).
 
     :param sourceNode: the reconstructed surface (its ``Normals`` are used when present);
         the registered model is this surface moved onto the target.
-    :param sourcePoints: optional ``vtkPolyData`` of the segmented points, in world
-        coordinates, registered instead of the surface's vertices (more accurate along
-        a shaft: see ``BoneUSRecon.cli.register.register_reconstruction``).
+    :param reconstruction: optional ``Reconstruction`` whose surface ``sourceNode`` shows
+        (world coordinates): its segmented points are registered instead of the
+        surface's vertices, each facing its probe (more accurate along a shaft: see
+        ``BoneUSRecon.Logic.registration.register_reconstruction``).
     :param targetNode: the bone model (CT or MRI, mm).
     :param transformNode: linear transform node to fill (new if None).
     :param registeredNode: model node for the moved source (new if None).
@@ -71,7 +72,9 @@ def registerModelToModel(
     """
     from BoneUSRecon.Logic.registration import (
         RegistrationParams,
+        model_from_polydata,
         register_polydata,
+        register_reconstruction,
         transform_polydata,
     )
     from BoneUSRecon.Logic.sweep import matrix_to_vtk
@@ -79,15 +82,26 @@ def registerModelToModel(
 
     source = _worldPolyData(sourceNode, "source")
     target = _worldPolyData(targetNode, "target")
-    reg = register_polydata(
-        source if sourcePoints is None else sourcePoints,
-        target,
-        params if params is not None else RegistrationParams(),
-        init=init,
-        landmarks=landmarks,
-        source_path=sourceNode.GetName(),
-        target_path=targetNode.GetName(),
-    )
+    p = params if params is not None else RegistrationParams()
+    if reconstruction is not None:
+        reg = register_reconstruction(
+            reconstruction,
+            model_from_polydata(target, targetNode.GetName()),
+            p,
+            init=init,
+            landmarks=landmarks,
+            model_path=targetNode.GetName(),
+        )
+    else:
+        reg = register_polydata(
+            source,
+            target,
+            p,
+            init=init,
+            landmarks=landmarks,
+            source_path=sourceNode.GetName(),
+            target_path=targetNode.GetName(),
+        )
     scene = sourceNode.GetScene()
     if transformNode is None:
         transformNode = scene.AddNewNodeByClass(

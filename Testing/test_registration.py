@@ -305,3 +305,17 @@ def test_simulation_bone_model_polydata_is_a_closed_model(sim_small) -> None:
     assert model.n_border_edges == 0
     # every vertex of the tube lies on the analytic bone
     assert sim_small.distance_to_truth(model.vertices[:-2]).max() < 1e-6
+
+
+def test_reconstruction_points_face_their_probe_from_15mm_15deg(sim_small, recon, mesh) -> None:
+    from BoneUSRecon.Logic.registration import register_reconstruction, towards_probe
+
+    up = towards_probe(recon.points, sim_small.sweep.image_to_reference)
+    assert np.all(up[:, 2] > 0.8)  # the simulated probe looks down (-z) at the bone
+    rng = np.random.default_rng(11)
+    for _ in range(2):
+        truth = random_motion(rng, 15.0, 15.0, sim_small.gold.mean(0))
+        reg = register_reconstruction(recon, moved_model(mesh, truth))
+        err = rigid_error(reg.matrix, truth, sim_small.gold)
+        assert err["tre_median_mm"] <= 0.5, err
+        assert reg.reliable and reg.inlier_share > 0.9

@@ -107,7 +107,7 @@ def test_register_model_nodes_in_the_scene(scene, sim_small, recon) -> None:
     target.SetAndObserveTransformNodeID(parent.GetID())
 
     out = registerModelToModel(source, target)
-    with_points = registerModelToModel(source, target, sourcePoints=recon.points)
+    with_points = registerModelToModel(source, target, reconstruction=recon)
     assert (
         rigid_error(_to_parent(with_points.transformNode), truth, sim_small.gold)["tre_median_mm"]
         <= 0.5

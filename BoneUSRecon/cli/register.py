@@ -161,6 +161,7 @@ def run_registration(
     *,
     prefix: str = "",
     target: str,
+    towards: Any = None,
 ) -> Any:
     """Read the model, landmarks and initial matrix named by the options; register."""
     from BoneUSRecon.Logic.registration import model_from_polydata
@@ -181,6 +182,7 @@ def run_registration(
         model,
         params,
         source_normals=normals,
+        towards_probe=towards,
         init=init,
         landmarks=landmarks,
         source_path=source_path,
@@ -302,16 +304,14 @@ def check_register_to(args: argparse.Namespace, outputs: list[Any], inputs: list
 
 
 def register_reconstruction(args: argparse.Namespace, recon: Any, transform_out: Any) -> Any:
-    """Register a reconstruction's segmented points to ``--register-to``; write the transform.
-
-    The segmented points, not the fitted surface: they lie on the imaged bone, while the
-    smooth surface between contours carries a small shape error that a shaft, weakly
-    held along its axis, turns into axial sliding (measured on a simulated 200-frame
-    radius sweep: target error 0.07 mm from the points against 0.59 mm from the surface).
-    """
+    """Register a reconstruction's segmented points to ``--register-to`` (see
+    :func:`BoneUSRecon.Logic.registration.register_reconstruction` for why the points,
+    each facing its probe); write the transform."""
+    from BoneUSRecon.Logic.registration import towards_probe
     from BoneUSRecon.Logic.transform_io import write_transform
     from BoneUSRecon.Logic.vtkio import polydata_points
 
+    towards = towards_probe(recon.points, recon.sweep.image_to_reference)
     reg = run_registration(
         args,
         polydata_points(recon.points),
@@ -319,6 +319,7 @@ def register_reconstruction(args: argparse.Namespace, recon: Any, transform_out:
         args.sweep,
         prefix="register-",
         target=args.register_to,
+        towards=towards,
     )
     write_transform(reg.matrix, transform_out, coordinates="RAS" if args.ras else "LPS")
     return reg

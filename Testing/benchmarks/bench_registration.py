@@ -5,7 +5,8 @@ simulator's bone, as a closed ~50,000-triangle model (a stand-in for a CT model)
 moved by a random rigid transform (``--deg`` about a random axis through the imaged
 surface, ``--mm`` in a random direction; default 10 deg / 10 mm) and the reconstructed
 surface is registered to it from the identity (``--source points`` registers the
-segmented points instead, without normals). Per trial:
+segmented points instead, each facing its probe, as ``reconstruct --register-to``
+does; ``--source cloud`` the points alone, as from a point file). Per trial:
 
 * target registration error (TRE) at the imaged bone: the distance between where the
   estimate and the truth put each gold point (the simulator's points on the imaged
@@ -18,7 +19,7 @@ within 2 mm or flagged (must be 100 %), the share flagged, and the registration 
 (median CPU seconds on one core: the script sets ``OMP_NUM_THREADS=1`` before numpy).
 
 Run: ``python Testing/benchmarks/bench_registration.py [--frames 200] [--trials 10]
-[--bones clavicle radius] [--deg 10 --mm 10] [--source surface|points] [--json]``
+[--bones clavicle radius] [--deg 10 --mm 10] [--source surface|points|cloud] [--json]``
 Targets (issue 14): median TRE <= 0.5 mm; every trial within 2 mm or flagged; a
 200-frame sweep's surface to a 50,000-triangle model in <= 2 s on one core.
 """
@@ -44,6 +45,7 @@ from BoneUSRecon.Logic.registration import (  # noqa: E402
     bone_model,
     register,
     rigid_error,
+    towards_probe,
     transform_points,
 )
 from BoneUSRecon.Logic.simulation import BONES, SimulationParams, simulate  # noqa: E402
@@ -67,7 +69,11 @@ def motion(rng: np.random.Generator, deg: float, mm: float, centre: np.ndarray) 
 def run_bone(bone: str, args: argparse.Namespace) -> dict:
     sim = simulate(SimulationParams(bone=bone, n_frames=args.frames, seed=args.seed))
     rec = reconstruct(sim.sweep)
-    if args.source == "points":
+    towards = None
+    if args.source == "points":  # as reconstruct --register-to: each point faces its probe
+        pts, nrm = polydata_points(rec.points), None
+        towards = towards_probe(rec.points, sim.sweep.image_to_reference)
+    elif args.source == "cloud":  # a bare point file: no normals, no probe
         pts, nrm = polydata_points(rec.points), None
     else:
         pts = polydata_points(rec.surface)
@@ -83,7 +89,7 @@ def run_bone(bone: str, args: argparse.Namespace) -> dict:
         model = bone_model(transform_points(truth, verts), faces)
         t1 = time.process_time()
         try:
-            reg = register(pts, model, params, source_normals=nrm)
+            reg = register(pts, model, params, source_normals=nrm, towards_probe=towards)
         except BoneUSReconError as exc:  # a clear failure counts as flagged
             rows.append(
                 {
@@ -141,7 +147,13 @@ def main() -> None:
     ap.add_argument("--deg", type=float, default=10.0, help="initial rotation error (deg)")
     ap.add_argument("--mm", type=float, default=10.0, help="initial translation error (mm)")
     ap.add_argument("--triangles", type=int, default=50_000, help="model size")
-    ap.add_argument("--source", choices=("surface", "points"), default="surface")
+    ap.add_argument(
+        "--source",
+        choices=("surface", "points", "cloud"),
+        default="surface",
+        help="the reconstructed surface (with normals); the segmented points facing their "
+        "probe (as reconstruct --register-to); or the points alone (a bare point file)",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()

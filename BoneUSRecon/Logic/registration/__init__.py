@@ -33,7 +33,12 @@ One job per file: :mod:`.params`, :mod:`.result`, :mod:`.model` (the target mesh
 
 from __future__ import annotations
 
-from BoneUSRecon.Logic.registration.core import register, register_polydata
+from BoneUSRecon.Logic.registration.core import (
+    register,
+    register_polydata,
+    register_reconstruction,
+    towards_probe,
+)
 from BoneUSRecon.Logic.registration.geometry import (
     check_units,
     landmark_transform,
@@ -57,6 +62,8 @@ __all__ = [
     "check_units",
     "register",
     "register_polydata",
+    "register_reconstruction",
+    "towards_probe",
     "patch_normal",
     "transform_points",
     "transform_polydata",

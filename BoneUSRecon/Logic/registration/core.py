@@ -21,7 +21,7 @@ from BoneUSRecon.Logic.registration.params import RegistrationParams
 from BoneUSRecon.Logic.registration.quality import quality, unreliable_reasons
 from BoneUSRecon.Logic.registration.result import Registration
 
-__all__ = ["register", "register_polydata"]
+__all__ = ["register", "register_polydata", "register_reconstruction", "towards_probe"]
 
 
 def register(
@@ -30,6 +30,7 @@ def register(
     params: RegistrationParams | None = None,
     *,
     source_normals: np.ndarray | None = None,
+    towards_probe: np.ndarray | None = None,
     init: np.ndarray | None = None,
     landmarks: tuple[np.ndarray, np.ndarray] | None = None,
     source_path: str | os.PathLike[str] | None = None,
@@ -47,9 +48,15 @@ def register(
         Default ``RegistrationParams()``.
     source_normals : ndarray (K, 3), optional
         Outward normals of the source (a reconstructed surface has them, pointing to
-        the probe). Without them they are estimated from the points' neighbours
-        the source is taken as a patch seen from one side: its :func:`patch_normal`
-        stands for every point's (within ``patch_normal_angle_deg``), both sides tried.
+        the probe); matched within ``max_normal_angle_deg``.
+    towards_probe : ndarray (K, 3), optional
+        For points without normals (segmented points): the direction from each point
+        towards the probe that saw it (:func:`towards_probe`). The imaged bone faces
+        the probe, so this stands for the normal, within ``patch_normal_angle_deg``.
+        Without either, the source is taken as a patch seen from one side: its
+        :func:`patch_normal` stands for every point's, and both sides are tried
+        (slower, and from 15 mm / 15 deg away 2 of 10 clavicle trials took the wrong
+        side, flagged).
     init : ndarray (4, 4), optional
         Initial SOURCE -> TARGET matrix for ``init="identity"`` (default the identity).
     landmarks : (ndarray (K, 3), ndarray (K, 3)), optional
@@ -78,9 +85,10 @@ def register(
     if not np.isfinite(src).all():
         raise BoneUSReconError("source points contain NaN or infinity", source_path)
     check_units(src, model, source_path, model_path)
-    oriented = source_normals is not None
+    oriented = source_normals is not None or towards_probe is not None
     if oriented:
-        nrm = np.asarray(source_normals, float).reshape(-1, 3)
+        given = source_normals if source_normals is not None else towards_probe
+        nrm = np.asarray(given, float).reshape(-1, 3)
         if nrm.shape != src.shape:
             raise BoneUSReconError(f"{len(nrm)} source normals for {len(src)} points", source_path)
         length = np.linalg.norm(nrm, axis=1)
@@ -88,7 +96,10 @@ def register(
         nrm = np.where(good[:, None], nrm / np.where(good, length, 1.0)[:, None], 0.0)
     else:
         nrm = np.broadcast_to(patch_normal(src), src.shape)
-    angle = params.max_normal_angle_deg if oriented else params.patch_normal_angle_deg
+    # Exact normals, or a direction the surface faces only roughly (patch, probe).
+    angle = (
+        params.max_normal_angle_deg if source_normals is not None else params.patch_normal_angle_deg
+    )
     cloud = Cloud(src, np.ascontiguousarray(nrm), angle)
     sub = cloud.subset(params.max_source_points)
     lm_rms = None
@@ -200,4 +211,63 @@ def register_polydata(
         landmarks=landmarks,
         source_path=source_path,
         model_path=target_path,
+    )
+
+
+def towards_probe(points: Any, image_to_reference: np.ndarray) -> np.ndarray:
+    """Unit direction from each segmented point towards the probe that imaged it.
+
+    Parameters
+    ----------
+    points : vtkPolyData
+        Segmented points with their ``Frame`` point array (as
+        :attr:`Reconstruction.points`).
+    image_to_reference : ndarray (N, 4, 4)
+        The sweep's poses. The image's row axis ``j`` points down the beam, away from
+        the transducer (PLUS ``MF``, as every :class:`Sweep` is stored), so the probe
+        is at ``-j``.
+
+    Returns
+    -------
+    ndarray (K, 3)
+    """
+    from vtkmodules.util import numpy_support
+
+    arr = points.GetPointData().GetArray("Frame")
+    if arr is None:
+        raise BoneUSReconError("the segmented points have no Frame array")
+    frames = numpy_support.vtk_to_numpy(arr).astype(np.int64)
+    down = np.asarray(image_to_reference, float)[frames, :3, 1]
+    return -down / np.linalg.norm(down, axis=1, keepdims=True)
+
+
+def register_reconstruction(
+    recon: Any,
+    model: BoneModel,
+    params: RegistrationParams | None = None,
+    *,
+    init: np.ndarray | None = None,
+    landmarks: tuple[np.ndarray, np.ndarray] | None = None,
+    model_path: str | os.PathLike[str] | None = None,
+) -> Registration:
+    """Register a :class:`Reconstruction`'s segmented points to ``model``.
+
+    The segmented points, not the fitted surface: they lie on the imaged bone, while the
+    smooth surface between contours carries a small shape error that a shaft, weakly
+    held along its axis, turns into axial sliding (measured on a simulated 200-frame
+    radius sweep: target error 0.07 mm from the points against 0.59 mm from the
+    surface). Each point faces the probe that saw it (:func:`towards_probe`), which
+    settles which side of the bone it is on.
+    """
+    from BoneUSRecon.Logic.vtkio import polydata_points
+
+    return register(
+        polydata_points(recon.points),
+        model,
+        params,
+        towards_probe=towards_probe(recon.points, recon.sweep.image_to_reference),
+        init=init,
+        landmarks=landmarks,
+        source_path=recon.sweep.source,
+        model_path=model_path,
     )

@@ -54,6 +54,10 @@ class Cloud:
         return Cloud(self.points, -self.normals, self.max_angle_deg)
 
 
+#: Largest rotation (rad, ~3 deg) and translation (mm) of one ICP step.
+MAX_STEP_RAD = 0.05
+MAX_STEP_MM = 3.0
+
 #: Nearest model points considered per source point: the nearest one that faces the
 #: same way and is not on the border is used.
 K_NEAREST = 4
@@ -121,6 +125,13 @@ def icp(
         b = -jac.T @ (w * r)
         lam = params.damping * max(float(np.linalg.eigvalsh(a)[-1]), 1e-12)
         x = np.linalg.solve(a + lam * np.eye(6), b)
+        # Trust region: a step from few or one-sided matches can be wild (a patch then
+        # tumbles onto the far side of the bone, where its turned normals match again).
+        x *= min(
+            1.0,
+            MAX_STEP_RAD / max(np.linalg.norm(x[:3]), 1e-300),
+            MAX_STEP_MM / max(np.linalg.norm(x[3:]), 1e-300),
+        )
         dr = rotation_matrix(x[:3])
         step = np.eye(4)
         step[:3, :3] = dr
@@ -172,11 +183,13 @@ def local_starts(src: np.ndarray, m0: np.ndarray, params: RegistrationParams) ->
     Point-to-plane ICP on a patch of a long bone has local optima exactly there (the
     patch rolls around the shaft or slides along it, measured: from 10 mm / 10 deg away
     about half of the single starts end 4-8 mm off with a 1.6 mm residual); a grid of
-    starts 10 deg / 8 mm apart covers the 15 mm / 15 deg the initialisation promises.
+    starts 15 deg / 10 mm apart covers the 15 mm / 15 deg the initialisation promises;
+    two more start 10 mm above and below (the patch normal), see below.
     """
     c, axes, _ = principal_axes(src)
     ct = transform_points(m0, c[None])[0]
     a = m0[:3, :3] @ axes[0]
+    up = m0[:3, :3] @ axes[2]
     out = []
     for roll in (0.0, *params.start_rolls_deg, *(-r for r in params.start_rolls_deg)):
         for shift in (0.0, *params.start_shifts_mm, *(-x for x in params.start_shifts_mm)):
@@ -187,6 +200,12 @@ def local_starts(src: np.ndarray, m0: np.ndarray, params: RegistrationParams) ->
             m[:3, :3] = r
             m[:3, 3] = ct - r @ ct + a * shift
             out.append(m @ m0)
+    # Lifted and lowered by the start's reach: a patch started more than the bone's
+    # thickness below (or above) its place meets the wrong side of the bone first.
+    for lift in (*params.start_shifts_mm, *(-x for x in params.start_shifts_mm)):
+        m = np.eye(4)
+        m[:3, 3] = up * lift
+        out.append(m @ m0)
     return out
 
 

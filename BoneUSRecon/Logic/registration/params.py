@@ -83,8 +83,10 @@ class RegistrationParams:
         Besides the initial alignment, ICP also starts rolled by +- each angle about
         the source's long axis and shifted by +- each distance along it (every
         combination; see :func:`.icp.local_starts`): the local optima of a patch of a shaft.
-        15 deg and 10 mm: 9 starts; the best is kept, and a distinct one fitting about
-        as well flags the result as ambiguous.
+        15 deg and 10 mm: 9 starts, plus 2 lifted and lowered by each distance along
+        the patch's normal (a start below a thin bone meets its far side first); the
+        best is kept, and a distinct one fitting about as well flags the result as
+        ambiguous.
     coarse_iterations : int
         ICP iterations per start on a subset before the best is refined.
     coarse_points : int
