@@ -16,6 +16,7 @@ import qt
 import slicer
 import vtk
 from slicer import (
+    vtkMRMLLinearTransformNode,
     vtkMRMLMarkupsFiducialNode,
     vtkMRMLModelNode,
     vtkMRMLSequenceBrowserNode,
@@ -106,6 +107,8 @@ class BoneSurfaceReconstructionParameterNode:
     controlPointsU/V, degreeU/V - the B-spline surface (paper: 15 x 5, quadratic).
     rays - rays per frame when resampling (paper: 15).
     outputSurface, outputPoints - where the results go (created if empty).
+    targetModel - optional bone model (CT/MRI, mm) to register the surface to;
+        outputTransform (surface -> model) and registeredModel receive the result.
     """
 
     # typing.Union, not X | Y: parameterNodeWrapper recognises typing.Union of nodes.
@@ -120,6 +123,9 @@ class BoneSurfaceReconstructionParameterNode:
     rays: Annotated[int, WithinRange(*_RANGE["rays"])] = _DEFAULT["rays"]
     outputSurface: vtkMRMLModelNode
     outputPoints: Union[vtkMRMLModelNode, vtkMRMLMarkupsFiducialNode]  # noqa: UP007
+    targetModel: vtkMRMLModelNode
+    outputTransform: vtkMRMLLinearTransformNode
+    registeredModel: vtkMRMLModelNode
 
 
 #
@@ -294,6 +300,9 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         outputSurface=None,
         outputPoints=None,
         progress=None,
+        targetModel=None,
+        outputTransform=None,
+        registeredModel=None,
     ):
         """Reconstruct the bone surface of a sweep in the scene (explicit arguments).
 
@@ -308,8 +317,11 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         :param outputSurface: model node to fill (new if None).
         :param outputPoints: model or markups fiducial node to fill (new if None).
         :param progress: callable(stage, done, total).
-        :return: BoneSurfaceReconstructionLib.mrml.MRMLReconstruction, or None when
-            cancelled (:meth:`requestCancel`).
+        :param targetModel: bone model node to register the surface to (None: no registration).
+        :param outputTransform: linear transform node for surface -> model (new if None).
+        :param registeredModel: model node for the registered surface (new if None).
+        :return: BoneSurfaceReconstructionLib.mrml.MRMLReconstruction (its ``registration`` set
+            when a target model was given), or None when cancelled (:meth:`requestCancel`).
         """
         import time
 
@@ -348,6 +360,21 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         finally:
             self._cancelRequested = False
         logging.info(f"Bone surface reconstruction completed in {time.time() - startTime:.2f} seconds")
+        if targetModel:
+            import dataclasses
+
+            from BoneSurfaceReconstructionLib.registration import registerModelToModel
+
+            # The segmented points (in world coordinates, as the surface) are registered:
+            # they lie on the imaged bone, the fitted surface only near it.
+            registration = registerModelToModel(
+                result.surface_node,
+                targetModel,
+                transformNode=outputTransform,
+                registeredNode=registeredModel,
+                reconstruction=result.reconstruction,
+            )
+            result = dataclasses.replace(result, registration=registration)
         return result
 
     def loadSweepFile(self, path, calibration=None, progress=None):
@@ -380,11 +407,17 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
             outputSurface=p.outputSurface,
             outputPoints=p.outputPoints,
             progress=progress,
+            targetModel=p.targetModel,
+            outputTransform=p.outputTransform,
+            registeredModel=p.registeredModel,
         )
         if result is None:  # cancelled
             return None
         p.outputSurface = result.surface_node
         p.outputPoints = result.points_node
+        if result.registration is not None:
+            p.outputTransform = result.registration.transformNode
+            p.registeredModel = result.registration.registeredNode
         return result
 
     @staticmethod
@@ -398,9 +431,14 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
             else points.GetPolyData().GetNumberOfPoints()
         )
         rms = getattr(result.reconstruction.fit, "rms_mm", float("nan"))
-        return _("{frames} frames, {points} segmented points, fit RMS {rms:.2f} mm").format(
+        text = _("{frames} frames, {points} segmented points, fit RMS {rms:.2f} mm").format(
             frames=sweep.n_valid, points=nPoints, rms=rms
         )
+        if result.registration is not None:
+            from BoneSurfaceReconstructionLib.registration import summaryText
+
+            text += "\n" + summaryText(result.registration)
+        return text
 
 
 #

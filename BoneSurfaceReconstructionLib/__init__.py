@@ -11,6 +11,8 @@ as a module of its own. Nothing here imports ``slicer`` at import time:
   pytest suite.
 * :mod:`.mrml`: the MRML adapter, scene nodes <-> :mod:`BoneUSRecon.Logic` (the
   module reaches the library through it and Logic, never through BoneUSRecon.Widgets).
+* :mod:`.registration`: registering the reconstructed surface to a bone model node
+  (output: a linear transform node and the registered model, with quality figures).
 * :mod:`.sampledata`: the shipped PLUS recording in Slicer's Sample Data module.
 
 What the module file imports when Slicer loads it (``dependencies``, ``parameters``)
@@ -18,4 +20,4 @@ stays importable by Python 3.9, so that an old Slicer shows why the module canno
 (:func:`.dependencies.unsupportedReason`) instead of a SyntaxError.
 """
 
-__all__ = ["dependencies", "mrml", "parameters", "sampledata", "selftest"]
+__all__ = ["dependencies", "mrml", "parameters", "registration", "sampledata", "selftest"]

@@ -762,6 +762,9 @@ class MRMLReconstruction:
     """``vtkMRMLModelNode`` of the surface, ``Distance`` shown through a colour table."""
     points_node: Any
     """Model (or markups) node of the segmented points."""
+    registration: Any = None
+    """The registration to a bone model, when one was asked for (the Slicer module's
+    ``BoneSurfaceReconstructionLib.registration.SceneRegistration``)."""
 
 
 def reconstruct_from_scene(

@@ -39,6 +39,9 @@ NODE_PARAMETERS: dict[str, tuple[str, ...]] = {
     "transformSequence": ("vtkMRMLSequenceNode",),
     "outputSurface": ("vtkMRMLModelNode",),
     "outputPoints": ("vtkMRMLModelNode", "vtkMRMLMarkupsFiducialNode"),
+    "targetModel": ("vtkMRMLModelNode",),
+    "outputTransform": ("vtkMRMLLinearTransformNode",),
+    "registeredModel": ("vtkMRMLModelNode",),
 }
 
 #: path parameters (a ctkPathLineEdit each).

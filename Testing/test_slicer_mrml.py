@@ -785,6 +785,7 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
         inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
         segmenter=module_logic._SEGMENTERS[0], controlPointsU=10, controlPointsV=5,
         degreeU=2, degreeV=2, rays=15, outputSurface=None, outputPoints=None,
+        targetModel=None, outputTransform=None, registeredModel=None,
     )
     via_node = logic.processParameterNode(p)
     assert p.outputSurface is via_node.surface_node and p.outputPoints is via_node.points_node
@@ -850,9 +851,39 @@ def test_module_logic_cancel_is_a_flag_not_a_failure(module_logic, small_sim, sc
         inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
         segmenter=module_logic._SEGMENTERS[0], controlPointsU=10, controlPointsV=5,
         degreeU=2, degreeV=2, rays=15, outputSurface=None, outputPoints=None,
+        targetModel=None, outputTransform=None, registeredModel=None,
     )
     logic.requestCancel()  # a stale request is cleared when a run starts
     steps.clear()
     assert logic.processParameterNode(p, progress=progress) is None
     assert p.outputSurface is None and p.outputPoints is None  # outputs untouched
     assert logic.process(nodes.browser) is not None  # the flag does not stick
+
+
+def test_module_logic_registers_to_a_target_model(module_logic, small_sim, scene) -> None:
+    # Issue 14: with a target model, Apply also outputs a linear transform node (surface
+    # -> model) and the registered surface, and the panel shows the quality figures.
+    from BoneUSRecon.Logic.registration import rigid_error, transform_points
+    from BoneUSRecon.Logic.vtkio import triangles_to_polydata
+
+    g = small_sim.geometry
+    v, f = g.closed_mesh(*g.closed_mesh_params(20_000))
+    truth = np.eye(4)
+    truth[:3, 3] = [4.0, -3.0, 5.0]
+    model = scene.AddNewNodeByClass("vtkMRMLModelNode", "CTBone")
+    model.SetAndObservePolyData(triangles_to_polydata(transform_points(truth, v), f))
+    nodes = mrml.sweep_to_scene(small_sim.sweep, scene)
+    logic = module_logic.BoneSurfaceReconstructionLogic()
+    p = types.SimpleNamespace(
+        inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
+        segmenter=module_logic._SEGMENTERS[0], controlPointsU=15, controlPointsV=5,
+        degreeU=2, degreeV=2, rays=15, outputSurface=None, outputPoints=None,
+        targetModel=model, outputTransform=None, registeredModel=None,
+    )
+    result = logic.processParameterNode(p)
+    assert p.outputTransform is result.registration.transformNode
+    assert p.registeredModel is result.registration.registeredNode
+    m = vtkMatrix4x4()
+    p.outputTransform.GetMatrixTransformToParent(m)
+    assert rigid_error(vtk_to_matrix(m), truth, small_sim.gold)["tre_median_mm"] <= 0.5
+    assert "Registration:" in logic.summaryText(result) and "reliable" in logic.summaryText(result)

@@ -5,12 +5,14 @@ from .bspline import FitParams, fit_surface
 from .errors import BoneUSReconError
 from .evaluation import Evaluation, evaluate_surface
 from .pipeline import Reconstruction, ReconstructionParams, control_point_table, reconstruct
+from .registration import Registration, RegistrationParams, register
 from .resampling import ResamplingParams, resample
 from .segmentation import SegmentationParams, segment_sweep
 from .sequence_io import read_calibration, read_sweep, write_sweep
 from .simulation import SimulationParams, simulate
 from .surface import SurfaceParams, surface_polydata
 from .sweep import Sweep
+from .transform_io import read_transform, write_transform
 from .vtkio import read_points, read_polydata, write_polydata
 
 __all__ = [
@@ -35,6 +37,11 @@ __all__ = [
     "ReconstructionParams",
     "Reconstruction",
     "control_point_table",
+    "register",
+    "RegistrationParams",
+    "Registration",
+    "read_transform",
+    "write_transform",
     "read_points",
     "read_polydata",
     "write_polydata",

@@ -28,6 +28,7 @@ __all__ = [
     "SURFACE_EXTENSIONS",
     "POINT_EXTENSIONS",
     "points_to_polydata",
+    "triangles_to_polydata",
     "polydata_points",
     "write_polydata",
     "read_polydata",
@@ -76,6 +77,32 @@ def points_to_polydata(
         va = numpy_support.numpy_to_vtk(a, deep=True)
         va.SetName(name)
         pd.GetPointData().AddArray(va)
+    return pd
+
+
+def triangles_to_polydata(vertices: np.ndarray, faces: np.ndarray) -> vtkPolyData:
+    """A triangle mesh as ``vtkPolyData`` (no point arrays).
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (V, 3)
+        Vertex coordinates (mm).
+    faces : ndarray of int, shape (F, 3)
+        Vertex indices of each triangle.
+    """
+    pd = vtkPolyData()
+    vp = vtkPoints()
+    v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64).reshape(-1, 3))
+    vp.SetData(numpy_support.numpy_to_vtk(v, deep=True))
+    pd.SetPoints(vp)
+    f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
+    offsets = np.arange(0, 3 * len(f) + 1, 3, dtype=np.int64)
+    cells = vtkCellArray()
+    cells.SetData(
+        numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
+        numpy_support.numpy_to_vtkIdTypeArray(f.reshape(-1), deep=True),
+    )
+    pd.SetPolys(cells)
     return pd
 
 

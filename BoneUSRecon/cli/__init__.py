@@ -27,6 +27,7 @@ COMMANDS = (
     "segment",
     "reconstruct",
     "evaluate",
+    "register",
     "table",
     "view",
 )

@@ -102,6 +102,9 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--gold", metavar="GOLD", help=f"{GOLD_HELP}, to evaluate against")
     p.add_argument("--report", metavar="DIR", help="also write an HTML report into this folder")
+    from BoneUSRecon.cli.register import add_register_to_options
+
+    add_register_to_options(p)
     add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
@@ -138,11 +141,19 @@ def run(args: argparse.Namespace) -> int:
 
         preload_rendering()  # a Ctrl-C during the work must not land in VTK's imports
     params = params_from_args(args)
+    from BoneUSRecon.cli import register as reg_cli
+
+    inputs = [args.sweep, args.calibration, args.gold]
+    transform_out = reg_cli.check_register_to(args, [out, pts_out, report_dir], inputs)
     gold = read_points(args.gold) if args.gold else None
 
     # Several outputs: if a later one fails (or Ctrl-C), the earlier ones are removed.
-    with ProgressBar(quiet=args.quiet or args.json) as bar, removed_on_failure(out, pts_out, report_dir):
+    outputs = (out, pts_out, report_dir, transform_out)
+    with ProgressBar(quiet=args.quiet or args.json) as bar, removed_on_failure(*outputs):
         recon = reconstruct(read_sweep_args(args, bar), params, progress=bar)
+        reg = None
+        if transform_out is not None:
+            reg = reg_cli.register_reconstruction(args, recon, transform_out)
         evaluation = evaluate_surface(recon.surface, gold) if gold is not None else None
         write_polydata(recon.surface, out)
         if pts_out is not None:
@@ -165,8 +176,11 @@ def run(args: argparse.Namespace) -> int:
             "summary": s,
             "timings_s": recon.timings,
             "evaluation": evaluation.as_dict() if evaluation is not None else None,
+            "registration": reg.as_dict() if reg is not None else None,
         }
         print_json(doc)
+        if reg is not None:
+            reg_cli.warn_unreliable(reg)
         return 0
     rows: list[tuple[str, Any]] = [
         *reconstruction_rows(s),
@@ -182,5 +196,10 @@ def run(args: argparse.Namespace) -> int:
         rows.append(("points", str(pts_out)))
     if report_index:
         rows.append(("report", str(report_index)))
+    if reg is not None:
+        rows += [(f"registration {k}", v) for k, v in reg.summary_rows()]
+        rows.append(("transform", str(transform_out)))
     print_summary(f"Reconstructed {Path(args.sweep).name}", rows)
+    if reg is not None:
+        reg_cli.warn_unreliable(reg)
     return 0

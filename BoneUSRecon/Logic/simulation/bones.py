@@ -378,6 +378,48 @@ class BoneGeometry:
         )
         return verts, faces.astype(np.int64)
 
+    def closed_mesh(self, ds: float = 0.5, n_around: int = 192) -> tuple[np.ndarray, np.ndarray]:
+        """The whole simulated bone segment as a closed, outward-oriented triangle mesh (mm).
+
+        :meth:`mesh`'s tube capped at ``s = 0`` and ``s = L`` by a fan around the axis
+        point, so every edge is shared by exactly two triangles: what a bone model
+        segmented from CT looks like to a registration (a watertight surface), here
+        with a known position. ``2 * (n_s - 1) * n_around + 2 * n_around`` triangles
+        (``n_s = ceil(L / ds) + 1``); :meth:`closed_mesh_params` picks ``ds`` for a
+        triangle budget.
+
+        Returns
+        -------
+        vertices : ndarray, shape (n_s * n_around + 2, 3)
+            The tube's vertices, then the two cap centres.
+        faces : ndarray of int64, shape (F, 3)
+        """
+        verts, faces = self.mesh(ds, n_around)
+        n_v = verts.shape[0]
+        centres = self.axis(np.array([0.0, self.length]))
+        j = np.arange(n_around)
+        jn = (j + 1) % n_around
+        last = n_v - n_around
+        # Tube triangles (a, b, c) run along phi then along s with an outward normal;
+        # at s = 0 the outside is -t, so the fan goes (centre, next, this) there.
+        cap0 = np.stack([np.full(n_around, n_v), jn, j], -1)
+        cap1 = np.stack([np.full(n_around, n_v + 1), last + j, last + jn], -1)
+        return np.vstack([verts, centres]), np.vstack([faces, cap0, cap1]).astype(np.int64)
+
+    def closed_mesh_params(self, n_triangles: int, n_around: int = 192) -> tuple[float, int]:
+        """``(ds, n_around)`` for :meth:`closed_mesh` with about ``n_triangles`` triangles.
+
+        ``n_around`` is lowered (never below 24) for small budgets, so that rings stay
+        more than ~10 along the bone; ``ds`` then follows from
+        ``2 n_around (n_s - 1) + 2 n_around`` triangles.
+        """
+        if n_triangles < 200:
+            raise ValueError(f"n_triangles must be at least 200, got {n_triangles}")
+        m = int(max(24, min(n_around, n_triangles // 20)))
+        n_s = max(2, int(round((n_triangles - 2 * m) / (2 * m))) + 1)
+        # Slightly above L / (n_s - 1), so that mesh_params' ceil gives n_s rings.
+        return self.length / (n_s - 1) * (1 + 1e-12), m
+
     # -- closest points -------------------------------------------------------------------
     def _seed_tree(self) -> tuple[cKDTree, np.ndarray]:
         if self._tree is None:

@@ -110,6 +110,20 @@ class Simulation:
         pd.GetPointData().SetNormals(arr)
         return pd
 
+    def bone_model_polydata(self, n_triangles: int | None = None) -> vtkPolyData:
+        """The whole simulated bone segment as a closed triangle mesh (mm, reference frame).
+
+        A stand-in for a bone model segmented from CT, whose pose is known: the
+        registration's ground truth. ``n_triangles`` sets its size (about that many
+        triangles, see :meth:`BoneGeometry.closed_mesh_params`); default: the truth
+        mesh's resolution (0.5 mm along, 192 around).
+        """
+        from BoneUSRecon.Logic.vtkio import triangles_to_polydata
+
+        g = self.geometry
+        res = _MESH if n_triangles is None else g.closed_mesh_params(int(n_triangles))
+        return triangles_to_polydata(*g.closed_mesh(*res))
+
     def distance_to_truth(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance (mm) from each point ``(K, 3)`` to the true bone surface.
 
