@@ -61,6 +61,10 @@ def _requirement_name(req: str) -> str:
     return re.split(r"[\s\[<>=!~;]", req.strip(), maxsplit=1)[0].lower()
 
 
+#: Import names that differ from the lower-cased distribution name.
+_IMPORT_NAMES = {"simpleitk": "SimpleITK"}
+
+
 def _read_requirements(path: str = REQUIREMENTS_FILE) -> dict[str, str]:
     """``{import name: requirement}`` from the requirements file (comments skipped)."""
     out: dict[str, str] = {}
@@ -70,8 +74,8 @@ def _read_requirements(path: str = REQUIREMENTS_FILE) -> dict[str, str]:
         for line in f:
             req = line.split("#", 1)[0].strip()
             if req:
-                # The import names of these packages are their distribution names.
-                out[_requirement_name(req).replace("-", "_")] = req
+                name = _requirement_name(req)
+                out[_IMPORT_NAMES.get(name, name.replace("-", "_"))] = req
     return out
 
 
