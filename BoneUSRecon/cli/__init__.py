@@ -28,6 +28,7 @@ COMMANDS = (
     "reconstruct",
     "evaluate",
     "table",
+    "batch",
     "view",
 )
 
