@@ -26,6 +26,7 @@ import contextlib
 import csv
 import dataclasses
 import hashlib
+import importlib
 import json
 import os
 import shutil
@@ -448,13 +449,14 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(f"internal error: {type(exc).__name__}: {exc}".split())
 
 
-def register_to_target(recon: Any, target: Path) -> dict[str, Any]:
-    """Hook: register the reconstruction to the bone model ``target``.
+def registration_hook(target: Path) -> Callable[[Any], dict[str, Any]]:
+    """The function that registers a reconstruction to the bone model ``target``.
 
-    Registration (``BoneUSRecon.Logic.registration``) is being built separately;
-    until it is in this version the sweep fails with a clear line. To wire it: call
-    its entry point here and return a JSON-ready dict (it is stored in the sweep's
-    ``summary.json`` under ``registration``).
+    Called before the sweep's work starts, so that a row asking for registration
+    fails at once when it cannot be done. Registration
+    (``BoneUSRecon.Logic.registration``) is being built separately; to wire it,
+    return here a function ``recon -> JSON-ready dict`` calling its entry point (the
+    dict is stored in the sweep's ``summary.json`` under ``registration``).
 
     Raises
     ------
@@ -462,9 +464,12 @@ def register_to_target(recon: Any, target: Path) -> dict[str, Any]:
         Registration is not available in this version.
     """
     try:
-        from BoneUSRecon.Logic import registration  # noqa: F401
-    except ImportError:
+        importlib.import_module("BoneUSRecon.Logic.registration")
+    except ModuleNotFoundError as exc:
+        if exc.name not in ("BoneUSRecon.Logic.registration",):
+            raise
         raise BoneUSReconError("registration not available in this version", target) from None
+    # MERGE: wire registration's entry point here (see the docstring).
     raise BoneUSReconError("registration not available in this version", target)
 
 
@@ -530,6 +535,7 @@ def run_sweep(
         try:
             for p in job.inputs().values():
                 check_input_file(p)
+            register = registration_hook(job.target) if job.target is not None else None
             t0 = time.perf_counter()
             sweep = read_sweep(
                 job.sweep, calibration=job.calibration, transform=job.transform, progress=check
@@ -539,8 +545,8 @@ def run_sweep(
             evaluation = None
             if job.gold is not None:
                 evaluation = evaluate_surface(recon.surface, read_points(job.gold))
-            if job.target is not None:
-                doc["registration"] = register_to_target(recon, job.target)
+            if register is not None:
+                doc["registration"] = register(recon)
             t0 = time.perf_counter()
             write_polydata(recon.surface, tmp / SURFACE_FILE)
             write_points(recon.points, tmp / POINTS_FILE)
@@ -797,6 +803,9 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
                     threads_per_worker=1,
                     processes=True,
                     dashboard_address=None,
+                    # No dashboard, but the scheduler's HTTP endpoints still bind a port:
+                    # any free one (the default 8787 may be another cluster's).
+                    scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                     scheduler_port=0,
                     host="127.0.0.1",
                 )
@@ -868,8 +877,25 @@ def run_batch(
         raise BoneUSReconError(f"--workers must be at least 1, got {workers}")
     out = check_output_dir(outdir, "batch output").resolve()
     _check_outdir(jobs, out, Path(manifest) if manifest is not None else None)
+    created = not out.exists()
     out.mkdir(exist_ok=True)
+    try:
+        return _run_batch(jobs, out, workers, scheduler, resume, report_writer, progress)
+    except BaseException:
+        if created and not any(out.iterdir()):
+            out.rmdir()  # nothing was finished: leave no trace, not even the folder
+        raise
 
+
+def _run_batch(
+    jobs: Sequence[BatchJob],
+    out: Path,
+    workers: int | None,
+    scheduler: str | None,
+    resume: bool,
+    report_writer: ReportWriter | None,
+    progress: ProgressCallback | None,
+) -> BatchResult:
     with_report = report_writer is not None
     fps = {j.name: fingerprint(j, with_report=with_report) for j in jobs}
     rows: dict[str, dict[str, Any]] = {}
