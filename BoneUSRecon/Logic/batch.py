@@ -775,8 +775,13 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
     """A ``distributed.Client`` on ``scheduler`` or on a new local cluster."""
     import logging
 
-    import dask
-    from distributed import Client, LocalCluster
+    try:
+        import dask
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise BoneUSReconError(
+            "batch runs need dask.distributed: pip install 'BoneUSRecon[batch]'"
+        ) from None
 
     # Dask's own warnings (slow event loop, ports) are not the user's business here;
     # errors still show.
