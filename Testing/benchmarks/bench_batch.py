@@ -1,8 +1,9 @@
 """Benchmark: ``bone-us-recon batch`` against running the sweeps one after another (issue 15).
 
-Simulates ``--sweeps`` clean sweeps (five bones in turn, one seed each; default 20 of
-100 frames, 128 x 160 pixels at 0.3 mm) of which two are then broken (one truncated,
-one not a sequence file at all), writes a manifest with gold points, and runs, each as
+Makes a cohort of ``--sweeps`` rows (default 20, as in the issue): ``--sweeps`` - 2
+clean simulated sweeps (five bones in turn, one seed each; 100 frames of 128 x 160
+pixels at 0.3 mm by default) and two broken ones (one truncated, one not a sequence
+file at all), writes a manifest with gold points, and runs, each as
 a fresh process as a user would:
 
 1. ``bone-us-recon batch MANIFEST OUT --workers W`` (local Dask cluster, W processes
@@ -27,7 +28,7 @@ Dask's workers do, so that the serial runs use one core; ``--all-cores`` leaves 
 
 Run::
 
-    python Testing/benchmarks/bench_batch.py [--sweeps 20] [--frames 60] [--workers 2]
+    python Testing/benchmarks/bench_batch.py [--sweeps 20] [--frames 100] [--workers 2]
         [--workdir DIR] [--skip-shell-loop]
 """
 
