@@ -15,7 +15,7 @@ a fresh process as a user would:
    command per sweep: what the batch replaces;
 4. ``batch --resume`` again: must do no work.
 
-It prints wall time, our CPU time (this process's children, workers included) and the
+It prints wall time, our CPU time (every descendant process, workers included) and the
 cores we obtained (CPU / wall), the CPU the *other* processes of the machine used
 meanwhile (from ``/proc/stat``), the throughput ratios, and a CPU-normalised ratio
 (``2 x`` serial CPU / batch CPU: the ratio two idle cores would give if both workers
@@ -37,10 +37,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -85,21 +85,51 @@ def machine_busy_s() -> float:
     return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
 
 
-def children_cpu_s() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
+class TreeCPU(threading.Thread):
+    """CPU seconds used by this process's descendants, polled every 50 ms.
+
+    ``getrusage(RUSAGE_CHILDREN)`` misses processes that are not waited for by their
+    parent chain, such as the workers forked by multiprocessing's fork server (which
+    is left to exit on its own), so every descendant is sampled while it runs (the
+    last < 50 ms of each is missed; the same rule for every phase).
+    """
+
+    def __init__(self) -> None:
+        super().__init__(daemon=True)
+        self.seen: dict[tuple[int, float], float] = {}
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        import psutil
+
+        me = psutil.Process()
+        while not self.stop.is_set():
+            for c in me.children(recursive=True):
+                try:
+                    t = c.cpu_times()
+                    self.seen[(c.pid, c.create_time())] = t.user + t.system
+                except psutil.Error:
+                    pass
+            self.stop.wait(0.05)
+
+    def total(self) -> float:
+        self.stop.set()
+        self.join()
+        return sum(self.seen.values())
 
 
 class Phase:
-    """Wall, our CPU (children) and the machine's CPU over a ``with`` block."""
+    """Wall, our CPU (all descendants) and the machine's CPU over a ``with`` block."""
 
     def __enter__(self) -> Phase:
-        self.t, self.cpu, self.busy = time.perf_counter(), children_cpu_s(), machine_busy_s()
+        self.tree = TreeCPU()
+        self.tree.start()
+        self.t, self.busy = time.perf_counter(), machine_busy_s()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.wall = time.perf_counter() - self.t
-        self.cpu = children_cpu_s() - self.cpu
+        self.cpu = self.tree.total()
         self.others = max(0.0, machine_busy_s() - self.busy - self.cpu)
 
     def line(self, label: str, n: int) -> str:
