@@ -1,8 +1,8 @@
 """Benchmark: ``bone-us-recon batch`` against running the sweeps one after another (issue 15).
 
 Makes a cohort of ``--sweeps`` rows (default 20, as in the issue): ``--sweeps`` - 2
-clean simulated sweeps (five bones in turn, one seed each; 100 frames of 128 x 160
-pixels at 0.3 mm by default) and two broken ones (one truncated, one not a sequence
+clean simulated sweeps (five bones in turn, one seed each; by default the simulator's
+reference sweep: 150 frames of 256 x 320 pixels at 0.15 mm) and two broken ones (one truncated, one not a sequence
 file at all), writes a manifest with gold points, and runs, each as
 a fresh process as a user would:
 
@@ -28,7 +28,7 @@ Dask's workers do, so that the serial runs use one core; ``--all-cores`` leaves 
 
 Run::
 
-    python Testing/benchmarks/bench_batch.py [--sweeps 20] [--frames 100] [--workers 2]
+    python Testing/benchmarks/bench_batch.py [--sweeps 20] [--frames 150] [--size 256x320] [--workers 2]
         [--workdir DIR] [--skip-shell-loop]
 """
 
@@ -140,7 +140,7 @@ class Phase:
         )
 
 
-def make_cohort(d: Path, n: int, frames: int) -> tuple[Path, list[Path]]:
+def make_cohort(d: Path, n: int, frames: int, h: int, w: int) -> tuple[Path, list[Path]]:
     sys.path.insert(0, str(ROOT))
     from BoneUSRecon.Logic.sequence_io import write_sweep
     from BoneUSRecon.Logic.simulation import SimulationParams, simulate
@@ -156,9 +156,9 @@ def make_cohort(d: Path, n: int, frames: int) -> tuple[Path, list[Path]]:
                 bone=BONES[i % len(BONES)],
                 seed=i,
                 n_frames=frames,
-                width=160,
-                height=128,
-                spacing_mm=0.3,
+                width=w,
+                height=h,
+                spacing_mm=0.15 * 320 / w,  # the reference field of view, 48 mm wide
             )
             sim = simulate(p)
             write_sweep(sim.sweep, s)
@@ -204,7 +204,8 @@ def same(a: Path, b: Path) -> bool:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sweeps", type=int, default=20, help="sweeps simulated (two more are broken)")
-    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--size", default="256x320", help="frame height x width in pixels")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--workdir", help="keep (and reuse) the simulated sweeps here")
     ap.add_argument("--skip-shell-loop", action="store_true")
@@ -213,11 +214,12 @@ def main() -> int:
     # 18 good + 2 broken = 20 rows by default, as in the issue.
     n_good = args.sweeps - 2
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench_batch."))
-    data = work / f"cohort_{n_good}x{args.frames}"
+    h, w = (int(v) for v in args.size.lower().split("x"))
+    data = work / f"cohort_{n_good}x{args.frames}x{h}x{w}"
     t = time.perf_counter()
-    manifest, sweeps = make_cohort(data, n_good, args.frames)
+    manifest, sweeps = make_cohort(data, n_good, args.frames, h, w)
     print(
-        f"cohort: {len(sweeps)} sweeps ({n_good} good of {args.frames} frames 128x160, 2 broken) "
+        f"cohort: {len(sweeps)} sweeps ({n_good} good of {args.frames} frames {h}x{w}, 2 broken) "
         f"in {data} ({time.perf_counter() - t:.1f} s)"
     )
     e = env(args.all_cores)
