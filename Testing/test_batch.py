@@ -343,6 +343,31 @@ def test_batch_on_a_scheduler_equals_single_runs(capsys, cohort, singles, schedu
     no_leftovers(out)
 
 
+def test_report_option_writes_each_sweeps_report(capsys, cohort, scheduler, tmp_path):
+    m = tmp_path / "m.csv"
+    m.write_text(f"sweep,gold\n{cohort / 'data' / 'a.mha'},{cohort / 'data' / 'a_gold.csv'}\n")
+    out = tmp_path / "out"
+    code, stdout, err = run(
+        capsys, ["batch", str(m), str(out), "--scheduler", scheduler, "--report"]
+    )
+    assert code == 0, err
+    assert "1 ok, 0 failed" in stdout
+    report = out / "a" / "report"
+    assert (report / "index.html").stat().st_size > 10_000
+    doc = json.loads((report / "report.json").read_text())
+    summary = json.loads((out / "a" / "summary.json").read_text())
+    assert "report/index.html" in summary["outputs"]
+    # The report shows the accuracy the summary recorded.
+    assert doc["evaluation"]["mean_mm"] == pytest.approx(summary["row"]["mean_mm"])
+    # The report is part of the fingerprint: without --report the sweep runs again.
+    code, stdout, err = run(
+        capsys, ["batch", str(m), str(out), "--scheduler", scheduler, "--resume", "--json"]
+    )
+    assert code == 0 and json.loads(stdout)["resumed"] == 0, err
+    assert not report.exists()
+    no_leftovers(out)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(sys.platform != "linux", reason="a terminal's process group")
 def test_local_cluster_ctrl_c_then_resume_equals_single_runs(cohort, singles, scheduler, tmp_path):

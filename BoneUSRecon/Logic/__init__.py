@@ -42,6 +42,8 @@ _LAZY = {
     "read_points": "vtkio",
     "read_polydata": "vtkio",
     "write_polydata": "vtkio",
+    "read_manifest": "batch",
+    "run_batch": "batch",
 }
 
 __all__ = ["BoneUSReconError", *_LAZY]
