@@ -50,13 +50,14 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--scheduler",
         metavar="ADDRESS",
-        help="use a running dask.distributed scheduler, e.g. tcp://10.0.0.5:8786 (its "
+        help="use a running dask.distributed scheduler, e.g. tcp://HOST:8786 (its "
         "workers must see the files at the same paths)",
     )
     p.add_argument(
         "--resume",
         action="store_true",
-        help="skip sweeps whose outputs are complete and made with the same parameters and inputs",
+        help="skip sweeps already done (or failed in their own task) with the same parameters "
+        "and unchanged inputs",
     )
     p.add_argument(
         "--report", action="store_true", help="also write each sweep's HTML report (NAME/report/)"
