@@ -343,6 +343,23 @@ def test_batch_on_a_scheduler_equals_single_runs(capsys, cohort, singles, schedu
     no_leftovers(out)
 
 
+def test_logic_api_reports_progress_per_sweep(cohort, singles, scheduler, tmp_path):
+    from BoneUSRecon.Logic import read_manifest as read
+    from BoneUSRecon.Logic import run_batch
+
+    m = tmp_path / "m.csv"
+    m.write_text(f"sweep\n{cohort / 'data' / 'b.mha'}\n{cohort / 'data' / 'nope.mha'}\n")
+    calls = []
+    result = run_batch(
+        read(m), tmp_path / "out", scheduler=scheduler, progress=lambda *a: calls.append(a)
+    )
+    assert calls == [("sweeps", 0, 2), ("sweeps", 1, 2), ("sweeps", 2, 2)]
+    assert [r["status"] for r in result.rows] == ["ok", "failed"]
+    assert [r["name"] for r in result.failed] == ["nope"]
+    assert result.summary_files[0] == tmp_path / "out" / "summary.csv"
+    assert_same_as_single(tmp_path / "out" / "b", singles["b"])
+
+
 def test_report_option_writes_each_sweeps_report(capsys, cohort, scheduler, tmp_path):
     m = tmp_path / "m.csv"
     m.write_text(f"sweep,gold\n{cohort / 'data' / 'a.mha'},{cohort / 'data' / 'a_gold.csv'}\n")
