@@ -307,12 +307,11 @@ def read_manifest(path: str | os.PathLike[str], base_params: Any = None) -> list
         if name:
             _check_name(name, where, manifest)
         else:
-            stem = sweep.name.split(".")[0] if sweep.name.startswith(".") else sweep.stem
-            stem = stem.lstrip(".") or "sweep"
-            name, k = stem, 1
+            stem = sweep.stem.lstrip(".") or "sweep"  # a leading '.' marks our temporaries
+            name, count = stem, 1
             while name in taken or name in RESERVED_NAMES:
-                k += 1
-                name = f"{stem}-{k}"
+                count += 1
+                name = f"{stem}-{count}"
             taken.add(name)
         overrides = {k: row[k] for k in PARAMETER_COLUMNS if row.get(k)}
         values = {
@@ -610,7 +609,7 @@ def _json_default(o: Any) -> Any:
 
 
 def _job_record(job: BatchJob) -> dict[str, Any]:
-    rec = {k: str(v) for k, v in job.inputs().items()}
+    rec: dict[str, Any] = {k: str(v) for k, v in job.inputs().items()}
     rec.update(name=job.name, transform=job.transform, overrides=job.overrides, line=job.line)
     return rec
 
