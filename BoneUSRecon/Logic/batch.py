@@ -54,6 +54,7 @@ __all__ = [
     "completed_row",
     "run_sweep",
     "run_batch",
+    "start_worker_server",
     "write_summary",
 ]
 
@@ -813,7 +814,8 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
         n = workers or _cores()
         cluster = None
         try:
-            # Workers read Dask's configuration from the environment at start-up.
+            # Spawned workers (no fork server) read Dask's configuration from the
+            # environment at start-up.
             with (
                 dask.config.set(_preload_workers()),
                 _sigint_ignored(),
@@ -850,35 +852,48 @@ WORKER_PRELOAD = (
 )
 
 
-def _preload_workers() -> dict[str, Any]:
-    """Start local workers from a fork server that has imported :data:`WORKER_PRELOAD`.
+#: Set for the fork server, so for every local worker: Dask's own thread limits for
+#: worker processes (``distributed.nanny.pre-spawn-environ``; one BLAS thread per
+#: single-threaded worker), and its logging at ``error``.
+WORKER_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MALLOC_TRIM_THRESHOLD_": "65536",
+    "DASK_LOGGING__DISTRIBUTED": "error",
+}
+
+
+def start_worker_server() -> None:
+    """Start the fork server that local workers are forked from (idempotent).
 
     Dask starts each worker by default as a fresh interpreter ("spawn") that imports
-    numpy, SciPy, VTK and the pipeline anew: about 2 s of CPU per worker, which on
-    two cores is as much as a small sweep. The fork server imports them once and forks
-    each worker from there (still without the threads of this process, unlike a plain
-    fork). It starts with the first worker, inside :func:`_sigint_ignored` and after
-    Dask has set ``OMP_NUM_THREADS=1`` and its kin, and passes both on. Where there is
-    no fork server (Windows) the workers are spawned.
-
-    Returns
-    -------
-    dict
-        The Dask configuration to start the cluster with.
+    numpy, SciPy, VTK and the pipeline anew: about 2 s of CPU per worker, as much as
+    a small sweep. The fork server imports :data:`WORKER_PRELOAD` once, and each worker
+    is forked from it (without this process's threads, unlike a plain fork). Called
+    early (the CLI calls it before reading the manifest), its imports overlap this
+    process's. It starts with SIGINT ignored (see :func:`_sigint_ignored`) and with
+    :data:`WORKER_ENV`, and passes both on. No-op where there is no fork server
+    (Windows: workers are spawned).
     """
     import multiprocessing
+    import multiprocessing.forkserver
 
-    import dask
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return
+    multiprocessing.get_context("forkserver").set_forkserver_preload(list(WORKER_PRELOAD))
+    with _sigint_ignored(), _environ(**WORKER_ENV):
+        multiprocessing.forkserver.ensure_running()
+
+
+def _preload_workers() -> dict[str, Any]:
+    """The Dask configuration that starts local workers from :func:`start_worker_server`."""
+    import multiprocessing
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return {}
-    config = {"distributed.worker.multiprocessing-method": "forkserver"}
-    from distributed.utils import get_mp_context
-
-    with dask.config.set(config):
-        # Dask sets its own preload list on first use; ours replaces it (a superset).
-        get_mp_context().set_forkserver_preload(list(WORKER_PRELOAD))
-    return config
+    start_worker_server()
+    return {"distributed.worker.multiprocessing-method": "forkserver"}
 
 
 def _cores() -> int:

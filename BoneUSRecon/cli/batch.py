@@ -78,13 +78,15 @@ def write_report_for_batch(
 
 def run(args: argparse.Namespace) -> int:
     """Run the batch; print the summary table; 1 when a sweep failed."""
-    from BoneUSRecon.Logic.batch import read_manifest, run_batch
+    from BoneUSRecon.Logic.batch import read_manifest, run_batch, start_worker_server
     from BoneUSRecon.Logic.errors import BoneUSReconError
 
     if args.workers is not None and args.workers < 1:
         raise BoneUSReconError(f"--workers must be at least 1, got {args.workers}")
     if args.scheduler is not None and args.workers is not None:
         raise BoneUSReconError("--workers is for the local cluster; not with --scheduler")
+    if args.scheduler is None and not args.resume:
+        start_worker_server()  # the workers' imports overlap the manifest's reading
     jobs = read_manifest(args.manifest)
     try:
         with ProgressBar(quiet=args.quiet or args.json) as bar:

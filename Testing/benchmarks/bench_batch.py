@@ -29,7 +29,7 @@ Dask's workers do, so that the serial runs use one core; ``--all-cores`` leaves 
 Run::
 
     python Testing/benchmarks/bench_batch.py [--sweeps 20] [--frames 150] [--size 256x320] [--workers 2]
-        [--workdir DIR] [--skip-shell-loop]
+        [--segmenter snake] [--workdir DIR] [--skip-shell-loop]
 """
 
 from __future__ import annotations
@@ -52,13 +52,13 @@ SERIAL_SCRIPT = """
 import sys, json
 from pathlib import Path
 from BoneUSRecon.Logic.errors import BoneUSReconError
-from BoneUSRecon.Logic.pipeline import reconstruct
+from BoneUSRecon.Logic.pipeline import params_with, reconstruct
 from BoneUSRecon.Logic.sequence_io import read_sweep
 from BoneUSRecon.Logic.vtkio import write_points, write_polydata
-out = Path(sys.argv[1]); failed = []
-for s in sys.argv[2:]:
+out = Path(sys.argv[1]); params = params_with(segmenter=sys.argv[2]); failed = []
+for s in sys.argv[3:]:
     try:
-        r = reconstruct(read_sweep(s))
+        r = reconstruct(read_sweep(s), params)
     except BoneUSReconError as exc:
         failed.append(str(exc)); continue
     write_polydata(r.surface, out / (Path(s).stem + ".vtp"))
@@ -140,7 +140,9 @@ class Phase:
         )
 
 
-def make_cohort(d: Path, n: int, frames: int, h: int, w: int) -> tuple[Path, list[Path]]:
+def make_cohort(
+    d: Path, n: int, frames: int, h: int, w: int, segmenter: str
+) -> tuple[Path, list[Path]]:
     sys.path.insert(0, str(ROOT))
     from BoneUSRecon.Logic.sequence_io import write_sweep
     from BoneUSRecon.Logic.simulation import SimulationParams, simulate
@@ -171,11 +173,11 @@ def make_cohort(d: Path, n: int, frames: int, h: int, w: int) -> tuple[Path, lis
     b2.write_text("this is not a PLUS sequence file\n")
     sweeps[3:3] = [b1]
     sweeps[12:12] = [b2]
-    rows = ["sweep,gold"] + [
-        f"{s.name},{s.stem}_gold.csv" if not s.stem.startswith("broken") else f"{s.name},"
+    rows = ["sweep,gold,segmenter"] + [
+        f"{s.name},{'' if s.stem.startswith('broken') else s.stem + '_gold.csv'},{segmenter}"
         for s in sweeps
     ]
-    m = d / "manifest.csv"
+    m = d / f"manifest_{segmenter}.csv"
     m.write_text("\n".join(rows) + "\n")
     return m, sweeps
 
@@ -207,6 +209,11 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--size", default="256x320", help="frame height x width in pixels")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--segmenter",
+        default="shadowpath",
+        help="shadowpath (default) or snake (the paper's, several times the work per sweep)",
+    )
     ap.add_argument("--workdir", help="keep (and reuse) the simulated sweeps here")
     ap.add_argument("--skip-shell-loop", action="store_true")
     ap.add_argument("--all-cores", action="store_true", help="leave the BLAS thread variables")
@@ -217,7 +224,7 @@ def main() -> int:
     h, w = (int(v) for v in args.size.lower().split("x"))
     data = work / f"cohort_{n_good}x{args.frames}x{h}x{w}"
     t = time.perf_counter()
-    manifest, sweeps = make_cohort(data, n_good, args.frames, h, w)
+    manifest, sweeps = make_cohort(data, n_good, args.frames, h, w, args.segmenter)
     print(
         f"cohort: {len(sweeps)} sweeps ({n_good} good of {args.frames} frames {h}x{w}, 2 broken) "
         f"in {data} ({time.perf_counter() - t:.1f} s)"
@@ -254,7 +261,14 @@ def main() -> int:
 
     with Phase() as serial:
         r2 = subprocess.run(
-            [sys.executable, "-c", SERIAL_SCRIPT, str(work / "serial"), *map(str, sweeps)],
+            [
+                sys.executable,
+                "-c",
+                SERIAL_SCRIPT,
+                str(work / "serial"),
+                args.segmenter,
+                *map(str, sweeps),
+            ],
             capture_output=True,
             text=True,
             env=e,
@@ -275,6 +289,8 @@ def main() -> int:
                         str(work / "loop" / f"{s.stem}.vtp"),
                         "--points-out",
                         str(work / "loop" / f"{s.stem}_points.vtp"),
+                        "--segmenter",
+                        args.segmenter,
                         "-q",
                     ],
                     capture_output=True,
