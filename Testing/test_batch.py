@@ -207,6 +207,9 @@ def test_manifest_names_paths_and_overrides(cohort):
     a2 = jobs[5]
     assert (a2.params.resampling.n_rays, a2.params.fit.control_points) == (11, (10, 4))
     assert jobs[0].params == read_manifest(cohort / "manifest.csv")[1].params  # defaults
+    m = cohort / "along.csv"
+    m.write_text("sweep,along,around\ndata/a.mha,9,\ndata/a.mha,,4\n")
+    assert [j.params.fit.control_points for j in read_manifest(m)] == [(9, 5), (15, 4)]
 
 
 @pytest.mark.parametrize(
@@ -220,6 +223,8 @@ def test_manifest_names_paths_and_overrides(cohort):
         ("sweep,segmenter\na.mha,magic\n", "line 2: unknown segmenter 'magic'"),
         ("sweep,control_points\na.mha,2 2\n", "line 2: "),
         ("sweep,name\na.mha,x\nb.mha,x\n", "name 'x' is given to more than one sweep"),
+        ("sweep,along,control-points\na.mha,9,9 5\n", "line 2: give 'control-points' or"),
+        ("sweep,around\na.mha,0\n", "line 2: "),
         ("sweep,name\na.mha,../up\n", "cannot be a folder name"),
         ("sweep,name\na.mha,summary.csv\n", "cannot be a folder name"),
         ("sweep,gold\n,g.csv\n", "line 2: empty 'sweep' cell"),

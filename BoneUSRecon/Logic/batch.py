@@ -3,8 +3,9 @@
 A *manifest* is a CSV file with a header. ``sweep`` is required; ``name``,
 ``calibration``, ``transform``, ``gold`` and ``target`` are optional, and so are
 per-row overrides of the reconstruction parameters, named as the ``reconstruct``
-command's options (``segmenter``, ``degree``, ``control-points``, ``rays``,
-``fit-method``, ``robust``, ``axis``; ``-`` or ``_`` alike; pairs as ``"15 5"``).
+command's options (``segmenter``, ``degree``, ``control-points`` or ``along`` /
+``around``, ``rays``, ``fit-method``, ``robust``, ``axis``; ``-`` or ``_`` alike;
+pairs as ``"15 5"``).
 Relative paths are relative to the manifest's folder. An empty cell means the
 default.
 
@@ -66,6 +67,8 @@ PARAMETER_COLUMNS: dict[str, str] = {
     "segmenter": "text",
     "degree": "pair",
     "control_points": "pair",
+    "along": "int",
+    "around": "int",
     "rays": "int",
     "fit_method": "text",
     "robust": "text",
@@ -250,7 +253,7 @@ def read_manifest(path: str | os.PathLike[str], base_params: Any = None) -> list
         :func:`~BoneUSRecon.Logic.pipeline.params_with` refuses; the message names
         the line. Whether the listed files exist is checked per sweep, when run.
     """
-    from BoneUSRecon.Logic.pipeline import params_with
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams, params_with
 
     manifest = check_input_file(path).resolve()
     folder = manifest.parent
@@ -319,6 +322,19 @@ def read_manifest(path: str | os.PathLike[str], base_params: Any = None) -> list
             k: _parse_override(PARAMETER_COLUMNS[k], v, k.replace("_", "-"), where, manifest)
             for k, v in overrides.items()
         }
+        # ``along``/``around`` (reconstruct's --along E / --around F) set one of the
+        # two control-point counts; the other keeps its value.
+        along, around = values.pop("along", None), values.pop("around", None)
+        if along is not None or around is not None:
+            if "control_points" in values:
+                raise BoneUSReconError(
+                    f"{where}: give 'control-points' or 'along'/'around', not both", manifest
+                )
+            base = (base_params or ReconstructionParams()).fit.control_points
+            values["control_points"] = (
+                base[0] if along is None else along,
+                base[1] if around is None else around,
+            )
         try:
             params = params_with(base_params, **values)
         except (BoneUSReconError, ValueError, TypeError) as exc:

@@ -21,8 +21,8 @@ __all__ = ["register", "run", "write_report_for_batch"]
 MANIFEST_HELP = (
     "CSV with a header: 'sweep' (required), optional 'name', 'calibration', 'transform', "
     "'gold', 'target', and per-row overrides named as reconstruct's options ('segmenter', "
-    "'degree', 'control-points', 'rays', 'fit-method', 'robust', 'axis'; pairs as '15 5'); "
-    "paths relative to the manifest"
+    "'degree', 'control-points' or 'along'/'around', 'rays', 'fit-method', 'robust', "
+    "'axis'; pairs as '15 5'); paths relative to the manifest"
 )
 
 
