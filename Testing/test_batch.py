@@ -324,7 +324,10 @@ def test_batch_on_a_scheduler_equals_single_runs(capsys, cohort, singles, schedu
         assert float(by_name[name]["mean_mm"]) < 0.3, by_name[name]
     assert by_name["c"]["mean_mm"] == ""
     pq = pytest.importorskip("pyarrow.parquet")
-    assert pq.read_table(out / "summary.parquet").column("name").to_pylist() == list(by_name)
+    t = pq.read_table(out / "summary.parquet")
+    assert t.column("name").to_pylist() == list(by_name)
+    assert t.column("frames_used").to_pylist() == [24, 24, 24, None, None, 24, None]
+    assert str(t.schema.field("mean_mm").type) == "double"
 
     # --resume: nothing to do, so no Dask at all (this scheduler address is dead).
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}

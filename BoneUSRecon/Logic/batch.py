@@ -112,6 +112,15 @@ SUMMARY_COLUMNS = (
     "outdir",
 )
 
+_TEXT = ("name", "sweep", "status", "error", "segmenter", "control_points", "outdir")
+_INT = ("frames", "valid_frames", "frames_used", "frames_rejected", "frames_rejected_by_fit",
+        "rays", "surface_triangles", "gold_points")  # fmt: skip
+#: Each summary column's kind: ``text``, ``int``, ``float`` or ``bool`` (Parquet types).
+SUMMARY_TYPES = {
+    k: "text" if k in _TEXT else "int" if k in _INT else "bool" if k == "resumed" else "float"
+    for k in SUMMARY_COLUMNS
+}
+
 #: Files of a finished sweep's folder (the report folder is added when asked).
 SURFACE_FILE = "surface.vtp"
 POINTS_FILE = "points.vtp"
@@ -705,12 +714,25 @@ def write_summary(rows: Sequence[dict[str, Any]], outdir: str | os.PathLike[str]
         import pyarrow.parquet as pq
     except ImportError:  # Parquet is a bonus: the CSV holds the same
         return written
-    table = pa.table({k: [r.get(k) for r in rows] for k in SUMMARY_COLUMNS})
+    # Typed columns: a column of ints with gaps stays ints, one of all gaps stays typed.
+    types = {"text": pa.string(), "int": pa.int64(), "float": pa.float64(), "bool": pa.bool_()}
+    table = pa.table(
+        {
+            k: pa.array([_typed(r.get(k), kind) for r in rows], type=types[kind])
+            for k, kind in SUMMARY_TYPES.items()
+        }
+    )
     pq_path = out / "summary.parquet"
     with atomic_path(pq_path) as tmp:
         pq.write_table(table, tmp)
     written.append(pq_path)
     return written
+
+
+def _typed(v: Any, kind: str) -> Any:
+    if v is None or v == "":
+        return None
+    return {"text": str, "int": int, "float": float, "bool": bool}[kind](v)
 
 
 def _csv_cell(v: Any) -> Any:
