@@ -326,7 +326,8 @@ def test_batch_on_a_scheduler_equals_single_runs(capsys, cohort, singles, schedu
     pq = pytest.importorskip("pyarrow.parquet")
     t = pq.read_table(out / "summary.parquet")
     assert t.column("name").to_pylist() == list(by_name)
-    assert t.column("frames_used").to_pylist() == [24, 24, 24, None, None, 24, None]
+    used = [int(r["frames_used"]) if r["frames_used"] else None for r in table]
+    assert t.column("frames_used").to_pylist() == used and used.count(None) == 3
     assert str(t.schema.field("mean_mm").type) == "double"
 
     # --resume: nothing to do, so no Dask at all (this scheduler address is dead).
