@@ -1,6 +1,7 @@
 # The public API of BoneUSRecon.Logic: type checkers read it, and
 # lazy_loader.attach_stub (in __init__.py) imports each name from here on first use.
 # Only `from .module import name` lines: lazy_loader parses them.
+from .batch import read_manifest, run_batch
 from .bspline import FitParams, fit_surface
 from .errors import BoneUSReconError
 from .evaluation import Evaluation, evaluate_surface
@@ -45,4 +46,6 @@ __all__ = [
     "read_points",
     "read_polydata",
     "write_polydata",
+    "read_manifest",
+    "run_batch",
 ]

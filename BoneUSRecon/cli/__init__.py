@@ -29,6 +29,7 @@ COMMANDS = (
     "evaluate",
     "register",
     "table",
+    "batch",
     "view",
 )
 
