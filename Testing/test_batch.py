@@ -298,7 +298,7 @@ def test_batch_on_a_scheduler_equals_single_runs(capsys, cohort, singles, schedu
     errors = {r["name"]: r["error"] for r in doc["rows"] if r["status"] == "failed"}
     assert "broken.mha" in errors["broken"]
     assert "missing.mha: no such file" in errors["missing"]
-    assert errors["registered"].endswith("registration not available in this version")
+    assert errors["registered"].endswith("model.stl: could not read any points (corrupt or not this format)")
 
     for name, ref in singles.items():
         assert sorted(os.listdir(out / name)) == ["points.vtp", "summary.json", "surface.vtp"]
@@ -461,3 +461,27 @@ def test_local_cluster_ctrl_c_then_resume_equals_single_runs(cohort, singles, sc
     for r in doc["rows"]:
         assert_same_as_single(out / r["name"], singles[r["name"].split("_")[0]])
     no_leftovers(out)
+
+
+def test_target_column_registers_the_sweep(sim_factory, tmp_path):
+    # A row with `target` registers the segmented points to that bone model: the
+    # summary holds the SOURCE -> TARGET matrix, which undoes the model's known shift.
+    from BoneUSRecon.Logic.batch import run_sweep
+    from BoneUSRecon.Logic.registration import rigid_error, transform_points
+    from BoneUSRecon.Logic.vtkio import triangles_to_polydata, write_polydata
+
+    sim = sim_factory(bone="clavicle", seed=0, **TINY)
+    write_sweep(sim.sweep, tmp_path / "s.mha")
+    v, f = sim.geometry.closed_mesh(*sim.geometry.closed_mesh_params(20_000))
+    truth = np.eye(4)
+    truth[:3, 3] = [3.0, -2.0, 4.0]
+    write_polydata(triangles_to_polydata(transform_points(truth, v), f), tmp_path / "model.stl")
+    (tmp_path / "m.csv").write_text("sweep,target\ns.mha,model.stl\n")
+    (job,) = read_manifest(tmp_path / "m.csv")
+    out = tmp_path / "out"
+    out.mkdir()
+    row = run_sweep(job, out)
+    assert row["status"] == "ok", row
+    doc = json.loads((out / "s" / "summary.json").read_text())
+    matrix = np.asarray(doc["registration"]["matrix"])
+    assert rigid_error(matrix, truth, sim.gold)["tre_median_mm"] <= 0.5

@@ -27,7 +27,6 @@ import contextlib
 import csv
 import dataclasses
 import hashlib
-import importlib
 import json
 import os
 import shutil
@@ -477,25 +476,27 @@ def _one_line(exc: BaseException) -> str:
 def registration_hook(target: Path) -> Callable[[Any], dict[str, Any]]:
     """The function that registers a reconstruction to the bone model ``target``.
 
-    Called before the sweep's work starts, so that a row asking for registration
-    fails at once when it cannot be done. Registration
-    (``BoneUSRecon.Logic.registration``) is being built separately; to wire it,
-    return here a function ``recon -> JSON-ready dict`` calling its entry point (the
-    dict is stored in the sweep's ``summary.json`` under ``registration``).
+    The model is read and checked here, before the sweep's work starts, so that a row
+    with a bad model fails at once. The returned function registers the segmented
+    points (:func:`BoneUSRecon.Logic.registration.register_reconstruction`, from the
+    sweep's own frame: the identity start, as ``reconstruct --register-to``) and returns
+    the JSON-ready figures stored in the sweep's ``summary.json`` under
+    ``registration`` (the SOURCE -> TARGET ``matrix`` included).
 
     Raises
     ------
     BoneUSReconError
-        Registration is not available in this version.
+        The model cannot be read or is not a usable bone surface (named).
     """
-    try:
-        importlib.import_module("BoneUSRecon.Logic.registration")
-    except ModuleNotFoundError as exc:
-        if exc.name not in ("BoneUSRecon.Logic.registration",):
-            raise
-        raise BoneUSReconError("registration not available in this version", target) from None
-    # MERGE: wire registration's entry point here (see the docstring).
-    raise BoneUSReconError("registration not available in this version", target)
+    from BoneUSRecon.Logic.registration import model_from_polydata, register_reconstruction
+    from BoneUSRecon.Logic.vtkio import read_polydata
+
+    model = model_from_polydata(read_polydata(target), target)
+
+    def register(recon: Any) -> dict[str, Any]:
+        return register_reconstruction(recon, model, model_path=target).as_dict()
+
+    return register
 
 
 def _empty_row(job: BatchJob) -> dict[str, Any]:
