@@ -27,11 +27,13 @@ class FrameContour:
     intensity : ndarray, shape (K,)
         Grey value (0..255) at each point.
     confidence : float
-        In [0, 1]; see :mod:`BoneUSRecon.Logic.segmentation.rejection`.
+        In [0, 1]; see :mod:`BoneUSRecon.Logic.segmentation.track`.
     accepted : bool
         False when the frame was rejected; its points never reach the surface fit.
     reason : str
-        Why it was rejected ("" when accepted).
+        Why it was rejected ("" when accepted): one category, no numbers.
+    detail : str
+        The value behind the reason (e.g. "4.2 mm from frame 17"), "" if none.
     """
 
     frame: int
@@ -40,6 +42,7 @@ class FrameContour:
     confidence: float
     accepted: bool
     reason: str = ""
+    detail: str = ""
     extras: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def points_mm(self, sweep: Sweep) -> np.ndarray:
@@ -90,8 +93,7 @@ class SegmentationResult:
         """Counts and rejection reasons, for the CLI and the report."""
         reasons: dict[str, int] = {}
         for r in self.rejected.values():
-            key = r.split(" (")[0]
-            reasons[key] = reasons.get(key, 0) + 1
+            reasons[r] = reasons.get(r, 0) + 1
         return {
             "method": self.method,
             "frames": len(self.contours),
