@@ -54,6 +54,17 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=d.seed, metavar="S", help=f"random seed (default {d.seed})")
     p.add_argument("--reverse", action="store_true", help="sweep from the far end back")
     p.add_argument(
+        "--realism", choices=names.REALISMS, default=names.REALISMS[0],
+        help="image realism: 'standard' (default) or 'hard', the levels of a real cadaver sweep: "
+        "low-contrast bone echo, grey shadow with reverberation, crest-shaped bone, fascia off "
+        "the bone, a no-contact skin edge, a vessel, depth 25 -> 5 mm",
+    )
+    p.add_argument(
+        "--hard-conditions", dest="hard_conditions", metavar="LIST", default=",".join(names.HARD_CONDITIONS),
+        help="with --realism hard: comma-separated conditions to apply, some of "
+        f"{', '.join(names.HARD_CONDITIONS)} (default all)",
+    )
+    p.add_argument(
         "--no-neighbour", dest="neighbour", action="store_false",
         help="forearm bones: do not show the other bone (radius/ulna) beside the target",
     )
@@ -64,6 +75,7 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate, write the files and print where they are."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.simulation import (
         SimulationParams,
         check_output_dir,
@@ -71,8 +83,15 @@ def run(args: argparse.Namespace) -> int:
         simulate,
         write_simulation,
     )
+    from BoneUSRecon.Logic.simulation.names import HARD_CONDITIONS
 
+    conditions = tuple(c.strip() for c in str(args.hard_conditions).split(",") if c.strip())
+    unknown = [c for c in conditions if c not in HARD_CONDITIONS]
+    if unknown:
+        raise BoneUSReconError(f"unknown hard condition {unknown[0]!r}; use some of {', '.join(HARD_CONDITIONS)}")
     params = SimulationParams(
+        realism=args.realism,
+        hard_conditions=conditions,
         bone=str(args.bone).lower(),
         n_frames=args.frames,
         width=args.width,
@@ -100,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
         "spacing_mm": [float(v) for v in sweep.spacing_mm],
         "sweep_length_mm": sweep.sweep_length_mm(),
         "seed": params.seed,
+        "realism": params.realism,
         "corrupted_frames": [int(k) for k in sim.corrupted],
         "corruption_kinds": {str(k): v for k, v in sim.corruption_kinds.items()},
         "gold_points": int(sim.gold.shape[0]),
@@ -117,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
             ("sweep length (mm)", info["sweep_length_mm"]),
             ("corrupted frames", ", ".join(f"{k} ({v})" for k, v in sim.corruption_kinds.items()) or "none"),
             ("seed", params.seed),
+            ("realism", params.realism if params.realism == "standard" else f"hard ({', '.join(params.hard_conditions)})"),
             ("sweep", paths["sweep"]),
             ("true surface", paths["truth"]),
             ("gold points", f"{paths['gold']} ({info['gold_points']} points)"),

@@ -9,6 +9,10 @@ Our ground truth for tests, benchmarks and the demo. Small files, one per stage:
 * :mod:`.imaging` -- B-mode image formation (speckle, tissue, bone echo, shadow).
 * :mod:`.corruption` -- frames that fool a per-frame segmenter.
 * :mod:`.core` -- :func:`simulate` and :func:`write_simulation`.
+* :mod:`.hard` -- the ``hard`` realism preset (``SimulationParams(realism="hard")``):
+  the conditions of a real cadaver sweep (issue 10), each switchable.
+* :mod:`.levels` -- grey levels round a bone contour (echo, tissue above, shadow,
+  tissue beside), to check the preset and the augmentations against the real levels.
 * :mod:`.augment` -- augmentations of a recorded sweep (mirror, gain, speckle,
   resampling, crop) with consistent poses, to test on real data without new data.
 
@@ -31,12 +35,13 @@ True
 from __future__ import annotations
 
 from BoneUSRecon.Logic._lazy import lazy_attributes
-from BoneUSRecon.Logic.simulation.names import BONES, CORRUPTION_KINDS
+from BoneUSRecon.Logic.simulation.names import BONES, CORRUPTION_KINDS, HARD_CONDITIONS, REALISMS
 
 # The rest is imported lazily (PEP 562), as in BoneUSRecon.Logic: the simulator loads
 # numpy, scipy and VTK, and even params.py costs ~9 ms, while the CLI's parsers only
 # list the names (see .names).
 _LAZY = {
+    "HardParams": "params",
     "ImagingParams": "params",
     "SimulationParams": "params",
     "BONE_SPECS": "bones",
@@ -49,20 +54,25 @@ _LAZY = {
     "simulate": "core",
     "simulation_info": "core",
     "write_simulation": "core",
+    "echo_levels": "levels",
 }
 
 __all__ = [
     "BONES",
     "BONE_SPECS",
     "CORRUPTION_KINDS",
+    "HARD_CONDITIONS",
+    "REALISMS",
     "SIMULATOR_VERSION",
     "BoneGeometry",
     "BoneSpec",
+    "HardParams",
     "ImagingParams",
     "Simulation",
     "SimulationParams",
     "check_output_dir",
     "check_params",
+    "echo_levels",
     "simulate",
     "simulation_info",
     "write_simulation",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +19,8 @@ from BoneUSRecon.Logic.fileio import atomic_path, can_create_file_in
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, NEIGHBOURS, UP, BoneGeometry
 from BoneUSRecon.Logic.simulation.corruption import choose_corrupted
+from BoneUSRecon.Logic.simulation.hard import crest_of, effective_params, hard_scene
+from BoneUSRecon.Logic.simulation.hard import echo_strength as hard_echo_strength
 from BoneUSRecon.Logic.simulation.imaging import render_frames
 from BoneUSRecon.Logic.simulation.motion import ProbePath, probe_path
 from BoneUSRecon.Logic.simulation.params import BONES, SimulationParams
@@ -170,11 +172,12 @@ def check_params(params: SimulationParams) -> None:
     spec = BONE_SPECS[p.bone]
     if 2 * p.sweep_margin_mm >= spec.length_mm:
         raise BoneUSReconError(f"sweep margin {p.sweep_margin_mm} mm leaves nothing of the {spec.length_mm} mm {p.bone} to sweep")
-    need = spec.depth_mm + 3 * p.depth_jitter_mm + 4.0
+    depth = max(p.hard.depth_mm) if p.has("depth_ramp") else spec.depth_mm
+    need = depth + 3 * p.depth_jitter_mm + 4.0
     have = p.height * p.spacing_mm
     if need > have:
         raise BoneUSReconError(
-            f"the image is {have:.1f} mm deep but the {p.bone} lies {spec.depth_mm:g} mm under the skin "
+            f"the image is {have:.1f} mm deep but the {p.bone} lies {depth:g} mm under the skin "
             f"(needs about {need:.0f} mm to show it and its shadow); raise --height or --spacing"
         )
 
@@ -267,13 +270,16 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     >>> sim.sweep.frames.shape
     (10, 64, 64)
     """
-    params = SimulationParams() if params is None else params
-    check_params(params)
+    asked = SimulationParams() if params is None else params
+    check_params(asked)
+    # The hard realism preset's imaging levels (the same params when standard).
+    params = effective_params(asked)
     seed = int(params.seed)
-    geom = BoneGeometry(BONE_SPECS[params.bone])
+    geom = BoneGeometry(BONE_SPECS[params.bone], crest=crest_of(params))
     report(progress, "geometry", 0, 3)
     path = probe_path(geom, params, np.random.default_rng([seed, 1]))
-    sections = bone_sections(geom, path.image_to_reference, path.s, int(params.width))
+    hard = params.realism == "hard"
+    sections = bone_sections(geom, path.image_to_reference, path.s, int(params.width), far=hard)
     top_j, cos_inc = sections.top_j, sections.cos_incidence
     other = _neighbour(geom, params)
     if other is not None:
@@ -285,11 +291,26 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         cos_inc = np.where(use2, sec2.cos_incidence, cos_inc)
     report(progress, "geometry", 1, 3)
     kinds = choose_corrupted(int(params.n_frames), float(params.corrupted_fraction), np.random.default_rng([seed, 4]))
+    scene = hard_scene(params, geom, path, sections, np.random.default_rng([seed, 7])) if hard else None
+    if scene is not None and other is not None:
+        # The neighbouring bone's echo keeps the standard angle law.
+        ip = params.imaging
+        c2 = np.clip(cos_inc, 0, 1)
+        strength = np.where(use2, c2**ip.specular_exponent + ip.diffuse_fraction * c2, scene.strength)
+        scene = replace(scene, strength=strength)
     frames = render_frames(
-        path.image_to_reference, top_j, cos_inc, params, kinds, progress, tissue_top_j=sections.top_j
+        path.image_to_reference, top_j, cos_inc, params, kinds, progress, tissue_top_j=sections.top_j, scene=scene
     )
     hidden = {k for k, v in kinds.items() if v == "contact_loss"}
-    contours = visible_contours(sections, int(params.height), params.imaging.visible_cos, hidden)
+    strength = None if scene is None else hard_echo_strength(params, geom, path.s, sections.cos_incidence)
+    contours = visible_contours(
+        sections,
+        int(params.height),
+        params.imaging.visible_cos,
+        hidden,
+        strength=strength,
+        min_strength=params.hard.visible_strength,
+    )
     m = int(params.black_margin_px)
     if m > 0:
         # Scan-converted frames are exactly black outside the imaged area: no bone seen there.
@@ -326,7 +347,7 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     report(progress, "geometry", 3, 3)
     return Simulation(
         sweep=sweep,
-        params=params,
+        params=asked,
         truth_vertices=verts,
         truth_faces=faces,
         gold=gold,

@@ -19,6 +19,11 @@ The chain, per frame, vectorised over a chunk of frames:
    ``shadow_transmission`` (laterally blurred by the beam width); the shadow is grey,
    not black, as on real recordings, and holds faint reverberation copies of the bone
    echo (``reverb_amplitude`` every ``reverb_mm``).
+With the ``hard`` realism preset (:mod:`.hard`) a :class:`~.hard.HardScene` adds, in
+steps 1 and 3: the no-contact gap and the vessel's lumen and enhancement to the
+echogenicity; the far cortex, the fascia off the bone, the skin line over the gap with
+its reverberation copies, the vessel's walls and ring-down as specular lines.
+
 5. Depth attenuation left over after TGC, electronic noise, envelope (``abs``), log
    compression over ``dynamic_range_db`` to 8 bits.
 
@@ -30,6 +35,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import fft as sfft
@@ -38,6 +44,9 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.simulation import corruption as corr
 from BoneUSRecon.Logic.simulation.params import SimulationParams
+
+if TYPE_CHECKING:
+    from BoneUSRecon.Logic.simulation.hard import HardScene
 
 __all__ = ["SmoothField", "TissueLayers", "tissue_layers", "render_frames"]
 
@@ -180,6 +189,7 @@ def render_frames(
     corrupted: dict[int, str],
     progress: ProgressCallback | None = None,
     tissue_top_j: np.ndarray | None = None,
+    scene: HardScene | None = None,
 ) -> np.ndarray:
     """Render all frames of a sweep.
 
@@ -195,6 +205,8 @@ def render_frames(
     tissue_top_j : ndarray (N, W), optional
         Bone rows the soft-tissue layers are laid over (default ``top_j``): the
         target bone's, so a neighbouring bone does not move the fascia.
+    scene : HardScene, optional
+        The hard realism conditions to draw (see :mod:`.hard`).
 
     Returns
     -------
@@ -241,9 +253,11 @@ def render_frames(
     lat_near = gaussian_filter1d(present_all.astype(np.float32), sig_lat, axis=1)
     lat_far = gaussian_filter1d(present_all.astype(np.float32), 4 * sig_lat, axis=1)
     cos_c = np.clip(cos_incidence, 0, 1)
-    bone_amp = (
-        ip.bone_amplitude * (cos_c**ip.specular_exponent + ip.diffuse_fraction * cos_c) * present_all
-    ).astype(np.float32)
+    if scene is None:
+        strength = cos_c**ip.specular_exponent + ip.diffuse_fraction * cos_c
+    else:
+        strength = scene.strength
+    bone_amp = (ip.bone_amplitude * strength * present_all).astype(np.float32)
     tail_tau = ip.bone_tail_mm / sp  # cortical reverberation: the line's soft lower edge
     reverb_px = ip.reverb_mm / sp
     sig_drop = 0.8 / sp  # width (sigma) of an echo dropout
@@ -306,6 +320,8 @@ def render_frames(
         echo *= np.exp(np.where(muscle, np.float32(0.35), np.float32(0.15)) * tex)
         streaks = maximum_filter1d(septa.reshape(nc, hp, wp), septa_len, axis=2)
         echo[muscle & streaks] *= 3.0
+        if scene is not None:
+            _scene_echogenicity(echo, scene, ks, pad, sp, params)
 
         # 2. speckle by FFT convolution with the PSF
         noise *= echo
@@ -350,9 +366,11 @@ def render_frames(
         # further down (sound bouncing between the bone and the layers above it).
         if ip.reverb_amplitude > 0:
             sig_rev = 2.0 * sig_line
-            for m in (1, 2):
-                amp_r = (ip.reverb_amplitude / m) * amp_k * np.conj(phases[:, 3])
+            for m in range(1, ip.reverb_copies + 1):
+                amp_r = (ip.reverb_amplitude * ip.reverb_decay ** (m - 1)) * amp_k * np.conj(phases[:, 3])
                 _add_band(field, top_j[ks] + m * reverb_px, amp_r, gauss(sig_rev), 4 * sig_rev, 4 * sig_rev)
+        if scene is not None:
+            _scene_lines(field, scene, ks, amp_k, phases, sig_line, sig_fascia, sp, params)
 
         # corrupted frames (rare: a Python loop over them is fine)
         for a, k in enumerate(ks):
@@ -378,3 +396,98 @@ def render_frames(
         out[ks] = np.clip(np.rint((db - floor_db) * (255.0 / ip.dynamic_range_db)), 0, 255).astype(np.uint8)
         report(progress, "imaging", int(ks[-1]) + 1, n)
     return out
+
+
+def _scene_echogenicity(
+    echo: np.ndarray,
+    scene: HardScene,
+    ks: np.ndarray,
+    pad: int,
+    sp: float,
+    params: SimulationParams,
+) -> None:
+    """The hard scene's changes to the echogenicity (padded rows and columns), in place."""
+    h = params.hard
+    nc, hp, wp = echo.shape
+    rows = (np.arange(hp, dtype=np.float32) - pad)[None, :, None]
+    if scene.gap_j is not None:
+        # No contact: nothing above the curved skin, dimmed tissue below it.
+        g = np.pad(scene.gap_j[ks], ((0, 0), (pad, pad)), mode="edge")[:, None, :].astype(
+            np.float32
+        )
+        gap = np.isfinite(g)
+        gf = np.where(gap, g, np.float32(-1e9))
+        echo *= np.where(
+            rows < gf,
+            np.float32(0.0),
+            np.where(gap, np.float32(h.gap_transmission), np.float32(1.0)),
+        )
+    if scene.vessel_ij is not None:
+        r = np.float32(scene.vessel_r)
+        cols = (np.arange(wp, dtype=np.float32) - pad)[None, None, :]
+        ci = scene.vessel_ij[ks, 0].astype(np.float32)[:, None, None]
+        cj = scene.vessel_ij[ks, 1].astype(np.float32)[:, None, None]
+        dx, dy = cols - ci, rows - cj
+        echo[dx**2 + dy**2 < r**2] *= 0.03  # blood: anechoic
+        # Posterior enhancement: less attenuation through the lumen brightens the tissue below.
+        back = np.sqrt(np.clip(r**2 - dx**2, 0, None))
+        across = np.clip(1.0 - (dx / r) ** 2, 0.0, 1.0)
+        below = np.clip((dy - back) * np.float32(sp / h.vessel_enhancement_mm), 0.0, None)
+        boost = 1.0 + (h.vessel_enhancement - 1.0) * across * np.exp(-below) * (dy > back)
+        echo *= boost.astype(np.float32)
+
+
+def _scene_lines(
+    field: np.ndarray,
+    scene: HardScene,
+    ks: np.ndarray,
+    amp_k: np.ndarray,
+    phases: np.ndarray,
+    sig_line: float,
+    sig_fascia: float,
+    sp: float,
+    params: SimulationParams,
+) -> None:
+    """The hard scene's specular lines, added to the complex field in place."""
+    h = params.hard
+    nc, hh, w = field.shape
+
+    def gauss(sigma: float) -> Callable[[np.ndarray], np.ndarray]:
+        return lambda d: np.exp(-0.5 * (d / sigma) ** 2)
+
+    g_line = gauss(sig_line)
+    if scene.far_j is not None:
+        amp = h.far_cortex * amp_k * np.conj(phases[:, 2])
+        _add_band(field, scene.far_j[ks], amp, gauss(1.5 * sig_line), 6 * sig_line, 6 * sig_line)
+    if scene.fascia_j is not None and scene.fascia_amp is not None:
+        amp = params.imaging.bone_amplitude * scene.fascia_amp[ks] * phases[:, 1]
+        _add_band(field, scene.fascia_j[ks], amp, gauss(sig_fascia), 4 * sig_fascia, 4 * sig_fascia)
+    if scene.gap_j is not None:
+        g = scene.gap_j[ks]
+        on = np.isfinite(g)
+        for m in range(1, h.gap_copies + 2):
+            # The skin line itself (m = 1), then its copies at 2, 3, ... times its depth:
+            # sound bouncing between the probe face and the skin.
+            amp = np.where(on, h.gap_amplitude * h.gap_decay ** (m - 1), 0.0) * phases[:, m % 4]
+            _add_band(field, m * g, amp, g_line, 4 * sig_line, 4 * sig_line)
+    if scene.vessel_ij is not None:
+        r = scene.vessel_r
+        cols = np.arange(w, dtype=float)[None, :]
+        dx = cols - scene.vessel_ij[ks, 0][:, None]
+        half = np.sqrt(np.clip(r**2 - dx**2, 0, None))
+        wall = np.abs(dx) < 0.9 * r
+        cj = scene.vessel_ij[ks, 1][:, None]
+        # Walls: specular where the beam meets them square (top and bottom of the lumen).
+        face = np.where(wall, np.sqrt(np.clip(1 - (dx / r) ** 2, 0, 1)), 0.0)
+        _add_band(
+            field,
+            np.where(wall, cj - half, np.nan),
+            h.ringdown_amplitude * face * phases[:, 0],
+            g_line,
+            4 * sig_line,
+            4 * sig_line,
+        )
+        for m in range(h.ringdown_copies + 1):
+            amp = h.ringdown_amplitude * h.ringdown_decay**m * face * phases[:, (m + 1) % 4]
+            row = cj + half + m * h.ringdown_mm / sp
+            _add_band(field, np.where(wall, row, np.nan), amp, g_line, 4 * sig_line, 4 * sig_line)

@@ -85,6 +85,11 @@ def probe_path(geom: BoneGeometry, params: SimulationParams, rng: np.random.Gene
     yaw, tilt, rock = jitter(params.tilt_deg), jitter(params.tilt_deg), jitter(params.tilt_deg / 2)
     lateral = jitter(params.lateral_jitter_mm)
     depth = geom.spec.depth_mm + jitter(params.depth_jitter_mm, tremor=0.3)
+    if params.has("depth_ramp"):
+        # The hard preset: the bone rises from deep to shallow along the sweep (the
+        # cadaver leg's 25 -> 5 mm), plus the same pressure jitter.
+        d0, d1 = params.hard.depth_mm
+        depth = depth - geom.spec.depth_mm + d0 + (d1 - d0) * pos
 
     # Nominal frame: image plane across the bone's horizontal direction, columns
     # lateral, rows straight down. The operator follows the bone's curve in the

@@ -15,6 +15,8 @@ __all__ = [
     "DEFAULT_HEIGHT",
     "DEFAULT_SPACING_MM",
     "DEFAULT_SEED",
+    "REALISMS",
+    "HARD_CONDITIONS",
 ]
 
 #: The bones the simulator knows (the long bones of the paper's introduction).
@@ -31,3 +33,22 @@ DEFAULT_WIDTH = 320
 DEFAULT_HEIGHT = 256
 DEFAULT_SPACING_MM = 0.15
 DEFAULT_SEED = 0
+
+#: Realism presets: ``standard`` (simulator version 2, tuned on the L14 recording) and
+#: ``hard`` (the levels measured on a real cadaver sweep, issue 10; see :mod:`.hard`).
+REALISMS = ("standard", "hard")
+
+#: The conditions of the ``hard`` preset, each switchable (``SimulationParams.hard_conditions``):
+#: a low-contrast bone echo, a grey shadow with reverberation bands and far-cortex
+#: echoes, a crest-shaped then oval bone, bright fascia running off the bone at its
+#: level, a skin edge over a no-contact gap with reverberation copies, a vessel, and
+#: a bone depth going from 25 to 5 mm along the sweep.
+HARD_CONDITIONS = (
+    "low_contrast",
+    "grey_shadow",
+    "crest",
+    "fascia",
+    "skin_gap",
+    "vessel",
+    "depth_ramp",
+)

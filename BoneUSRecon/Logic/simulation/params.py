@@ -15,9 +15,19 @@ from BoneUSRecon.Logic.simulation.names import (
     DEFAULT_SEED,
     DEFAULT_SPACING_MM,
     DEFAULT_WIDTH,
+    HARD_CONDITIONS,
+    REALISMS,
 )
 
-__all__ = ["BONES", "CORRUPTION_KINDS", "ImagingParams", "SimulationParams"]
+__all__ = [
+    "BONES",
+    "CORRUPTION_KINDS",
+    "HARD_CONDITIONS",
+    "REALISMS",
+    "HardParams",
+    "ImagingParams",
+    "SimulationParams",
+]
 
 
 @dataclass(frozen=True)
@@ -85,6 +95,114 @@ class ImagingParams:
     noise_floor: float = 0.15
     #: Bone points with cos(incidence) below this are not part of the visible contour.
     visible_cos: float = 0.5
+    #: Number of reverberation copies of the bone echo in the shadow (the m-th at
+    #: ``m * reverb_mm``, amplitude ``reverb_amplitude * reverb_decay ** (m - 1)``).
+    reverb_copies: int = 2
+    #: Amplitude ratio of successive reverberation copies; 0.5 (the second half as
+    #: strong as the first) in version 2.
+    reverb_decay: float = 0.5
+
+
+@dataclass(frozen=True)
+class HardParams:
+    """Levels of the ``hard`` realism preset (issue 10), measured on a real tracked cadaver
+    sweep of a lower leg (linear probe, 216 frames 475 x 405 at 0.108 mm; grey 0-255,
+    medians) unless said otherwise.
+
+    Amplitudes are relative to the RMS echo of muscle (= 1), as in :class:`ImagingParams`.
+    Grey-level ratios (what the cadaver gives) come out of the log compression: the
+    amplitudes below are chosen so that the simulated images measure as the cadaver
+    does, and ``Testing/test_simulation_hard.py`` measures them with
+    :func:`BoneUSRecon.Logic.simulation.levels.echo_levels`.
+    """
+
+    # -- low_contrast: the bone echo only ~1.2-1.35x the grey of the tissue above it
+    #: Displayed maximum (dB re the muscle echo): 21 dB (standard 33) makes muscle mid-grey
+    #: (~110), as on the cadaver's scanner preset, where tissue above bone is ~100-120.
+    display_max_db: float = 21.0
+    #: Peak amplitude of the bone echo at normal incidence: 2.6 (standard 16) gives an echo
+    #: at ~1.3x the grey of the tissue 1-3 mm above it (cadaver 1.35x; issue's target
+    #: 1.2-1.35x; the L14 recording 2.7x, the standard simulator ~1.4x at grey 240).
+    bone_amplitude: float = 2.6
+    #: Fascia amplitude with ``low_contrast``: fascia as bright as the bone echo.
+    fascia_amplitude: float = 2.6
+
+    # -- grey_shadow: 0.4 of the echo, 0.65 of the tissue beside it at the same depth
+    #: Amplitude transmitted into the shadow: 0.12 with the reverberation and far-cortex
+    #: echoes below gives, on the low-contrast display, a shadow ~0.66 of the grey of the
+    #: tissue beside it at the same depth (cadaver 0.65) and ~0.43 of the echo (cadaver
+    #: 0.40). The grey is the display's doing: on the standard display (``grey_shadow``
+    #: without ``low_contrast``) the same amplitudes give a shadow ~0.8 of the tissue beside.
+    shadow_transmission: float = 0.12
+    #: Reverberation copies of the bone echo in the shadow: amplitude of the first
+    #: (relative to the echo), spacing (mm), number and decay: the equally spaced grey
+    #: bands under the cadaver's bone.
+    reverb_amplitude: float = 0.25
+    reverb_mm: float = 2.5
+    reverb_copies: int = 4
+    reverb_decay: float = 0.75
+    #: Echo of the far (deep) cortex of the bone, relative to the near echo: the curved
+    #: echoes seen deep in the cadaver's shadow.
+    far_cortex: float = 0.45
+
+    # -- crest: a triangular crest proximally, an oval distally
+    #: Fractions of the bone's length where the crest begins to blend into the oval and
+    #: where the oval is complete (see :func:`.bones.crest_shape`).
+    crest_range: tuple[float, float] = (0.4, 0.6)
+    #: Exponent of cos(incidence) of the echo on the crest: 0.5, a rough cortex still
+    #: bright on flanks of 60-70 degrees (the cadaver: ~6 mm of flank steeper than 45
+    #: degrees visible per frame). On the oval part the standard exponent (3): its echo is
+    #: strong only on the side facing the probe.
+    crest_exponent: float = 0.5
+    #: Lowest relative echo strength ``cos ** p + diffuse * cos`` of a visible contour
+    #: point (with ``visible_cos``): where the oval's side has faded, it is not "seen".
+    visible_strength: float = 0.35
+    #: cos(incidence) of the steepest visible bone: 0.34 = 70 degrees (issue 10: follow
+    #: the flanks to at least 70 degrees).
+    visible_cos: float = 0.34
+
+    # -- fascia: a bright line running off the bone at its level, tissue beneath
+    #: Where the fascia leaves the bone: this far (mm) below the bone's top, on its flank.
+    fascia_attach_mm: float = 1.5
+    #: Lateral length of the fascia (mm) and its slope (depth gained per mm outwards).
+    fascia_length_mm: float = 14.0
+    fascia_slope: float = 0.08
+    #: Fascia amplitude relative to the bone echo's peak (1: as bright as the bone).
+    fascia_strength: float = 1.1
+
+    # -- skin_gap: no probe contact at one image edge
+    #: Share of the image width at one edge where the skin curves away from the probe.
+    gap_fraction: float = 0.22
+    #: Depth (mm) the skin line reaches at the image edge.
+    gap_depth_mm: float = 6.0
+    #: Amplitude of the skin line over the gap, and of its reverberation copies (at 2, 3,
+    #: ... times its depth: equally spaced), each ``gap_decay`` of the previous.
+    gap_amplitude: float = 4.0
+    gap_copies: int = 3
+    gap_decay: float = 0.65
+    #: Amplitude transmitted into the tissue under the gap (poor coupling).
+    gap_transmission: float = 0.4
+
+    # -- vessel: a dark round lumen with posterior enhancement and ring-down
+    #: Lumen radius (mm): an artery or vein of the calf, 2-3 mm.
+    vessel_radius_mm: float = 2.5
+    #: Depth of the vessel's centre below the bone's top (mm) and its gap to the bone (mm).
+    vessel_depth_mm: float = 1.5
+    vessel_gap_mm: float = 3.0
+    #: Posterior enhancement: tissue below the lumen is this much brighter (amplitude),
+    #: fading over ``vessel_enhancement_mm``.
+    vessel_enhancement: float = 1.8
+    vessel_enhancement_mm: float = 10.0
+    #: Ring-down under the back wall: copies every ``ringdown_mm``, each ``ringdown_decay``
+    #: of the previous, the first at ``ringdown_amplitude`` (relative to muscle).
+    ringdown_amplitude: float = 2.0
+    ringdown_mm: float = 0.9
+    ringdown_copies: int = 4
+    ringdown_decay: float = 0.7
+
+    # -- depth_ramp: the bone's depth along the sweep
+    #: Skin-to-bone depth (mm) at the start and the end of the sweep: the cadaver's 25 -> 5 mm.
+    depth_mm: tuple[float, float] = (25.0, 5.0)
 
 
 @dataclass(frozen=True)
@@ -140,3 +258,26 @@ class SimulationParams:
     gold_noise_mm: float = 0.2
     #: Image formation parameters.
     imaging: ImagingParams = field(default_factory=ImagingParams)
+    #: Realism preset (one of :data:`REALISMS`): ``standard`` (default, simulator
+    #: version 2) or ``hard`` (the levels of a real cadaver sweep, issue 10; the
+    #: conditions of ``hard_conditions`` with the levels of ``hard``).
+    realism: str = "standard"
+    #: With ``realism="hard"``: which of :data:`HARD_CONDITIONS` apply (default all).
+    hard_conditions: tuple[str, ...] = HARD_CONDITIONS
+    #: Levels of the hard conditions.
+    hard: HardParams = field(default_factory=HardParams)
+
+    def __post_init__(self) -> None:
+        if self.realism not in REALISMS:
+            raise ValueError(
+                f"realism: unknown preset {self.realism!r}; use one of {', '.join(REALISMS)}"
+            )
+        bad = [c for c in self.hard_conditions if c not in HARD_CONDITIONS]
+        if bad:
+            raise ValueError(
+                f"hard_conditions: unknown condition {bad[0]!r}; use some of {', '.join(HARD_CONDITIONS)}"
+            )
+
+    def has(self, condition: str) -> bool:
+        """Whether the hard ``condition`` applies (``realism="hard"`` and listed)."""
+        return self.realism == "hard" and condition in self.hard_conditions

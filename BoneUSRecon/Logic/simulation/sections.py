@@ -30,6 +30,9 @@ class BoneSections:
     cos_incidence: np.ndarray
     #: Range of the axis parameter ``s`` each section spans (mm), shape (N, 2).
     s_range: np.ndarray
+    #: Row of the far (deep) bone surface per column, NaN where the beam misses the
+    #: bone, shape (N, W); only when asked for (``far=True``), else None.
+    bottom_j: np.ndarray | None = None
 
 
 def bone_sections(
@@ -38,6 +41,7 @@ def bone_sections(
     s_guess: np.ndarray,
     width: int,
     n_phi: int = 720,
+    far: bool = False,
 ) -> BoneSections:
     """Intersect every frame's plane with the bone.
 
@@ -52,6 +56,8 @@ def bone_sections(
     n_phi : int
         Samples around the section; 720 (0.5 degree, < 0.1 mm apart) keeps the linear
         interpolation between them within ~1e-4 mm of the true curve.
+    far : bool
+        Also find the far surface (the lower arc) per column: ``bottom_j``.
 
     Returns
     -------
@@ -76,6 +82,7 @@ def bone_sections(
 
     top = np.full((n, width), np.nan)
     cosw = np.zeros((n, width))
+    bottom = np.full((n, width), np.nan) if far else None
     cols = np.arange(width, dtype=float)
     for k in range(n):
         up = cos[k] > 0
@@ -91,18 +98,31 @@ def bone_sections(
         inside = (cols >= ii[0]) & (cols <= ii[-1])
         top[k, inside] = np.interp(cols[inside], ii, jj)
         cosw[k, inside] = np.interp(cols[inside], ii, cc)
-    return BoneSections(top_j=top, cos_incidence=cosw, s_range=np.column_stack([s.min(1), s.max(1)]))
+        if bottom is not None and not up.all():
+            low = order[~up[order]]
+            il, jl = i_px[k, low], j_px[k, low]
+            srt = np.argsort(il)
+            il, jl = il[srt], jl[srt]
+            inside = (cols >= il[0]) & (cols <= il[-1])
+            bottom[k, inside] = np.interp(cols[inside], il, jl)
+    return BoneSections(top_j=top, cos_incidence=cosw, s_range=np.column_stack([s.min(1), s.max(1)]), bottom_j=bottom)
 
 
 def visible_contours(
-    sections: BoneSections, height: int, visible_cos: float, hidden: set[int] | None = None
+    sections: BoneSections,
+    height: int,
+    visible_cos: float,
+    hidden: set[int] | None = None,
+    strength: np.ndarray | None = None,
+    min_strength: float = 0.0,
 ) -> list[np.ndarray]:
     """The visible bone contour of each frame, in pixels ``(i, j)`` ordered by ``i``.
 
     A column is part of the visible contour when its beam meets the bone inside the
     image with ``cos(incidence) >= visible_cos`` (an oblique bone surface sends its
-    specular echo away from the probe and is not seen). Frames in ``hidden`` (probe
-    contact lost) have an empty contour.
+    specular echo away from the probe and is not seen) and, if ``strength`` (N, W) is
+    given, a relative echo strength of at least ``min_strength``. Frames in ``hidden``
+    (probe contact lost) have an empty contour.
 
     Returns
     -------
@@ -113,6 +133,8 @@ def visible_contours(
     for k in range(sections.top_j.shape[0]):
         j = sections.top_j[k]
         ok = np.isfinite(j) & (sections.cos_incidence[k] >= visible_cos)
+        if strength is not None:
+            ok &= strength[k] >= min_strength
         ok &= (np.nan_to_num(j, nan=-1.0) >= 0) & (np.nan_to_num(j, nan=-1.0) <= height - 1)
         if k in hidden:
             ok[:] = False
