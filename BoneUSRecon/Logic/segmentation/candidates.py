@@ -256,7 +256,8 @@ def _mark_echo_beneath(cands: list[dict], p: ShadowPathParams) -> None:
             if b is c or b.get("reverb"):
                 continue
             common, ic, ib = np.intersect1d(c["cols"], b["cols"], return_indices=True)
-            if common.size < 0.5 * c["cols"].size:
+            # Under most of c, or c over most of b (a long fascia over the bone).
+            if common.size < 0.5 * min(c["cols"].size, b["cols"].size):
                 continue
             if np.median(b["rows"][ib] - c["rows"][ic]) <= 0:
                 continue  # b is not below c

@@ -110,6 +110,10 @@ class ShadowPathParams:
 
     work_mm: float = 0.25
     """Target pixel size of the down-sampled working image, mm (ours: the sub-pixel step restores full resolution; sets the speed)."""
+    phase_symmetry: bool = False
+    """Echo evidence from 1-D log-Gabor phase symmetry along depth instead of the band/above log-ratio (see evidence.phase_symmetry_depth)."""
+    phase_wavelengths_mm: tuple[float, ...] = (0.6, 1.2, 2.4)
+    """Log-Gabor wavelengths of the phase symmetry, mm."""
     mid_mm: float = 0.6
     """Height of the bright band, mm (as the snake's M_mid: a bone echo's thickness)."""
     up_mm: float = 1.5
@@ -126,6 +130,8 @@ class ShadowPathParams:
     """Bottom-most extent of the cover window above the band, mm."""
     cover_ratio: float = 0.5
     """The cover (tissue above) must be at least this fraction of the tissue level at its depth (a ratio: gel, air and blood are anechoic, soft tissue is not)."""
+    cover_min_mm: float = 0.5
+    """Least height of the cover window inside the image for the cover to be judged, mm."""
     tissue_percentile: float = 60.0
     """Percentile over the columns giving the tissue level at each depth (ours: bone and shadow fill fewer than 30 % of the columns at most depths, a thin echo barely counts)."""
     shadow_z_zero: float = -1.0
@@ -194,22 +200,24 @@ class RejectionParams:
     sideways. Strength is relative to the sweep's own typical best candidate.
     """
 
-    tolerance_mm: float = 1.0
+    tolerance_mm: float = 1.5
     """In-plane distance between the contours of neighbouring frames that costs one unit, at zero distance along the sweep, mm (issue 10: real bone moves 0.23 mm median, 1.5 mm max between frames)."""
     tolerance_per_mm: float = 0.6
     """Growth of that tolerance per mm between the frames along the sweep (a bone surface inclined by up to ~30 degrees to the sweep)."""
-    max_deviation: float = 3.0
+    max_deviation: float = 4.0
     """Contours farther apart than this many tolerances are never linked."""
-    max_skip: int = 4
+    max_skip: int = 8
     """A track may skip this many frames between two of its contours."""
+    min_track_frames: int = 3
+    """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
     miss_cost: float = 0.3
     """Cost of a skipped frame, in units of the sweep's typical best candidate strength (ours)."""
     beneath_factor: float = 0.3
     """Value of a candidate with an echo as bright under it, relative to its strength (ours: sound went through it)."""
     strength_cap: float = 2.0
     """A candidate's strength counts up to this many typical strengths (one bright look-alike cannot buy a detour)."""
-    min_length_mm: float = 3.0
-    """Tracked contours shorter than this laterally are rejected ("contour too short")."""
+    min_length_mm: float = 1.5
+    """Tracked contours shorter than this laterally are rejected ("contour too short"; ours: continuity with the track already vouches for a short piece of the bone)."""
     min_points: int = 5
     """Tracked contours with fewer points are rejected ("contour too short")."""
 

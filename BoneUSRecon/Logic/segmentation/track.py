@@ -228,9 +228,16 @@ def select_bone_track(
                     s = score[ka] - (d / tol) ** 2 - p.miss_cost * (g - f - 1) + value[kb]
                     if s > score[kb]:
                         score[kb], back[kb], link_dev[kb] = s, ka, d / tol
-    # The track: the best-valued end, followed back.
-    k = int(np.argmax(score))
+    # The track: the best-valued end whose path links at least ``min_track_frames``
+    # frames (fewer if the sweep has fewer): one frame alone, or two, can be speckle
+    # that happens to look like a line; a bone continues through the sweep.
+    need = min(p.min_track_frames, len(by_frame))
+    length = np.zeros(m, dtype=np.intp)
+    for k in range(m):  # nodes are in frame order, so a predecessor comes first
+        length[k] = 1 + (length[back[k]] if back[k] >= 0 else 0)
+    ends = [k for k in np.argsort(-score) if length[k] >= need]
     on_track: list[int] = []
+    k = int(ends[0]) if ends else -1
     while k >= 0:
         on_track.append(k)
         k = int(back[k])
