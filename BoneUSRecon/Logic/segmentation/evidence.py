@@ -265,6 +265,12 @@ def bone_evidence(
     if p.phase_symmetry:
         log_e = phase_symmetry_depth(work, dy, p.phase_wavelengths_mm) * np.float32(m_mid > t_mid)
     log_s = np.log((t_far + _EPS) / (m_far + _EPS))
+    if p.near_shadow:
+        # The shadow starts right under the surface: the near window localises it (a
+        # line mm above the bone has tissue, then the shadow, beneath it).
+        m_sh = column_window_mean(csum, bot + gap, bot + near)
+        t_sh = column_window_mean(tsum, bot + gap, bot + near)
+        log_s = np.minimum(log_s, np.log((t_sh + _EPS) / (m_sh + _EPS)))
 
     # Where the score may be: shadow windows mostly inside the image, a region above
     # inside the image and below the near field (gel, skin line, lens reverberation).

@@ -114,14 +114,16 @@ class ShadowPathParams:
     """Echo evidence from 1-D log-Gabor phase symmetry along depth instead of the band/above log-ratio (see evidence.phase_symmetry_depth)."""
     phase_wavelengths_mm: tuple[float, ...] = (0.6, 1.2, 2.4)
     """Log-Gabor wavelengths of the phase symmetry, mm."""
-    mid_mm: float = 0.6
-    """Height of the bright band, mm (as the snake's M_mid: a bone echo's thickness)."""
+    mid_mm: float = 0.4
+    """Height of the bright band, mm (ours: a thin real cortical echo; 0.6 mm diluted the 1.3x echo of issue 10's cadaver levels, frame recall 0.40 -> 0.55 on the low-contrast simulation)."""
     up_mm: float = 1.5
     """Height of the region right above the band that the echo must outshine, mm."""
     shadow_gap_mm: float = 1.5
     """Rows skipped under the band before the shadow windows, mm (the echo's tail: real cortical echoes are 0.5-1 mm thick, all below the surface)."""
     shadow_mm: float = 5.0
     """Bottom of the near shadow window below the band, mm."""
+    near_shadow: bool = True
+    """Also require the near window (``shadow_gap_mm`` .. ``shadow_mm``) to be shadow (the worse of the two counts)."""
     far_shadow_mm: float = 12.0
     """Bottom of the long shadow window, mm (shadow depth: a vessel lumen or a gap between fasciae is dark for a few mm only)."""
     cover_gap_mm: float = 1.0
