@@ -218,7 +218,7 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
                 continue
             common, ic, is_ = np.intersect1d(c["cols"], s["cols"], return_indices=True)
             # A copy lies under its original (it is never wider) and is fainter.
-            if common.size < 0.8 * c["cols"].size or c["echo"] > s["echo"]:
+            if common.size < 0.8 * c["cols"].size or c["grey"] > s["grey"]:
                 continue
             dc, ds = c["rows"][ic].astype(float), s["rows"][is_].astype(float)
             if np.median(dc - ds) <= 0:

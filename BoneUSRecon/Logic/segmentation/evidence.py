@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 
 from BoneUSRecon.Logic.segmentation.features import column_window_mean, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
@@ -247,8 +247,17 @@ def bone_evidence(
     cov_b = mm_to_px(p.cover_mm, dy)
     csum = np.zeros((h + 1, w), dtype=np.float32)
     np.cumsum(work, axis=0, out=csum[1:])
+    # Two references from the same statistics, robust to a bone (or the skin line)
+    # spanning most of the width: for the shadow windows a high percentile (tissue
+    # beside a shadow that covers up to 80 % of the columns), for the echo band the
+    # lowest tissue level within +-1 mm of depth (a thin line spanning the width
+    # raises its own rows' percentile, not its neighbours').
+    t_shadow = tissue_level(work, usable if usable.any() else fov, p.shadow_percentile, dy)
     tsum = np.zeros((h + 1, 1), dtype=np.float32)
-    np.cumsum(tissue, out=tsum[1:, 0])
+    np.cumsum(t_shadow, out=tsum[1:, 0])
+    t_echo = minimum_filter1d(tissue, 2 * mm_to_px(1.0, dy) + 1, mode="nearest")
+    esum = np.zeros((h + 1, 1), dtype=np.float32)
+    np.cumsum(t_echo, out=esum[1:, 0])
     j = np.arange(h)
     top = j - mid // 2
     bot = top + mid
@@ -258,8 +267,8 @@ def bone_evidence(
     cov_top = top - cov_b
     m_cov = column_window_mean(csum, cov_top, top - cov_a)
     t_far = column_window_mean(tsum, bot + gap, bot + far)
-    t_cov = column_window_mean(tsum, cov_top, top - cov_a)
-    t_mid = tissue[:, None]
+    t_cov = column_window_mean(esum, cov_top, top - cov_a)
+    t_mid = t_echo[:, None]
 
     log_e = np.log((m_mid + _EPS) / (np.maximum(m_up, t_mid) + _EPS))
     if p.phase_symmetry:

@@ -140,6 +140,8 @@ class ShadowPathParams:
     """Shadow z-score at which the shadow gate closes, robust z units (ours: half a spread brighter than the tissue at that depth: tissue, not shadow, beneath)."""
     shadow_z_full: float = 1.0
     """Shadow z-score at which the shadow gate is fully open, robust z units (ours: one spread darker than the tissue beside it; a grey shadow 0.65 of the tissue, or the L14 bone whose interior is barely darker, still opens it partly and the echo carries the score)."""
+    shadow_percentile: float = 80.0
+    """Percentile over the columns giving the tissue level the shadow windows are compared with (ours: tissue beside a bone whose shadow covers up to 80 % of the width)."""
     null_z: float = 0.8
     """Score (robust z units) a column needs to pay off over "no bone" in the path (ours: 1.5 x the speckle spread; see :mod:`.evidence`)."""
     max_z: float = 8.0
@@ -168,7 +170,7 @@ class ShadowPathParams:
     """Largest depth step across a merged gap, mm."""
     min_length_mm: float = 2.0
     """Shortest candidate contour, mm laterally (ours: shorter runs are speckle)."""
-    n_passes: int = 2
+    n_passes: int = 3
     """Optimal-path passes per frame; each pass suppresses what the previous ones found (ours: bone, fascia, reverberation)."""
     max_candidates: int = 5
     """Largest number of candidate contours kept per frame."""
@@ -202,11 +204,11 @@ class RejectionParams:
     sideways. Strength is relative to the sweep's own typical best candidate.
     """
 
-    tolerance_mm: float = 1.5
+    tolerance_mm: float = 1.0
     """In-plane distance between the contours of neighbouring frames that costs one unit, at zero distance along the sweep, mm (issue 10: real bone moves 0.23 mm median, 1.5 mm max between frames)."""
-    tolerance_per_mm: float = 0.6
+    tolerance_per_mm: float = 0.4
     """Growth of that tolerance per mm between the frames along the sweep (a bone surface inclined by up to ~30 degrees to the sweep)."""
-    max_deviation: float = 4.0
+    max_deviation: float = 3.5
     """Contours farther apart than this many tolerances are never linked."""
     max_skip: int = 8
     """A track may skip this many frames between two of its contours."""
