@@ -231,6 +231,15 @@ def select_bone_track(
     # The track: the best-valued end whose path links at least ``min_track_frames``
     # frames (fewer if the sweep has fewer): one frame alone, or two, can be speckle
     # that happens to look like a line; a bone continues through the sweep.
+    if not (back >= 0).any():
+        # No two frames link (a sweep of a few scattered frames, tens of mm apart):
+        # continuity cannot be checked, so each frame is judged alone, its strongest
+        # candidate kept (the track has nothing to choose between).
+        for f, ks in by_frame.items():
+            k = max(ks, key=lambda q: value[q])
+            chosen[f] = nodes[k][1]
+            conf[f] = min(1.0, value[k])
+        return TrackChoice(chosen, conf, reason, detail)
     need = min(p.min_track_frames, len(by_frame))
     length = np.zeros(m, dtype=np.intp)
     for k in range(m):  # nodes are in frame order, so a predecessor comes first
