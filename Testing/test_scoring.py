@@ -119,3 +119,22 @@ def test_score_simulation_perfect_shifted_and_missing(sim) -> None:
     assert ref.recall == pytest.approx(sc.recall) and ref.wrong_share == pytest.approx(
         sc.wrong_share
     )
+
+
+def test_far_cortex_is_not_the_imaged_bone(sim) -> None:
+    # The bone's far side lies on the true surface too (distance ~0), but it is not the
+    # surface the probe images: a segmenter caught on it is on a wrong structure.
+    from BoneUSRecon.Logic.simulation.sections import bone_sections
+
+    n, w = sim.sweep.n_frames, sim.sweep.width
+    sec = bone_sections(sim.geometry, sim.path.image_to_reference, sim.path.s, w, far=True)
+    far = {}
+    for k in range(n):
+        i = np.flatnonzero(np.isfinite(sec.bottom_j[k]) & (sec.bottom_j[k] < sim.sweep.height - 1))
+        if i.size >= 3 and len(sim.true_contours_px[k]):
+            far[k] = np.column_stack([i, sec.bottom_j[k, i]])
+    assert len(far) >= n // 2
+    k0 = next(iter(far))
+    assert sim.distance_to_truth(sim.sweep.to_reference(k0, far[k0])).max() < 0.01
+    sc = score_simulation(_result(far, n), sim)
+    assert sc.recall == 0.0 and sc.wrong_share == pytest.approx(len(far) / n)

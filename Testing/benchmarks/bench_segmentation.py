@@ -9,9 +9,22 @@ the share of kept points farther than 2 mm, the share of corrupted frames reject
 same frames, as a ratio. Also times the default segmenter on 480x640 frames and runs
 both segmenters on the shared real PLUS recording (overlays written with --overlay).
 
+First, the frame-level table of issue 10 (item 7; :mod:`BoneUSRecon.Logic.simulation.scoring`),
+per case and segmenter (the default ``shadowpath`` and the paper's ``snake``): frames
+kept, frame recall (share of frames showing bone whose kept points lie on it, median
+< 1 mm), wrong-structure share (kept with a median > 3 mm, or kept where no bone is
+shown), point accuracy (median, p95, share > 2 mm), flank coverage (share of the true
+contour's width covered) and the median steepest slope reached on the bone (beside the
+true contour's). Cases: every bone at standard realism; every bone at ``realism="hard"``;
+each hard condition alone on the tibia; the two shared real recordings and their hard
+augmentations (``augment.HARD_AUGMENTATIONS``), scored against the reference contours of
+``Testing/data`` (see its README for their precision).
+
 Run: ``python Testing/benchmarks/bench_segmentation.py [--frames 60] [--overlay DIR]``
+(``--table-only`` for the frame-level table alone; ``--sim-frames``, ``--no-real``).
 Targets for the default: median <= 0.15 mm, p95 <= 0.5 mm, < 1 % beyond 2 mm,
->= 10x faster per frame than skimage's snake.
+>= 10x faster per frame than skimage's snake; issue 10: frame recall >= 0.95,
+wrong-structure <= 2 %, kept points median <= 0.3 mm (simulated), <= 0.45 mm (real).
 """
 
 from __future__ import annotations
@@ -24,11 +37,100 @@ from pathlib import Path
 import numpy as np
 
 from BoneUSRecon.Logic.segmentation import SEGMENTERS, SegmentationParams, segment_sweep
-from BoneUSRecon.Logic.simulation import BONES, SimulationParams, simulate
+from BoneUSRecon.Logic.simulation import BONES, HARD_CONDITIONS, SimulationParams, simulate
 
 PLUS_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "plus"
 REAL = PLUS_DIR / "BoneUltrasound_L14.igs.mha"
 REAL_XML = PLUS_DIR / "BoneUltrasound_L14_config.xml"
+DATA = Path(__file__).resolve().parents[1] / "data"
+#: The shared recordings with reference contours: (name, sweep, calibration, reference CSV).
+RECORDINGS = (
+    ("L14", REAL, REAL_XML, DATA / "L14_reference.csv"),
+    (
+        "Spine",
+        PLUS_DIR / "SpinePhantomFreehand.igs.mha",
+        PLUS_DIR / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml",
+        DATA / "SpinePhantom_reference.csv",
+    ),
+)
+#: The segmenters of the frame-level table: the default and the paper's.
+TABLE_METHODS = ("shadowpath", "snake")
+
+
+def _segment(sweep, method: str):
+    """Segment, or None when the segmenter finds no bone in any frame (counted as nothing kept)."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+
+    try:
+        return segment_sweep(sweep, SegmentationParams(method=method))
+    except BoneUSReconError:
+        return None
+
+
+def _row(case: str, method: str, summary: dict | None, seconds: float) -> str:
+    if summary is None:
+        return f"{case:24} {method:10} no bone contour found in any frame ({seconds:.1f} s)"
+    s = summary
+    return (
+        f"{case:24} {method:10} {s['kept']:3d}/{s['frames']:<3d} {s['recall']:6.2f} {s['wrong_share']:6.2f} "
+        f"{s['median_mm']:7.3f} {s['p95_mm']:7.3f} {100 * s['over_2mm']:6.1f} {s['coverage']:6.2f} "
+        f"{s['steepest_deg']:6.1f} {s['true_steepest_deg']:6.1f} {seconds:6.1f}"
+    )
+
+
+def frame_table(n_frames: int = 40, real: bool = True) -> None:
+    """Print the frame-level table (issue 10, item 7); see the module docstring."""
+    from BoneUSRecon.Logic.simulation.scoring import (
+        read_reference_csv,
+        score_reference,
+        score_simulation,
+    )
+
+    print(
+        f"{'case':24} {'segmenter':10} {'kept':>7} {'recall':>6} {'wrong':>6} {'median':>7} {'p95':>7} "
+        f"{'>2mm%':>6} {'cover':>6} {'steep':>6} {'true':>6} {'sec':>6}"
+    )
+    small = dict(n_frames=n_frames, width=160, height=128, spacing_mm=0.3, seed=5)
+    cases: list[tuple[str, SimulationParams]] = [
+        (f"{b} standard", SimulationParams(bone=b, **small)) for b in BONES
+    ]
+    cases += [(f"{b} hard", SimulationParams(bone=b, realism="hard", **small)) for b in BONES]
+    cases += [
+        (
+            f"tibia hard:{c}",
+            SimulationParams(bone="tibia", realism="hard", hard_conditions=(c,), **small),
+        )
+        for c in HARD_CONDITIONS
+    ]
+    for name, params in cases:
+        sim = simulate(params)
+        for m in TABLE_METHODS:
+            t = time.perf_counter()
+            r = _segment(sim.sweep, m)
+            dt = time.perf_counter() - t
+            print(
+                _row(name, m, None if r is None else score_simulation(r, sim).summary(), dt),
+                flush=True,
+            )
+    if not real:
+        return
+    from BoneUSRecon.Logic.sequence_io import read_sweep
+    from BoneUSRecon.Logic.simulation import augment
+
+    for name, mha, xml, csv in RECORDINGS:
+        if not (mha.exists() and csv.exists()):
+            print(f"{name}: recording or reference absent, skipped")
+            continue
+        sw = read_sweep(mha, calibration=xml)
+        ref = read_reference_csv(csv)
+        variants = {"": sw} | {f" {k}": f(sw) for k, f in augment.HARD_AUGMENTATIONS.items()}
+        for suffix, s in variants.items():
+            for m in TABLE_METHODS:
+                t = time.perf_counter()
+                r = _segment(s, m)
+                dt = time.perf_counter() - t
+                row = None if r is None else score_reference(r, s, ref).summary()
+                print(_row(f"{name}{suffix}", m, row, dt), flush=True)
 
 
 def skimage_seconds_per_frame(frames: np.ndarray, n: int = 5) -> float:
@@ -59,8 +161,23 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=256)
     ap.add_argument("--overlay", type=Path, help="write real-data overlays here")
+    ap.add_argument(
+        "--sim-frames",
+        type=int,
+        default=40,
+        help="frames per simulated sweep of the frame-level table",
+    )
+    ap.add_argument("--table-only", action="store_true", help="print the frame-level table only")
+    ap.add_argument(
+        "--no-real", action="store_true", help="frame-level table: skip the real recordings"
+    )
     args = ap.parse_args()
     warnings.simplefilter("ignore")
+
+    frame_table(args.sim_frames, real=not args.no_real)
+    if args.table_only:
+        return
+    print()
 
     print(
         f"{'bone':9} {'segmenter':10} {'median':>7} {'p95':>7} {'>2mm%':>6} "

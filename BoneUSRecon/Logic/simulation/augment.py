@@ -29,6 +29,9 @@ __all__ = [
     "resample_spacing",
     "crop",
     "RECORDING_AUGMENTATIONS",
+    "HARD_AUGMENTATIONS",
+    "tissue_level",
+    "harden",
     "contour_agreement",
 ]
 
@@ -102,6 +105,128 @@ def crop(sweep: Sweep, rows: tuple[int, int], cols: tuple[int, int]) -> Sweep:
     return _with(sweep, sweep.frames[:, rows[0] : rows[1], cols[0] : cols[1]], a)
 
 
+def _lit(frames: np.ndarray) -> np.ndarray:
+    """Pixels inside the imaged area (H, W): rows and columns not black in every frame."""
+    f = np.asarray(frames)
+    cols = f.max(axis=(0, 1)) > 0
+    rows = f.max(axis=(0, 2)) > 0
+    return rows[:, None] & cols[None, :]
+
+
+def tissue_level(
+    frames: np.ndarray, spacing_mm: float, smooth_mm: float = 2.0, upper_half: bool = True
+) -> np.ndarray:
+    """The grey of soft tissue at each depth (H,): the per-row median of the local means
+    (1 mm) of the imaged pixels, over the whole sweep, smoothed over depth.
+
+    With ``upper_half`` (default) the median of the row's brighter half: shadows (dark)
+    and bone echoes (bright, few) are both a minority of a row's pixels at bone depth,
+    so this keeps shadows out without letting the few bright echoes in: the level of
+    the tissue *beside* a shadow. Without, the plain median: the typical grey at that
+    depth. Derived from the recording itself: it follows its gain, TGC and depth.
+    """
+    from scipy.ndimage import gaussian_filter1d, uniform_filter
+
+    f = np.asarray(frames, np.float32)
+    lit = _lit(f)
+    n = max(1, int(round(1.0 / spacing_mm)))
+    local = uniform_filter(f, (1, n, n))
+    h = f.shape[1]
+    level = np.full(h, np.nan, np.float32)
+    for j in np.flatnonzero(lit.any(1)):
+        v = local[:, j, lit[j]].reshape(-1)
+        level[j] = np.median(v[v >= np.median(v)]) if upper_half else np.median(v)
+    ok = np.isfinite(level)
+    level = np.interp(np.arange(h), np.flatnonzero(ok), level[ok]).astype(np.float32)
+    return np.maximum(gaussian_filter1d(level, smooth_mm / spacing_mm, mode="nearest"), 1.0)
+
+
+def harden(
+    sweep: Sweep,
+    *,
+    echo_ratio: float | None = 1.3,
+    shadow_ratio: float | None = 0.65,
+    reverb: float = 0.35,
+    reverb_mm: float = 2.5,
+    reverb_copies: int = 3,
+    echo_percentile: float = 99.9,
+    seed: int = 0,
+) -> Sweep:
+    """Make a recording look like the hard cadaver sweep of issue 10.
+
+    Levels come from each recording itself, per depth, never from absolute greys
+    (:func:`tissue_level` ``T(j)``: the grey of soft tissue at each depth):
+
+    * ``shadow_ratio``: where the local mean (3 mm box) falls below ``shadow_ratio * T``
+      (a shadow), pixels are scaled up towards that level (at most 4x) and the rest of
+      the deficit is filled with speckle (gamma noise of mean 1): the shadow becomes
+      mid-grey, 0.65 of the tissue at its depth (the cadaver's level), still textured.
+      A recording whose shadow is already that grey is left as it is.
+    * ``reverb``: in the lifted shadow, ``reverb_copies`` copies of the bright excess over
+      ``T`` in the 3.5 mm just above the shadow (the bone line), shifted down by
+      ``m * reverb_mm``, the m-th at ``reverb * 0.75 ** (m - 1)``: equally spaced bands.
+    * ``echo_ratio``: grey above the typical tissue grey at its depth ``M(j)`` (the plain
+      per-row median, ``tissue_level(upper_half=False)``) is compressed in ratio,
+      ``g' = M (g / M) ** gamma`` where ``g > M`` (a softer display curve for the bright
+      end; darker pixels untouched), ``gamma`` per frame such that the frame's
+      brightest echoes (the ``echo_percentile`` of ``g / M`` over the imaged area: the
+      bone line, a few tenths of a per cent of the pixels) come out at ``echo_ratio``
+      times the tissue (the cadaver: the echo 1.35x the tissue above it).
+
+    None (or 0 for ``reverb``) skips a step. The black margins of a scan-converted
+    recording stay black. Poses are unchanged (no pixel moves).
+    """
+    from scipy.ndimage import uniform_filter
+
+    sp = float(np.mean(sweep.spacing_mm))
+    f = np.asarray(sweep.frames, np.float32)
+    lit = _lit(f)
+    t = tissue_level(f, sp)[None, :, None]
+    out = f.copy()
+    if shadow_ratio is not None:
+        n = max(1, int(round(3.0 / sp)))
+        broad = uniform_filter(f, (1, n, n))
+        target = np.float32(shadow_ratio) * t
+        shadow = (broad < target) & lit[None]
+        gain = np.clip(target / np.maximum(broad, 1.0), 1.0, 4.0)
+        deficit = np.clip(target - broad * gain, 0.0, None)
+        noise = np.random.default_rng(seed).gamma(2.0, 0.5, f.shape).astype(np.float32)
+        out = np.where(shadow, f * gain + deficit * noise, f)
+        if reverb > 0 and shadow.any():
+            # The line just above the shadow (within 3.5 mm: the 3 mm box puts the
+            # shadow's edge ~1.5 mm below the bone line), copied down into it.
+            n = max(1, int(round(3.5 / sp)))
+            cs = np.concatenate(
+                [np.zeros_like(shadow[:, :1], np.int32), np.cumsum(shadow, axis=1, dtype=np.int32)],
+                axis=1,
+            )
+            h = f.shape[1]
+            hi = np.minimum(np.arange(h) + n + 1, h)
+            near = (cs[:, hi] - cs[:, 1 : h + 1]) > 0  # any shadow 1..n rows below
+            excess = np.where(near & ~shadow, np.clip(out - t, 0.0, None), 0.0).astype(np.float32)
+            step = max(1, int(round(reverb_mm / sp)))
+            band = np.zeros_like(out)
+            for m in range(1, reverb_copies + 1):
+                if m * step < f.shape[1]:
+                    band[:, m * step :] += (
+                        np.float32(reverb * 0.75 ** (m - 1)) * excess[:, : -m * step]
+                    )
+            out = np.where(shadow, out + band, out)
+    if echo_ratio is not None:
+        # The typical tissue grey at each depth, of the recording as it came (the
+        # lifted shadow would raise it).
+        level = tissue_level(f, sp, upper_half=False)[:, None]
+        for k in range(f.shape[0]):
+            rho = out[k] / level
+            top = float(np.percentile(rho[lit], echo_percentile))
+            if top <= echo_ratio:
+                continue  # already as faint as asked
+            gamma = np.float32(np.log(echo_ratio) / np.log(top))
+            out[k] = np.where(rho > 1.0, level * rho**gamma, out[k])
+    out = np.where(lit[None], out, 0.0)
+    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+
 #: The augmentations the shared L14 recording (820 x 616 pixels) is checked with, by
 #: ``Testing/test_real_recording.py`` and ``Testing/benchmarks/bench_real.py`` alike
 #: (the crop's rows and columns are chosen for that image size).
@@ -117,6 +242,17 @@ RECORDING_AUGMENTATIONS: dict[str, Callable[[Sweep], Sweep]] = {
         0.3,
         seed=2,
     ),
+}
+
+
+#: Augmentations that give a recording the hard cadaver levels of issue 10 (see
+#: :func:`harden`): the echo compressed to 1.3x the tissue, the shadow lifted to 0.65
+#: of the tissue at its depth with reverberation bands, and each alone. Kept apart from
+#: :data:`RECORDING_AUGMENTATIONS` (which the segmenter already holds on).
+HARD_AUGMENTATIONS: dict[str, Callable[[Sweep], Sweep]] = {
+    "low-contrast": lambda s: harden(s, shadow_ratio=None, reverb=0.0),
+    "grey-shadow": lambda s: harden(s, echo_ratio=None),
+    "hard": lambda s: harden(s),
 }
 
 

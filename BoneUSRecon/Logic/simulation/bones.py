@@ -97,7 +97,7 @@ NEIGHBOURS: dict[str, tuple[str, float]] = {
 #: the corners are rounded), flanks falling 1.3 b over 0.52 a (~62 degrees on a tibia,
 #: the cadaver's crest: "about 5 mm flat, 6 mm of flank steeper than 45 degrees"),
 #: a broad posterior side.
-_CREST_CORNERS = ((0.28, 1.0), (-0.28, 1.0), (-0.8, -0.3), (-0.5, -0.95), (0.5, -0.95), (0.8, -0.3))
+_CREST_CORNERS = ((0.36, 1.0), (-0.36, 1.0), (-0.8, -0.3), (-0.5, -0.95), (0.5, -0.95), (0.8, -0.3))
 #: Harmonics of the crest's Fourier series and the Gaussian taper of their weights:
 #: 24 harmonics tapered at 6 keep the outline convex (no Gibbs ripples) with corners
 #: rounded over ~1-2 mm.

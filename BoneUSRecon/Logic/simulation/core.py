@@ -19,7 +19,7 @@ from BoneUSRecon.Logic.fileio import atomic_path, can_create_file_in
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, NEIGHBOURS, UP, BoneGeometry
 from BoneUSRecon.Logic.simulation.corruption import choose_corrupted
-from BoneUSRecon.Logic.simulation.hard import crest_of, effective_params, hard_scene
+from BoneUSRecon.Logic.simulation.hard import HardScene, crest_of, effective_params, hard_scene
 from BoneUSRecon.Logic.simulation.hard import echo_strength as hard_echo_strength
 from BoneUSRecon.Logic.simulation.imaging import render_frames
 from BoneUSRecon.Logic.simulation.motion import ProbePath, probe_path
@@ -68,6 +68,10 @@ class Simulation:
     neighbour : BoneGeometry or None
         The other forearm bone shown beside the target (a distractor; not in the
         truth, the gold points or the contours), when there is one.
+    hard_scene : HardScene or None
+        With ``realism="hard"``: where the hard conditions were drawn, in pixels per
+        frame (fascia, no-contact gap, vessel, far cortex; see :mod:`.hard`): the
+        look-alikes a segmenter must not take for bone. None at standard realism.
     """
 
     sweep: Sweep
@@ -83,6 +87,7 @@ class Simulation:
     sections: BoneSections
     swept_range_mm: tuple[float, float]
     neighbour: BoneGeometry | None = None
+    hard_scene: HardScene | None = None
 
     def truth_polydata(self) -> vtkPolyData:
         """The true bone surface as triangles with outward point ``Normals``."""
@@ -115,6 +120,28 @@ class Simulation:
     def contour_mm(self, frame: int) -> np.ndarray:
         """The true visible contour of ``frame`` in reference mm, shape (K, 3)."""
         return self.sweep.to_reference(frame, self.true_contours_px[frame])
+
+    def true_profile(self, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The bone under every column of ``frame`` that meets it, visible or not.
+
+        Returns
+        -------
+        points_px : ndarray (K, 2)
+            ``(i, j)``: the column and the (sub-pixel) row of the first bone surface its
+            beam meets, ordered by ``i`` (the target bone only).
+        slope_deg : ndarray (K,)
+            In-plane slope of that surface (degrees from the image's lateral axis).
+        visible : ndarray of bool (K,)
+            Whether the point is part of the true visible contour (``true_contours_px``).
+        """
+        from BoneUSRecon.Logic.simulation.scoring import contour_slopes_deg
+
+        j = self.sections.top_j[frame]
+        i = np.flatnonzero(np.isfinite(j) & (np.nan_to_num(j, nan=-1.0) >= 0) & (np.nan_to_num(j, nan=-1.0) <= self.sweep.height - 1))
+        pts = np.column_stack([i.astype(float), j[i]]) if i.size else np.empty((0, 2))
+        sx, sy = (float(v) for v in self.sweep.spacing_mm)
+        visible = np.isin(i, self.true_contours_px[frame][:, 0].astype(int))
+        return pts, contour_slopes_deg(pts * [sx, sy]), visible
 
     def contours_mm(self) -> list[tuple[int, np.ndarray]]:
         """``(frame, (K, 3) mm)`` for every valid frame with a visible bone, in frame order.
@@ -296,8 +323,8 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         # The neighbouring bone's echo keeps the standard angle law.
         ip = params.imaging
         c2 = np.clip(cos_inc, 0, 1)
-        strength = np.where(use2, c2**ip.specular_exponent + ip.diffuse_fraction * c2, scene.strength)
-        scene = replace(scene, strength=strength)
+        both = np.where(use2, c2**ip.specular_exponent + ip.diffuse_fraction * c2, scene.strength)
+        scene = replace(scene, strength=both)
     frames = render_frames(
         path.image_to_reference, top_j, cos_inc, params, kinds, progress, tissue_top_j=sections.top_j, scene=scene
     )
@@ -359,6 +386,7 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         sections=sections,
         swept_range_mm=swept,
         neighbour=other,
+        hard_scene=scene,
     )
 
 

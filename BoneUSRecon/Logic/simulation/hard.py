@@ -30,6 +30,7 @@ skin, vessel or reverberations.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -46,7 +47,7 @@ def effective_params(params: SimulationParams) -> SimulationParams:
     if params.realism != "hard":
         return params
     h, ip = params.hard, params.imaging
-    changes: dict[str, float | int] = {}
+    changes: dict[str, Any] = {}
     if params.has("low_contrast"):
         changes.update(
             display_max_db=h.display_max_db,

@@ -88,15 +88,17 @@ def echo_levels(
         per["shadow"].append(float(np.median(shadow)) if shadow.size else np.nan)
         per["beside"].append(float(np.median(lit)) if lit.size else np.nan)
     a = {k: np.array(v, float) for k, v in per.items()}
-    out = {k: float(np.nanmedian(v)) if np.isfinite(v).any() else np.nan for k, v in a.items()}
+    out = {
+        name: float(np.nanmedian(v)) if np.isfinite(v).any() else np.nan for name, v in a.items()
+    }
     with np.errstate(divide="ignore", invalid="ignore"):
         ratios = {
             "echo_to_above": a["echo"] / a["above"],
             "shadow_to_echo": a["shadow"] / a["echo"],
             "shadow_to_beside": a["shadow"] / a["beside"],
         }
-    for k, v in ratios.items():
-        v = v[np.isfinite(v)]
-        out[k] = float(np.median(v)) if v.size else np.nan
+    for name, r in ratios.items():
+        r = r[np.isfinite(r)]
+        out[name] = float(np.median(r)) if r.size else np.nan
     out["frames"] = float(a["echo"].size)
     return out

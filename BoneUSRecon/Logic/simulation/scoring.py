@@ -23,6 +23,7 @@ frame, in mm). Pure numpy on the contours' reference-mm points.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -40,6 +41,7 @@ __all__ = [
     "contour_slopes_deg",
     "densify_px",
     "polyline_distance",
+    "read_reference_csv",
     "score_frames",
     "score_reference",
     "score_simulation",
@@ -258,25 +260,46 @@ def _slopes(sweep: Sweep, contours_px: Mapping[int, np.ndarray]) -> dict[int, np
 
 
 def score_simulation(
-    result: SegmentationResult, sim: Simulation, *, cover_mm: float = COVER_MM
+    result: SegmentationResult,
+    sim: Simulation,
+    *,
+    cover_mm: float = COVER_MM,
+    beyond_mm: float = 1.5,
 ) -> SweepScore:
     """Score a segmentation of a simulated sweep against its exact truth.
 
-    Distances are to the analytic bone surface; the true contour of a frame is its
-    visible contour (``sim.true_contours_px``); every valid frame is scored.
+    Distances are to the analytic bone surface (exact), for points within ``beyond_mm``
+    of the frame's true visible contour (``sim.true_contours_px``: a flank followed a
+    little further than the visible limit still counts at its true distance); farther
+    from it, the distance to that contour: the far cortex, deep in the shadow, lies on
+    the bone's surface too but is not the imaged surface. Every valid frame is scored.
     """
     sw = sim.sweep
     frames = [k for k in range(sw.n_frames) if sw.valid[k]]
     px = {k: sim.true_contours_px[k] for k in frames if len(sim.true_contours_px[k])}
     truth = {k: sw.to_reference(k, c) for k, c in px.items()}
+
+    def dist(k: int, p: np.ndarray) -> np.ndarray:
+        d = sim.distance_to_truth(p)
+        if k not in truth:
+            return d
+        dc = polyline_distance(p, truth[k])
+        return np.where(dc <= beyond_mm, d, dc)
+
     return score_frames(
-        _kept_mm(result, sw),
-        truth,
-        frames,
-        lambda k, p: sim.distance_to_truth(p),
-        _slopes(sw, px),
-        cover_mm=cover_mm,
+        _kept_mm(result, sw), truth, frames, dist, _slopes(sw, px), cover_mm=cover_mm
     )
+
+
+def read_reference_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
+    """Reference contours from a CSV of ``frame,i,j`` rows (header first), per frame
+    ``(M, 2)`` pixels ordered by ``i`` (the format of ``Testing/data/*_reference.csv``)."""
+    a = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    out: dict[int, np.ndarray] = {}
+    for k in np.unique(a[:, 0]).astype(int):
+        c = a[a[:, 0] == k, 1:3]
+        out[int(k)] = c[np.argsort(c[:, 0], kind="stable")]
+    return out
 
 
 def score_reference(
@@ -285,22 +308,46 @@ def score_reference(
     reference_px: Mapping[int, np.ndarray],
     *,
     cover_mm: float = COVER_MM,
+    beyond_mm: float = 1.0,
 ) -> SweepScore:
     """Score a segmentation of a recording against reference contours drawn on it.
 
     ``reference_px`` maps a frame to its reference bone contour ``(M, 2)`` pixels
-    ``(i, j)`` ordered by ``i`` (see ``Testing/data/README.md``); frames absent from
-    it show no bone. Distances are to the frame's reference polyline in reference mm,
-    so they carry the reference's own error (a few tenths of a mm).
+    ``(i, j)`` ordered by ``i`` (see ``Testing/data/README.md``); an empty contour means
+    the frame shows no bone; frames absent from it are not scored (no reference could
+    be drawn). Distances are to the frame's reference polyline in reference mm, so
+    they carry the reference's own error (a few tenths of a mm). Kept points more than
+    ``beyond_mm`` beyond the reference's ends (a flank the reference stops short of)
+    are not measured; a frame whose kept points all lie beyond them counts as kept on
+    something else.
     """
-    frames = [k for k in range(sweep.n_frames) if sweep.valid[k]]
+    sx = float(sweep.spacing_mm[0])
+    frames = [k for k in range(sweep.n_frames) if sweep.valid[k] and k in reference_px]
     px = {k: densify_px(c) for k, c in reference_px.items() if len(c)}
     truth = {k: sweep.to_reference(k, c) for k, c in px.items()}
-    return score_frames(
-        _kept_mm(result, sweep),
-        truth,
-        frames,
-        lambda k, p: polyline_distance(p, truth[k]) if k in truth else np.full(len(p), np.inf),
-        _slopes(sweep, px),
-        cover_mm=cover_mm,
-    )
+    kept: dict[int, np.ndarray] = {}
+    for c in result.accepted:
+        if c.frame not in reference_px or not c.points_px.shape[0]:
+            continue
+        p = np.asarray(c.points_px, float)
+        if c.frame in px:
+            ref = px[c.frame]
+            inside = (p[:, 0] >= ref[0, 0] - beyond_mm / sx) & (
+                p[:, 0] <= ref[-1, 0] + beyond_mm / sx
+            )
+            # All beyond the ends: one point far off stands for the frame (wrong structure).
+            p = p[inside] if inside.any() else p[:1]
+        kept[c.frame] = sweep.to_reference(c.frame, p)
+
+    def dist(k: int, p: np.ndarray) -> np.ndarray:
+        if k not in truth:
+            return np.full(len(p), np.inf)
+        d = polyline_distance(p, truth[k])
+        ref = px[k]
+        ij = np.linalg.solve(
+            sweep.image_to_reference[k][:3, :3], (p - sweep.image_to_reference[k][:3, 3]).T
+        ).T
+        out = (ij[:, 0] < ref[0, 0] - beyond_mm / sx) | (ij[:, 0] > ref[-1, 0] + beyond_mm / sx)
+        return np.where(out, np.inf, d)
+
+    return score_frames(kept, truth, frames, dist, _slopes(sweep, px), cover_mm=cover_mm)
