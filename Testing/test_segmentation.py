@@ -388,3 +388,20 @@ def test_track_neighbours_are_by_distance_along_the_sweep():
     ch2 = select_bone_track(frames2, poses2)
     assert (ch2.chosen[:5] == 0).all() and (ch2.chosen[5:] == -1).all()
     assert set(ch2.reason[5:]) == {"jump from neighbouring frames"}
+
+
+@pytest.mark.parametrize(
+    ("cls", "field", "value"),
+    [
+        ("ShadowPathParams", "work_mm", 0.0),
+        ("ShadowPathParams", "shadow_z_full", -2.0),
+        ("ShadowPathParams", "tissue_percentile", 100.0),
+        ("RejectionParams", "tolerance_mm", -1.0),
+        ("RejectionParams", "max_skip", -1),
+    ],
+)
+def test_parameters_are_checked_at_the_door(cls, field, value):
+    from BoneUSRecon.Logic.segmentation import params
+
+    with pytest.raises(BoneUSReconError, match=field):
+        getattr(params, cls)(**{field: value})

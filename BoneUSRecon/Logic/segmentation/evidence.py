@@ -13,37 +13,39 @@ what speckle does by chance" on any recording; that is why the levels generalise
 
 Per working pixel (rows = candidate echo centre, columns = the lateral position):
 
-* **tissue level** ``T(row)``: the ``tissue_percentile`` (70th) of the grey values of
-  the usable columns at that depth. Bone and its shadow cover a minority of the
-  columns at most depths, and the shadow is darker and the echo thin, so the 70th
-  percentile is the tissue's level however bright or dark the gain and attenuation
-  make it at that depth (per-depth tissue statistics).
-* **echo** ``log(M_mid / max(M_up, T(row)))``: the band brighter than both the tissue
-  right above it and the typical tissue at its depth.
-* **shadow** ``min(log(T_below / M_below), log(T_far / M_far))``: the region under the
+* **tissue level** ``T(row)``: a percentile of the grey values of the usable columns at
+  that depth, smoothed over ~1 mm of depth (per-depth tissue statistics: gain, TGC and
+  attenuation change it with depth, so it is measured per row). Two references come
+  from it, robust to a bone or the skin line spanning most of the width: for the
+  shadow windows the 80th percentile (tissue beside a shadow covering up to 80 % of
+  the columns); for the echo band and the cover the 60th percentile's minimum within
+  +-1 mm of depth (a thin line spanning the width raises only its own rows).
+* **echo** ``log(M_mid / max(M_up, T_echo(row)))``: the band brighter than both the
+  tissue right above it and the typical tissue at its depth.
+* **shadow** ``min(log(T_near / M_near), log(T_far / M_far))``: the region under the
   band darker than the tissue *at the same depth* (not than the echo: a grey shadow
   0.4 of the echo is still 0.65 of the tissue beside it), over a near window
-  (``shadow_gap_mm`` .. ``shadow_mm``) and a long one (down to ``far_shadow_mm``).
-  The long window is the shadow depth: bone stops sound to the bottom of the image,
-  a vessel lumen or a gap between fasciae is dark only for a few mm with brighter
-  tissue (posterior enhancement, ring-down) under it.
-* **cover** ``log(M_cover / T_cover)``: soft tissue above the band (1-5 mm above),
-  compared with the tissue at those depths. Bone always lies under soft tissue; the
-  skin line over a no-contact gap, the lens reverberations of the uncoupled probe, and
-  the posterior wall of a vessel have (near) anechoic gel, air or lumen above them.
-  Pixels whose cover is darker than ``cover_ratio`` of the tissue there score 0.
+  (``shadow_gap_mm`` .. ``shadow_mm``: the shadow starts right under the surface, so a
+  line mm above the bone, with tissue beneath, is not it) and a long one (down to
+  ``far_shadow_mm``: the shadow depth; bone stops sound to the bottom of the image, a
+  vessel lumen or a gap between fasciae is dark for a few mm only, with brighter
+  tissue (posterior enhancement, ring-down) under it).
+* **cover** ``M_cover / T_cover``: soft tissue above the band (1-5 mm above, the part of
+  that window inside the image), compared with the tissue at those depths. Bone
+  always lies under soft tissue; the skin line over a no-contact gap, the lens
+  reverberations of an uncoupled probe, and the posterior wall of a vessel have
+  anechoic gel, air or lumen above them. Pixels whose cover is darker than
+  ``cover_ratio`` of the tissue there score 0.
 
-The score is the geometric mean of the positive parts of the echo and shadow z-scores:
-both are needed (a fascia or tendon is a bright line with tissue, not shadow, beneath:
-shadow z ~ 0; the top of a dark region is not a line: echo z ~ 0).
+The score is the echo z-score (positive part) times a shadow gate rising from 0 at
+``shadow_z_zero`` (the region below brighter than the tissue at its depth: a fascia or
+tendon, a bright line with tissue beneath) to 1 at ``shadow_z_full`` (clearly darker).
 
 Columns outside the imaged field of view (black margins of scan-converted images) and
 columns without probe contact (dark from the near field down, as an uncoupled probe
 edge is) score 0.
 
-Features tried and dropped (``Testing/benchmarks/bench_segmentation.py --features``):
-local phase symmetry (Hacihaliloglu et al. 2009, ``phasepack.phasesym``) and
-Karamalis' random-walk confidence map. See the package docstring for the figures.
+Features tried, kept and dropped, with the figures: see the package docstring.
 """
 
 from __future__ import annotations
@@ -190,20 +192,6 @@ def _robust_z(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     med = float(np.median(v))
     mad = float(np.median(np.abs(v - med))) * 1.4826
     return (x - np.float32(med)) / np.float32(max(mad, 1e-3))
-
-
-def _tissue_side_z(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``x`` (0 = like the tissue) over the spread of its tissue side (``x < 0``).
-
-    Shadows may cover most of a frame (a large bone), so neither the median nor the MAD
-    of the shadow ratio describes the tissue. Its brighter-than-tissue half does: half-
-    normal, 1.4826 x its median is the spread speckle gives the window means.
-    """
-    v = x[valid]
-    neg = -v[v < 0]
-    if neg.size < 10:
-        return _robust_z(x, valid)
-    return x / np.float32(max(1.4826 * float(np.median(neg)), 1e-3))
 
 
 def _contact(work: np.ndarray, tissue: np.ndarray, dy: float, p: ShadowPathParams) -> np.ndarray:

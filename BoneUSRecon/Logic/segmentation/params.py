@@ -29,6 +29,19 @@ __all__ = [
     "SegmentationParams",
 ]
 
+
+def _check_ranges(obj: object, positive: tuple[str, ...], non_negative: tuple[str, ...]) -> None:
+    """Raise :class:`BoneUSReconError` naming the first field out of range."""
+    for name in positive:
+        v = getattr(obj, name)
+        if not v > 0:
+            raise BoneUSReconError(f"{type(obj).__name__}.{name} must be > 0, got {v!r}")
+    for name in non_negative:
+        v = getattr(obj, name)
+        if not v >= 0:
+            raise BoneUSReconError(f"{type(obj).__name__}.{name} must be >= 0, got {v!r}")
+
+
 #: Size (mm) of one "pixel" of the paper. All pixel-valued parameters below are in
 #: these reference pixels and are converted with the image's own spacing.
 REFERENCE_PIXEL_MM = 0.1
@@ -191,6 +204,51 @@ class ShadowPathParams:
     surface_offset_mm: float = 0.0
     """Added to the echo's peak depth to give the surface depth, mm (the peak of the echo is the surface)."""
 
+    def __post_init__(self) -> None:
+        _check_ranges(
+            self,
+            (
+                "work_mm",
+                "mid_mm",
+                "up_mm",
+                "shadow_mm",
+                "far_shadow_mm",
+                "cover_mm",
+                "max_z",
+                "max_slope",
+                "contact_mm",
+                "min_length_mm",
+                "n_passes",
+                "max_candidates",
+                "suppress_mm",
+                "kink_mm",
+                "refine_mm",
+            ),
+            (
+                "shadow_gap_mm",
+                "cover_gap_mm",
+                "cover_ratio",
+                "null_z",
+                "slope_penalty",
+                "near_field_mm",
+                "switch_cost",
+                "merge_gap_mm",
+                "merge_step_mm",
+                "beneath_ratio",
+                "reverb_tolerance",
+                "refine_sigma_mm",
+            ),
+        )
+        if not self.shadow_z_full > self.shadow_z_zero:
+            raise BoneUSReconError(
+                f"ShadowPathParams.shadow_z_full must be > shadow_z_zero, got {self.shadow_z_full!r}"
+            )
+        if not (0 < self.tissue_percentile < 100 and 0 < self.shadow_percentile < 100):
+            raise BoneUSReconError(
+                "ShadowPathParams.tissue_percentile and shadow_percentile must lie in (0, 100), "
+                f"got {self.tissue_percentile!r}, {self.shadow_percentile!r}"
+            )
+
 
 @dataclass(frozen=True)
 class RejectionParams:
@@ -224,6 +282,21 @@ class RejectionParams:
     """Tracked contours shorter than this laterally are rejected ("contour too short"; ours: continuity with the track already vouches for a short piece of the bone)."""
     min_points: int = 5
     """Tracked contours with fewer points are rejected ("contour too short")."""
+
+    def __post_init__(self) -> None:
+        _check_ranges(
+            self,
+            ("tolerance_mm", "max_deviation", "min_track_frames"),
+            (
+                "tolerance_per_mm",
+                "max_skip",
+                "miss_cost",
+                "beneath_factor",
+                "strength_cap",
+                "min_length_mm",
+                "min_points",
+            ),
+        )
 
 
 @dataclass(frozen=True)
