@@ -69,8 +69,9 @@ class BoneCandidate:
     reverberation : bool
         A reverberation copy of a shallower candidate (never chosen).
     echo_beneath : bool
-        An echo at least ``beneath_ratio`` as bright lies under it (sound went through:
-        soft tissue, not bone); the track values it less.
+        An echo at least ``beneath_ratio`` as bright lies under it and it casts no
+        shadow (sound went through: soft tissue, not bone), or it lies in the shadow of a
+        shallower candidate (far cortex); the track values it less.
     """
 
     points_px: np.ndarray
@@ -249,7 +250,9 @@ def _mark_echo_beneath(cands: list[dict], p: ShadowPathParams) -> None:
 
     Bone stops the sound: what lies under it (reverberation, far cortex) comes back
     much fainter than its echo. A line with an echo of comparable brightness under it
-    (a fascia over the bone, or over another fascia) let the sound through.
+    and no shadow of its own (a fascia over the bone, or over another fascia) let the
+    sound through; a line lying in the shadow of a shallower candidate (the far cortex
+    under a grey shadow) is no first interface. Either is flagged.
     """
     for c in cands:
         for b in cands:
@@ -261,9 +264,12 @@ def _mark_echo_beneath(cands: list[dict], p: ShadowPathParams) -> None:
                 continue
             if np.median(b["rows"][ib] - c["rows"][ic]) <= 0:
                 continue  # b is not below c
-            if b["grey"] >= p.beneath_ratio * c["grey"]:
+            if c["shadow"] >= p.shadow_z_full:
+                # c casts a shadow: b lies inside it (the far cortex, a reverberation):
+                # not a first interface.
+                b["beneath"] = True
+            elif b["grey"] >= p.beneath_ratio * c["grey"]:
                 c["beneath"] = True
-                break
 
 
 def convex_part(
