@@ -22,14 +22,15 @@ arrive and the second on the frames so far:
   its posterior choice of points (:mod:`.snake`, :mod:`.posterior`); its contour is the
   frame's one candidate, scored on the same evidence and chosen by the same track.
 
-Measured (issue 10; ``Testing/benchmarks/bench_segmentation.py --table-only`` and the
-README's frame-level tables): on simulated standard sweeps frame recall 0.95-1.00,
-no wrong-structure frame, kept points 0.03 mm median; on the ``realism="hard"``
-preset (echo 1.3x the tissue above, grey shadow, crest, fascia, skin gap, vessel) frame
-recall 0.55-0.78 (the previous segmenter: no bone at all), no wrong-structure frame,
-0.03-0.05 mm median. Each hard condition alone: recall 0.85-1.00, wrong 0. On the
-real L14 recording 21/21 frames on the bone (contours 13-20 mm wide: the flanks beyond
-~60 degrees are not followed). Low echo contrast is what still costs recall.
+Measured (issue 10; ``Testing/benchmarks/bench_segmentation.py --table-only``, tables
+in ``Testing/benchmarks/README.md``): standard simulated sweeps, frame recall
+0.95-1.00, no wrong-structure frame, kept points 0.03 mm median; every hard condition
+alone but the grey shadow, recall 0.90-1.00 and no wrong frame; the full
+``realism="hard"`` sweeps, recall 0.35-0.75 (the previous segmenter found no bone), no
+wrong frame on radius, ulna and clavicle but 40 % on tibia and humerus, where the
+track follows the far cortex or a reverberation band under the grey shadow (the open
+problem, with the real L14 recording compressed to a 1.3x echo). The real L14 as
+recorded: 21/21 frames on the bone, 0.040 mm median from its reference contours.
 
 Features tried (measured, frame recall on hard sweeps): local phase symmetry along
 depth (own 1-D log-Gabor filters, Hacihaliloglu's measure; 2-D ``phasepack.phasesym``
