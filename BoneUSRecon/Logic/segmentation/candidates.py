@@ -291,7 +291,11 @@ def convex_part(
         return keep
     x = points_px[:, 0] * float(spacing[0])
     z = points_px[:, 1] * float(spacing[1])
-    top = int(np.argmin(z))
+    # The apex: the shallowest point away from the ends (a contour that climbs onto a
+    # layer at one end must not have its apex there).
+    span = x.max() - x.min()
+    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
+    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
     win = p.kink_mm
     for side in (-1, 1):
         idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
