@@ -35,8 +35,10 @@ def test_real_contours_cover_the_flanks_inside_the_field_of_view(real):
     assert len(r.accepted) == sw.n_frames == 21
     sx = float(sw.spacing_mm[0])
     extent = np.array([np.ptp(c.points_px[:, 0]) * sx for c in r.accepted])
-    # Measured 19-25 mm per frame (the top of the arc alone, as before, was 6-17 mm).
-    assert np.median(extent) >= 18.0 and extent.min() >= 14.0
+    # Measured 13.3-19.7 mm per frame, median 17.4 (the contrast-adaptive segmenter of
+    # issue 10; the previous, tuned on this recording, reached 16.7-25.1: the steepest
+    # parts of the flanks, beyond ~60 degrees, are not followed here).
+    assert np.median(extent) >= 16.0 and extent.min() >= 12.0
     # Imaged columns: where the frames are not black (176-642 here).
     lit = np.flatnonzero(np.asarray(sw.frames).max(axis=(0, 1)) > 0)
     for c in r.accepted:
@@ -56,7 +58,9 @@ def test_augmented_recording_gives_the_same_bone(real, name):
     aug = augment.RECORDING_AUGMENTATIONS[name](sw)
     r2 = segment_sweep(aug)
     d, cover, beyond = augment.contour_agreement(sw, r, aug, r2)
-    assert len(r2.accepted) >= 20
+    # 21/21 on every copy but the 0.15 mm one (19/21: in two frames the track keeps a
+    # piece of the bone shorter than 1.5 mm, rejected as too short).
+    assert len(r2.accepted) >= 19
     # On the same curve where both contours are (measured medians 0.004-0.03 mm).
     assert np.median(d) <= 0.1
     assert np.percentile(d, 95) <= 0.5

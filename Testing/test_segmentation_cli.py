@@ -35,7 +35,10 @@ def test_segment_writes_points_and_overlays(sweep_file, tmp_path, capsys):
     pngs = sorted(p.name for p in ov.glob("*.png"))
     assert pngs == [f"frame_{k:04d}.png" for k in range(8)]
     text = capsys.readouterr().out
-    assert "rejected" in text and "no bone found" in text
+    # Frame 3 has no bone, only the analytic frame's faint fascia at 3 mm: it is off the
+    # track ("jump from neighbouring frames") or has no candidate ("no bone found").
+    assert "rejected" in text
+    assert "jump from neighbouring frames" in text or "no bone found" in text
 
 
 def test_segment_json_and_snake(sweep_file, tmp_path, capsys):

@@ -1,44 +1,46 @@
-"""Bone contour segmentation (paper step B), per frame and per sweep.
+"""Bone contour segmentation (paper step B): candidates per frame, one track per sweep.
 
-Two segmenters, selectable by name in :data:`SEGMENTERS`:
+Two steps, both public, so that a live reconstruction can run the first as frames
+arrive and the second on the frames so far:
 
-* ``"shadowpath"`` (default): shadow-gated contrast map and a dynamic-programming
-  optimal path across columns with a no-bone state, sub-pixel peak refinement and a
-  temporal prior (:mod:`.shadowpath`).
+* per frame (pure, cacheable): :func:`frame_candidates_for` (any segmenter) or
+  :func:`frame_candidates` (the default's): up to five candidate contours with their
+  evidence (:mod:`.candidates`, :mod:`.evidence`);
+* per sweep: :func:`select_bone_track` chooses one candidate or none per frame by a
+  dynamic programme over the frames, continuity measured in 3D through the poses
+  (:mod:`.track`); :func:`contours_from_track` packs the choice as
+  :class:`FrameContour` objects with their rejection reason (one category) and detail.
+
+:func:`segment_sweep` runs both. Segmenters, selectable by name in :data:`SEGMENTERS`:
+
+* ``"shadowpath"`` (default): contrast-adaptive evidence (every level from the frame
+  itself: per-depth tissue levels, robust z-scores; echo against the tissue above it,
+  shadow against the tissue at the same depth beside it, soft tissue above) and
+  repeated optimal paths across columns; look-alikes (skin over a no-contact gap,
+  reverberation copies, fascia, vessels) handled by the rules of :mod:`.candidates`.
 * ``"snake"``: the paper's open active contour with balloon and regional energies and
-  its posterior choice of points (:mod:`.snake`, :mod:`.posterior`).
+  its posterior choice of points (:mod:`.snake`, :mod:`.posterior`); its contour is the
+  frame's one candidate, scored on the same evidence and chosen by the same track.
 
-Every segmenter's output goes through the same confidence and rejection checks
-(:mod:`.rejection`); rejected frames are reported and never reach the surface fit.
+Measured (issue 10; ``Testing/benchmarks/bench_segmentation.py --table-only``, tables
+in ``Testing/benchmarks/README.md``): standard simulated sweeps, frame recall
+0.95-1.00, no wrong-structure frame, kept points 0.03 mm median; every hard condition
+alone but the grey shadow, recall 0.90-1.00 and no wrong frame; the full
+``realism="hard"`` sweeps, recall 0.35-0.75 (the previous segmenter found no bone), no
+wrong frame on radius, ulna and clavicle but 40 % on tibia and humerus, where the
+track follows the far cortex or a reverberation band under the grey shadow (the open
+problem, with the real L14 recording compressed to a 1.3x echo). The real L14 as
+recorded: 21/21 frames on the bone, 0.040 mm median from its reference contours.
 
-Measured (``Testing/benchmarks/bench_segmentation.py``: 60-frame 256x320 simulated
-sweeps at 0.15 mm/px of each of the five bones with 10 % corrupted frames, simulator
-version 2 (grey shadow with reverberation, thick echo, weak flanks, dropouts);
-distances of the kept points to the true bone surface, all bones pooled):
-
-============  ========  ========  =========  ====================================
-segmenter     median    p95       > 2 mm     corrupted frames rejected / harmless
-============  ========  ========  =========  ====================================
-shadowpath    0.030 mm  0.072 mm  0.30 %     33-83 % / 100 %
-snake         0.150 mm  0.390 mm  1.67 %     67-83 % / 100 %
-============  ========  ========  =========  ====================================
-
-("harmless": rejected, or kept with its points on the bone, e.g. the bone found under
-a false echo.) On the version-1 simulator (black shadow, thin echo) shadowpath had
-0.011 / 0.039 mm and the snake 0.120 / 0.301 mm. The paper's snake, rising from
-below, is caught by the reverberations in a grey shadow (the paper's own failure
-mode, "noise on the acoustic shadow": 0.227 / 12.2 mm, 24 % of points > 2 mm)
-unless restarted above a faint contour with shadow on both sides, as it now is.
-
-On the real L14 recording (``Testing/benchmarks/bench_real.py``) shadowpath accepts
-21/21 frames with contours of 16.7-25.1 mm (median 20.8 mm; 6-17 mm before the
-flank-friendly defaults), and mirrored, +-30 % gain, speckled, 0.15 mm and cropped
-copies give the same contour within 0.004-0.04 mm (median). The steep lower flanks
-(beyond ~60 degrees, echo barely above the tissue) are still not traced.
-
-shadowpath runs at ~9 ms per 480x640 frame on one core (segmenter alone; ~15 ms with
-the rejection checks), 30-60x faster than ``skimage.segmentation.active_contour``
-(100 points, 300 iterations, free ends) on the same frames. Hence it is the default.
+Features tried (measured, frame recall on hard sweeps): local phase symmetry along
+depth (own 1-D log-Gabor filters, Hacihaliloglu's measure; 2-D ``phasepack.phasesym``
+costs 33-60 ms on the working image alone, over the frame budget) instead of the
+echo log-ratio: tibia/radius hard 0.50/0.53 -> 0.00/0.00, standard 1.00/0.95 ->
+0.57/0.62: dropped (``ShadowPathParams.phase_symmetry`` off). Lateral smoothing of the
+working image (0.4 mm): standard clavicle recall 0.97 -> 0.60: dropped. Shadow depth
+(a long window to 12 mm beside the near one): kept, it is what separates a vessel
+lumen or a gap between fasciae from a bone's shadow. Karamalis' confidence maps were
+not tried (a sparse random-walk solve per frame does not fit 30 frames/s).
 """
 
 from __future__ import annotations
@@ -56,6 +58,14 @@ _LAZY = {
     "SEGMENTERS": "driver",
     "segment_frame": "driver",
     "segment_sweep": "driver",
+    "frame_candidates_for": "driver",
+    "contours_from_track": "driver",
+    "frame_candidates": "candidates",
+    "FrameCandidates": "candidates",
+    "BoneCandidate": "candidates",
+    "select_bone_track": "track",
+    "TrackChoice": "track",
+    "bone_evidence": "evidence",
     "Detection": "detection",
     "REFERENCE_PIXEL_MM": "params",
     "SegmentationParams": "params",
@@ -82,6 +92,14 @@ __all__ = [
     "Detection",
     "segment_frame",
     "segment_sweep",
+    "frame_candidates_for",
+    "contours_from_track",
+    "frame_candidates",
+    "FrameCandidates",
+    "BoneCandidate",
+    "select_bone_track",
+    "TrackChoice",
+    "bone_evidence",
     "points_polydata",
 ]
 

@@ -1,4 +1,14 @@
-"""Segment a whole sweep: per-frame segmenter, temporal prior, confidence, rejection."""
+"""Segment a whole sweep: per-frame candidates, then one bone track over the sweep.
+
+Two public steps, usable separately (e.g. live, as frames arrive):
+
+* :func:`frame_candidates_for` (per frame, pure): the candidate contours of one frame
+  for the segmenter named by ``params.method``;
+* :func:`select_bone_track` (sweep level, :mod:`.track`): one candidate or none per
+  frame, chosen jointly over the frames so far.
+
+:func:`segment_sweep` runs both over a sweep and packs the result.
+"""
 
 from __future__ import annotations
 
@@ -10,40 +20,67 @@ import numpy as np
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.progress import ProgressCallback, report
-from BoneUSRecon.Logic.segmentation.detection import Detection
-from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
-from BoneUSRecon.Logic.segmentation.rejection import (
-    frame_evidence,
-    frame_verdict,
-    neighbour_deviation,
-    trim_kinked_ends,
-    trim_unshadowed_ends,
+from BoneUSRecon.Logic.segmentation.candidates import (
+    FrameCandidates,
+    candidates_from_points,
+    frame_candidates,
 )
+from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
+from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
-from BoneUSRecon.Logic.segmentation.shadowpath import shadowpath_frame
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
+from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice, select_bone_track
 from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
 
-__all__ = ["SEGMENTERS", "FrameSegmenter", "segment_frame", "segment_sweep"]
+__all__ = [
+    "SEGMENTERS",
+    "FrameSegmenter",
+    "segment_frame",
+    "frame_candidates_for",
+    "select_bone_track",
+    "contours_from_track",
+    "segment_sweep",
+]
 
-#: ``(image uint8 (H, W), spacing (sx, sy), params, prior_px or None) -> Detection``
+#: ``(image uint8 (H, W), spacing (sx, sy), params, prior_px or None) -> FrameCandidates``
 FrameSegmenter = Callable[
-    [np.ndarray, tuple[float, float], SegmentationParams, "np.ndarray | None"], Detection
+    [np.ndarray, tuple[float, float], SegmentationParams, "np.ndarray | None"], FrameCandidates
 ]
 
 
 def _snake(image, spacing, params, prior):  # type: ignore[no-untyped-def]
-    return snake_frame(image, spacing, params.snake, params.posterior, prior)
+    # The paper's snake starts 50 px below the previous frame's contour (its own rule,
+    # kept for the paper's method); its contour is the frame's one candidate.
+    det = snake_frame(image, spacing, params.snake, params.posterior, prior)
+    reason = str(det.extras.get("reason", "no bone found"))
+    return candidates_from_points(
+        image, det.points_px, spacing, params.shadowpath, reason, det.extras
+    )
 
 
 def _shadowpath(image, spacing, params, prior):  # type: ignore[no-untyped-def]
-    return shadowpath_frame(image, spacing, params.shadowpath, prior)
+    return frame_candidates(image, spacing, params.shadowpath)
 
 
-#: Segmenters by name. "shadowpath" (default) is the more accurate; "snake" is the paper's.
+#: Segmenters by name. "shadowpath" (default) offers several candidates per frame from
+#: contrast-adaptive evidence; "snake" is the paper's.
 SEGMENTERS: dict[str, FrameSegmenter] = {"shadowpath": _shadowpath, "snake": _snake}
 # SegmentationParams checks a name against SEGMENTER_NAMES (import-free); keep them one list.
 assert tuple(SEGMENTERS) == SEGMENTER_NAMES
+
+
+def frame_candidates_for(
+    image: np.ndarray,
+    spacing: tuple[float, float],
+    params: SegmentationParams = SegmentationParams(),  # noqa: B008 (frozen dataclass)
+    prior_px: np.ndarray | None = None,
+) -> FrameCandidates:
+    """Candidate contours of one frame for the segmenter named by ``params.method``.
+
+    ``prior_px`` (the previous frame's contour) is used by the paper's snake only, for
+    its initialisation; shadowpath depends on the frame alone.
+    """
+    return SEGMENTERS[params.method](np.asarray(image), spacing, params, prior_px)
 
 
 def segment_frame(
@@ -52,9 +89,60 @@ def segment_frame(
     params: SegmentationParams = SegmentationParams(),  # noqa: B008 (frozen dataclass)
     prior_px: np.ndarray | None = None,
 ) -> Detection:
-    """Run the segmenter named by ``params.method`` on one frame (no rejection)."""
-    # params.method was checked when the SegmentationParams was made.
-    return SEGMENTERS[params.method](np.asarray(image), spacing, params, prior_px)
+    """The strongest candidate of one frame (no sweep-level choice), as a Detection."""
+    fc = frame_candidates_for(image, spacing, params, prior_px)
+    if not fc.usable:
+        return empty_detection(**{**fc.extras, "reason": fc.reason or REASONS["none"]})
+    c = fc.usable[0]
+    return Detection(c.points_px, c.intensity, {**fc.extras, "strength": c.strength})
+
+
+def contours_from_track(
+    frame_indices: np.ndarray,
+    frames: list[FrameCandidates],
+    choice: TrackChoice,
+    params: SegmentationParams = SegmentationParams(),  # noqa: B008 (frozen dataclass)
+) -> tuple[FrameContour, ...]:
+    """One :class:`FrameContour` per frame from the track's choice (rejections explained).
+
+    Rejected frames keep their strongest candidate's points so overlays show what was
+    refused.
+    """
+    rej = params.rejection
+    out = []
+    for n, (k, fc) in enumerate(zip(frame_indices, frames, strict=True)):
+        c = int(choice.chosen[n])
+        reason, detail = choice.reason[n], choice.detail[n]
+        if c >= 0:
+            cand = fc.candidates[c]
+            length = (
+                float(np.ptp(cand.points_px[:, 0]) * fc.spacing[0])
+                if len(cand.points_px) > 1
+                else 0.0
+            )
+            if len(cand.points_px) < rej.min_points or length < rej.min_length_mm:
+                reason, detail = REASONS["short"], f"{length:.1f} mm"
+        else:
+            cand = fc.usable[0] if fc.usable else (fc.candidates[0] if fc.candidates else None)
+        pts = cand.points_px if cand is not None else np.empty((0, 2))
+        inten = cand.intensity if cand is not None else np.empty(0)
+        extras = dict(fc.extras)
+        if cand is not None:
+            extras.update(strength=cand.strength, echo_z=cand.echo_z, shadow_z=cand.shadow_z)
+        extras["candidates"] = len(fc.candidates)
+        out.append(
+            FrameContour(
+                frame=int(k),
+                points_px=pts,
+                intensity=inten,
+                confidence=float(np.clip(choice.confidence[n], 0.0, 1.0)) if not reason else 0.0,
+                accepted=not reason,
+                reason=reason,
+                detail=detail,
+                extras=extras,
+            )
+        )
+    return tuple(out)
 
 
 def segment_sweep(
@@ -62,12 +150,7 @@ def segment_sweep(
     params: SegmentationParams = SegmentationParams(),  # noqa: B008 (frozen dataclass)
     progress: ProgressCallback | None = None,
 ) -> SegmentationResult:
-    """Segment every valid frame of ``sweep`` and reject implausible contours.
-
-    Frames are processed in file order; each frame's segmenter is seeded by the last
-    *accepted* contour (the paper's initialisation rule for the snake, a temporal prior
-    for shadowpath), so a failed frame does not lead the next one astray. After all
-    frames, contours that jump away from their neighbours are rejected too.
+    """Segment every valid frame of ``sweep``: candidates per frame, one track per sweep.
 
     Parameters
     ----------
@@ -90,121 +173,22 @@ def segment_sweep(
     if idx.size == 0:
         raise BoneUSReconError("no valid frame to segment", sweep.source)
     spacing_all = pixel_spacing(sweep.image_to_reference)
-    rej = params.rejection
     t0 = time.perf_counter()
-    dets: dict[int, Detection] = {}
-    verdicts: dict[int, tuple[float, str]] = {}
+    frames: list[FrameCandidates] = []
     prior: np.ndarray | None = None
     # iter_frames releases the memory-mapped pages as it goes: a 600 MB sweep is
     # segmented without its pages piling up in the resident set.
     for n, (k, image) in enumerate(sweep.iter_frames(idx)):
         sp = (float(spacing_all[k, 0]), float(spacing_all[k, 1]))
-        det = segment_frame(image, sp, params, prior)
-        trim = trim_unshadowed_ends(image, det.points_px, sp, rej.max_shadow_ratio)
-        trim[trim] = trim_kinked_ends(det.points_px[trim], sp)
-        if not trim.all():
-            det = Detection(
-                det.points_px[trim],
-                det.intensity[trim],
-                {**det.extras, "trimmed_points": int((~trim).sum())},
-            )
-        ev = frame_evidence(image, det.points_px, sp)
-        conf, reason = frame_verdict(ev, rej)
-        if det.empty:
-            reason = str(det.extras.get("reason", "no bone found"))
-        dets[k], verdicts[k] = det, (conf, reason)
-        if not reason:
-            prior = det.points_px
+        fc = frame_candidates_for(image, sp, params, prior)
+        frames.append(fc)
+        prior = fc.usable[0].points_px if fc.usable else None
         report(progress, "segment", n + 1, int(idx.size))
-
-    # Neighbour consistency. A bad frame also spoils its neighbours' predictions, so
-    # frames are rejected one at a time per neighbourhood (the worst first) and the
-    # rest judged again without it. Tolerances grow with the scatter of the
-    # neighbours about their own trend (sparse sweeps). Then, in frames kept, points
-    # off their neighbours' prediction (or beyond their lateral extent) are dropped.
-    sy = float(np.median(spacing_all[idx, 1]))
-    margin = rej.extend_mm / float(np.median(spacing_all[idx, 0]))
-    keep = {k: np.ones(d.points_px.shape[0], bool) for k, d in dets.items()}
-    for _ in range(idx.size):
-        order = [k for k in dets if not verdicts[k][1]]
-        devs, scatter = neighbour_deviation(
-            {k: dets[k].points_px for k in order}, order, sy, rej.jump_window, margin
-        )
-        bad: dict[int, float] = {}
-        n_order = len(order)
-        for p, (k, dev) in enumerate(devs.items()):
-            finite = np.isfinite(dev)
-            if np.isnan(dev).all():
-                continue
-            tol = max(rej.jump_mm, 3.0 * scatter.get(k, 0.0))
-            if p == 0 or p == n_order - 1:
-                tol *= 2.0  # extrapolated from one side only: less sure
-            typical = float(np.median(np.abs(dev[finite]))) if finite.any() else np.inf
-            if typical > tol:
-                bad[k] = typical / tol
-        if not bad:
-            break
-        pos = {k: p for p, k in enumerate(order)}
-        for k, ratio in bad.items():
-            near = [g for g in bad if abs(pos[g] - pos[k]) <= rej.jump_window]
-            if ratio < max(bad[g] for g in near):
-                continue  # a worse frame nearby goes first
-            conf = verdicts[k][0]
-            dev = devs[k]
-            finite = np.isfinite(dev)
-            if finite.any():
-                typical = float(np.median(np.abs(dev[finite])))
-                conf *= float(np.exp(-((typical / rej.jump_mm) ** 2)))
-                why = f"jump of {typical:.1f} mm from neighbouring frames"
-            else:
-                conf, why = 0.0, "no overlap with neighbouring frames"
-            verdicts[k] = (conf, why)
-    order = [k for k in dets if not verdicts[k][1]]
-    devs, scatter = neighbour_deviation(
-        {k: dets[k].points_px for k in order}, order, sy, rej.jump_window, margin
-    )
-    for k, dev in devs.items():
-        off = ~np.isnan(dev) & (np.abs(dev) > max(rej.point_jump_mm, 3.0 * scatter.get(k, 0.0)))
-        if off.any():
-            keep[k] = ~off
-            verdicts[k] = (verdicts[k][0] * (1.0 - off.sum() / dev.size), "")
-    for k in dets:
-        if not keep[k].all():
-            d = dets[k]
-            remaining = d.points_px[keep[k]]
-            length = (
-                float(np.ptp(remaining[:, 0]) * spacing_all[k, 0]) if len(remaining) > 1 else 0.0
-            )
-            dets[k] = Detection(
-                remaining,
-                d.intensity[keep[k]],
-                {**d.extras, "dropped_points": int((~keep[k]).sum())},
-            )
-            if not verdicts[k][1] and (
-                len(remaining) < rej.min_points or length < rej.min_length_mm
-            ):
-                verdicts[k] = (
-                    verdicts[k][0],
-                    f"contour too short after dropping off-neighbour points ({length:.1f} mm)",
-                )
-
+    choice = select_bone_track(frames, sweep.image_to_reference[idx], params.rejection)
+    contours = contours_from_track(idx, frames, choice, params)
     t_seg = time.perf_counter() - t0
-    contours = []
-    for k, det in dets.items():
-        conf, reason = verdicts[k]
-        contours.append(
-            FrameContour(
-                frame=k,
-                points_px=det.points_px,
-                intensity=det.intensity,
-                confidence=float(np.clip(conf, 0.0, 1.0)),
-                accepted=not reason,
-                reason=reason,
-                extras=det.extras,
-            )
-        )
     result = SegmentationResult(
-        tuple(contours),
+        contours,
         params.method,
         params,
         {"segment_s": t_seg, "frames_per_s": idx.size / max(t_seg, 1e-9)},

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["column_window_mean", "region_means", "dif_map", "block_mean", "mm_to_px"]
+__all__ = ["column_window_mean", "region_means", "dif_map", "block_mean", "mm_to_px", "band_means"]
 
 
 def mm_to_px(mm: float, spacing: float, minimum: int = 1) -> int:
@@ -89,3 +89,18 @@ def block_mean(image: np.ndarray, fy: int, fx: int) -> np.ndarray:
     if fy == 1 and fx == 1:
         return a
     return a.reshape(hh, fy, ww, fx).mean(axis=(1, 3), dtype=np.float32)
+
+
+def band_means(
+    image: np.ndarray, i: np.ndarray, j: np.ndarray, a_mm: float, b_mm: float, sy: float
+) -> np.ndarray:
+    """Per point, the mean grey value of rows ``j + [a_mm, b_mm)`` in column ``i`` (NaN outside)."""
+    h = image.shape[0]
+    a = int(np.floor(a_mm / sy))
+    b = max(a + 1, int(np.ceil(b_mm / sy)))
+    rows = j[:, None] + np.arange(a, b)[None, :]
+    inside = (rows >= 0) & (rows < h)
+    vals = image[np.clip(rows, 0, h - 1), i[:, None]].astype(np.float64)
+    n = inside.sum(axis=1)
+    total = np.where(inside, vals, 0.0).sum(axis=1)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)

@@ -29,6 +29,19 @@ __all__ = [
     "SegmentationParams",
 ]
 
+
+def _check_ranges(obj: object, positive: tuple[str, ...], non_negative: tuple[str, ...]) -> None:
+    """Raise :class:`BoneUSReconError` naming the first field out of range."""
+    for name in positive:
+        v = getattr(obj, name)
+        if not v > 0:
+            raise BoneUSReconError(f"{type(obj).__name__}.{name} must be > 0, got {v!r}")
+    for name in non_negative:
+        v = getattr(obj, name)
+        if not v >= 0:
+            raise BoneUSReconError(f"{type(obj).__name__}.{name} must be >= 0, got {v!r}")
+
+
 #: Size (mm) of one "pixel" of the paper. All pixel-valued parameters below are in
 #: these reference pixels and are converted with the image's own spacing.
 REFERENCE_PIXEL_MM = 0.1
@@ -99,86 +112,191 @@ class PosteriorParams:
 
 @dataclass(frozen=True)
 class ShadowPathParams:
-    """The default segmenter: a shadow-aware bone map and an optimal path across columns.
+    """The default segmenter: contrast-adaptive bone evidence and optimal paths across columns.
 
-    The bone is a bright band with an acoustic shadow under it. The score of a pixel is
-    the paper's ``Dif`` contrast gated by how dark the region below is relative to the
-    band (attenuation-aware: a ratio, not a difference, so deep bones with weaker echoes
-    still score). Dynamic programming then finds the best path over the columns of a
-    down-sampled score image with a smoothness penalty and a "no bone" state, and the
-    path is refined to sub-pixel depth on the full-resolution image.
+    Every level is relative (see :mod:`.evidence`): grey values enter only as ratios
+    between regions of the same frame, and those ratios only in units of their own
+    spread over the frame (robust z-scores). A score of ``null_z`` thus means "this
+    many times what speckle produces by chance", whatever the probe, gain, depth or
+    tissue; no absolute grey level decides bone / no bone.
     """
 
     work_mm: float = 0.25
     """Target pixel size of the down-sampled working image, mm (ours: the sub-pixel step restores full resolution; sets the speed)."""
-    mid_mm: float = 0.6
-    """Height of the bright band, mm (as the snake's M_mid)."""
+    phase_symmetry: bool = False
+    """Echo evidence from 1-D log-Gabor phase symmetry along depth instead of the band/above log-ratio (see evidence.phase_symmetry_depth)."""
+    phase_wavelengths_mm: tuple[float, ...] = (0.6, 1.2, 2.4)
+    """Log-Gabor wavelengths of the phase symmetry, mm."""
+    mid_mm: float = 0.4
+    """Height of the bright band, mm (ours: a thin real cortical echo; 0.6 mm diluted the 1.3x echo of issue 10's cadaver levels, frame recall 0.40 -> 0.55 on the low-contrast simulation)."""
     up_mm: float = 1.5
-    """Height of the region above the band, mm."""
-    down_mm: float = 3.0
-    """Height of the shadow region right below the band, mm."""
-    shadow_mm: float = 6.0
-    """Depth of the region (below the band) whose darkness gates the score, mm (ours)."""
-    gate_ratio: float = 0.6
-    """Shadow/echo intensity ratio at which the shadow gate reaches 0 (ours: tissue under a layer is >= 60 % as bright)."""
-    min_score: float = 0.14
-    """Score (Dif in [0, 2] times the shadow gate) a pixel needs to pay off over "no bone" (ours: low enough that the weak oblique flank echoes of the real L14 recording (score 0.1-0.3, the top of the arc 0.4-0.6) stay on the path; was 0.3, which kept only the top 6-17 mm)."""
-    strong_score: float = 0.3
-    """Score of a "strong" column (ours: the former min_score; the top of real and simulated bone scores 0.4-1, a bright tissue layer with tissue under it < 0.25)."""
-    strong_mm: float = 2.0
-    """A contour needs at least this many mm of strong columns (ours: hysteresis, see min_score)."""
-    slope_penalty: float = 0.08
-    """Cost per (mm of depth change per mm of lateral step)^2 between neighbouring columns (ours: small, so steep flanks are not cut off)."""
-    max_slope: float = 2.2
-    """Largest depth change per lateral mm the path may take (ours: ~65 degrees, the flanks of a round bone just before their echo fades; 3.0 let the path climb onto the neighbouring forearm bone in the simulator)."""
+    """Height of the region right above the band that the echo must outshine, mm."""
+    shadow_gap_mm: float = 1.5
+    """Rows skipped under the band before the shadow windows, mm (the echo's tail: real cortical echoes are 0.5-1 mm thick, all below the surface)."""
+    shadow_mm: float = 5.0
+    """Bottom of the near shadow window below the band, mm."""
+    near_shadow: bool = True
+    """Also require the near window (``shadow_gap_mm`` .. ``shadow_mm``) to be shadow (the worse of the two counts)."""
+    far_shadow_mm: float = 12.0
+    """Bottom of the long shadow window, mm (shadow depth: a vessel lumen or a gap between fasciae is dark for a few mm only)."""
+    cover_gap_mm: float = 1.0
+    """Top of the cover window above the band, mm (above the echo's own blur)."""
+    cover_mm: float = 5.0
+    """Bottom-most extent of the cover window above the band, mm."""
+    cover_ratio: float = 0.5
+    """The cover (tissue above) must be at least this fraction of the tissue level at its depth (a ratio: gel, air and blood are anechoic, soft tissue is not)."""
+    cover_min_mm: float = 0.5
+    """Least height of the cover window inside the image for the cover to be judged, mm."""
+    tissue_percentile: float = 60.0
+    """Percentile over the columns giving the tissue level at each depth (ours: bone and shadow fill fewer than 30 % of the columns at most depths, a thin echo barely counts)."""
+    shadow_z_zero: float = -1.0
+    """Shadow z-score at which the shadow gate closes, robust z units (ours: half a spread brighter than the tissue at that depth: tissue, not shadow, beneath)."""
+    shadow_z_full: float = 1.0
+    """Shadow z-score at which the shadow gate is fully open, robust z units (ours: one spread darker than the tissue beside it; a grey shadow 0.65 of the tissue, or the L14 bone whose interior is barely darker, still opens it partly and the echo carries the score)."""
+    shadow_percentile: float = 80.0
+    """Percentile over the columns giving the tissue level the shadow windows are compared with (ours: tissue beside a bone whose shadow covers up to 80 % of the width)."""
+    null_z: float = 0.8
+    """Score (robust z units) a column needs to pay off over "no bone" in the path (ours: 1.5 x the speckle spread; see :mod:`.evidence`)."""
+    max_z: float = 8.0
+    """Cap on a pixel's score (ours: one very bright spot cannot outweigh a long contour)."""
+    slope_penalty: float = 0.05
+    """Cost per (mm of depth change per lateral mm)^2 between neighbouring columns, in score units (ours: small, so steep flanks are kept)."""
+    max_slope: float = 3.0
+    """Largest depth change per lateral mm of the path (tan 72 degrees: flanks are followed past 70 degrees)."""
     near_field_mm: float = 2.0
-    """Rows shallower than this are never bone, mm (ours: gel, skin line and lens reverberation; the shallowest simulated bone, the clavicle, lies >= 3 mm deep, and real bone under skin and periosteum is deeper)."""
+    """Rows shallower than this are never bone, mm (gel, skin line and lens reverberation)."""
+    contact_mm: float = 4.0
+    """Depth below the near field over which a column's contact with the skin is judged, mm."""
+    contact_dark_fraction: float = 0.7
+    """A column with more than this share of those rows darker than half the tissue level at their depth has no contact (ours)."""
     fov_grey: float = 4.0
-    """Grey level (0..255) below which a pixel counts as black, for finding the imaged field of view (ours: scan-converted images are exactly 0 outside it)."""
+    """Grey level (0..255) below which a pixel counts as black, for finding the imaged field of view (instrument fact: scan-converted images are exactly 0 outside it)."""
     fov_fraction: float = 0.25
-    """A column is inside the field of view when more than this fraction of its pixels are above ``fov_grey`` (ours)."""
+    """A column is inside the field of view when more than this fraction of its pixels are above ``fov_grey``."""
     fov_margin_mm: float = 0.5
-    """Columns this close to the edge of the field of view are ignored too, mm (ours: block averaging mixes them with the black margin)."""
-    switch_cost: float = 0.3
-    """Cost of entering or leaving the "no bone" state (ours: tuned on simulated bones and the shared real recording)."""
+    """Columns this close to the edge of the field of view are ignored too, mm (block averaging mixes them with the black margin)."""
+    switch_cost: float = 1.0
+    """Cost of entering or leaving the "no bone" state, score x mm (ours: a run must gather this much evidence above null to exist)."""
     merge_gap_mm: float = 3.0
-    """Bone runs separated by a gap shorter than this (and a depth step < merge_step_mm) are one contour (ours)."""
+    """Bone runs separated by a gap shorter than this (and a depth step < merge_step_mm) are one contour, mm (an echo dropout)."""
     merge_step_mm: float = 1.5
-    """Largest depth step across a merged gap, mm (ours)."""
-    temporal_sigma_mm: float = 4.0
-    """Width of the prior around the previous accepted contour's depth, mm (ours)."""
-    temporal_weight: float = 0.25
-    """Strength of that prior: scores far from the previous contour are scaled by 1 - weight (ours)."""
+    """Largest depth step across a merged gap, mm."""
+    min_length_mm: float = 2.0
+    """Shortest candidate contour, mm laterally (ours: shorter runs are speckle)."""
+    n_passes: int = 3
+    """Optimal-path passes per frame; each pass suppresses what the previous ones found (ours: bone, fascia, reverberation)."""
+    max_candidates: int = 5
+    """Largest number of candidate contours kept per frame."""
+    suppress_mm: float = 1.5
+    """Half-height of the band suppressed around a found contour before the next pass, mm."""
+    kink_slope: float = 0.6
+    """Outward descent (depth mm per lateral mm, ~31 degrees) from which a turn to less than a third of it ends the bone (convexity, see candidates.convex_part)."""
+    kink_mm: float = 1.5
+    """Lateral window over which those slopes are measured, mm."""
+    beneath_ratio: float = 0.8
+    """A candidate with an echo at least this fraction of its own grey level under it let the sound through: not bone (a ratio; bone returns far less from beneath it)."""
+    reverb_tolerance: float = 0.12
+    """Relative tolerance of the reverberation rules (depth ratio 2 or equal spacing), ours."""
     refine_mm: float = 0.4
-    """Half-height of the window searched at full resolution around the path, mm (ours)."""
+    """Half-height of the window searched at full resolution around the path, mm."""
     refine_sigma_mm: float = 0.15
-    """Gaussian sigma along depth of the full-resolution profile before the peak fit, mm (ours)."""
+    """Gaussian sigma along depth of the full-resolution profile before the peak fit, mm."""
     surface_offset_mm: float = 0.0
-    """Added to the echo's peak depth to give the surface depth, mm (ours: the peak of the echo is the surface)."""
+    """Added to the echo's peak depth to give the surface depth, mm (the peak of the echo is the surface)."""
+
+    def __post_init__(self) -> None:
+        _check_ranges(
+            self,
+            (
+                "work_mm",
+                "mid_mm",
+                "up_mm",
+                "shadow_mm",
+                "far_shadow_mm",
+                "cover_mm",
+                "max_z",
+                "max_slope",
+                "contact_mm",
+                "min_length_mm",
+                "n_passes",
+                "max_candidates",
+                "suppress_mm",
+                "kink_mm",
+                "refine_mm",
+            ),
+            (
+                "shadow_gap_mm",
+                "cover_gap_mm",
+                "cover_ratio",
+                "null_z",
+                "slope_penalty",
+                "near_field_mm",
+                "switch_cost",
+                "merge_gap_mm",
+                "merge_step_mm",
+                "beneath_ratio",
+                "reverb_tolerance",
+                "refine_sigma_mm",
+            ),
+        )
+        if not self.shadow_z_full > self.shadow_z_zero:
+            raise BoneUSReconError(
+                f"ShadowPathParams.shadow_z_full must be > shadow_z_zero, got {self.shadow_z_full!r}"
+            )
+        if not (0 < self.tissue_percentile < 100 and 0 < self.shadow_percentile < 100):
+            raise BoneUSReconError(
+                "ShadowPathParams.tissue_percentile and shadow_percentile must lie in (0, 100), "
+                f"got {self.tissue_percentile!r}, {self.shadow_percentile!r}"
+            )
 
 
 @dataclass(frozen=True)
 class RejectionParams:
-    """Per-frame confidence and rejection of implausible contours (ours; the paper had none)."""
+    """Choice of one bone track over the whole sweep (ours; the paper had none).
 
-    min_length_mm: float = 3.0
-    """Contours shorter than this laterally are rejected ("contour too short")."""
+    Continuity is measured in 3D: a candidate contour of one frame is projected into
+    the plane of a later frame through both poses, and its in-plane distance to a
+    candidate there is compared with a tolerance that grows with the out-of-plane
+    distance between them (mm along the sweep, not frame ranks) and, being a distance
+    to the other contour (not a depth at a column), it allows steep flanks to shift
+    sideways. Strength is relative to the sweep's own typical best candidate.
+    """
+
+    tolerance_mm: float = 1.0
+    """In-plane distance between the contours of neighbouring frames that costs one unit, at zero distance along the sweep, mm (issue 10: real bone moves 0.23 mm median, 1.5 mm max between frames)."""
+    tolerance_per_mm: float = 0.4
+    """Growth of that tolerance per mm between the frames along the sweep (a bone surface inclined by up to ~30 degrees to the sweep)."""
+    max_deviation: float = 3.5
+    """Contours farther apart than this many tolerances are never linked."""
+    max_skip: int = 8
+    """A track may skip this many frames between two of its contours."""
+    min_track_frames: int = 3
+    """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
+    miss_cost: float = 0.3
+    """Cost of a skipped frame, in units of the sweep's typical best candidate strength (ours)."""
+    beneath_factor: float = 0.3
+    """Value of a candidate with an echo as bright under it, relative to its strength (ours: sound went through it)."""
+    strength_cap: float = 2.0
+    """A candidate's strength counts up to this many typical strengths (one bright look-alike cannot buy a detour)."""
+    min_length_mm: float = 1.5
+    """Tracked contours shorter than this laterally are rejected ("contour too short"; ours: continuity with the track already vouches for a short piece of the bone)."""
     min_points: int = 5
-    """Contours with fewer points are rejected."""
-    max_shadow_ratio: float = 0.45
-    """Reject when the mean shadow intensity (1-5 mm below) exceeds this fraction of the echo's ("no acoustic shadow")."""
-    min_contrast: float = 0.12
-    """Reject when the mean Dif (grey/255 units) along the contour is below this ("low contrast")."""
-    jump_mm: float = 1.5
-    """Reject when the contour's median depth difference from the neighbouring frames' prediction exceeds this, mm (ours: a false echo lies >= 1.5 mm above the bone)."""
-    point_jump_mm: float = 1.0
-    """Points of a kept frame farther than this (mm, depth) from the neighbouring frames' prediction are dropped (ours)."""
-    extend_mm: float = 2.0
-    """A contour may extend this far (mm) laterally beyond its neighbours' and still be compared; farther points are unsupported (ours)."""
-    jump_window: int = 3
-    """Number of frames on each side used for the neighbour median."""
-    min_confidence: float = 0.0
-    """Frames whose confidence is below this are rejected as well (0 disables)."""
+    """Tracked contours with fewer points are rejected ("contour too short")."""
+
+    def __post_init__(self) -> None:
+        _check_ranges(
+            self,
+            ("tolerance_mm", "max_deviation", "min_track_frames"),
+            (
+                "tolerance_per_mm",
+                "max_skip",
+                "miss_cost",
+                "beneath_factor",
+                "strength_cap",
+                "min_length_mm",
+                "min_points",
+            ),
+        )
 
 
 @dataclass(frozen=True)
@@ -194,7 +312,7 @@ class SegmentationParams:
     shadowpath: ShadowPathParams = field(default_factory=ShadowPathParams)
     """The default segmenter."""
     rejection: RejectionParams = field(default_factory=RejectionParams)
-    """Confidence and rejection, applied to every segmenter's output."""
+    """The sweep-level choice of one bone track, applied to every segmenter's candidates."""
 
     def __post_init__(self) -> None:
         if self.method not in SEGMENTER_NAMES:

@@ -27,11 +27,13 @@ class FrameContour:
     intensity : ndarray, shape (K,)
         Grey value (0..255) at each point.
     confidence : float
-        In [0, 1]; see :mod:`BoneUSRecon.Logic.segmentation.rejection`.
+        In [0, 1]; see :mod:`BoneUSRecon.Logic.segmentation.track`.
     accepted : bool
         False when the frame was rejected; its points never reach the surface fit.
     reason : str
-        Why it was rejected ("" when accepted).
+        Why it was rejected ("" when accepted): one category, no numbers.
+    detail : str
+        The value behind the reason (e.g. "4.2 mm from frame 17"), "" if none.
     """
 
     frame: int
@@ -40,6 +42,7 @@ class FrameContour:
     confidence: float
     accepted: bool
     reason: str = ""
+    detail: str = ""
     extras: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def points_mm(self, sweep: Sweep) -> np.ndarray:

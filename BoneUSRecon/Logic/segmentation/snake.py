@@ -53,7 +53,7 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.ndimage import gaussian_filter
 
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection, sample_bilinear
-from BoneUSRecon.Logic.segmentation.features import dif_map, mm_to_px
+from BoneUSRecon.Logic.segmentation.features import band_means, dif_map, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import (
     REFERENCE_PIXEL_MM,
     PosteriorParams,
@@ -244,14 +244,12 @@ def _in_shadow(image: np.ndarray, points_px: np.ndarray, spacing: tuple[float, f
     The region 1.5-3 mm above is < 1.5x as bright as 1-5 mm below, and the contour's
     grey level is < 2.5x the median of the frame's non-black pixels.
     """
-    from BoneUSRecon.Logic.segmentation.rejection import _band_means
-
     sy = float(spacing[1])
     w = image.shape[1]
     i = np.clip(np.rint(points_px[:, 0]).astype(np.intp), 0, w - 1)
     j = np.rint(points_px[:, 1]).astype(np.intp)
-    above = _band_means(image, i, j, -3.0, -1.5, sy)
-    below = _band_means(image, i, j, 1.0, 5.0, sy)
+    above = band_means(image, i, j, -3.0, -1.5, sy)
+    below = band_means(image, i, j, 1.0, 5.0, sy)
     ok = np.isfinite(above) & np.isfinite(below)
     if not ok.any():
         return False

@@ -1,0 +1,448 @@
+"""Per-frame step: candidate bone contours of one frame (pure; cacheable per frame).
+
+:func:`frame_candidates` scores the frame (:mod:`.evidence`), then finds up to
+``max_candidates`` contours by repeated optimal paths across columns (dynamic
+programming with a "no bone" state), each pass suppressing a band around what the
+previous passes found, so the bone, a fascia above it and a reverberation below it
+are all offered to the sweep-level choice (:mod:`.track`) instead of one of them
+being decided here.
+
+Look-alikes handled per frame (each with a simulated test in
+``Testing/test_segmentation.py``):
+
+* **skin line / no contact** at the image edges: columns without contact score 0, and
+  a line without soft tissue above it (gel, air) scores 0 (:mod:`.evidence`, cover).
+* **fascia / tendon**: a bright line with tissue, not shadow, beneath: its shadow
+  z-score is ~0, so its score is ~0 (:mod:`.evidence`).
+* **vessel with ring-down**: the lumen under the anterior wall is dark only for a few
+  mm, with enhancement or ring-down under it; the long (shadow-depth) window sees it.
+  The posterior wall has anechoic lumen above it: no cover.
+* **a line over another echo** (a fascia over the bone): bone stops the sound, so
+  anything under it returns much fainter than its echo; a candidate with an echo at
+  least ``beneath_ratio`` as bright under most of its columns is marked
+  ``echo_beneath`` and valued less by the track.
+* **reverberation copies**: a candidate lying, column by column, at twice the depth of
+  a shallower one (probe-face reverberation: the echo travels the path twice), or one
+  of a series of equally spaced parallel copies under a line (reverberation inside a
+  layer) is marked ``reverberation`` and never chosen: sound that made a copy did not
+  come from a new interface.
+
+Flanks: the path may change depth by up to ``max_slope`` (tan 72 degrees) per lateral
+mm with a small quadratic penalty, and the shadow windows hang below each column (the
+inside of a convex bone lies below every point of its upper surface, so the shadow
+holds on the flanks), so the contour follows a round or crest-shaped bone down past
+70 degrees. Nothing trims the ends of a contour afterwards.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from scipy.ndimage import gaussian_filter1d, median_filter
+
+from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
+from BoneUSRecon.Logic.segmentation.features import mm_to_px
+from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+
+__all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
+
+_NULL = np.int8(-128)  # back-pointer meaning "came from the no-bone state"
+
+
+@dataclass(frozen=True, eq=False)
+class BoneCandidate:
+    """One candidate bone contour of a frame.
+
+    Attributes
+    ----------
+    points_px : ndarray, shape (K, 2)
+        ``(i, j)`` = (column, row), sub-pixel, ordered by increasing ``i``.
+    intensity : ndarray, shape (K,)
+        Grey value (0..255) at each point.
+    strength : float
+        Evidence above the null level summed along the contour, score x mm.
+    echo_z, shadow_z : float
+        Median echo and shadow z-scores along the contour.
+    reverberation : bool
+        A reverberation copy of a shallower candidate (never chosen).
+    echo_beneath : bool
+        An echo at least ``beneath_ratio`` as bright lies under it and it casts no
+        shadow (sound went through: soft tissue, not bone), or it lies in the shadow of a
+        shallower candidate (far cortex); the track values it less.
+    """
+
+    points_px: np.ndarray
+    intensity: np.ndarray
+    strength: float
+    echo_z: float
+    shadow_z: float
+    reverberation: bool = False
+    echo_beneath: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class FrameCandidates:
+    """The candidates of one frame, strongest first, and why there is none if so."""
+
+    candidates: tuple[BoneCandidate, ...]
+    spacing: tuple[float, float]
+    reason: str = ""
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def usable(self) -> tuple[BoneCandidate, ...]:
+        """Candidates that may be chosen (not reverberation copies)."""
+        return tuple(c for c in self.candidates if not c.reverberation)
+
+
+def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np.ndarray:
+    """Best path through ``gain`` (h, w) with a no-bone state; rows per column, -1 = no bone."""
+    h, w = gain.shape
+    n_shift = shift_cost.size
+    d = n_shift // 2
+    back = np.empty((w, h), dtype=np.int8)
+    null_back = np.full(w, -1, dtype=np.intp)
+    acc = gain[:, 0].astype(np.float64)
+    null = 0.0
+    padded = np.full(h + 2 * d, -np.inf)
+    # One strided view of the padded buffer: win[j, k] = previous column's score at j + k - d.
+    win = sliding_window_view(padded, n_shift)
+    cand = np.empty((h, n_shift))
+    rows = np.arange(h)
+    shift_code = (np.arange(n_shift) - d).astype(np.int8)
+    for c in range(1, w):
+        padded[d : d + h] = acc
+        np.subtract(win, shift_cost, out=cand)
+        k = cand.argmax(axis=1)
+        best = cand[rows, k]
+        from_null = null - switch
+        use_null = from_null > best
+        code = shift_code[k]
+        code[use_null] = _NULL
+        back[c] = code
+        jb = int(acc.argmax())
+        from_bone = acc[jb] - switch
+        if from_bone > null:
+            null, null_back[c] = from_bone, jb
+        best[use_null] = from_null
+        acc = best + gain[:, c]
+    path = np.full(w, -1, dtype=np.intp)
+    jb = int(acc.argmax())
+    state = jb if acc[jb] > null else -1
+    for c in range(w - 1, -1, -1):
+        path[c] = state
+        if c == 0:
+            break
+        if state >= 0:
+            step = back[c, state]
+            state = -1 if step == _NULL else state + int(step)
+        else:
+            state = int(null_back[c])
+    return path
+
+
+def _groups(path: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> list[np.ndarray]:
+    """Columns of each group of bone runs of ``path`` (short gaps with small steps merged)."""
+    cols = np.flatnonzero(path >= 0)
+    if cols.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(cols) > 1)
+    starts = np.r_[0, breaks + 1]
+    ends = np.r_[breaks, cols.size - 1]
+    groups: list[list[int]] = [[0]]
+    for r in range(1, starts.size):
+        a, b = cols[ends[r - 1]], cols[starts[r]]
+        gap_mm = (b - a - 1) * ev.dx
+        step_mm = abs(path[b] - path[a]) * ev.dy
+        if gap_mm <= p.merge_gap_mm and step_mm <= p.merge_step_mm:
+            groups[-1].append(r)
+        else:
+            groups.append([r])
+    return [np.concatenate([cols[starts[r] : ends[r] + 1] for r in g]) for g in groups]
+
+
+def _refine(
+    image: np.ndarray,
+    ev: EvidenceMaps,
+    cols: np.ndarray,
+    rows_w: np.ndarray,
+    p: ShadowPathParams,
+    sy: float,
+) -> np.ndarray:
+    """Sub-pixel ``(i, j)`` of the echo peak near working rows ``rows_w`` in columns ``cols``."""
+    hh_full = ev.colmean.shape[0]
+    centre = (rows_w + 0.5) * ev.fy - 0.5
+    half = mm_to_px(p.refine_mm, sy)
+    sig = p.refine_sigma_mm / sy
+    pad = int(np.ceil(3 * sig)) if sig >= 0.5 else 0
+    off = np.arange(-half - pad - 1, half + pad + 2)
+    rows = np.clip(np.rint(centre).astype(np.intp)[:, None] + off[None, :], 0, hh_full - 1)
+    prof = ev.colmean[rows, cols[:, None]]
+    if pad:
+        prof = gaussian_filter1d(prof, sig, axis=1, mode="nearest")
+    core = slice(pad + 1, pad + 2 * half + 2)
+    k = prof[:, core].argmax(axis=1) + pad + 1
+    r = np.arange(cols.size)
+    y0, y1, y2 = prof[r, k - 1], prof[r, k], prof[r, k + 1]
+    denom = y0 - 2 * y1 + y2
+    frac = np.where(denom < 0, 0.5 * (y0 - y2) / np.where(denom < 0, denom, -1.0), 0.0)
+    j = rows[r, k] + np.clip(frac, -0.5, 0.5) + p.surface_offset_mm / sy
+    # Lateral median over ~0.6 mm: removes single-column speckle jumps.
+    size = max(1, int(round(0.6 / ev.dx)) | 1)
+    if size > 1 and j.size >= size:
+        j = median_filter(j, size=size, mode="nearest")
+    i = (cols + 0.5) * ev.fx - 0.5
+    return np.column_stack([i, j])
+
+
+def _is_copy(deep: np.ndarray, shallow: np.ndarray, depth0: float, tol: float) -> bool:
+    """``deep`` (rows) lies at twice the depth of ``shallow`` (rows), column by column.
+
+    ``depth0`` is the row of the probe face (0): the echo of a reflector at depth ``d``
+    that bounces once more off the probe face arrives as if from ``2 d``.
+    """
+    ratio = (deep - depth0) / np.maximum(shallow - depth0, 1e-6)
+    # Column by column, not on average: an arc that happens to lie at about twice the
+    # depth of a flat fascia on the whole is no copy of it.
+    return bool(np.percentile(np.abs(ratio - 2.0), 90) <= 2.0 * tol)
+
+
+def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
+    """Flag candidates that are reverberation copies of a shallower, overlapping one."""
+    tol = p.reverb_tolerance
+    for c in cands:
+        for s in cands:
+            if s is c:
+                continue
+            common, ic, is_ = np.intersect1d(c["cols"], s["cols"], return_indices=True)
+            # A copy lies under its original (it is never wider) and is fainter.
+            if common.size < 0.8 * c["cols"].size or c["grey"] > s["grey"]:
+                continue
+            dc, ds = c["rows"][ic].astype(float), s["rows"][is_].astype(float)
+            if np.median(dc - ds) <= 0:
+                continue  # s is not above c
+            if _is_copy(dc, ds, -0.5, tol):
+                c["reverb"] = True
+                break
+            # Equal spacing: a third line at the same offset (s, c, then c + offset).
+            off = dc - ds
+            if np.std(off) > tol * np.median(off) + 1:
+                continue  # not parallel: not a copy
+            for t in cands:
+                if t is c or t is s:
+                    continue
+                cm, it, ic2 = np.intersect1d(t["cols"], c["cols"], return_indices=True)
+                if cm.size < 0.5 * c["cols"].size:
+                    continue
+                off2 = t["rows"][it].astype(float) - c["rows"][ic2].astype(float)
+                if abs(np.median(off2) - np.median(off)) <= tol * np.median(off) + 1:
+                    c["reverb"] = True
+                    t["reverb"] = True
+            if c.get("reverb"):
+                break
+
+
+def _mark_echo_beneath(cands: list[dict], p: ShadowPathParams) -> None:
+    """Flag candidates with an echo nearly as bright as theirs under most of their columns.
+
+    Bone stops the sound: what lies under it (reverberation, far cortex) comes back
+    much fainter than its echo. A line with an echo of comparable brightness under it
+    and no shadow of its own (a fascia over the bone, or over another fascia) let the
+    sound through; a line lying in the shadow of a shallower candidate (the far cortex
+    under a grey shadow) is no first interface. Either is flagged.
+    """
+    for c in cands:
+        for b in cands:
+            if b is c or b.get("reverb"):
+                continue
+            common, ic, ib = np.intersect1d(c["cols"], b["cols"], return_indices=True)
+            # Under most of c, or c over most of b (a long fascia over the bone).
+            if common.size < 0.5 * min(c["cols"].size, b["cols"].size):
+                continue
+            if np.median(b["rows"][ib] - c["rows"][ic]) <= 0:
+                continue  # b is not below c
+            if c["shadow"] >= p.shadow_z_full:
+                # c casts a shadow: b lies inside it (the far cortex, a reverberation):
+                # not a first interface.
+                b["beneath"] = True
+            elif b["grey"] >= p.beneath_ratio * c["grey"]:
+                c["beneath"] = True
+
+
+def convex_part(
+    points_px: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams
+) -> np.ndarray:
+    """Mask of the part of a contour that stays convex, seen from the probe, around its top.
+
+    A long bone's cross-section is convex: going outwards from its shallowest point the
+    contour descends ever more steeply (a crest's flanks, an oval's sides). A contour
+    that, going outwards, turns from descending at least ``kink_slope`` (depth per
+    lateral mm, over ``kink_mm``) to descending less than a third of that has left the
+    bone onto a layer meeting it (a fascia running off the crest at the bone's level).
+    Only the part beyond such a turn is dropped, so a flank is kept down to where it
+    ends, however steep.
+    """
+    n = points_px.shape[0]
+    keep = np.ones(n, bool)
+    if n < 6:
+        return keep
+    x = points_px[:, 0] * float(spacing[0])
+    z = points_px[:, 1] * float(spacing[1])
+    # The apex: the shallowest point away from the ends (a contour that climbs onto a
+    # layer at one end must not have its apex there).
+    span = x.max() - x.min()
+    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
+    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+    win = p.kink_mm
+    for side in (-1, 1):
+        idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
+        if idx.size < 4:
+            continue
+        xo = np.abs(x[idx] - x[top])
+        zo = z[idx]
+        # Outward descent slope just inside and just outside each point (end points).
+        for k in range(1, idx.size - 1):
+            inner = (xo <= xo[k]) & (xo >= xo[k] - win)
+            outer = (xo >= xo[k]) & (xo <= xo[k] + win)
+            if inner.sum() < 2 or outer.sum() < 2 or xo[outer].max() - xo[k] < 0.5 * win:
+                continue
+            s_in = (zo[inner][-1] - zo[inner][0]) / max(xo[inner][-1] - xo[inner][0], 1e-6)
+            s_out = (zo[outer][-1] - zo[outer][0]) / max(xo[outer][-1] - xo[outer][0], 1e-6)
+            if s_in >= p.kink_slope and s_out < s_in / 3.0:
+                keep[idx[k + 1 :]] = False
+                break
+    return keep
+
+
+def frame_candidates(
+    image: np.ndarray,
+    spacing: tuple[float, float],
+    params: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+) -> FrameCandidates:
+    """Candidate bone contours of one frame, strongest first.
+
+    Pure: depends on this frame only (no prior from other frames), so it can run as a
+    frame arrives and its result can be cached; :func:`.track.select_bone_track`
+    then chooses among the candidates of all frames.
+
+    Parameters
+    ----------
+    image : ndarray of uint8, shape (H, W)
+    spacing : (sx, sy)
+        mm per column and per row.
+    params : ShadowPathParams
+
+    Returns
+    -------
+    FrameCandidates
+    """
+    p = params
+    sp = (float(spacing[0]), float(spacing[1]))
+    img = np.asarray(image)
+    ev = bone_evidence(img, sp, p)
+    if ev is None:
+        return FrameCandidates((), sp, "image too small")
+    if not ev.usable.any():
+        return FrameCandidates((), sp, "no imaged field of view")
+    h, w = ev.score.shape
+    gain = (ev.score - np.float32(p.null_z)) * np.float32(ev.dx)
+    n_shift = max(1, int(np.ceil(p.max_slope * ev.dx / ev.dy)))
+    steps = np.arange(-n_shift, n_shift + 1)
+    shift_cost = p.slope_penalty * (steps * ev.dy / ev.dx) ** 2 * ev.dx
+    sup = mm_to_px(p.suppress_mm, ev.dy)
+    min_cols = max(2, int(np.ceil(p.min_length_mm / ev.dx)))
+    found: list[dict] = []
+    for _ in range(p.n_passes):
+        pos = gain > 0
+        if not pos.any():
+            break
+        rr = np.flatnonzero(pos.any(axis=1))
+        cc = np.flatnonzero(pos.any(axis=0))
+        # Only the box holding positive gains matters (3-5x less work on typical frames).
+        r0, r1 = max(0, rr[0] - 2 * n_shift), min(h, rr[-1] + 1 + 2 * n_shift)
+        c0, c1 = cc[0], cc[-1] + 1
+        path = np.full(w, -1, dtype=np.intp)
+        sub = _optimal_path(gain[r0:r1, c0:c1], shift_cost, p.switch_cost)
+        path[c0:c1] = np.where(sub >= 0, sub + r0, -1)
+        groups = _groups(path, ev, p)
+        if not groups:
+            break
+        for cols in groups:
+            rows = path[cols]
+            if cols.size >= min_cols:
+                s = ev.score[rows, cols]
+                found.append(
+                    {
+                        "cols": cols,
+                        "rows": rows,
+                        "strength": float((s - p.null_z).sum() * ev.dx),
+                        "echo": float(np.median(ev.echo_z[rows, cols])),
+                        "shadow": float(np.median(ev.shadow_z[rows, cols])),
+                        "grey": float(np.median(ev.work[rows, cols])),
+                    }
+                )
+            # Suppress a band around what was found (bone, fascia or copy alike).
+            band = rows[None, :] + np.arange(-sup, sup + 1)[:, None]
+            ok = (band >= 0) & (band < h)
+            gain[band[ok], np.broadcast_to(cols, band.shape)[ok]] = -1.0
+    if not found:
+        return FrameCandidates((), sp, "no bone found")
+    _mark_reverberations(found, p)
+    _mark_echo_beneath(found, p)
+    found.sort(key=lambda c: -c["strength"])
+    out = []
+    for c in found[: p.max_candidates]:
+        pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
+        pts = pts[convex_part(pts, sp, p)]
+        out.append(
+            BoneCandidate(
+                pts,
+                sample_bilinear(img, pts),
+                c["strength"],
+                c["echo"],
+                c["shadow"],
+                bool(c.get("reverb", False)),
+                bool(c.get("beneath", False)),
+            )
+        )
+    return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
+
+
+def candidates_from_points(
+    image: np.ndarray,
+    points_px: np.ndarray,
+    spacing: tuple[float, float],
+    params: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+    reason: str = "no bone found",
+    extras: dict | None = None,
+) -> FrameCandidates:
+    """Wrap another segmenter's contour (the snake's) as the one candidate of a frame.
+
+    Its strength is measured on the same evidence maps as shadowpath's candidates, so
+    the sweep-level choice treats every segmenter alike.
+    """
+    sp = (float(spacing[0]), float(spacing[1]))
+    ex = dict(extras or {})
+    pts = np.asarray(points_px, dtype=float).reshape(-1, 2)
+    if pts.shape[0] == 0:
+        return FrameCandidates((), sp, reason, ex)
+    ev = bone_evidence(image, sp, params)
+    if ev is None:
+        return FrameCandidates((), sp, "image too small", ex)
+    h, w = ev.score.shape
+    ci = np.clip(((pts[:, 0] + 0.5) / ev.fx - 0.5).round().astype(np.intp), 0, w - 1)
+    rj = np.clip(((pts[:, 1] + 0.5) / ev.fy - 0.5).round().astype(np.intp), 0, h - 1)
+    s = ev.score[rj, ci]
+    length = float(np.ptp(pts[:, 0]) * sp[0]) if len(pts) > 1 else 0.0
+    strength = float(np.mean(s - params.null_z) * length)
+    cand = BoneCandidate(
+        pts,
+        sample_bilinear(np.asarray(image), pts),
+        strength,
+        float(np.median(ev.echo_z[rj, ci])),
+        float(np.median(ev.shadow_z[rj, ci])),
+    )
+    return FrameCandidates((cand,), sp, "", ex)
