@@ -56,6 +56,8 @@ _LAZY = {
     "SEGMENTERS": "driver",
     "segment_frame": "driver",
     "segment_sweep": "driver",
+    "frame_candidate": "driver",
+    "select_contours": "driver",
     "Detection": "detection",
     "REFERENCE_PIXEL_MM": "params",
     "SegmentationParams": "params",
@@ -82,6 +84,8 @@ __all__ = [
     "Detection",
     "segment_frame",
     "segment_sweep",
+    "frame_candidate",
+    "select_contours",
     "points_polydata",
 ]
 

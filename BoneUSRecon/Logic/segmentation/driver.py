@@ -24,7 +24,14 @@ from BoneUSRecon.Logic.segmentation.shadowpath import shadowpath_frame
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
 from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
 
-__all__ = ["SEGMENTERS", "FrameSegmenter", "segment_frame", "segment_sweep"]
+__all__ = [
+    "SEGMENTERS",
+    "FrameSegmenter",
+    "segment_frame",
+    "segment_sweep",
+    "frame_candidate",
+    "select_contours",
+]
 
 #: ``(image uint8 (H, W), spacing (sx, sy), params, prior_px or None) -> Detection``
 FrameSegmenter = Callable[
@@ -90,7 +97,6 @@ def segment_sweep(
     if idx.size == 0:
         raise BoneUSReconError("no valid frame to segment", sweep.source)
     spacing_all = pixel_spacing(sweep.image_to_reference)
-    rej = params.rejection
     t0 = time.perf_counter()
     dets: dict[int, Detection] = {}
     verdicts: dict[int, tuple[float, str]] = {}
@@ -99,23 +105,91 @@ def segment_sweep(
     # segmented without its pages piling up in the resident set.
     for n, (k, image) in enumerate(sweep.iter_frames(idx)):
         sp = (float(spacing_all[k, 0]), float(spacing_all[k, 1]))
-        det = segment_frame(image, sp, params, prior)
-        trim = trim_unshadowed_ends(image, det.points_px, sp, rej.max_shadow_ratio)
-        trim[trim] = trim_kinked_ends(det.points_px[trim], sp)
-        if not trim.all():
-            det = Detection(
-                det.points_px[trim],
-                det.intensity[trim],
-                {**det.extras, "trimmed_points": int((~trim).sum())},
-            )
-        ev = frame_evidence(image, det.points_px, sp)
-        conf, reason = frame_verdict(ev, rej)
-        if det.empty:
-            reason = str(det.extras.get("reason", "no bone found"))
-        dets[k], verdicts[k] = det, (conf, reason)
+        dets[k], conf, reason = frame_candidate(image, sp, params, prior)
+        verdicts[k] = (conf, reason)
         if not reason:
-            prior = det.points_px
+            prior = dets[k].points_px
         report(progress, "segment", n + 1, int(idx.size))
+    t_seg = time.perf_counter() - t0
+    result = select_contours(dets, verdicts, spacing_all, params, {"segment_s": t_seg})
+    if not result.accepted:
+        raise BoneUSReconError("no bone contour found in any frame", sweep.source)
+    return result
+
+
+def frame_candidate(
+    image: np.ndarray,
+    spacing: tuple[float, float],
+    params: SegmentationParams,
+    prior_px: np.ndarray | None,
+) -> tuple[Detection, float, str]:
+    """One frame's contour with its per-frame checks: the work done once per frame.
+
+    The segmenter, then the trimming of unshadowed and kinked ends, then the frame's
+    confidence and verdict (:mod:`.rejection`). Live reconstruction
+    (:mod:`BoneUSRecon.Logic.live`) calls it as each frame arrives.
+
+    Parameters
+    ----------
+    image : ndarray of uint8, shape (H, W)
+    spacing : (float, float)
+        mm per column and per row.
+    params : SegmentationParams
+    prior_px : ndarray (K, 2) or None
+        The last accepted contour (temporal prior).
+
+    Returns
+    -------
+    detection, confidence, reason
+        ``reason`` is "" when the frame passes the per-frame checks.
+    """
+    rej = params.rejection
+    det = segment_frame(image, spacing, params, prior_px)
+    trim = trim_unshadowed_ends(image, det.points_px, spacing, rej.max_shadow_ratio)
+    trim[trim] = trim_kinked_ends(det.points_px[trim], spacing)
+    if not trim.all():
+        det = Detection(
+            det.points_px[trim],
+            det.intensity[trim],
+            {**det.extras, "trimmed_points": int((~trim).sum())},
+        )
+    ev = frame_evidence(image, det.points_px, spacing)
+    conf, reason = frame_verdict(ev, rej)
+    if det.empty:
+        reason = str(det.extras.get("reason", "no bone found"))
+    return det, conf, reason
+
+
+def select_contours(
+    dets: dict[int, Detection],
+    verdicts: dict[int, tuple[float, str]],
+    spacing_all: np.ndarray,
+    params: SegmentationParams,
+    timings: dict[str, float] | None = None,
+) -> SegmentationResult:
+    """The sweep-level step: neighbour consistency over all frames' candidates.
+
+    Parameters
+    ----------
+    dets, verdicts : dict keyed by frame index, in frame order
+        What :func:`frame_candidate` returned for each frame (``verdicts[k]`` is
+        ``(confidence, reason)``).
+    spacing_all : ndarray, shape (N, 2)
+        mm per column and per row of every frame of the sweep.
+    params : SegmentationParams
+    timings : dict, optional
+        Seconds already spent (``segment_s``); ``frames_per_s`` is derived from it.
+
+    Returns
+    -------
+    SegmentationResult
+        Possibly with no accepted frame (the caller decides whether that is an error).
+    """
+    t0 = time.perf_counter()
+    rej = params.rejection
+    dets = dict(dets)
+    verdicts = dict(verdicts)
+    idx = np.fromiter(dets, dtype=int, count=len(dets))
 
     # Neighbour consistency. A bad frame also spoils its neighbours' predictions, so
     # frames are rejected one at a time per neighbourhood (the worst first) and the
@@ -188,7 +262,7 @@ def segment_sweep(
                     f"contour too short after dropping off-neighbour points ({length:.1f} mm)",
                 )
 
-    t_seg = time.perf_counter() - t0
+    t_seg = (timings or {}).get("segment_s", 0.0) + time.perf_counter() - t0
     contours = []
     for k, det in dets.items():
         conf, reason = verdicts[k]
@@ -203,15 +277,12 @@ def segment_sweep(
                 extras=det.extras,
             )
         )
-    result = SegmentationResult(
+    return SegmentationResult(
         tuple(contours),
         params.method,
         params,
         {"segment_s": t_seg, "frames_per_s": idx.size / max(t_seg, 1e-9)},
     )
-    if not result.accepted:
-        raise BoneUSReconError("no bone contour found in any frame", sweep.source)
-    return result
 
 
 def with_method(params: SegmentationParams, method: str) -> SegmentationParams:
