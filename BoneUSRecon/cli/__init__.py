@@ -29,6 +29,8 @@ COMMANDS = (
     "evaluate",
     "table",
     "view",
+    "serve",
+    "live",
 )
 
 
