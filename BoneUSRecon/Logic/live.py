@@ -179,6 +179,12 @@ class _Frame:
 #: selection to ~50 frames.
 SETTLE_WINDOWS = 3
 
+#: Live refits wait for this many frames with a contour per control point along the
+#: bone. With barely as many slices as control points the fit interpolates and swings
+#: wildly between them (a 15-slice fit of the test sweep spans 380 mm and meshes into
+#: 1.3 million points, 2 s); two slices per control point make it a least-squares fit.
+MIN_FRAMES_PER_CONTROL_POINT = 2
+
 
 class LiveReconstructor:
     """Frames in one at a time, a surface out whenever asked.
@@ -317,7 +323,9 @@ class LiveReconstructor:
         final : bool
             Run the sweep-level selection over all frames at once, exactly as
             :func:`~BoneUSRecon.Logic.pipeline.reconstruct` does (the end of a
-            session). Otherwise (live refits) only the frames that arrived since the
+            session). Otherwise (live refits) it waits for
+            ``MIN_FRAMES_PER_CONTROL_POINT`` frames with a contour per control point
+            along the bone, and only the frames that arrived since the
             last refit and ``SETTLE_WINDOWS`` neighbour windows before them are judged
             again; older frames keep their verdict, so a refit costs the same after
             ten seconds or ten minutes of scanning.
@@ -336,6 +344,10 @@ class LiveReconstructor:
         t0 = time.perf_counter()
         frames = self._frames
         n = len(frames)
+        need = MIN_FRAMES_PER_CONTROL_POINT * self.params.fit.control_points[0]
+        n_ok = sum(not f.reason for f in frames)
+        if not final and n_ok < need:
+            raise BoneUSReconError(f"waiting for frames: {n_ok} of {need} with a bone contour")
         context = SETTLE_WINDOWS * self.params.segmentation.rejection.jump_window
         lo = 0 if final else max(0, self._settled - context)
         spacing_all = pixel_spacing(sweep.image_to_reference)

@@ -394,7 +394,10 @@ class SweepServer:
         """Close the clients (after they have read everything) and the listening socket."""
         # Unread input at close() makes TCP reset the connection, which can discard
         # frames still in flight to the client: read it, half-close, wait for the
-        # client to close its side (at most a second), then close.
+        # client to close its side (at most a second), then close. The listener goes
+        # first, so that a client trying to reconnect is refused, not half-accepted.
+        with contextlib.suppress(OSError):
+            self._listener.close()
         self._discard_input()
         for c in self._clients:
             with contextlib.suppress(OSError):
@@ -406,8 +409,6 @@ class SweepServer:
                 while c.recv(1 << 16):
                     pass
         self.drop_clients()
-        with contextlib.suppress(OSError):
-            self._listener.close()
 
     def _accept(self) -> None:
         while True:
