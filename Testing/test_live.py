@@ -217,9 +217,10 @@ def _serve(sweep, **kw) -> tuple[SweepServer, threading.Thread]:
     return server, t
 
 
-def _session(
-    server, tmp_path, assembler, live=LiveParams(update_every_s=0.2, reconnect_s=0.3), **kw
-):
+FAST = LiveParams(update_every_s=0.2, reconnect_s=0.3)
+
+
+def _session(server, tmp_path, assembler, live=FAST, **kw):
     from BoneUSRecon.cli.live import run_session
 
     receiver = FrameReceiver("127.0.0.1", server.port, assembler, live).start()
