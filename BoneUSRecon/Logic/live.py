@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.fileio import check_output_path
@@ -72,9 +73,10 @@ class LiveParams:
         Frames waiting to be processed before new ones are dropped (default 64:
         about 2 s at 30 frames/s, ~20 MB at 480x640; covers a refit and a burst).
     max_frames : int
-        Frames kept for the surface (default 600: 20 s at 30 frames/s, more than
-        twice the paper's longest sweep of 250; ~1 MB of contours, a refit ~0.1 s
-        on one core). When reached, every other kept
+        Frames kept for the surface (default 400: 13 s at 30 frames/s, more than the
+        paper's longest sweep of 250 and ~25 slices per control point along the
+        bone; <1 MB of contours; a live refit plus writing the surface then takes
+        ~0.15 s of one core at 480x640, within the 0.2 s a refit may lag). When reached, every other kept
         frame is dropped and from then on only every second arriving frame is
         processed (then every fourth, ...): the whole scanned extent stays covered
         at a halved density, and memory and refit time stay bounded.
@@ -90,7 +92,7 @@ class LiveParams:
 
     update_every_s: float = 1.0
     queue_frames: int = 64
-    max_frames: int = 600
+    max_frames: int = 400
     pose_tolerance_s: float = 0.02
     reconnect_s: float = 3.0
 
@@ -131,7 +133,11 @@ def _select(
 
 
 def _reconstruction(
-    sweep: Sweep, seg: SegmentationResult, params: ReconstructionParams, t_seg: float
+    sweep: Sweep,
+    seg: SegmentationResult,
+    params: ReconstructionParams,
+    t_seg: float,
+    with_points: bool = True,
 ) -> Reconstruction:
     """Resample, fit and mesh a segmentation: the tail of :func:`reconstruct`."""
     timings: dict[str, float] = {"segment": t_seg}
@@ -142,7 +148,7 @@ def _reconstruction(
     grid, fit, surf = surface_from_contours(
         contours, sweep, params, segmented_points=pts, timings=timings
     )
-    points = points_polydata(seg, sweep)
+    points = points_polydata(seg, sweep) if with_points else vtkPolyData()
     timings["total"] = t_seg + time.perf_counter() - t0
     return Reconstruction(
         sweep=sweep,
@@ -315,7 +321,7 @@ class LiveReconstructor:
             transform_name="ImageToReference (live)",
         )
 
-    def refit(self, *, final: bool = False) -> Reconstruction:
+    def refit(self, *, final: bool = False, with_points: bool = True) -> Reconstruction:
         """Select over all frames so far, resample, fit and mesh.
 
         Parameters
@@ -329,6 +335,10 @@ class LiveReconstructor:
             last refit and ``SETTLE_WINDOWS`` neighbour windows before them are judged
             again; older frames keep their verdict, so a refit costs the same after
             ten seconds or ten minutes of scanning.
+        with_points : bool
+            Build :attr:`Reconstruction.points` (the segmented points as polydata);
+            False leaves it empty, which saves a fifth of a live refit that only
+            shows the surface.
 
         Returns
         -------
@@ -374,7 +384,8 @@ class LiveReconstructor:
             )
         if not seg.accepted:
             raise BoneUSReconError("no bone contour found yet")
-        return _reconstruction(sweep, seg, self.params, self._segment_s + time.perf_counter() - t0)
+        t_seg = self._segment_s + time.perf_counter() - t0
+        return _reconstruction(sweep, seg, self.params, t_seg, with_points)
 
     def memory_bytes(self) -> int:
         """Approximate bytes held for the kept frames (contours and poses)."""

@@ -118,6 +118,8 @@ class SessionResult:
     refits: int = 0
     latencies_s: list[float] = field(default_factory=list)
     refit_s: list[float] = field(default_factory=list)
+    #: Per refit, (mean, max) seconds from a frame's arrival to the surface holding it.
+    frame_to_surface_s: list[tuple[float, float]] = field(default_factory=list)
     waiting: str = ""
     recon: Any = None
     final: Any = None
@@ -174,6 +176,7 @@ def run_session(
     send_surface: str | None = None,
     duration_s: float | None = None,
     quiet: bool = True,
+    on_refit: Any = None,
 ) -> SessionResult:
     """Receive, reconstruct and write until the stream ends; then the final surface.
 
@@ -191,6 +194,8 @@ def run_session(
     duration_s : float, optional
     quiet : bool
         No status line.
+    on_refit : callable, optional
+        Called with the :class:`SessionResult` after each refit (benchmarks).
 
     Returns
     -------
@@ -201,17 +206,19 @@ def run_session(
     from BoneUSRecon.Logic.live_igtl import polydata_message
     from BoneUSRecon.Logic.vtkio import write_polydata
 
-    res = SessionResult()
+    res = SessionResult(counts=receiver.counts)  # the receiver's live counts until the end
     status = _Status(quiet)
     t0 = time.monotonic()
     due = t0 + update_every_s
     new = 0
     window: list[float] = []
+    pending: list[float] = []  # arrival times of frames not yet in a surface
 
     def take(f: Any) -> None:
         nonlocal new
         res.received += 1
         window.append(time.monotonic())
+        pending.append(window[-1])
         if recorder is not None and f.image is not None:
             recorder.add(f.image, f.pose, f.timestamp)
         if f.problem:
@@ -240,12 +247,20 @@ def run_session(
             if new:
                 try:
                     t = time.monotonic()
-                    res.recon = recon.refit()
+                    res.recon = recon.refit(with_points=False)
                     publish(res.recon)
                     res.refit_s.append(time.monotonic() - t)
-                    res.latencies_s.append(time.monotonic() - due)
+                    done = time.monotonic()
+                    res.latencies_s.append(done - due)
+                    if pending:
+                        res.frame_to_surface_s.append(
+                            (done - sum(pending) / len(pending), done - pending[0])
+                        )
+                    pending.clear()
                     res.refits += 1
                     res.waiting = ""
+                    if on_refit is not None:
+                        on_refit(res)
                 except BoneUSReconError as exc:
                     res.waiting = exc.message
                 new = 0
