@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
+from BoneUSRecon.cli.igtl import FrameReceiver, SweepServer
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.evaluation import evaluate_surface
 from BoneUSRecon.Logic.live import (
@@ -24,7 +25,6 @@ from BoneUSRecon.Logic.live import (
     PoseAssembler,
     SweepRecorder,
 )
-from BoneUSRecon.Logic.live_igtl import FrameReceiver, SweepServer
 from BoneUSRecon.Logic.pipeline import reconstruct
 from BoneUSRecon.Logic.sequence_io import read_calibration, read_sweep, write_sweep
 from BoneUSRecon.Logic.vtkio import read_polydata

@@ -1,6 +1,6 @@
 """Live reconstruction: the surface grows while the user scans.
 
-Frames arrive one at a time (from an OpenIGTLink server, :mod:`.live_igtl`, or a
+Frames arrive one at a time (from an OpenIGTLink server, :mod:`BoneUSRecon.cli.igtl`, or a
 Slicer volume node that OpenIGTLinkIF updates). :class:`LiveReconstructor` does the
 per-frame work once, as each frame arrives (segmentation with its per-frame checks,
 cached), and the sweep-level work at each refit, over all frames so far (the

@@ -202,8 +202,8 @@ def run_session(
     SessionResult
         ``final`` is None when no surface could be built (``waiting`` says why).
     """
+    from BoneUSRecon.cli.igtl import polydata_message
     from BoneUSRecon.Logic.errors import BoneUSReconError
-    from BoneUSRecon.Logic.live_igtl import polydata_message
     from BoneUSRecon.Logic.vtkio import write_polydata
 
     res = SessionResult(counts=receiver.counts)  # the receiver's live counts until the end
@@ -314,9 +314,9 @@ def _check_outputs(args: argparse.Namespace) -> tuple[Path, Path | None]:
 
 def run(args: argparse.Namespace) -> int:
     """Run a live session; print its summary."""
+    from BoneUSRecon.cli.igtl import FrameReceiver
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.live import LiveParams, LiveReconstructor, PoseAssembler, SweepRecorder
-    from BoneUSRecon.Logic.live_igtl import FrameReceiver
 
     out, record = _check_outputs(args)
     params = params_from_args(args)

@@ -63,8 +63,8 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Serve until the sweep is done (or Ctrl-C with --loop)."""
+    from BoneUSRecon.cli.igtl import SweepServer
     from BoneUSRecon.Logic.errors import BoneUSReconError
-    from BoneUSRecon.Logic.live_igtl import SweepServer
     from BoneUSRecon.Logic.sequence_io import read_calibration
 
     check_sweep_args(args)

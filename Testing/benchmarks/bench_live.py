@@ -89,9 +89,9 @@ def session(
     record: Path | None,
     on_refit=None,
 ):
+    from BoneUSRecon.cli.igtl import FrameReceiver
     from BoneUSRecon.cli.live import run_session
     from BoneUSRecon.Logic.live import LiveParams, LiveReconstructor, PoseAssembler, SweepRecorder
-    from BoneUSRecon.Logic.live_igtl import FrameReceiver
 
     live = LiveParams(update_every_s=update_every, reconnect_s=0.5)
     receiver = FrameReceiver("127.0.0.1", port, PoseAssembler(), live).start()

@@ -1,5 +1,9 @@
 """OpenIGTLink edge of live reconstruction: a receiving client and a replaying server.
 
+Network I/O for the ``live`` and ``serve`` commands (and the benchmark), kept out of
+:mod:`BoneUSRecon.Logic` (pure computation, and what the Slicer module installs: Slicer
+receives OpenIGTLink with its own OpenIGTLinkIF, so it never needs :mod:`pyigtl`).
+
 The wire format (message headers, IMAGE, TRANSFORM, POLYDATA bodies, metadata) is
 :mod:`pyigtl`'s. Its client and server classes are not used: ``OpenIGTLinkClient``
 keeps only the latest message per device (a frame arriving before the previous one
