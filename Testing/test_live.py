@@ -433,3 +433,22 @@ def test_cli_bad_ports_and_options(sweep_file, tmp_path, capsys):
     assert "127.0.0.1:" in errors[0] and "nothing is listening" in errors[0]
     assert "already in use" in errors[-1]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_demo_live(tmp_path, capsys):
+    """`demo --live`: serve and live together on 127.0.0.1; live equals offline."""
+    import json
+
+    from BoneUSRecon.cli import main
+
+    out = tmp_path / "demo"
+    assert (
+        main(["demo", str(out), "--live", "--frames", "40", "--size", "160x128", "--json", "-q"])
+        == 0
+    )
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["received_frames"] == 40 and doc["dropped_frames"] == 0
+    assert abs(doc["gold_mean_mm"]["live"] - doc["gold_mean_mm"]["offline"]) < 0.05
+    assert {"live_surface.vtp", "surface.vtp", "sweep.mha", "gold.csv"} <= {
+        p.name for p in out.iterdir()
+    }

@@ -27,7 +27,7 @@ from BoneUSRecon.cli.common import (
 )
 from BoneUSRecon.cli.reconstruct import add_reconstruction_options, params_from_args
 
-__all__ = ["register", "run", "run_session", "SessionResult"]
+__all__ = ["register", "run", "run_demo", "run_session", "SessionResult"]
 
 DEFAULT_PORT = 18944  # the OpenIGTLink port PlusServer and Slicer use
 
@@ -428,4 +428,78 @@ def _report(args: argparse.Namespace, res: SessionResult, out: Path, where: str)
         rows.append(("skipped because", f"{problem} ({n})"))
     end = "interrupted" if res.interrupted else "ended"
     print_summary(f"Live session with {where} {end}", rows)
+    return 0
+
+
+def run_demo(args: argparse.Namespace, sim_params: Any) -> int:
+    """``demo --live``: simulate, replay over 127.0.0.1 as ``serve``, reconstruct as ``live``.
+
+    Writes the simulation, the live surface (``live_surface.vtp``) and the offline one
+    (``surface.vtp``) into OUTDIR, and prints how the live surface compares.
+    """
+    import threading
+
+    from BoneUSRecon.cli.common import removed_on_failure
+    from BoneUSRecon.cli.igtl import FrameReceiver, SweepServer
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+    from BoneUSRecon.Logic.evaluation import evaluate_surface
+    from BoneUSRecon.Logic.fileio import check_output_dir
+    from BoneUSRecon.Logic.live import LiveParams, LiveReconstructor, PoseAssembler
+    from BoneUSRecon.Logic.pipeline import reconstruct
+    from BoneUSRecon.Logic.simulation import simulate, write_simulation
+    from BoneUSRecon.Logic.vtkio import read_points, write_polydata
+
+    outdir = check_output_dir(args.outdir)
+    quiet = args.quiet or args.json
+    with removed_on_failure(outdir):
+        sim = simulate(sim_params)
+        files = write_simulation(sim, outdir)
+        gold = read_points(files["gold"])
+        server = SweepServer(sim.sweep, "127.0.0.1", 0, fps=30.0)
+        thread = threading.Thread(target=server.serve, name="demo-serve", daemon=True)
+        thread.start()
+        live = LiveParams(reconnect_s=0.5)
+        try:
+            receiver = FrameReceiver("127.0.0.1", server.port, PoseAssembler(), live).start()
+            if not quiet:
+                print(
+                    f"demo --live: serving {sim.sweep.n_frames} frames at 30 frames/s on "
+                    f"127.0.0.1:{server.port}; reconstructing live",
+                    file=sys.stderr,
+                )
+            res = run_session(
+                receiver,
+                LiveReconstructor(live=live),
+                outdir / "live_surface.vtp",
+                update_every_s=live.update_every_s,
+                quiet=quiet,
+            )
+        finally:
+            server.stop()
+            thread.join(timeout=5)
+        if res.final is None:
+            raise BoneUSReconError(f"no live surface: {res.waiting}", outdir)
+        offline = reconstruct(sim.sweep)
+        write_polydata(offline.surface, outdir / "surface.vtp")
+    m_live = evaluate_surface(res.final.surface, gold).mean
+    m_off = evaluate_surface(offline.surface, gold).mean
+    doc = summary_doc(res, outdir / "live_surface.vtp", f"127.0.0.1:{server.port}")
+    doc.update(gold_mean_mm={"live": m_live, "offline": m_off})
+    if args.json:
+        print_json(doc)
+        return 0
+    print_summary(
+        f"Demo --live: {sim_params.bone} phantom served and reconstructed live",
+        [
+            ("frames received", f"{res.received} ({doc['dropped_frames']} dropped)"),
+            (
+                "refits",
+                f"{res.refits}, surface {1000 * doc['latency_s']['median']:.0f} ms after due",
+            ),
+            ("gold distance mean", f"live {m_live:.3f} mm, offline {m_off:.3f} mm"),
+            ("live surface", str(outdir / "live_surface.vtp")),
+            ("offline surface", str(outdir / "surface.vtp")),
+            ("sweep (PLUS .mha)", str(files["sweep"])),
+        ],
+    )
     return 0
