@@ -118,6 +118,8 @@ class SessionResult:
     refits: int = 0
     latencies_s: list[float] = field(default_factory=list)
     refit_s: list[float] = field(default_factory=list)
+    #: CPU seconds of this thread per refit (refit + write + send): the latency on an idle core.
+    refit_cpu_s: list[float] = field(default_factory=list)
     #: Per refit, (mean, max) seconds from a frame's arrival to the surface holding it.
     frame_to_surface_s: list[tuple[float, float]] = field(default_factory=list)
     waiting: str = ""
@@ -246,10 +248,11 @@ def run_session(
                 continue
             if new:
                 try:
-                    t = time.monotonic()
+                    t, c = time.monotonic(), time.thread_time()
                     res.recon = recon.refit(with_points=False)
                     publish(res.recon)
                     res.refit_s.append(time.monotonic() - t)
+                    res.refit_cpu_s.append(time.thread_time() - c)
                     done = time.monotonic()
                     res.latencies_s.append(done - due)
                     if pending:

@@ -226,6 +226,11 @@ def main() -> None:
             f"  refit latency after due: median {np.median(lat):.0f} ms, p95 {np.percentile(lat, 95):.0f} ms, "
             f"max {lat.max():.0f} ms over {lat.size} refits"
         )
+        cpu_refit = np.array(res.refit_cpu_s) * 1000
+        print(
+            f"  refit + write CPU time (the latency on an idle core): median "
+            f"{np.median(cpu_refit):.0f} ms, p95 {np.percentile(cpu_refit, 95):.0f} ms, max {cpu_refit.max():.0f} ms"
+        )
 
 
 def receiver_dropped(r) -> int:
