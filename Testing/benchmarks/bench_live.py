@@ -176,6 +176,10 @@ def main() -> None:
         print(
             f"  refit latency after due   : median {np.median(lat):.0f} ms, max {lat.max():.0f} ms"
         )
+        cpu_refit = np.array(res.refit_cpu_s) * 1000
+        print(
+            f"  refit + write CPU time    : median {np.median(cpu_refit):.0f} ms, max {cpu_refit.max():.0f} ms"
+        )
 
         # 2. endurance: looped replay on one core
         port = free_port()
