@@ -452,3 +452,23 @@ def test_demo_live(tmp_path, capsys):
     assert {"live_surface.vtp", "surface.vtp", "sweep.mha", "gold.csv"} <= {
         p.name for p in out.iterdir()
     }
+
+
+def test_surface_message_layout(sim_small):
+    """The POLYDATA message carries the surface's points and triangles (OpenIGTLink v2 layout)."""
+    import struct
+
+    import pyigtl
+
+    from BoneUSRecon.cli.igtl import polydata_message
+
+    surf = reconstruct(sim_small.sweep).surface
+    data = polydata_message(surf, "BoneSurface").pack()
+    fields = pyigtl.MessageBase.parse_header(data[:58])
+    assert fields["message_type"] == "POLYDATA" and fields["device_name"] == "BoneSurface"
+    body = data[58:]
+    n_points, _, _, _, _, n_polys, size_polys = struct.unpack(">7I", body[:28])
+    assert n_points == surf.GetNumberOfPoints() and n_polys == surf.GetNumberOfCells()
+    assert size_polys == 4 * 4 * n_polys  # (3, a, b, c) per triangle
+    pts = np.frombuffer(body[40 : 40 + 12 * n_points], ">f4").reshape(-1, 3)
+    np.testing.assert_allclose(pts, _points(surf), atol=1e-4)
