@@ -225,8 +225,12 @@ def run_session(
             recorder.add(f.image, f.pose, f.timestamp)
         if f.problem:
             res.skipped[f.problem] += 1
-        elif recon.add_frame(f.image, f.pose, f.timestamp) is not None:
+            return
+        wrong_size = recon.counts["wrong_size"]
+        if recon.add_frame(f.image, f.pose, f.timestamp) is not None:
             new += 1
+        elif recon.counts["wrong_size"] > wrong_size:
+            res.skipped["image size differs from the first frame's"] += 1
 
     def publish(r: Any) -> None:
         write_polydata(r.surface, out)

@@ -57,6 +57,13 @@ def register(subparsers: Any) -> None:
         help="how poses are sent (default: plus with --calibration, else image)",
     )
     add_calibration_option(p)
+    for action in p._actions:  # same options as the readers', one more use worth saying
+        if action.dest == "calibration":
+            action.help = (
+                "PLUS device-set XML with the ImageToProbe calibration: reads the sweep when it "
+                "has no ImageToReference, and sends ProbeToTracker and ReferenceToTracker as "
+                "PlusServer does (--mode plus, the default with it)"
+            )
     add_common_options(p)
     p.set_defaults(func=run)
 
