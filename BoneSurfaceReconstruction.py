@@ -165,8 +165,13 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
         self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
         self.ui.loadSweepButton.connect("clicked(bool)", self.onLoadSweepButton)
         self.initializeParameterNode()
+        from BoneSurfaceReconstructionLib.live import addLiveSection
+
+        self.livePanel = addLiveSection(self)  # Live mode (OpenIGTLink): see that file
 
     def cleanup(self) -> None:
+        if getattr(self, "livePanel", None) is not None:
+            self.livePanel.stop()
         self.removeObservers()
 
     def enter(self) -> None:

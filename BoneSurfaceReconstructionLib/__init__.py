@@ -5,6 +5,8 @@ as a module of its own. Nothing here imports ``slicer`` at import time:
 
 * :mod:`.dependencies`: checking that ``import BoneUSRecon`` works inside Slicer, and installing
   missing pure-Python requirements with Slicer's pip helper (never VTK).
+* :mod:`.live`: Live mode, a surface that grows while OpenIGTLinkIF updates the image
+  (its panel is the only part that imports Qt, when the widget is built).
 * :mod:`.parameters`: the module's parameters (defaults, ranges) and their mapping onto
   :class:`BoneUSRecon.Logic.pipeline.ReconstructionParams`.
 * :mod:`.selftest`: the simulated-sweep check shared by the module's self-test and the
@@ -20,4 +22,4 @@ stays importable by Python 3.9, so that an old Slicer shows why the module canno
 (:func:`.dependencies.unsupportedReason`) instead of a SyntaxError.
 """
 
-__all__ = ["dependencies", "mrml", "parameters", "registration", "sampledata", "selftest"]
+__all__ = ["dependencies", "live", "mrml", "parameters", "registration", "sampledata", "selftest"]

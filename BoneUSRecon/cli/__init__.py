@@ -31,6 +31,8 @@ COMMANDS = (
     "table",
     "batch",
     "view",
+    "serve",
+    "live",
 )
 
 

@@ -72,6 +72,9 @@ def register(subparsers: Any) -> None:
                    "(files named like the demo's outputs are replaced)")
     p.add_argument("--no-table", action="store_true",
                    help="skip the Table I curve (refits with 5, 10, 15, 20 control points)")
+    p.add_argument("--live", action="store_true",
+                   help="instead: replay the sweep over OpenIGTLink on 127.0.0.1 at 30 frames/s "
+                   "(as 'serve') and reconstruct it live (as 'live'), then compare with offline")
     add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
@@ -119,6 +122,10 @@ def _params(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate, reconstruct, evaluate, write; print where everything is."""
+    if args.live:  # serve + live together (issue 16): see cli/live.py
+        from BoneUSRecon.cli.live import run_demo
+
+        return run_demo(args, _params(args))
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.evaluation import evaluate_surface
     from BoneUSRecon.Logic.fileio import atomic_path, json_ready

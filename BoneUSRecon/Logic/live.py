@@ -1,0 +1,710 @@
+"""Live reconstruction: the surface grows while the user scans.
+
+Frames arrive one at a time (from an OpenIGTLink server, :mod:`BoneUSRecon.cli.igtl`, or a
+Slicer volume node that OpenIGTLinkIF updates). :class:`LiveReconstructor` does the
+per-frame work once, as each frame arrives (the frame's candidate bone contours,
+cached), and the sweep-level work at each refit, over all frames so far (one bone
+track chosen jointly over the frames, resampling, fit, mesh). Every refit therefore
+equals an offline :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far.
+
+The two calls into the segmentation stage are isolated in :func:`_segment_one` and
+:func:`_select`; the rest of the pipeline is reached through :func:`_reconstruction`.
+
+:class:`PoseAssembler` turns a stream of IMAGE and TRANSFORM messages into posed
+frames (the image's own matrix, a named transform, or the PLUS chain with a
+calibration), and :class:`SweepRecorder` saves what was received as a PLUS sequence,
+streamed to disk so that memory stays flat however long the session.
+
+Nothing here knows about sockets: this module is pure computation on numpy arrays.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from vtkmodules.vtkCommonDataModel import vtkPolyData
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.fileio import check_output_path
+from BoneUSRecon.Logic.pipeline import (
+    Reconstruction,
+    ReconstructionParams,
+    _summary,
+    surface_from_contours,
+)
+from BoneUSRecon.Logic.poses import find_chain, read_calibration, split_transform_name
+from BoneUSRecon.Logic.segmentation import (
+    SegmentationParams,
+    SegmentationResult,
+    points_polydata,
+)
+from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.driver import (
+    contours_from_track,
+    frame_candidates_for,
+    select_bone_track,
+)
+from BoneUSRecon.Logic.sequence_io import write_sweep
+from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
+
+__all__ = [
+    "LiveParams",
+    "LiveReconstructor",
+    "PosedFrame",
+    "PoseAssembler",
+    "SweepRecorder",
+]
+
+
+@dataclass(frozen=True)
+class LiveParams:
+    """How a live session receives frames and refits.
+
+    Attributes
+    ----------
+    update_every_s : float
+        Seconds between refits (default 1.0: a refit of a few hundred frames takes
+        ~0.1 s on one core, so one per second leaves ~90 % for the frames).
+    queue_frames : int
+        Frames waiting to be processed before new ones are dropped (default 64:
+        about 2 s at 30 frames/s, ~20 MB at 480x640; covers a refit and a burst).
+    max_frames : int
+        Frames kept for the surface (default 400: 13 s at 30 frames/s, more than the
+        paper's longest sweep of 250 and ~25 slices per control point along the
+        bone; <1 MB of contours; a live refit plus writing the surface then takes
+        ~0.15 s of one core at 480x640, within the 0.2 s a refit may lag). When reached, every other kept
+        frame is dropped and from then on only every second arriving frame is
+        processed (then every fourth, ...): the whole scanned extent stays covered
+        at a halved density, and memory and refit time stay bounded.
+    pose_tolerance_s : float
+        Largest timestamp difference between an image and a transform paired with
+        it (default 0.02 s). PLUS stamps all messages of one tracked frame with the
+        same time, so a matching pose is normally exact; 20 ms tolerates servers that
+        stamp on sending and stays below the 33 ms between frames at 30 frames/s.
+    reconnect_s : float
+        After the server closes the connection, how long to try reconnecting before
+        the session ends (default 3 s: a restarted PlusServer is back within that).
+    """
+
+    update_every_s: float = 1.0
+    queue_frames: int = 64
+    max_frames: int = 400
+    pose_tolerance_s: float = 0.02
+    reconnect_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not self.update_every_s > 0:
+            raise BoneUSReconError(f"update_every_s must be > 0 s, got {self.update_every_s}")
+        if int(self.queue_frames) < 1:
+            raise BoneUSReconError(f"queue_frames must be >= 1, got {self.queue_frames}")
+        if int(self.max_frames) < 10:
+            raise BoneUSReconError(f"max_frames must be >= 10, got {self.max_frames}")
+        if not self.pose_tolerance_s >= 0:
+            raise BoneUSReconError(f"pose_tolerance_s must be >= 0 s, got {self.pose_tolerance_s}")
+        if not self.reconnect_s >= 0:
+            raise BoneUSReconError(f"reconnect_s must be >= 0 s, got {self.reconnect_s}")
+
+
+# ------------------------------------------------------------------------------------
+# The calls into the segmentation and surface stages (one place to rewire)
+# ------------------------------------------------------------------------------------
+def _segment_one(
+    image: np.ndarray,
+    spacing: tuple[float, float],
+    params: SegmentationParams,
+    prior_px: np.ndarray | None,
+) -> FrameCandidates:
+    """Per-frame step, done once per frame: the frame's candidate bone contours."""
+    return frame_candidates_for(image, spacing, params, prior_px)
+
+
+def _select(
+    frames: list[FrameCandidates],
+    poses: np.ndarray,
+    params: SegmentationParams,
+    t_seg: float,
+) -> SegmentationResult:
+    """Sweep-level step at each refit: one bone track over all frames so far, exactly
+    as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline."""
+    choice = select_bone_track(frames, poses, params.rejection)
+    contours = contours_from_track(np.arange(len(frames)), frames, choice, params)
+    return SegmentationResult(
+        contours,
+        params.method,
+        params,
+        {"segment_s": t_seg, "frames_per_s": len(frames) / max(t_seg, 1e-9)},
+    )
+
+
+def _reconstruction(
+    sweep: Sweep,
+    seg: SegmentationResult,
+    params: ReconstructionParams,
+    t_seg: float,
+    with_points: bool = True,
+) -> Reconstruction:
+    """Resample, fit and mesh a segmentation: the tail of :func:`reconstruct`."""
+    timings: dict[str, float] = {"segment": t_seg}
+    t0 = time.perf_counter()
+    contours = seg.contours_mm(sweep)
+    # = seg.points_mm(sweep)[0], without mapping every contour a second time
+    pts = np.concatenate([c for _, c in contours]) if contours else np.empty((0, 3))
+    grid, fit, surf = surface_from_contours(
+        contours, sweep, params, segmented_points=pts, timings=timings
+    )
+    points = points_polydata(seg, sweep) if with_points else vtkPolyData()
+    timings["total"] = t_seg + time.perf_counter() - t0
+    return Reconstruction(
+        sweep=sweep,
+        segmentation=seg,
+        grid=grid,
+        fit=fit,
+        surface=surf,
+        points=points,
+        summary=_summary(sweep, seg, grid, fit, surf, params),
+        timings=timings,
+        params=params,
+    )
+
+
+# ------------------------------------------------------------------------------------
+# The reconstructor
+# ------------------------------------------------------------------------------------
+@dataclass
+class _Frame:
+    pose: np.ndarray
+    timestamp: float
+    candidates: FrameCandidates
+
+    @property
+    def reason(self) -> str:
+        """The per-frame verdict: "" when the frame has a usable candidate, else why not."""
+        if self.candidates.usable:
+            return ""
+        return self.candidates.reason or "no bone found"
+
+
+#: Live refits wait for this many frames with a contour per control point along the
+#: bone. With barely as many slices as control points the fit interpolates and swings
+#: wildly between them (a 15-slice fit of the test sweep spans 380 mm and meshes into
+#: 1.3 million points, 2 s); two slices per control point make it a least-squares fit.
+MIN_FRAMES_PER_CONTROL_POINT = 2
+
+
+class LiveReconstructor:
+    """Frames in one at a time, a surface out whenever asked.
+
+    Parameters
+    ----------
+    params : ReconstructionParams
+        As for :func:`~BoneUSRecon.Logic.pipeline.reconstruct`.
+    live : LiveParams
+        ``max_frames`` bounds what is kept (see there).
+
+    Notes
+    -----
+    Frames must arrive in acquisition order: each frame's segmenter is seeded by the
+    last frame that passed its per-frame checks, exactly as in
+    :func:`~BoneUSRecon.Logic.segmentation.segment_sweep`. Only the contours and poses
+    are kept, never the pixels; the :attr:`Reconstruction.sweep` of a refit carries
+    blank frames (a zero-stride array) with the real poses.
+
+    Examples
+    --------
+    >>> from BoneUSRecon.Logic.simulation import SimulationParams, simulate
+    >>> sim = simulate(SimulationParams(n_frames=30, width=120, height=96, spacing_mm=0.4))
+    >>> live = LiveReconstructor()
+    >>> for k, image in sim.sweep.iter_frames():
+    ...     _ = live.add_frame(image, sim.sweep.image_to_reference[k], sim.sweep.timestamps[k])
+    >>> live.refit().summary["segmented_frames"] > 20
+    True
+    """
+
+    def __init__(
+        self,
+        params: ReconstructionParams = ReconstructionParams(),  # noqa: B008 (frozen)
+        live: LiveParams = LiveParams(),  # noqa: B008 (frozen)
+    ) -> None:
+        self.params = params
+        self.live = live
+        self._frames: list[_Frame] = []
+        self._prior: np.ndarray | None = None
+        self._shape: tuple[int, int] | None = None
+        self._stride = 1
+        self._arrived = 0
+        self._since_thinning = 0
+        self._segment_s = 0.0
+        #: Frames given to :meth:`add_frame`, frames not processed because of
+        #: ``max_frames`` thinning, frames refused for a different image size.
+        self.counts = {"added": 0, "thinned": 0, "wrong_size": 0}
+
+    @property
+    def n_frames(self) -> int:
+        """Frames kept for the surface."""
+        return len(self._frames)
+
+    @property
+    def shape(self) -> tuple[int, int] | None:
+        """``(H, W)`` of the frames, fixed by the first one."""
+        return self._shape
+
+    def add_frame(self, image: np.ndarray, pose: np.ndarray, timestamp: float = 0.0) -> str | None:
+        """Segment one frame and keep its contour.
+
+        Parameters
+        ----------
+        image : ndarray of uint8, shape (H, W)
+            B-mode frame in MF orientation (row 0 nearest the transducer).
+        pose : ndarray, shape (4, 4)
+            ``ImageToReference``: pixel ``(i, j, 0, 1)`` to reference mm.
+        timestamp : float
+            Seconds.
+
+        Returns
+        -------
+        str or None
+            The per-frame verdict: ``""`` when the contour passed the per-frame checks,
+            else why not; ``None`` when the frame was not processed (thinned, or its size
+            differs from the first frame's).
+        """
+        img = np.asarray(image)
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise BoneUSReconError(f"a frame must be a 2D uint8 array, got {img.dtype} {img.shape}")
+        m = np.asarray(pose, dtype=np.float64)
+        if m.shape != (4, 4):
+            raise BoneUSReconError(f"a pose must be 4x4, got {m.shape}")
+        self.counts["added"] += 1
+        if self._shape is None:
+            self._shape = (int(img.shape[0]), int(img.shape[1]))
+        elif img.shape != self._shape:
+            self.counts["wrong_size"] += 1
+            return None
+        self._arrived += 1
+        if self._since_thinning % self._stride:
+            self._since_thinning += 1
+            self.counts["thinned"] += 1
+            return None
+        self._since_thinning += 1
+        sx, sy = pixel_spacing(m)
+        t0 = time.perf_counter()
+        fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
+        self._segment_s += time.perf_counter() - t0
+        frame = _Frame(m, float(timestamp), fc)
+        reason = frame.reason
+        if not reason:
+            self._prior = fc.usable[0].points_px  # as segment_sweep seeds the next frame
+        self._frames.append(frame)
+        if len(self._frames) >= self.live.max_frames:
+            self._thin()
+        return reason
+
+    def _thin(self) -> None:
+        """Keep every other frame and process every ``2 * stride``-th from now on."""
+        self._frames = self._frames[::2]
+        self._stride *= 2
+        self._since_thinning = 1  # the frame just added counts as processed
+
+    def sweep(self) -> Sweep:
+        """The kept frames as a :class:`Sweep` (poses and timestamps; blank pixels)."""
+        if not self._frames or self._shape is None:
+            raise BoneUSReconError("no frame received yet")
+        n = len(self._frames)
+        h, w = self._shape
+        return Sweep(
+            frames=np.broadcast_to(np.zeros((), np.uint8), (n, h, w)),
+            image_to_reference=np.stack([f.pose for f in self._frames]),
+            timestamps=np.array([f.timestamp for f in self._frames]),
+            valid=np.ones(n, bool),
+            transform_name="ImageToReference (live)",
+        )
+
+    def refit(self, *, final: bool = False, with_points: bool = True) -> Reconstruction:
+        """Select over all frames so far, resample, fit and mesh.
+
+        Parameters
+        ----------
+        final : bool
+            The end of a session: fit whatever there is. Otherwise (live refits) it
+            waits for ``MIN_FRAMES_PER_CONTROL_POINT`` frames with a contour per
+            control point along the bone. Either way the bone track is chosen over all
+            kept frames, as :func:`~BoneUSRecon.Logic.pipeline.reconstruct` does (the
+            dynamic programme over frames costs little beside the fit; ``max_frames``
+            bounds the frames kept).
+        with_points : bool
+            Build :attr:`Reconstruction.points` (the segmented points as polydata);
+            False leaves it empty, which saves a fifth of a live refit that only
+            shows the surface.
+
+        Returns
+        -------
+        Reconstruction
+
+        Raises
+        ------
+        BoneUSReconError
+            Not enough yet: no frame, no contour, too few slices, or the probe has not
+            moved far enough.
+        """
+        sweep = self.sweep()
+        t0 = time.perf_counter()
+        frames = self._frames
+        need = MIN_FRAMES_PER_CONTROL_POINT * self.params.fit.control_points[0]
+        n_ok = sum(not f.reason for f in frames)
+        if not final and n_ok < need:
+            raise BoneUSReconError(f"waiting for frames: {n_ok} of {need} with a bone contour")
+        seg = _select(
+            [f.candidates for f in frames],
+            sweep.image_to_reference,
+            self.params.segmentation,
+            self._segment_s,
+        )
+        if not seg.accepted:
+            raise BoneUSReconError("no bone contour found yet")
+        t_seg = self._segment_s + time.perf_counter() - t0
+        return _reconstruction(sweep, seg, self.params, t_seg, with_points)
+
+    def memory_bytes(self) -> int:
+        """Approximate bytes held for the kept frames (contours and poses)."""
+        return int(
+            sum(
+                sum(c.points_px.nbytes + c.intensity.nbytes + 200 for c in f.candidates.candidates)
+                + 200
+                for f in self._frames
+            )
+        )
+
+
+# ------------------------------------------------------------------------------------
+# From messages to posed frames
+# ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PosedFrame:
+    """One received frame with its pose, or why it has none.
+
+    Attributes
+    ----------
+    image : ndarray of uint8 (H, W), or None when the pixels are unusable
+    pose : ndarray (4, 4) or None
+        ``ImageToReference``; None when ``problem`` is set.
+    timestamp : float
+        Seconds (the message's timestamp).
+    problem : str
+        "" when the frame can be used, else why not (e.g. ``"ProbeToTracker status
+        INVALID"``, ``"ProbeToTracker missing"``).
+    """
+
+    image: np.ndarray | None
+    pose: np.ndarray | None
+    timestamp: float
+    problem: str = ""
+
+
+def _pose_problem(m: np.ndarray) -> str:
+    """Why a composed pose cannot be used ("" if it can); as sequence_io judges a frame."""
+    if not np.all(np.isfinite(m)):
+        return "pose has NaN or infinite values"
+    if np.any(np.abs(m[3] - [0, 0, 0, 1]) > 1e-6):
+        return "pose is not an affine transform (last row is not 0 0 0 1)"
+    c0, c1 = m[:3, 0], m[:3, 1]
+    n0, n1 = np.linalg.norm(c0), np.linalg.norm(c1)
+    if not (np.linalg.norm(np.cross(c0, c1)) > 1e-9 * n0 * n1 and n0 > 0 and n1 > 0):
+        return "pose is singular (image axes collapse)"
+    return ""
+
+
+def frame_pixels(image: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """An IMAGE message's voxels ``(K, J, I[, C])`` as one uint8 frame ``(H, W)``.
+
+    Grey B-mode sent as RGB(A) uses its first channel, as the file reader does. Other
+    pixel types are refused: the file reader maps them to 0..255 from the levels of
+    the whole recording, which a stream does not have yet.
+    """
+    a = np.asarray(image)
+    if a.ndim == 4:
+        a = a[..., 0]
+    if a.ndim == 3:
+        if a.shape[0] != 1:
+            return None, f"a 3D image ({a.shape[0]} slices), expected one 2D frame"
+        a = a[0]
+    if a.ndim != 2 or min(a.shape) < 2:
+        return None, f"image of shape {np.shape(image)} is not a 2D frame"
+    if a.dtype != np.uint8:
+        return None, f"pixel type {a.dtype} (send 8-bit B-mode frames)"
+    return np.ascontiguousarray(a), ""
+
+
+class PoseAssembler:
+    """Pair IMAGE and TRANSFORM messages into posed frames.
+
+    Three ways to get ``ImageToReference``, as :func:`~BoneUSRecon.Logic.sequence_io.read_sweep`:
+
+    * default: the IMAGE's own matrix (PLUS ``EmbeddedTransformToFrame="Reference"``);
+    * ``transform="ImageToReference"`` (any ``ImageTo<X>``): a TRANSFORM of that name,
+      or a chain of received transforms reaching it (e.g. the PLUS chain
+      ``inv(ReferenceToTracker) * ProbeToTracker * ImageToProbe`` with ``calibration``
+      giving ``ImageToProbe`` from a PLUS device-set XML); ``transform="ProbeToTracker"``
+      (any ``<A>To<B>``) means the pose given by that transform, as for files;
+    * ``calibration`` alone: target ``ImageToReference`` through the chain.
+
+    With a transform, the IMAGE's matrix is taken as pixels to the ``Image`` frame
+    (PLUS ``EmbeddedTransformToFrame="Image"``: pixel units) and composed after the
+    chain. Transforms pair with an image when their timestamps agree within
+    ``tolerance_s``; a transform flagged invalid (metadata ``TransformStatus`` or
+    ``Status`` not ``OK``, or NaN values) makes that frame unusable. PLUS may send an
+    image before or after its transforms, so an image waits for them until the next
+    image arrives.
+
+    Parameters
+    ----------
+    transform : str, optional
+    calibration : path-like, optional
+    image_name : str, optional
+        Device name of the IMAGE stream to use (default: the first one seen).
+    tolerance_s : float
+    """
+
+    def __init__(
+        self,
+        *,
+        transform: str | None = None,
+        calibration: str | os.PathLike[str] | None = None,
+        image_name: str | None = None,
+        tolerance_s: float = LiveParams.pose_tolerance_s,
+    ) -> None:
+        self.image_name = image_name
+        self.tolerance_s = float(tolerance_s)
+        self.calibration = None if calibration is None else read_calibration(calibration)
+        if transform is None and calibration is None:
+            self.target: str | None = None
+        else:
+            name = transform or "ImageToReference"
+            name = name[: -len("Transform")] if name.endswith("Transform") else name
+            ab = split_transform_name(name)
+            if ab is None or ab[0] == ab[1]:
+                raise BoneUSReconError(
+                    f"--transform {transform!r} is not a transform name like ImageToReference"
+                )
+            self.target = name
+        self._latest: dict[str, tuple[float, np.ndarray, str]] = {}
+        self._pending: tuple[np.ndarray | None, np.ndarray, float, str] | None = None
+        #: IMAGE messages of other devices, ignored.
+        self.other_images = 0
+
+    @property
+    def mode(self) -> str:
+        """How poses are obtained, for the summary."""
+        if self.target is None:
+            return "the IMAGE message's matrix"
+        return self.target + (" (calibration ImageToProbe)" if self.calibration is not None else "")
+
+    # -- input -----------------------------------------------------------------------
+    def add_transform(
+        self, name: str, matrix: np.ndarray, timestamp: float, status: str = "OK"
+    ) -> list[PosedFrame]:
+        """A TRANSFORM message arrived; returns the frames it completes (0 or 1)."""
+        if self.target is None:
+            return []
+        name = name[: -len("Transform")] if name.endswith("Transform") else name
+        m = np.asarray(matrix, dtype=np.float64)
+        problem = ""
+        if status.upper() != "OK":
+            problem = f"{name} status {status}"
+        elif m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            problem = f"{name} has NaN or infinite values"
+        self._latest[name] = (float(timestamp), m, problem)
+        if self._pending is not None:
+            frame = self._try(*self._pending)
+            if frame is not None:
+                self._pending = None
+                return [frame]
+        return []
+
+    def add_image(
+        self, name: str, voxels: np.ndarray, matrix: np.ndarray, timestamp: float
+    ) -> list[PosedFrame]:
+        """An IMAGE message arrived; returns the frames now decided (0, 1 or 2)."""
+        if self.image_name is None:
+            self.image_name = name
+        if name != self.image_name:
+            self.other_images += 1
+            return []
+        out = self.flush()
+        image, problem = frame_pixels(voxels)
+        item = (image, np.asarray(matrix, dtype=np.float64), float(timestamp), problem)
+        frame = self._try(*item)
+        if frame is None:
+            self._pending = item
+        else:
+            out.append(frame)
+        return out
+
+    def flush(self) -> list[PosedFrame]:
+        """The image still waiting for transforms, declared unusable (end of stream)."""
+        if self._pending is None:
+            return []
+        image, _, ts, problem = self._pending
+        self._pending = None
+        return [PosedFrame(image, None, ts, problem or self._missing(ts))]
+
+    # -- pairing ---------------------------------------------------------------------
+    def _try(
+        self, image: np.ndarray | None, ijk: np.ndarray, ts: float, problem: str
+    ) -> PosedFrame | None:
+        if problem:
+            return PosedFrame(image, None, ts, problem)
+        if self.target is None:
+            return self._posed(image, ijk, ts)
+        steps = self._steps()
+        if steps is None:
+            return None
+        total = np.eye(4)
+        for name, inverted in steps:
+            if name == "ImageToProbe" and self.calibration is not None:
+                m = self.calibration
+            else:
+                t, m, bad = self._latest[name]
+                if abs(t - ts) > self.tolerance_s:
+                    return None  # not this frame's pose (yet)
+                if bad:
+                    return PosedFrame(image, None, ts, bad)
+            if inverted:
+                if abs(np.linalg.det(m)) < 1e-12 * max(np.abs(m[:3, :3]).max(), 1e-300) ** 3:
+                    return PosedFrame(image, None, ts, f"{name} is singular")
+                m = np.linalg.inv(m)
+            total = m @ total
+        return self._posed(image, total @ ijk, ts)
+
+    @staticmethod
+    def _posed(image: np.ndarray | None, pose: np.ndarray, ts: float) -> PosedFrame:
+        problem = _pose_problem(pose)
+        return PosedFrame(image, None if problem else pose, ts, problem)
+
+    def _edges(self) -> dict[str, tuple[str, str]]:
+        edges = {n: ab for n in self._latest if (ab := split_transform_name(n)) is not None}
+        if self.calibration is not None:
+            edges["ImageToProbe"] = ("Image", "Probe")
+        return edges
+
+    def _steps(self) -> list[tuple[str, bool]] | None:
+        """The chain of transforms giving the target pose from what was received."""
+        assert self.target is not None
+        edges = self._edges()
+        a, b = split_transform_name(self.target)  # type: ignore[misc]
+        if a == "Image":
+            return find_chain(edges, "Image", b)
+        if self.target not in edges:
+            return None
+        others = {k: v for k, v in edges.items() if k != self.target}
+        head = find_chain(others, "Image", a)
+        return None if head is None else head + [(self.target, False)]
+
+    def _missing(self, ts: float) -> str:
+        """Why an image found no pose: which transform is missing or stale."""
+        assert self.target is not None
+        steps = self._steps()
+        if steps is None:
+            have = ", ".join(sorted(self._latest)) or "none"
+            need = "the calibration" if self.calibration is None else "a chain"
+            return f"no {self.target}: no chain of received transforms (received: {have}; {need}?)"
+        for name, _ in steps:
+            if name in self._latest and abs(self._latest[name][0] - ts) > self.tolerance_s:
+                return f"{name} missing for this frame"
+        return f"{self.target} missing"
+
+
+# ------------------------------------------------------------------------------------
+# Recording
+# ------------------------------------------------------------------------------------
+@dataclass
+class _Recorded:
+    poses: list[np.ndarray] = field(default_factory=list)
+    timestamps: list[float] = field(default_factory=list)
+    valid: list[bool] = field(default_factory=list)
+
+
+class SweepRecorder:
+    """Save received frames as a PLUS sequence, pixels streamed to disk as they come.
+
+    The pixels go to a hidden temporary file beside the output (memory stays flat
+    however long the session); :meth:`finish` writes the sequence with
+    :func:`~BoneUSRecon.Logic.sequence_io.write_sweep` (atomically) and removes it.
+    Frames whose pose is unusable are kept with status ``INVALID``, as PLUS records
+    them.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.mha`` or ``.mhd`` output.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = check_output_path(path, (".mha", ".mhd"))
+        parent = self.path.parent if str(self.path.parent) else Path(".")
+        fd, name = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=".frames", dir=parent)
+        self._file = os.fdopen(fd, "wb")
+        self._tmp = Path(name)
+        self._shape: tuple[int, int] | None = None
+        self._meta = _Recorded()
+
+    @property
+    def n_frames(self) -> int:
+        """Frames recorded so far."""
+        return len(self._meta.valid)
+
+    def add(self, image: np.ndarray, pose: np.ndarray | None, timestamp: float) -> bool:
+        """Append a frame (``pose`` None: invalid); False if its size differs from the first."""
+        if self._shape is None:
+            self._shape = (int(image.shape[0]), int(image.shape[1]))
+        elif image.shape != self._shape:
+            return False
+        self._file.write(np.ascontiguousarray(image, dtype=np.uint8).tobytes())
+        self._meta.poses.append(np.eye(4) if pose is None else np.asarray(pose, float))
+        self._meta.timestamps.append(float(timestamp))
+        self._meta.valid.append(pose is not None)
+        return True
+
+    def finish(self) -> Path | None:
+        """Write the sequence file; None (and nothing written) when no frame came."""
+        try:
+            self._file.close()
+            if not self.n_frames or self._shape is None:
+                return None
+            h, w = self._shape
+            frames = np.memmap(self._tmp, dtype=np.uint8, mode="r", shape=(self.n_frames, h, w))
+            sweep = Sweep(
+                frames=frames,
+                image_to_reference=np.stack(self._meta.poses),
+                timestamps=np.array(self._meta.timestamps),
+                valid=np.array(self._meta.valid, bool),
+            )
+            out = write_sweep(sweep, self.path)
+            del frames, sweep
+            return out
+        finally:
+            self.discard()
+
+    def discard(self) -> None:
+        """Remove the temporary pixel file (nothing is written)."""
+        with contextlib.suppress(OSError):
+            self._file.close()
+        with contextlib.suppress(OSError):
+            self._tmp.unlink()
+
+
+def stats_row(recon: Reconstruction | None) -> dict[str, Any]:
+    """Frames used and rejected and the grid coverage of a refit, for status lines."""
+    if recon is None:
+        return {"used": 0, "rejected": 0, "coverage": 0.0}
+    s = recon.summary
+    return {
+        "used": int(s["segmented_frames"]) - len(s["fit_rejected_frames"]),
+        "rejected": int(s["rejected_frames"]) + len(s["fit_rejected_frames"]),
+        "coverage": float(s["grid_coverage"]),
+    }

@@ -1,0 +1,474 @@
+"""Live reconstruction (issue 16): per-frame work once, refits equal to the offline
+pipeline, pose assembly from OpenIGTLink messages, recording, and ``serve`` + ``live``
+end to end on 127.0.0.1 (free ports, bounded time, everything torn down).
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import vtk_to_numpy
+
+from BoneUSRecon.cli.igtl import FrameReceiver, SweepServer
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.evaluation import evaluate_surface
+from BoneUSRecon.Logic.live import (
+    LiveParams,
+    LiveReconstructor,
+    PoseAssembler,
+    SweepRecorder,
+)
+from BoneUSRecon.Logic.pipeline import reconstruct
+from BoneUSRecon.Logic.sequence_io import read_calibration, read_sweep, write_sweep
+from BoneUSRecon.Logic.vtkio import read_polydata
+
+CALIBRATION = (
+    Path(__file__).parents[2] / "shared" / "data" / "plus" / "BoneUltrasound_L14_config.xml"
+)
+
+
+def _points(pd) -> np.ndarray:
+    return vtk_to_numpy(pd.GetPoints().GetData())
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _feed(live: LiveReconstructor, sweep, refit_every: int = 0) -> None:
+    for n, (k, image) in enumerate(sweep.iter_frames()):
+        live.add_frame(image, sweep.image_to_reference[k], sweep.timestamps[k])
+        if refit_every and n % refit_every == 0:
+            try:
+                live.refit()
+            except BoneUSReconError:
+                assert n < 35  # not enough frames yet (30 with a contour)
+
+
+# ------------------------------------------------------------------------------------
+# LiveReconstructor
+# ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("refit_every", [0, 5])
+def test_live_refit_equals_offline(sim_small_corrupted, refit_every):
+    """Frames in one at a time, refits along the way: the last refit (windowed
+    selection) and the final one are the offline reconstruction, point for point."""
+    sweep = sim_small_corrupted.sweep
+    live = LiveReconstructor()
+    _feed(live, sweep, refit_every)
+    offline = reconstruct(sweep)
+    for r in (live.refit(), live.refit(final=True)):
+        np.testing.assert_array_equal(_points(r.surface), _points(offline.surface))
+        assert r.summary["rejected"] == offline.summary["rejected"]
+    gold = sim_small_corrupted.gold
+    assert evaluate_surface(live.refit().surface, gold).mean < 0.4  # mm, as offline
+
+
+def test_live_not_enough_yet(sim_small):
+    """Before the probe has moved, a refit says why there is no surface yet."""
+    live = LiveReconstructor()
+    with pytest.raises(BoneUSReconError, match="no frame received"):
+        live.refit()
+    for k, image in list(sim_small.sweep.iter_frames())[:2]:
+        live.add_frame(image, sim_small.sweep.image_to_reference[k], 0.0)
+    with pytest.raises(BoneUSReconError):
+        live.refit()
+
+
+def test_live_thinning_bounds_memory(sim_small):
+    """Past max_frames, every other frame is kept: frames and contours stay bounded,
+    and the surface still spans the sweep."""
+    sweep = sim_small.sweep
+    live = LiveReconstructor(live=LiveParams(max_frames=24))
+    _feed(live, sweep)
+    assert 15 <= live.n_frames < 24
+    assert live.counts["thinned"] > 0
+    assert live.counts["added"] == sweep.n_frames
+    r = live.refit(final=True)
+    assert evaluate_surface(r.surface, sim_small.gold).mean < 0.6
+
+
+def test_live_wrong_frame_size(sim_small):
+    live = LiveReconstructor()
+    sweep = sim_small.sweep
+    assert live.add_frame(sweep.frames[0], sweep.image_to_reference[0]) is not None
+    assert live.add_frame(np.zeros((10, 12), np.uint8), sweep.image_to_reference[1]) is None
+    assert live.counts["wrong_size"] == 1
+    with pytest.raises(BoneUSReconError, match="2D uint8"):
+        live.add_frame(np.zeros((10, 12), np.float32), np.eye(4))
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("update_every_s", 0),
+        ("queue_frames", 0),
+        ("max_frames", 3),
+        ("pose_tolerance_s", -1),
+        ("reconnect_s", -1),
+    ],
+)
+def test_live_params_refused(field, value):
+    with pytest.raises(BoneUSReconError, match=field):
+        LiveParams(**{field: value})
+
+
+# ------------------------------------------------------------------------------------
+# PoseAssembler
+# ------------------------------------------------------------------------------------
+IMG = np.full((1, 8, 10), 7, np.uint8)
+POSE = np.array([[0.2, 0, 0, 1.0], [0, 0.2, 0, 2.0], [0, 0, 1, 3.0], [0, 0, 0, 1]])
+
+
+def test_pose_from_image_matrix():
+    a = PoseAssembler()
+    [f] = a.add_image("Image_Reference", IMG, POSE, 1.0)
+    assert f.problem == "" and np.array_equal(f.pose, POSE) and f.image.shape == (8, 10)
+    assert a.add_image("OtherImage", IMG, POSE, 1.1) == [] and a.other_images == 1
+    [bad] = a.add_image("Image_Reference", IMG, np.zeros((4, 4)), 1.2)
+    assert "affine" in bad.problem or "singular" in bad.problem
+    [f16] = a.add_image("Image_Reference", IMG.astype(np.uint16), POSE, 1.3)
+    assert "pixel type" in f16.problem
+
+
+@pytest.mark.parametrize("image_first", [True, False])
+def test_pose_from_named_transform(image_first):
+    """The image waits for its transform (PLUS may send either first)."""
+    a = PoseAssembler(transform="ImageToReference")
+    if image_first:
+        assert a.add_image("Image", IMG, np.eye(4), 5.0) == []
+        [f] = a.add_transform("ImageToReference", POSE, 5.0)
+    else:
+        assert a.add_transform("ImageToReference", POSE, 5.0) == []
+        [f] = a.add_image("Image", IMG, np.eye(4), 5.0)
+    assert f.problem == "" and np.allclose(f.pose, POSE)
+
+
+def test_pose_missing_and_invalid_transforms():
+    a = PoseAssembler(transform="ImageToReference", tolerance_s=0.01)
+    a.add_transform("ImageToReference", POSE, 1.0)
+    assert a.add_image("Image", IMG, np.eye(4), 2.0) == []  # stale pose: waits
+    [missing, ok] = a.add_image("Image", IMG, np.eye(4), 3.0) + a.add_transform(
+        "ImageToReference", POSE, 3.0
+    )
+    assert "ImageToReference missing" in missing.problem and ok.problem == ""
+    a.add_transform("ImageToReference", POSE, 4.0, status="INVALID")
+    [inv] = a.add_image("Image", IMG, np.eye(4), 4.0)
+    assert inv.problem == "ImageToReference status INVALID" and inv.pose is None
+    a.add_transform("ImageToReference", np.full((4, 4), np.nan), 5.0)
+    [nan] = a.add_image("Image", IMG, np.eye(4), 5.0)
+    assert "NaN" in nan.problem
+
+
+@pytest.mark.skipif(not CALIBRATION.exists(), reason="shared PLUS data not available")
+def test_pose_plus_chain_with_calibration():
+    """inv(ReferenceToTracker) * ProbeToTracker * ImageToProbe, as the file reader."""
+    cal = read_calibration(CALIBRATION)
+    rng = np.random.default_rng(0)
+    probe = np.eye(4)
+    probe[:3, 3] = rng.normal(0, 50, 3)
+    ref = np.eye(4)
+    ref[:3, 3] = rng.normal(0, 50, 3)
+    a = PoseAssembler(calibration=CALIBRATION)
+    a.add_transform("ProbeToTracker", probe, 1.0)
+    assert a.add_image("Image", IMG, np.eye(4), 1.0) == []  # ReferenceToTracker not yet
+    [f] = a.add_transform("ReferenceToTracker", ref, 1.0)
+    np.testing.assert_allclose(f.pose, np.linalg.inv(ref) @ probe @ cal)
+    b = PoseAssembler()  # nothing says to use the transforms: the image's own matrix
+    assert b.add_transform("ProbeToTracker", probe, 1.0) == []
+    with pytest.raises(BoneUSReconError, match="not a transform name"):
+        PoseAssembler(transform="Nonsense")
+
+
+# ------------------------------------------------------------------------------------
+# SweepRecorder
+# ------------------------------------------------------------------------------------
+def test_recorder_round_trip(sim_small, tmp_path):
+    s = sim_small.sweep
+    rec = SweepRecorder(tmp_path / "rec.mha")
+    for k in range(6):
+        rec.add(s.frames[k], None if k == 2 else s.image_to_reference[k], float(k))
+    assert rec.add(np.zeros((3, 3), np.uint8), None, 9.0) is False
+    assert rec.finish() == tmp_path / "rec.mha"
+    back = read_sweep(tmp_path / "rec.mha")
+    np.testing.assert_array_equal(back.frames, s.frames[:6])
+    assert list(back.valid) == [True, True, False, True, True, True]
+    np.testing.assert_allclose(back.image_to_reference[3], s.image_to_reference[3])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.mha"]  # no temporary left
+    empty = SweepRecorder(tmp_path / "none.mha")
+    assert empty.finish() is None and sorted(p.name for p in tmp_path.iterdir()) == ["rec.mha"]
+
+
+# ------------------------------------------------------------------------------------
+# Over the network, in process
+# ------------------------------------------------------------------------------------
+def _serve(sweep, **kw) -> tuple[SweepServer, threading.Thread]:
+    server = SweepServer(sweep, "127.0.0.1", 0, **kw)
+    t = threading.Thread(target=server.serve, daemon=True)
+    t.start()
+    return server, t
+
+
+FAST = LiveParams(update_every_s=0.2, reconnect_s=0.3)
+
+
+def _session(server, tmp_path, assembler, live=FAST, **kw):
+    from BoneUSRecon.cli.live import run_session
+
+    receiver = FrameReceiver("127.0.0.1", server.port, assembler, live).start()
+    rec = SweepRecorder(tmp_path / "rec.mha")
+    res = run_session(
+        receiver,
+        LiveReconstructor(live=live),
+        tmp_path / "live.vtp",
+        update_every_s=live.update_every_s,
+        recorder=rec,
+        **kw,
+    )
+    return res
+
+
+@pytest.mark.parametrize("mode", ["image", "transform", "plus"])
+def test_serve_and_live_match_offline(sim_small_corrupted, tmp_path, mode):
+    """Replay over 127.0.0.1, reconstruct live: the final surface is the offline
+    reconstruction of the recorded frames, and within 0.05 mm (mean gold distance)
+    of the offline reconstruction of the original sweep."""
+    if mode == "plus" and not CALIBRATION.exists():
+        pytest.skip("shared PLUS data not available")
+    sweep = sim_small_corrupted.sweep
+    cal = read_calibration(CALIBRATION) if mode == "plus" else None
+    server, t = _serve(sweep, fps=200, mode=mode, calibration=cal)
+    assembler = PoseAssembler(
+        transform="ImageToReference" if mode == "transform" else None,
+        calibration=CALIBRATION if mode == "plus" else None,
+    )
+    res = _session(server, tmp_path, assembler)
+    t.join(timeout=5)
+    assert not t.is_alive()
+    assert res.received == sweep.n_frames and not res.skipped and res.counts["dropped"] == 0
+    recorded = read_sweep(res.record)
+    np.testing.assert_array_equal(recorded.frames, sweep.frames)
+    offline_rec = reconstruct(recorded)
+    np.testing.assert_array_equal(_points(res.final.surface), _points(offline_rec.surface))
+    np.testing.assert_array_equal(
+        _points(read_polydata(tmp_path / "live.vtp")), _points(res.final.surface)
+    )
+    gold = sim_small_corrupted.gold
+    offline = evaluate_surface(reconstruct(sweep).surface, gold).mean
+    assert abs(evaluate_surface(res.final.surface, gold).mean - offline) < 0.05
+
+
+def test_live_invalid_tracker_status_skipped(sim_small, tmp_path):
+    """Frames with an INVALID transform are skipped and counted, and recorded as invalid."""
+    bad = np.zeros(sim_small.sweep.n_frames, bool)
+    bad[[3, 10, 11]] = True
+    sweep = sim_small.sweep.replace(valid=~bad)
+    server, t = _serve(sweep, fps=200, mode="transform")
+    res = _session(server, tmp_path, PoseAssembler(transform="ImageToReference"))
+    t.join(timeout=5)
+    assert res.skipped == {"ImageToReference status INVALID": 3}
+    assert res.received == sweep.n_frames
+    assert list(read_sweep(res.record).valid) == list(~bad)
+    assert res.final.summary["frames"] == sweep.n_frames - 3
+
+
+def test_live_reconnects_after_disconnect(sim_small, tmp_path):
+    """The server drops the connection mid-sweep; the client reconnects and goes on."""
+    sweep = sim_small.sweep
+    server = SweepServer(sweep, "127.0.0.1", 0, fps=100)
+
+    def on_frame(n: int) -> None:
+        if n == 15:
+            server.drop_clients()
+            time.sleep(0.2)  # the outage
+
+    t = threading.Thread(target=server.serve, kwargs={"on_frame": on_frame}, daemon=True)
+    t.start()
+    res = _session(
+        server, tmp_path, PoseAssembler(), LiveParams(update_every_s=0.2, reconnect_s=2.0)
+    )
+    t.join(timeout=5)
+    assert res.counts["reconnects"] == 1
+    assert res.received >= sweep.n_frames - 6  # frames sent into the outage are lost
+    assert res.final is not None
+
+
+def test_frames_faster_than_processing_are_dropped(sim_small):
+    """A full queue drops frames and counts them; memory holds at most queue_frames."""
+    server, t = _serve(sim_small.sweep, fps=1000)
+    receiver = FrameReceiver(
+        "127.0.0.1", server.port, PoseAssembler(), LiveParams(queue_frames=4, reconnect_s=0)
+    )
+    receiver.start()
+    deadline = time.monotonic() + 10
+    while not receiver.ended and time.monotonic() < deadline:
+        time.sleep(0.05)  # nobody consumes
+    receiver.stop()
+    t.join(timeout=5)
+    assert receiver.queue.qsize() == 4
+    assert receiver.counts["images"] == sim_small.sweep.n_frames
+    assert receiver.counts["dropped"] == sim_small.sweep.n_frames - 4
+
+
+def test_nothing_listening_and_port_in_use(sim_small):
+    port = _free_port()
+    with pytest.raises(
+        BoneUSReconError, match=f"127.0.0.1:{port}: cannot connect: nothing is listening"
+    ):
+        FrameReceiver("127.0.0.1", port, PoseAssembler()).start()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        busy = s.getsockname()[1]
+        with pytest.raises(BoneUSReconError, match="already in use"):
+            SweepServer(sim_small.sweep, "127.0.0.1", busy)
+
+
+# ------------------------------------------------------------------------------------
+# Command line, as separate processes
+# ------------------------------------------------------------------------------------
+def _cli(*args: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "BoneUSRecon", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        **kw,
+    )
+
+
+@pytest.fixture(scope="module")
+def sweep_file(sim_small, tmp_path_factory) -> Path:
+    return write_sweep(sim_small.sweep, tmp_path_factory.mktemp("live_cli") / "sweep.mha")
+
+
+def test_cli_serve_and_live(sweep_file, sim_small, tmp_path):
+    """`serve` in one process, `live` in another: surface, record, JSON summary."""
+    import json
+
+    port = _free_port()
+    serve = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "BoneUSRecon",
+            "serve",
+            str(sweep_file),
+            "--port",
+            str(port),
+            "--fps",
+            "100",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert "frames/s on 127.0.0.1:" in serve.stderr.readline()  # listening
+        out = _cli(
+            "live",
+            "--port",
+            str(port),
+            "-o",
+            str(tmp_path / "s.vtp"),
+            "--record",
+            str(tmp_path / "r.mha"),
+            "--update-every",
+            "0.3",
+            "--reconnect",
+            "0.3",
+            "--send-surface",
+            "BoneSurface",
+            "--json",
+        )
+        serve.wait(timeout=30)
+    finally:
+        serve.kill()
+        serve.communicate()
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout)
+    assert doc["received_frames"] == sim_small.sweep.n_frames and doc["dropped_frames"] == 0
+    assert serve.returncode == 0
+    surface = read_polydata(tmp_path / "s.vtp")
+    assert evaluate_surface(surface, sim_small.gold).mean < 0.4
+    offline = reconstruct(read_sweep(tmp_path / "r.mha"))
+    np.testing.assert_array_equal(_points(surface), _points(offline.surface))
+
+
+def test_cli_bad_ports_and_options(sweep_file, tmp_path, capsys):
+    """One line, exit 2, nothing written."""
+    from BoneUSRecon.cli import main
+
+    port = _free_port()
+    out = str(tmp_path / "s.vtp")
+    cases = [
+        ("live", "--port", str(port), "-o", out),
+        ("live", "--port", str(port), "-o", out, "--update-every", "0"),
+        ("live", "--port", str(port), "-o", out, "--record", out),
+        ("live", "--port", str(port), "-o", str(tmp_path / "s.txt")),
+        ("live", "--port", "70000", "-o", out),
+        ("serve", str(tmp_path / "missing.mha"), "--port", str(port)),
+        ("serve", str(sweep_file), "--port", str(port), "--mode", "plus"),
+        ("serve", str(sweep_file), "--port", str(port), "--fps", "0"),
+    ]
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        cases.append(("serve", str(sweep_file), "--port", str(busy.getsockname()[1])))
+        errors = []
+        for c in cases:
+            assert main(list(c)) == 2, c
+            err = capsys.readouterr().err
+            lines = err.strip().splitlines()
+            assert len(lines) == 1 and lines[0].startswith("bone-us-recon: error: "), (c, err)
+            errors.append(err)
+    assert "127.0.0.1:" in errors[0] and "nothing is listening" in errors[0]
+    assert "already in use" in errors[-1]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_demo_live(tmp_path, capsys):
+    """`demo --live`: serve and live together on 127.0.0.1; live equals offline."""
+    import json
+
+    from BoneUSRecon.cli import main
+
+    out = tmp_path / "demo"
+    assert (
+        main(["demo", str(out), "--live", "--frames", "40", "--size", "160x128", "--json", "-q"])
+        == 0
+    )
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["received_frames"] == 40 and doc["dropped_frames"] == 0
+    assert abs(doc["gold_mean_mm"]["live"] - doc["gold_mean_mm"]["offline"]) < 0.05
+    assert {"live_surface.vtp", "surface.vtp", "sweep.mha", "gold.csv"} <= {
+        p.name for p in out.iterdir()
+    }
+
+
+def test_surface_message_layout(sim_small):
+    """The POLYDATA message carries the surface's points and triangles (OpenIGTLink v2 layout)."""
+    import struct
+
+    import pyigtl
+
+    from BoneUSRecon.cli.igtl import polydata_message
+
+    surf = reconstruct(sim_small.sweep).surface
+    data = polydata_message(surf, "BoneSurface").pack()
+    fields = pyigtl.MessageBase.parse_header(data[:58])
+    assert fields["message_type"] == "POLYDATA" and fields["device_name"] == "BoneSurface"
+    body = data[58:]
+    n_points, _, _, _, _, n_polys, size_polys = struct.unpack(">7I", body[:28])
+    assert n_points == surf.GetNumberOfPoints() and n_polys == surf.GetNumberOfCells()
+    assert size_polys == 4 * 4 * n_polys  # (3, a, b, c) per triangle
+    pts = np.frombuffer(body[40 : 40 + 12 * n_points], ">f4").reshape(-1, 3)
+    np.testing.assert_allclose(pts, _points(surf), atol=1e-4)
