@@ -8,7 +8,8 @@ track chosen jointly over the frames, resampling, fit, mesh). Every refit theref
 equals an offline :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far.
 
 The two calls into the segmentation stage are isolated in :func:`_segment_one` and
-:func:`_select`; the rest of the pipeline is reached through :func:`_reconstruction`.
+:func:`_select`; the rest is :func:`~BoneUSRecon.Logic.pipeline.reconstruction_from_segmentation`,
+as in :func:`~BoneUSRecon.Logic.pipeline.reconstruct`.
 
 :class:`PoseAssembler` turns a stream of IMAGE and TRANSFORM messages into posed
 frames (the image's own matrix, a named transform, or the PLUS chain with a
@@ -29,21 +30,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.fileio import check_output_path
 from BoneUSRecon.Logic.pipeline import (
     Reconstruction,
     ReconstructionParams,
-    _summary,
-    surface_from_contours,
+    reconstruction_from_segmentation,
 )
 from BoneUSRecon.Logic.poses import find_chain, read_calibration, split_transform_name
 from BoneUSRecon.Logic.segmentation import (
     SegmentationParams,
     SegmentationResult,
-    points_polydata,
 )
 from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
 from BoneUSRecon.Logic.segmentation.driver import (
@@ -140,37 +138,6 @@ def _select(
         params.method,
         params,
         {"segment_s": t_seg, "frames_per_s": len(frames) / max(t_seg, 1e-9)},
-    )
-
-
-def _reconstruction(
-    sweep: Sweep,
-    seg: SegmentationResult,
-    params: ReconstructionParams,
-    t_seg: float,
-    with_points: bool = True,
-) -> Reconstruction:
-    """Resample, fit and mesh a segmentation: the tail of :func:`reconstruct`."""
-    timings: dict[str, float] = {"segment": t_seg}
-    t0 = time.perf_counter()
-    contours = seg.contours_mm(sweep)
-    # = seg.points_mm(sweep)[0], without mapping every contour a second time
-    pts = np.concatenate([c for _, c in contours]) if contours else np.empty((0, 3))
-    grid, fit, surf = surface_from_contours(
-        contours, sweep, params, segmented_points=pts, timings=timings
-    )
-    points = points_polydata(seg, sweep) if with_points else vtkPolyData()
-    timings["total"] = t_seg + time.perf_counter() - t0
-    return Reconstruction(
-        sweep=sweep,
-        segmentation=seg,
-        grid=grid,
-        fit=fit,
-        surface=surf,
-        points=points,
-        summary=_summary(sweep, seg, grid, fit, surf, params),
-        timings=timings,
-        params=params,
     )
 
 
@@ -368,7 +335,9 @@ class LiveReconstructor:
         if not seg.accepted:
             raise BoneUSReconError("no bone contour found yet")
         t_seg = self._segment_s + time.perf_counter() - t0
-        return _reconstruction(sweep, seg, self.params, t_seg, with_points)
+        return reconstruction_from_segmentation(
+            sweep, seg, self.params, segment_s=t_seg, with_points=with_points
+        )
 
     def memory_bytes(self) -> int:
         """Approximate bytes held for the kept frames (contours and poses)."""

@@ -37,6 +37,7 @@ __all__ = [
     "Reconstruction",
     "reconstruct",
     "surface_from_contours",
+    "reconstruction_from_segmentation",
     "control_point_table",
     "params_to_dict",
     "params_with",
@@ -265,12 +266,49 @@ def reconstruct(
         No bone found, too few usable slices, or too few grid points for the requested
         control points (each names the sweep file when known).
     """
-    timings: dict[str, float] = {}
     t0 = time.perf_counter()
     seg = segment_sweep(sweep, params.segmentation, progress)
-    timings["segment"] = time.perf_counter() - t0
+    return reconstruction_from_segmentation(
+        sweep, seg, params, segment_s=time.perf_counter() - t0, progress=progress
+    )
+
+
+def reconstruction_from_segmentation(
+    sweep: Sweep,
+    seg: SegmentationResult,
+    params: ReconstructionParams = ReconstructionParams(),  # noqa: B008 (frozen dataclass)
+    *,
+    segment_s: float = 0.0,
+    progress: ProgressCallback | None = None,
+    with_points: bool = True,
+) -> Reconstruction:
+    """Resample, fit and mesh a segmentation: :func:`reconstruct` after its first step.
+
+    Used by :func:`reconstruct` and by live reconstruction, which segments frames as
+    they arrive and refits from the segmentation so far.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        The sweep ``seg`` was made from (its poses place the contours).
+    seg : SegmentationResult
+    params : ReconstructionParams
+    segment_s : float
+        Seconds the segmentation took (reported in the timings).
+    progress : callable, optional
+    with_points : bool
+        Build :attr:`Reconstruction.points`; False leaves an empty polydata (a live
+        refit that only shows the surface saves a fifth of its time).
+
+    Returns
+    -------
+    Reconstruction
+    """
+    timings: dict[str, float] = {"segment": segment_s}
+    t0 = time.perf_counter()
     contours = seg.contours_mm(sweep)
-    pts, _, _, _ = seg.points_mm(sweep)
+    # The contours' points, without mapping every contour a second time.
+    pts = np.concatenate([c for _, c in contours]) if contours else np.empty((0, 3))
     try:
         grid, fit, surf = surface_from_contours(
             contours, sweep, params, segmented_points=pts, progress=progress, timings=timings
@@ -280,10 +318,9 @@ def reconstruct(
             raise BoneUSReconError(exc.message, sweep.source) from None
         raise
     t1 = time.perf_counter()
-    points = points_polydata(seg, sweep)
+    points = points_polydata(seg, sweep) if with_points else vtkPolyData()
     timings["points"] = time.perf_counter() - t1
-    timings["total"] = time.perf_counter() - t0
-    summary = _summary(sweep, seg, grid, fit, surf, params)
+    timings["total"] = segment_s + time.perf_counter() - t0
     return Reconstruction(
         sweep=sweep,
         segmentation=seg,
@@ -291,7 +328,7 @@ def reconstruct(
         fit=fit,
         surface=surf,
         points=points,
-        summary=summary,
+        summary=_summary(sweep, seg, grid, fit, surf, params),
         timings=timings,
         params=params,
     )
