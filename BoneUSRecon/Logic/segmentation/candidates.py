@@ -49,8 +49,6 @@ from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
 
-_NULL = np.int8(-128)  # back-pointer meaning "came from the no-bone state"
-
 
 @dataclass(frozen=True, eq=False)
 class BoneCandidate:
@@ -99,46 +97,50 @@ class FrameCandidates:
 
 
 def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np.ndarray:
-    """Best path through ``gain`` (h, w) with a no-bone state; rows per column, -1 = no bone."""
+    """Best path through ``gain`` (h, w) with a no-bone state; rows per column, -1 = no bone.
+
+    The loop over columns is bound by the number of numpy calls, not by ``h``: each
+    column takes one reduction over the shifts laid out as (shift, row) rows, and no
+    back-pointers are stored; the backtrack recomputes the one step it needs per column
+    from the stored scores (same arithmetic, so the same path).
+    """
     h, w = gain.shape
-    n_shift = shift_cost.size
-    d = n_shift // 2
-    back = np.empty((w, h), dtype=np.int8)
+    n = shift_cost.size
+    d = n // 2
+    # score[c, d + j]: best path ending at row j of column c (padded by -inf for the window).
+    score = np.full((w, h + 2 * d), -np.inf)
+    score[:, d : d + h] = gain.T
+    win = sliding_window_view(score, n, axis=1)
+    null_before = np.zeros(w)
     null_back = np.full(w, -1, dtype=np.intp)
-    acc = gain[:, 0].astype(np.float64)
+    # cand[s] = previous column's score shifted by s - d, minus its cost; cand[n] = from no-bone.
+    cand = np.empty((n + 1, h))
+    shifts = cand[:n]
+    from_null = cand[n]
+    cost = shift_cost[:, None]
     null = 0.0
-    padded = np.full(h + 2 * d, -np.inf)
-    # One strided view of the padded buffer: win[j, k] = previous column's score at j + k - d.
-    win = sliding_window_view(padded, n_shift)
-    cand = np.empty((h, n_shift))
-    rows = np.arange(h)
-    shift_code = (np.arange(n_shift) - d).astype(np.int8)
     for c in range(1, w):
-        padded[d : d + h] = acc
-        np.subtract(win, shift_cost, out=cand)
-        k = cand.argmax(axis=1)
-        best = cand[rows, k]
-        from_null = null - switch
-        use_null = from_null > best
-        code = shift_code[k]
-        code[use_null] = _NULL
-        back[c] = code
-        jb = int(acc.argmax())
-        from_bone = acc[jb] - switch
-        if from_bone > null:
-            null, null_back[c] = from_bone, jb
-        best[use_null] = from_null
-        acc = best + gain[:, c]
+        np.subtract(win[c - 1].T, cost, out=shifts)
+        from_null.fill(null - switch)
+        null_before[c] = null
+        prev = score[c - 1, d : d + h]
+        jb = int(prev.argmax())
+        if prev[jb] - switch > null:
+            null = prev[jb] - switch
+            null_back[c] = jb
+        score[c, d : d + h] += cand.max(axis=0)
     path = np.full(w, -1, dtype=np.intp)
-    jb = int(acc.argmax())
-    state = jb if acc[jb] > null else -1
+    last = score[w - 1, d : d + h]
+    jb = int(last.argmax())
+    state = jb if last[jb] > null else -1
     for c in range(w - 1, -1, -1):
         path[c] = state
         if c == 0:
             break
         if state >= 0:
-            step = back[c, state]
-            state = -1 if step == _NULL else state + int(step)
+            v = score[c - 1, state : state + n] - shift_cost
+            k = int(v.argmax())
+            state = -1 if null_before[c] - switch > v[k] else state + k - d
         else:
             state = int(null_back[c])
     return path
