@@ -394,23 +394,56 @@ def frame_candidates(
         return FrameCandidates((), sp, "no bone found")
     _mark_reverberations(found, p)
     _mark_echo_beneath(found, p)
-    found.sort(key=lambda c: -c["strength"])
     out = []
-    for c in found[: p.max_candidates]:
+    for c in found:
         pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
-        pts = pts[convex_part(pts, sp, p)]
+        # Of the contour's convex pieces, the one with the most evidence is the candidate.
+        best = None
+        for m in _convex_pieces(pts, sp, p, min_cols):
+            cols, rows = c["cols"][m], c["rows"][m]
+            strength = float((ev.score[rows, cols] - p.null_z).sum() * ev.dx)
+            if best is None or strength > best[0]:
+                best = (strength, m, cols, rows)
+        assert best is not None  # the piece around the apex is always offered
+        strength, m, cols, rows = best
         out.append(
             BoneCandidate(
-                pts,
-                sample_bilinear(img, pts),
-                c["strength"],
-                c["echo"],
-                c["shadow"],
+                pts[m],
+                sample_bilinear(img, pts[m]),
+                strength,
+                float(np.median(ev.echo_z[rows, cols])),
+                float(np.median(ev.shadow_z[rows, cols])),
                 bool(c.get("reverb", False)),
                 bool(c.get("beneath", False)),
             )
         )
-    return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
+    out.sort(key=lambda b: -b.strength)
+    return FrameCandidates(tuple(out[: p.max_candidates]), sp, "", {"work_px": (ev.fx, ev.fy)})
+
+
+def _convex_pieces(
+    pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams, min_cols: int
+) -> list[np.ndarray]:
+    """Masks of the convex pieces of a contour: the part around its apex, then each run cut off.
+
+    A path that runs from the bone onto a layer meeting it (a fascia climbing off the
+    crest) is two structures; when the layer climbs above the bone's top, the apex lies
+    on the layer and :func:`convex_part` keeps the layer. Every run cut off (at least
+    ``min_cols`` points) is offered too, as its own candidate with its own evidence, so
+    the sweep-level choice sees the bone whichever piece holds the apex.
+    """
+    keep = convex_part(pts, spacing, p)
+    pieces = [keep]
+    rest = np.flatnonzero(~keep)
+    if rest.size >= min_cols:
+        for run in np.split(rest, np.flatnonzero(np.diff(rest) > 1) + 1):
+            if run.size >= min_cols:
+                sub = run[convex_part(pts[run], spacing, p)]
+                if sub.size >= min_cols:
+                    m = np.zeros(keep.size, bool)
+                    m[sub] = True
+                    pieces.append(m)
+    return pieces
 
 
 def candidates_from_points(
