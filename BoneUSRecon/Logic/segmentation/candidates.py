@@ -303,19 +303,19 @@ def convex_part(
         idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
         if idx.size < 4:
             continue
-        xo = np.abs(x[idx] - x[top])
+        xo = np.abs(x[idx] - x[top])  # increasing: columns are distinct and ordered
         zo = z[idx]
-        # Outward descent slope just inside and just outside each point (end points).
-        for k in range(1, idx.size - 1):
-            inner = (xo <= xo[k]) & (xo >= xo[k] - win)
-            outer = (xo >= xo[k]) & (xo <= xo[k] + win)
-            if inner.sum() < 2 or outer.sum() < 2 or xo[outer].max() - xo[k] < 0.5 * win:
-                continue
-            s_in = (zo[inner][-1] - zo[inner][0]) / max(xo[inner][-1] - xo[inner][0], 1e-6)
-            s_out = (zo[outer][-1] - zo[outer][0]) / max(xo[outer][-1] - xo[outer][0], 1e-6)
-            if s_in >= p.kink_slope and s_out < s_in / 3.0:
-                keep[idx[k + 1 :]] = False
-                break
+        # Outward descent slope over ``win`` just inside and just outside each point:
+        # the windows are index ranges [lo, k] and [k, hi] of the increasing ``xo``.
+        k = np.arange(1, idx.size - 1)
+        lo = np.searchsorted(xo, xo[k] - win, side="left")
+        hi = np.searchsorted(xo, xo[k] + win, side="right") - 1
+        s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
+        s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
+        ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * win)
+        cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
+        if cut.size:
+            keep[idx[k[cut[0]] + 1 :]] = False
     return keep
 
 
