@@ -212,6 +212,20 @@ def _is_copy(deep: np.ndarray, shallow: np.ndarray, depth0: float, tol: float) -
     return bool(np.percentile(np.abs(ratio - 2.0), 90) <= 2.0 * tol)
 
 
+def _dense_rows(cands: list[dict]) -> None:
+    """Give each candidate ``dense``: its row per working column, NaN where it is absent."""
+    w = max(int(c["cols"][-1]) for c in cands) + 1
+    for c in cands:
+        d = np.full(w, np.nan)
+        d[c["cols"]] = c["rows"]
+        c["dense"] = d
+
+
+def _common(a: dict, b: dict) -> np.ndarray:
+    """Columns (ascending) where both candidates lie (``_dense_rows`` first)."""
+    return np.flatnonzero(~np.isnan(a["dense"]) & ~np.isnan(b["dense"]))
+
+
 def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
     """Flag candidates that are reverberation copies of a shallower, overlapping one."""
     tol = p.reverb_tolerance
@@ -219,11 +233,11 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
         for s in cands:
             if s is c:
                 continue
-            common, ic, is_ = np.intersect1d(c["cols"], s["cols"], return_indices=True)
+            common = _common(c, s)
             # A copy lies under its original (it is never wider) and is fainter.
             if common.size < 0.8 * c["cols"].size or c["grey"] > s["grey"]:
                 continue
-            dc, ds = c["rows"][ic].astype(float), s["rows"][is_].astype(float)
+            dc, ds = c["dense"][common], s["dense"][common]
             if np.median(dc - ds) <= 0:
                 continue  # s is not above c
             if _is_copy(dc, ds, -0.5, tol):
@@ -236,10 +250,10 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
             for t in cands:
                 if t is c or t is s:
                     continue
-                cm, it, ic2 = np.intersect1d(t["cols"], c["cols"], return_indices=True)
+                cm = _common(t, c)
                 if cm.size < 0.5 * c["cols"].size:
                     continue
-                off2 = t["rows"][it].astype(float) - c["rows"][ic2].astype(float)
+                off2 = t["dense"][cm] - c["dense"][cm]
                 if abs(np.median(off2) - np.median(off)) <= tol * np.median(off) + 1:
                     c["reverb"] = True
                     t["reverb"] = True
@@ -260,11 +274,11 @@ def _mark_echo_beneath(cands: list[dict], p: ShadowPathParams) -> None:
         for b in cands:
             if b is c or b.get("reverb"):
                 continue
-            common, ic, ib = np.intersect1d(c["cols"], b["cols"], return_indices=True)
+            common = _common(c, b)
             # Under most of c, or c over most of b (a long fascia over the bone).
             if common.size < 0.5 * min(c["cols"].size, b["cols"].size):
                 continue
-            if np.median(b["rows"][ib] - c["rows"][ic]) <= 0:
+            if np.median(b["dense"][common] - c["dense"][common]) <= 0:
                 continue  # b is not below c
             if c["shadow"] >= p.shadow_z_full:
                 # c casts a shadow: b lies inside it (the far cortex, a reverberation):
@@ -381,7 +395,6 @@ def frame_candidates(
                         "cols": cols,
                         "rows": rows,
                         "strength": float((s - p.null_z).sum() * ev.dx),
-                        "echo": float(np.median(ev.echo_z[rows, cols])),
                         "shadow": float(np.median(ev.shadow_z[rows, cols])),
                         "grey": float(np.median(ev.work[rows, cols])),
                     }
@@ -392,6 +405,7 @@ def frame_candidates(
             gain[band[ok], np.broadcast_to(cols, band.shape)[ok]] = -1.0
     if not found:
         return FrameCandidates((), sp, "no bone found")
+    _dense_rows(found)
     _mark_reverberations(found, p)
     _mark_echo_beneath(found, p)
     out = []
