@@ -44,7 +44,7 @@ from scipy.ndimage import gaussian_filter1d, median_filter
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
-from BoneUSRecon.Logic.segmentation.features import mm_to_px
+from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
@@ -395,8 +395,8 @@ def frame_candidates(
                         "cols": cols,
                         "rows": rows,
                         "strength": float((s - p.null_z).sum() * ev.dx),
-                        "shadow": float(np.median(ev.shadow_z[rows, cols])),
-                        "grey": float(np.median(ev.work[rows, cols])),
+                        "shadow": median1d(ev.shadow_z[rows, cols]),
+                        "grey": median1d(ev.work[rows, cols]),
                     }
                 )
             # Suppress a band around what was found (bone, fascia or copy alike).
@@ -425,8 +425,8 @@ def frame_candidates(
                 pts[m],
                 sample_bilinear(img, pts[m]),
                 strength,
-                float(np.median(ev.echo_z[rows, cols])),
-                float(np.median(ev.shadow_z[rows, cols])),
+                median1d(ev.echo_z[rows, cols]),
+                median1d(ev.shadow_z[rows, cols]),
                 bool(c.get("reverb", False)),
                 bool(c.get("beneath", False)),
             )
