@@ -110,7 +110,9 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     # score[c, d + j]: best path ending at row j of column c (padded by -inf for the window).
     score = np.full((w, h + 2 * d), -np.inf)
     score[:, d : d + h] = gain.T
-    win = sliding_window_view(score, n, axis=1)
+    # win[c] = (shift, row) view of column c's padded scores; inner[c] = its unpadded scores.
+    win = sliding_window_view(score, n, axis=1).transpose(0, 2, 1)
+    inner = score[:, d : d + h]
     null_before = np.zeros(w)
     null_back = np.full(w, -1, dtype=np.intp)
     # cand[s] = previous column's score shifted by s - d, minus its cost; cand[n] = from no-bone.
@@ -120,15 +122,15 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     cost = shift_cost[:, None]
     null = 0.0
     for c in range(1, w):
-        np.subtract(win[c - 1].T, cost, out=shifts)
+        prev, cur = inner[c - 1], inner[c]
+        np.subtract(win[c - 1], cost, out=shifts)
         from_null.fill(null - switch)
         null_before[c] = null
-        prev = score[c - 1, d : d + h]
         jb = int(prev.argmax())
         if prev[jb] - switch > null:
             null = prev[jb] - switch
             null_back[c] = jb
-        score[c, d : d + h] += cand.max(axis=0)
+        cur += cand.max(axis=0)
     path = np.full(w, -1, dtype=np.intp)
     last = score[w - 1, d : d + h]
     jb = int(last.argmax())
