@@ -120,6 +120,7 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     shifts = cand[:n]
     from_null = cand[n]
     cost = shift_cost[:, None]
+    best = np.empty(h)
     null = 0.0
     for c in range(1, w):
         prev, cur = inner[c - 1], inner[c]
@@ -130,7 +131,8 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
         if prev[jb] - switch > null:
             null = prev[jb] - switch
             null_back[c] = jb
-        cur += cand.max(axis=0)
+        np.maximum.reduce(cand, axis=0, out=best)  # the ufunc itself: no wrapper per call
+        cur += best
     path = np.full(w, -1, dtype=np.intp)
     last = score[w - 1, d : d + h]
     jb = int(last.argmax())
