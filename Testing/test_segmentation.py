@@ -331,6 +331,34 @@ def test_fascia_with_tissue_beneath_is_valued_below_the_bone_under_it():
     assert np.median(np.abs(err)) < 0.2
 
 
+def test_a_layer_climbing_off_the_bone_above_its_top_does_not_cut_the_bone_away():
+    """A fascia leaving a round bone's flank and climbing above its top (clavicle, issue 10).
+
+    The path runs bone then fascia; the fascia's high point is the shallowest of the
+    contour, so the convexity cut around it kept the fascia and dropped the bone. Each
+    convex piece is weighed on its own evidence: the bone (with the shadow) is kept.
+    """
+    s = 0.1
+    h, w = 200, 240
+    x = np.arange(w) * s
+    y = (np.arange(h) * s)[:, None]
+    on = np.abs(x - 10.0) < 4.6  # a bone of radius 5 mm, top at 6 mm, shadow beneath
+    bone = np.where(on, 11.0 - np.sqrt(np.clip(25.0 - (x - 10.0) ** 2, 0, None)), np.inf)
+    attach = 11.0 - np.sqrt(25.0 - 3.5**2)
+    fascia = np.where((x >= 13.5) & (x <= 19.0), attach - (x - 13.5) * 0.7, np.inf)
+    for seed in (0, 1):
+        img = _speckle(h, w, seed)
+        d = y - bone[None, :]
+        img = np.where(d > 0.2, img * 0.15, img)
+        img += 200 * np.exp(-0.5 * (d / 0.15) ** 2)
+        img += 200 * np.exp(-0.5 * ((y - fascia[None, :]) / 0.15) ** 2)  # tissue beneath
+        fc = frame_candidates(np.clip(img, 0, 255).astype(np.uint8), (s, s))
+        pts = fc.usable[0].points_px
+        i = np.clip(np.rint(pts[:, 0]).astype(int), 0, w - 1)
+        assert np.mean(np.abs(pts[:, 1] * s - bone[i]) < 0.3) >= 0.9
+        assert np.ptp(pts[:, 0]) * s >= 0.8 * 9.2  # most of the bone's 9.2 mm width
+
+
 def _synthetic_track_input(n: int, spacing_mm: float, jumps: dict[int, float]):
     """Frames ``spacing_mm`` apart along z, each with the true contour (depth 6 mm) and,
     in frames of ``jumps``, a stronger look-alike that many mm shallower."""

@@ -24,10 +24,10 @@ arrive and the second on the frames so far:
 
 Measured (issue 10; ``Testing/benchmarks/bench_segmentation.py --table-only``, tables
 in ``Testing/benchmarks/README.md``): standard simulated sweeps, frame recall
-0.95-1.00, no wrong-structure frame, kept points 0.03 mm median; every hard condition
-alone but the grey shadow, recall 0.90-1.00 and no wrong frame; the full
-``realism="hard"`` sweeps, recall 0.35-0.75 (the previous segmenter found no bone), no
-wrong frame on radius, ulna and clavicle but 40 % on tibia and humerus, where the
+1.00, no wrong-structure frame, kept points 0.03 mm median; every hard condition
+alone but the grey shadow, recall 0.80-1.00 and no wrong frame; the full
+``realism="hard"`` sweeps, recall 0.35-0.93 (the previous segmenter found no bone), no
+wrong frame on radius, ulna and clavicle but 45 % on tibia and humerus, where the
 track follows the far cortex or a reverberation band under the grey shadow (the open
 problem, with the real L14 recording compressed to a 1.3x echo). The real L14 as
 recorded: 21/21 frames on the bone, 0.040 mm median from its reference contours.

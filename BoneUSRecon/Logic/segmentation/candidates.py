@@ -31,7 +31,10 @@ Flanks: the path may change depth by up to ``max_slope`` (tan 72 degrees) per la
 mm with a small quadratic penalty, and the shadow windows hang below each column (the
 inside of a convex bone lies below every point of its upper surface, so the shadow
 holds on the flanks), so the contour follows a round or crest-shaped bone down past
-70 degrees. Nothing trims the ends of a contour afterwards.
+70 degrees. Nothing trims the ends of a contour afterwards but the convexity cut
+(:func:`convex_part`: a layer meeting the bone); when a layer climbs above the bone's
+top the cut is made around the layer, so each convex piece of a contour is weighed on
+its own evidence and the strongest kept.
 """
 
 from __future__ import annotations
@@ -44,12 +47,10 @@ from scipy.ndimage import gaussian_filter1d, median_filter
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
-from BoneUSRecon.Logic.segmentation.features import mm_to_px
+from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
-
-_NULL = np.int8(-128)  # back-pointer meaning "came from the no-bone state"
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,46 +100,54 @@ class FrameCandidates:
 
 
 def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np.ndarray:
-    """Best path through ``gain`` (h, w) with a no-bone state; rows per column, -1 = no bone."""
+    """Best path through ``gain`` (h, w) with a no-bone state; rows per column, -1 = no bone.
+
+    The loop over columns is bound by the number of numpy calls, not by ``h``: each
+    column takes one reduction over the shifts laid out as (shift, row) rows, and no
+    back-pointers are stored; the backtrack recomputes the one step it needs per column
+    from the stored scores (same arithmetic, so the same path).
+    """
     h, w = gain.shape
-    n_shift = shift_cost.size
-    d = n_shift // 2
-    back = np.empty((w, h), dtype=np.int8)
+    n = shift_cost.size
+    d = n // 2
+    # score[c, d + j]: best path ending at row j of column c (padded by -inf for the window).
+    score = np.full((w, h + 2 * d), -np.inf)
+    score[:, d : d + h] = gain.T
+    # win[c] = (shift, row) view of column c's padded scores; inner[c] = its unpadded scores.
+    win = sliding_window_view(score, n, axis=1).transpose(0, 2, 1)
+    inner = score[:, d : d + h]
+    null_before = np.zeros(w)
     null_back = np.full(w, -1, dtype=np.intp)
-    acc = gain[:, 0].astype(np.float64)
+    # cand[s] = previous column's score shifted by s - d, minus its cost; cand[n] = from no-bone.
+    cand = np.empty((n + 1, h))
+    shifts = cand[:n]
+    from_null = cand[n]
+    cost = shift_cost[:, None]
+    best = np.empty(h)
     null = 0.0
-    padded = np.full(h + 2 * d, -np.inf)
-    # One strided view of the padded buffer: win[j, k] = previous column's score at j + k - d.
-    win = sliding_window_view(padded, n_shift)
-    cand = np.empty((h, n_shift))
-    rows = np.arange(h)
-    shift_code = (np.arange(n_shift) - d).astype(np.int8)
     for c in range(1, w):
-        padded[d : d + h] = acc
-        np.subtract(win, shift_cost, out=cand)
-        k = cand.argmax(axis=1)
-        best = cand[rows, k]
-        from_null = null - switch
-        use_null = from_null > best
-        code = shift_code[k]
-        code[use_null] = _NULL
-        back[c] = code
-        jb = int(acc.argmax())
-        from_bone = acc[jb] - switch
-        if from_bone > null:
-            null, null_back[c] = from_bone, jb
-        best[use_null] = from_null
-        acc = best + gain[:, c]
+        prev, cur = inner[c - 1], inner[c]
+        np.subtract(win[c - 1], cost, out=shifts)
+        from_null.fill(null - switch)
+        null_before[c] = null
+        jb = int(prev.argmax())
+        if prev[jb] - switch > null:
+            null = prev[jb] - switch
+            null_back[c] = jb
+        np.maximum.reduce(cand, axis=0, out=best)  # the ufunc itself: no wrapper per call
+        cur += best
     path = np.full(w, -1, dtype=np.intp)
-    jb = int(acc.argmax())
-    state = jb if acc[jb] > null else -1
+    last = score[w - 1, d : d + h]
+    jb = int(last.argmax())
+    state = jb if last[jb] > null else -1
     for c in range(w - 1, -1, -1):
         path[c] = state
         if c == 0:
             break
         if state >= 0:
-            step = back[c, state]
-            state = -1 if step == _NULL else state + int(step)
+            v = score[c - 1, state : state + n] - shift_cost
+            k = int(v.argmax())
+            state = -1 if null_before[c] - switch > v[k] else state + k - d
         else:
             state = int(null_back[c])
     return path
@@ -210,6 +219,20 @@ def _is_copy(deep: np.ndarray, shallow: np.ndarray, depth0: float, tol: float) -
     return bool(np.percentile(np.abs(ratio - 2.0), 90) <= 2.0 * tol)
 
 
+def _dense_rows(cands: list[dict]) -> None:
+    """Give each candidate ``dense``: its row per working column, NaN where it is absent."""
+    w = max(int(c["cols"][-1]) for c in cands) + 1
+    for c in cands:
+        d = np.full(w, np.nan)
+        d[c["cols"]] = c["rows"]
+        c["dense"] = d
+
+
+def _common(a: dict, b: dict) -> np.ndarray:
+    """Columns (ascending) where both candidates lie (``_dense_rows`` first)."""
+    return np.flatnonzero(~np.isnan(a["dense"]) & ~np.isnan(b["dense"]))
+
+
 def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
     """Flag candidates that are reverberation copies of a shallower, overlapping one."""
     tol = p.reverb_tolerance
@@ -217,11 +240,11 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
         for s in cands:
             if s is c:
                 continue
-            common, ic, is_ = np.intersect1d(c["cols"], s["cols"], return_indices=True)
+            common = _common(c, s)
             # A copy lies under its original (it is never wider) and is fainter.
             if common.size < 0.8 * c["cols"].size or c["grey"] > s["grey"]:
                 continue
-            dc, ds = c["rows"][ic].astype(float), s["rows"][is_].astype(float)
+            dc, ds = c["dense"][common], s["dense"][common]
             if np.median(dc - ds) <= 0:
                 continue  # s is not above c
             if _is_copy(dc, ds, -0.5, tol):
@@ -234,10 +257,10 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
             for t in cands:
                 if t is c or t is s:
                     continue
-                cm, it, ic2 = np.intersect1d(t["cols"], c["cols"], return_indices=True)
+                cm = _common(t, c)
                 if cm.size < 0.5 * c["cols"].size:
                     continue
-                off2 = t["rows"][it].astype(float) - c["rows"][ic2].astype(float)
+                off2 = t["dense"][cm] - c["dense"][cm]
                 if abs(np.median(off2) - np.median(off)) <= tol * np.median(off) + 1:
                     c["reverb"] = True
                     t["reverb"] = True
@@ -258,11 +281,11 @@ def _mark_echo_beneath(cands: list[dict], p: ShadowPathParams) -> None:
         for b in cands:
             if b is c or b.get("reverb"):
                 continue
-            common, ic, ib = np.intersect1d(c["cols"], b["cols"], return_indices=True)
+            common = _common(c, b)
             # Under most of c, or c over most of b (a long fascia over the bone).
             if common.size < 0.5 * min(c["cols"].size, b["cols"].size):
                 continue
-            if np.median(b["rows"][ib] - c["rows"][ic]) <= 0:
+            if np.median(b["dense"][common] - c["dense"][common]) <= 0:
                 continue  # b is not below c
             if c["shadow"] >= p.shadow_z_full:
                 # c casts a shadow: b lies inside it (the far cortex, a reverberation):
@@ -301,19 +324,19 @@ def convex_part(
         idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
         if idx.size < 4:
             continue
-        xo = np.abs(x[idx] - x[top])
+        xo = np.abs(x[idx] - x[top])  # increasing: columns are distinct and ordered
         zo = z[idx]
-        # Outward descent slope just inside and just outside each point (end points).
-        for k in range(1, idx.size - 1):
-            inner = (xo <= xo[k]) & (xo >= xo[k] - win)
-            outer = (xo >= xo[k]) & (xo <= xo[k] + win)
-            if inner.sum() < 2 or outer.sum() < 2 or xo[outer].max() - xo[k] < 0.5 * win:
-                continue
-            s_in = (zo[inner][-1] - zo[inner][0]) / max(xo[inner][-1] - xo[inner][0], 1e-6)
-            s_out = (zo[outer][-1] - zo[outer][0]) / max(xo[outer][-1] - xo[outer][0], 1e-6)
-            if s_in >= p.kink_slope and s_out < s_in / 3.0:
-                keep[idx[k + 1 :]] = False
-                break
+        # Outward descent slope over ``win`` just inside and just outside each point:
+        # the windows are index ranges [lo, k] and [k, hi] of the increasing ``xo``.
+        k = np.arange(1, idx.size - 1)
+        lo = np.searchsorted(xo, xo[k] - win, side="left")
+        hi = np.searchsorted(xo, xo[k] + win, side="right") - 1
+        s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
+        s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
+        ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * win)
+        cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
+        if cut.size:
+            keep[idx[k[cut[0]] + 1 :]] = False
     return keep
 
 
@@ -379,9 +402,8 @@ def frame_candidates(
                         "cols": cols,
                         "rows": rows,
                         "strength": float((s - p.null_z).sum() * ev.dx),
-                        "echo": float(np.median(ev.echo_z[rows, cols])),
-                        "shadow": float(np.median(ev.shadow_z[rows, cols])),
-                        "grey": float(np.median(ev.work[rows, cols])),
+                        "shadow": median1d(ev.shadow_z[rows, cols]),
+                        "grey": median1d(ev.work[rows, cols]),
                     }
                 )
             # Suppress a band around what was found (bone, fascia or copy alike).
@@ -390,25 +412,59 @@ def frame_candidates(
             gain[band[ok], np.broadcast_to(cols, band.shape)[ok]] = -1.0
     if not found:
         return FrameCandidates((), sp, "no bone found")
+    _dense_rows(found)
     _mark_reverberations(found, p)
     _mark_echo_beneath(found, p)
-    found.sort(key=lambda c: -c["strength"])
     out = []
-    for c in found[: p.max_candidates]:
+    for c in found:
         pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
-        pts = pts[convex_part(pts, sp, p)]
+        # Of the contour's convex pieces, the one with the most evidence is the candidate.
+        best = None
+        for m in _convex_pieces(pts, sp, p, min_cols):
+            cols, rows = c["cols"][m], c["rows"][m]
+            strength = float((ev.score[rows, cols] - p.null_z).sum() * ev.dx)
+            if best is None or strength > best[0]:
+                best = (strength, m, cols, rows)
+        assert best is not None  # the piece around the apex is always offered
+        strength, m, cols, rows = best
         out.append(
             BoneCandidate(
-                pts,
-                sample_bilinear(img, pts),
-                c["strength"],
-                c["echo"],
-                c["shadow"],
+                pts[m],
+                sample_bilinear(img, pts[m]),
+                strength,
+                median1d(ev.echo_z[rows, cols]),
+                median1d(ev.shadow_z[rows, cols]),
                 bool(c.get("reverb", False)),
                 bool(c.get("beneath", False)),
             )
         )
-    return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
+    out.sort(key=lambda b: -b.strength)
+    return FrameCandidates(tuple(out[: p.max_candidates]), sp, "", {"work_px": (ev.fx, ev.fy)})
+
+
+def _convex_pieces(
+    pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams, min_cols: int
+) -> list[np.ndarray]:
+    """Masks of the convex pieces of a contour: the part around its apex, then each run cut off.
+
+    A path that runs from the bone onto a layer meeting it (a fascia climbing off the
+    crest) is two structures; when the layer climbs above the bone's top, the apex lies
+    on the layer and :func:`convex_part` keeps the layer. Every run cut off (at least
+    ``min_cols`` points) is offered too, as its own candidate with its own evidence, so
+    the sweep-level choice sees the bone whichever piece holds the apex.
+    """
+    keep = convex_part(pts, spacing, p)
+    pieces = [keep]
+    rest = np.flatnonzero(~keep)
+    if rest.size >= min_cols:
+        for run in np.split(rest, np.flatnonzero(np.diff(rest) > 1) + 1):
+            if run.size >= min_cols:
+                sub = run[convex_part(pts[run], spacing, p)]
+                if sub.size >= min_cols:
+                    m = np.zeros(keep.size, bool)
+                    m[sub] = True
+                    pieces.append(m)
+    return pieces
 
 
 def candidates_from_points(

@@ -143,15 +143,21 @@ def field_of_view(work: np.ndarray, dx: float, params: ShadowPathParams) -> np.n
     return inside
 
 
-def tissue_level(work: np.ndarray, columns: np.ndarray, percentile: float, dy: float) -> np.ndarray:
-    """Tissue grey level per row: a percentile over ``columns``, smoothed over ~1 mm of depth."""
+def tissue_level(
+    work: np.ndarray, columns: np.ndarray, percentile: float | tuple[float, ...], dy: float
+) -> np.ndarray:
+    """Tissue grey level per row: a percentile over ``columns``, smoothed over ~1 mm of depth.
+
+    Several percentiles at once (one partition of the rows) give shape ``(n, h)``.
+    """
     sel = work[:, columns] if columns.any() else work
     sel = sel[:, ::2] if sel.shape[1] >= 40 else sel  # half the columns suffice for a percentile
     t = np.percentile(sel, percentile, axis=1).astype(np.float32)
-    t = gaussian_filter1d(t, max(0.5, 1.0 / dy), mode="nearest")
+    t = gaussian_filter1d(t, max(0.5, 1.0 / dy), axis=-1, mode="nearest")
     # Relative floor (a fraction of the frame's own typical tissue level): deep rows of
     # a dark image must not turn a ratio into a division by ~0.
-    return np.maximum(t, np.float32(0.05) * max(float(np.median(t)), float(_EPS)))
+    med = np.maximum(np.median(t, axis=-1, keepdims=True), _EPS)
+    return np.maximum(t, np.float32(0.05) * med.astype(np.float32))
 
 
 def phase_symmetry_depth(
@@ -221,10 +227,13 @@ def bone_evidence(
         return None
     dx, dy = fx * sx, fy * sy
     fov = field_of_view(work, dx, p)
-    tissue = tissue_level(work, fov, p.tissue_percentile, dy)
+    # Both references from one partition of the rows; again over the usable columns
+    # only if contact removed some.
+    pct = (p.tissue_percentile, p.shadow_percentile)
+    tissue, t_shadow = tissue_level(work, fov, pct, dy)
     usable = fov & _contact(work, tissue, dy, p)
-    if usable.any():
-        tissue = tissue_level(work, usable, p.tissue_percentile, dy)
+    if usable.any() and not np.array_equal(usable, fov):
+        tissue, t_shadow = tissue_level(work, usable, pct, dy)
 
     mid = mm_to_px(p.mid_mm, dy)
     up = mm_to_px(p.up_mm, dy)
@@ -240,7 +249,6 @@ def bone_evidence(
     # beside a shadow that covers up to 80 % of the columns), for the echo band the
     # lowest tissue level within +-1 mm of depth (a thin line spanning the width
     # raises its own rows' percentile, not its neighbours').
-    t_shadow = tissue_level(work, usable if usable.any() else fov, p.shadow_percentile, dy)
     tsum = np.zeros((h + 1, 1), dtype=np.float32)
     np.cumsum(t_shadow, out=tsum[1:, 0])
     t_echo = minimum_filter1d(tissue, 2 * mm_to_px(1.0, dy) + 1, mode="nearest")

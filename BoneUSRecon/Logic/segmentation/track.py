@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
@@ -100,11 +101,11 @@ def _in_plane_deviation(a: np.ndarray, b_mm: np.ndarray) -> tuple[float, float, 
     share = overlap / max(min(hi - lo, float(np.ptp(bx)) + 2.0), 1e-6)
     inside = (bx >= lo) & (bx <= hi)
     if not inside.any():
-        return np.inf, 0.0, float(np.median(az))
+        return np.inf, 0.0, median1d(az)
     d2 = (bx[inside, None] - ax[None, :]) ** 2 + (by[inside, None] - ay[None, :]) ** 2
     near = d2.argmin(axis=1)
     d = np.sqrt(d2[np.arange(near.size), near])
-    return float(np.median(d)), share, float(np.median(az[near]))
+    return median1d(d), share, median1d(az[near])
 
 
 def _deviation(
