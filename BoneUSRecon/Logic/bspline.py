@@ -43,6 +43,17 @@ Robust reweighting (beyond the paper)
     frame's weight from its median residual), so a whole false contour that slipped
     through segmentation is rejected even when its points agree among themselves.
     Scales are 1.4826 x the median residual, floored at ``min_scale_mm``.
+    The residual the weights judge is the offset of the grid point from its fitted
+    point *along the surface normal* there, not the full distance
+    ``|S(u_i, v_j) - P_ij|``: a grid point's parameters are only nominal (the slice's
+    axis position, the ray's angle), so where slices are sparse or tilted the spline
+    meets a correct contour a little along the surface from ``(u_i, v_j)``, an offset
+    within the surface that says nothing about whether the contour is on the bone.
+    Judged by the full distance, two correct frames of a simulated clavicle where the
+    probe sped up (5 mm between slices) had residuals of 0.7 mm (0.03 mm from the true
+    bone) and were rejected with the one false contour, leaving a hole there (gold mean
+    0.38 mm, 92 % within 1 mm); judged along the normal only the false contour (1.4 mm
+    off) goes (0.20 mm, 98 %). :attr:`FitResult.residuals` stay full distances.
 
 A small second-difference penalty (``smoothing``, relative to the normal matrix's
 mean diagonal; 0 disables it) keeps control points with no data under them (gaps,
@@ -327,6 +338,34 @@ def _normalise(x: np.ndarray) -> np.ndarray:
     if not np.all(np.diff(x) >= 0) or span <= 0:
         raise BoneUSReconError("surface parameters must be increasing")
     return (x - x[0]) / span
+
+
+def _normal_offset(
+    ctrl: np.ndarray,
+    ku: np.ndarray,
+    kv: np.ndarray,
+    deg: tuple[int, int],
+    u: np.ndarray,
+    v: np.ndarray,
+    diff: np.ndarray,
+) -> np.ndarray:
+    """``|diff . n|`` with ``n`` the unit normal of the surface at each ``(u_i, v_j)``.
+
+    ``diff`` (m, n, 3): grid point minus fitted point. Where the surface is degenerate
+    (zero normal) the whole offset ``|diff|`` is returned.
+    """
+    p, q = deg
+    # Partial derivatives as splines of the control net (scipy's BSpline derivative).
+    du = BSpline(ku, ctrl, p, extrapolate=False)(u, nu=1)  # (m, f, 3)
+    dv = BSpline(kv, np.swapaxes(ctrl, 0, 1), q, extrapolate=False)(v, nu=1)  # (n, e, 3)
+    su = np.einsum("mfd,nf->mnd", np.nan_to_num(du), basis_matrix(v, kv, q))
+    sv = np.einsum("ma,nad->mnd", basis_matrix(u, ku, p), np.nan_to_num(dv))
+    nrm = np.cross(su, sv)
+    length = np.linalg.norm(nrm, axis=-1)
+    full = np.linalg.norm(diff, axis=-1)
+    ok = length > 1e-12 * max(float(length.max(initial=0.0)), 1e-300)
+    along = np.abs(np.einsum("mnd,mnd->mn", diff, nrm)) / np.where(ok, length, 1.0)
+    return np.where(ok, along, full)
 
 
 def _second_diff(n: int) -> np.ndarray:
@@ -643,6 +682,12 @@ def fit_surface(
         r = np.linalg.norm(fitted - pts, axis=-1)
         return np.where(present, r, np.nan)
 
+    def normal_residuals(ctrl: np.ndarray) -> np.ndarray:
+        # What the robust weights judge: the offset along the surface normal (see the
+        # module docstring, "Robust reweighting").
+        fitted = _tensor_eval(bu, ctrl, bv)
+        return np.where(present, _normal_offset(ctrl, ku, kv, (p, q), uu, vv, pz - fitted), np.nan)
+
     w = w0
     ctrl = solve(w)
     res = residuals(ctrl)
@@ -651,11 +696,12 @@ def fit_surface(
     if params.robust != "none":
         for it in range(params.robust_iterations):
             kind = "huber" if (params.robust == "huber" or it < 2) else "tukey"
-            r = np.where(present, res, 0.0)
-            scale = mad_scale(res[w > 0], params.min_scale_mm)
+            nres = normal_residuals(ctrl)
+            r = np.where(present, nres, 0.0)
+            scale = mad_scale(nres[w > 0], params.min_scale_mm)
             pw = robust_weights(r, scale, kind)
             if params.per_frame:
-                fr = row_medians(np.where(w0 > 0, res, np.nan))
+                fr = row_medians(np.where(w0 > 0, nres, np.nan))
                 fscale = mad_scale(fr[(w0 > 0).any(axis=1)], params.min_scale_mm)
                 frame_w = robust_weights(fr, fscale, kind)
             new_w = w0 * pw * frame_w[:, None]
