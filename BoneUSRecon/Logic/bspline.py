@@ -340,32 +340,29 @@ def _normalise(x: np.ndarray) -> np.ndarray:
     return (x - x[0]) / span
 
 
-def _normal_offset(
-    ctrl: np.ndarray,
-    ku: np.ndarray,
-    kv: np.ndarray,
-    deg: tuple[int, int],
-    u: np.ndarray,
-    v: np.ndarray,
-    diff: np.ndarray,
-) -> np.ndarray:
-    """``|diff . n|`` with ``n`` the unit normal of the surface at each ``(u_i, v_j)``.
+def _basis_derivative_matrix(x: np.ndarray, knots: np.ndarray, degree: int) -> np.ndarray:
+    """First derivatives ``N'_a,p(x_i)`` of the basis functions (x clipped to [0, 1]).
 
-    ``diff`` (m, n, 3): grid point minus fitted point. Where the surface is degenerate
-    (zero normal) the whole offset ``|diff|`` is returned.
+    Same shape and conventions as :func:`basis_matrix`: ``B' @ C`` is the curve's
+    derivative at ``x`` for control points ``C``.
     """
-    p, q = deg
-    # Partial derivatives as splines of the control net (scipy's BSpline derivative).
-    du = BSpline(ku, ctrl, p, extrapolate=False)(u, nu=1)  # (m, f, 3)
-    dv = BSpline(kv, np.swapaxes(ctrl, 0, 1), q, extrapolate=False)(v, nu=1)  # (n, e, 3)
-    su = np.einsum("mfd,nf->mnd", np.nan_to_num(du), basis_matrix(v, kv, q))
-    sv = np.einsum("ma,nad->mnd", basis_matrix(u, ku, p), np.nan_to_num(dv))
+    x = np.clip(np.asarray(x, float), knots[degree], knots[-degree - 1])
+    n_basis = len(knots) - degree - 1
+    return BSpline(knots, np.eye(n_basis), degree)(x, nu=1)
+
+
+def _normal_offset(diff: np.ndarray, su: np.ndarray, sv: np.ndarray) -> np.ndarray:
+    """``|diff . n|``, ``n`` the unit normal ``su x sv`` of the surface (all (m, n, 3)).
+
+    ``diff``: grid point minus fitted point; ``su``, ``sv``: the surface's partial
+    derivatives there. Where the surface is degenerate (zero normal) the whole offset
+    ``|diff|`` is returned.
+    """
     nrm = np.cross(su, sv)
     length = np.linalg.norm(nrm, axis=-1)
-    full = np.linalg.norm(diff, axis=-1)
     ok = length > 1e-12 * max(float(length.max(initial=0.0)), 1e-300)
     along = np.abs(np.einsum("mnd,mnd->mn", diff, nrm)) / np.where(ok, length, 1.0)
-    return np.where(ok, along, full)
+    return np.where(ok, along, np.linalg.norm(diff, axis=-1))
 
 
 def _second_diff(n: int) -> np.ndarray:
@@ -656,6 +653,8 @@ def fit_surface(
     kv = averaging_knots(vv, f, q)
     bu = basis_matrix(uu, ku, p)
     bv = basis_matrix(vv, kv, q)
+    dbu = _basis_derivative_matrix(uu, ku, p)
+    dbv = _basis_derivative_matrix(vv, kv, q)
     pz = np.nan_to_num(pts)
     pen = _penalty(e, f)
     # Normal matrix of a complete grid at weight 1: what "determined by the data" is
@@ -686,7 +685,8 @@ def fit_surface(
         # What the robust weights judge: the offset along the surface normal (see the
         # module docstring, "Robust reweighting").
         fitted = _tensor_eval(bu, ctrl, bv)
-        return np.where(present, _normal_offset(ctrl, ku, kv, (p, q), uu, vv, pz - fitted), np.nan)
+        su, sv = _tensor_eval(dbu, ctrl, bv), _tensor_eval(bu, ctrl, dbv)
+        return np.where(present, _normal_offset(pz - fitted, su, sv), np.nan)
 
     w = w0
     ctrl = solve(w)
