@@ -43,17 +43,21 @@ Robust reweighting (beyond the paper)
     frame's weight from its median residual), so a whole false contour that slipped
     through segmentation is rejected even when its points agree among themselves.
     Scales are 1.4826 x the median residual, floored at ``min_scale_mm``.
-    The residual the weights judge is the offset of the grid point from its fitted
-    point *along the surface normal* there, not the full distance
+    A frame's residual is the median offset of its grid points from their fitted
+    points *along the surface normal* there, not of the full distances
     ``|S(u_i, v_j) - P_ij|``: a grid point's parameters are only nominal (the slice's
     axis position, the ray's angle), so where slices are sparse or tilted the spline
     meets a correct contour a little along the surface from ``(u_i, v_j)``, an offset
     within the surface that says nothing about whether the contour is on the bone.
     Judged by the full distance, two correct frames of a simulated clavicle where the
-    probe sped up (5 mm between slices) had residuals of 0.7 mm (0.03 mm from the true
-    bone) and were rejected with the one false contour, leaving a hole there (gold mean
-    0.38 mm, 92 % within 1 mm); judged along the normal only the false contour (1.4 mm
-    off) goes (0.20 mm, 98 %). :attr:`FitResult.residuals` stay full distances.
+    probe sped up (5 mm between slices) had median residuals of 0.7 mm (0.03 mm from
+    the true bone) and were rejected with the one false contour, which opened a hole
+    there (gold mean 0.38 mm, 92 % within 1 mm); judged along the normal only the false
+    contour (1.4 mm off) goes (0.20 mm, 98 %). Single points keep the full distance: an
+    odd point at a contour's end can bend the thinly held edge of the surface toward
+    itself so that its normal offset looks small while its full one does not (judged
+    along the normal too, a simulated ulna's edge flapped 0.6 mm off the bone).
+    :attr:`FitResult.residuals` are the full distances.
 
 A small second-difference penalty (``smoothing``, relative to the normal matrix's
 mean diagonal; 0 disables it) keeps control points with no data under them (gaps,
@@ -115,7 +119,8 @@ class FitParams:
     robust_iterations : int
         Maximum reweighting iterations (count); stops earlier when weights settle.
     per_frame : bool
-        Also weight each frame by its median residual (rejects whole false contours).
+        Also weight each frame by its median offset along the surface normal (rejects
+        whole false contours; see the module docstring).
     min_scale_mm : float
         Floor of the robust residual scale (mm): about the segmentation noise, so clean
         data are not trimmed. Ours (0.15 mm, ~1 pixel).
@@ -682,8 +687,8 @@ def fit_surface(
         return np.where(present, r, np.nan)
 
     def normal_residuals(ctrl: np.ndarray) -> np.ndarray:
-        # What the robust weights judge: the offset along the surface normal (see the
-        # module docstring, "Robust reweighting").
+        # What the per-frame weights judge: the offset along the surface normal (see
+        # the module docstring, "Robust reweighting").
         fitted = _tensor_eval(bu, ctrl, bv)
         su, sv = _tensor_eval(dbu, ctrl, bv), _tensor_eval(bu, ctrl, dbv)
         return np.where(present, _normal_offset(pz - fitted, su, sv), np.nan)
@@ -696,12 +701,12 @@ def fit_surface(
     if params.robust != "none":
         for it in range(params.robust_iterations):
             kind = "huber" if (params.robust == "huber" or it < 2) else "tukey"
-            nres = normal_residuals(ctrl)
-            r = np.where(present, nres, 0.0)
-            scale = mad_scale(nres[w > 0], params.min_scale_mm)
+            r = np.where(present, res, 0.0)
+            scale = mad_scale(res[w > 0], params.min_scale_mm)
             pw = robust_weights(r, scale, kind)
             if params.per_frame:
-                fr = row_medians(np.where(w0 > 0, nres, np.nan))
+                # A whole frame is judged by its offset along the normal (module docstring).
+                fr = row_medians(np.where(w0 > 0, normal_residuals(ctrl), np.nan))
                 fscale = mad_scale(fr[(w0 > 0).any(axis=1)], params.min_scale_mm)
                 frame_w = robust_weights(fr, fscale, kind)
             new_w = w0 * pw * frame_w[:, None]
