@@ -240,3 +240,30 @@ def test_thin_penalty_changes_nothing_on_a_complete_grid():
     a = fit_surface(noisy, FitParams(robust="none", thin_weight=0.0, smoothing=0.0), u=u, v=v)
     b = fit_surface(noisy, FitParams(robust="none", thin_weight=1.0, smoothing=0.0), u=u, v=v)
     assert np.allclose(a.surface.control_points, b.surface.control_points, atol=1e-9)
+
+
+def test_robust_weights_judge_offsets_along_the_normal_not_within_the_surface():
+    """Correct slices met off their nominal parameters are kept; a false one is not.
+
+    A half-cylinder (radius 8 mm) sampled by rays: in slices 9 and 15 the rays hit the
+    bone 6 degrees further round than their nominal angle (a tilted slice, a centre a
+    little off), so those points lie on the surface but 0.8 mm from ``S(u_i, v_j)``;
+    slice 21 is 1.5 mm above the bone (a false contour). Judged by the full offset the
+    two correct slices were rejected too.
+    """
+    m, n, radius = 30, 15, 8.0
+    x = np.linspace(0.0, 60.0, m)
+    theta = np.deg2rad(np.linspace(-50.0, 50.0, n))
+    hit = np.repeat(theta[None], m, axis=0)
+    hit[[9, 15]] += np.deg2rad(6.0)
+    rad = np.full((m, 1), radius)
+    rad[21] += 1.5
+    grid = np.stack(
+        [np.repeat(x[:, None], n, axis=1), rad * np.sin(hit), rad * np.cos(hit)], axis=-1
+    )
+    fit = fit_surface(grid, FitParams(), u=x, v=theta)
+    assert np.flatnonzero(fit.frame_weights <= 0).tolist() == [21]
+    assert fit.frame_weights[[9, 15]].min() > 0.5
+    # The surface stays on the true cylinder (points on it are within a few hundredths).
+    s = fit.surface.evaluate(np.linspace(0.05, 0.95, 40), np.linspace(0.05, 0.95, 20))
+    assert np.abs(np.hypot(s[..., 1], s[..., 2]) - radius).max() < 0.05
