@@ -149,3 +149,30 @@ def test_reconstruct_report_loads_the_rendering_modules_before_the_work(
     proc = _run(code, tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "loaded: True True" in proc.stdout
+
+
+def test_finalizer_errors_after_ctrl_c_are_silent(monkeypatch, capsys):
+    # Ctrl-C can cut an object's construction short (a pyvista Plotter lacking
+    # `_initialized`); its __del__ then fails and Python prints "Exception ignored in"
+    # with a traceback under the one-line message. After SIGINT those are silenced.
+    import gc
+    import sys
+
+    from BoneUSRecon.cli.common import _SigintSeen
+
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)
+
+    class HalfBuilt:
+        def __del__(self) -> None:
+            raise AttributeError("'HalfBuilt' object has no attribute '_initialized'")
+
+    handler = _SigintSeen()
+    try:
+        handler(2, None)
+    except KeyboardInterrupt:
+        pass
+    assert handler.fired
+    obj = HalfBuilt()
+    del obj
+    gc.collect()
+    assert "Exception ignored" not in capsys.readouterr().err

@@ -68,8 +68,10 @@ class LiveParams:
     Attributes
     ----------
     update_every_s : float
-        Seconds between refits (default 1.0: a refit of a few hundred frames takes
-        ~0.1 s on one core, so one per second leaves ~90 % for the frames).
+        Seconds between refits (default 1.0). A refit chooses the bone track over all
+        kept frames and refits the surface: 0.2-0.6 s of one core for 150-220 frames
+        of 480x640 (``Testing/benchmarks/bench_live.py``), so raise it on a slow
+        machine to leave time for the frames.
     queue_frames : int
         Frames waiting to be processed before new ones are dropped (default 64:
         about 2 s at 30 frames/s, ~20 MB at 480x640; covers a refit and a burst).

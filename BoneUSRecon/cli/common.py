@@ -209,7 +209,10 @@ class _SigintSeen:
     Some extension modules replace an exception raised inside them by their own: VTK's
     compiled modules report a KeyboardInterrupt that lands while they import as
     ``ImportError: Failed to load vtk...``. Knowing that Ctrl-C was pressed, the
-    command reports the interruption whatever exception it arrives as.
+    command reports the interruption whatever exception it arrives as. Once it has
+    fired, errors in finalizers ("Exception ignored in: ...", e.g. a pyvista Plotter
+    whose construction the interrupt cut short) are silenced: they are consequences of
+    the interruption, and the one-line message already says what happened.
     """
 
     def __init__(self) -> None:
@@ -217,7 +220,12 @@ class _SigintSeen:
 
     def __call__(self, signum: int, frame: object) -> None:
         self.fired = True
+        sys.unraisablehook = _ignore_unraisable
         raise KeyboardInterrupt
+
+
+def _ignore_unraisable(unraisable: object) -> None:
+    """``sys.unraisablehook`` after Ctrl-C (see :class:`_SigintSeen`)."""
 
 
 def _interrupted() -> int:
