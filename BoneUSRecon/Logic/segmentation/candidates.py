@@ -52,6 +52,8 @@ from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
 
+_EPS = 1e-3  # grey/255: guards log(0) in black regions
+
 
 @dataclass(frozen=True, eq=False)
 class BoneCandidate:
@@ -268,16 +270,184 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
                 break
 
 
-def _mark_echo_beneath(cands: list[dict], p: ShadowPathParams) -> None:
-    """Flag candidates with an echo nearly as bright as theirs under most of their columns.
+def _underside_profile(ev: EvidenceMaps, c: dict, reach: int) -> np.ndarray:
+    """Log grey over the tissue beside, along ``c`` shifted by ``-reach .. reach`` rows.
 
-    Bone stops the sound: what lies under it (reverberation, far cortex) comes back
-    much fainter than its echo. A line with an echo of comparable brightness under it
-    and no shadow of its own (a fascia over the bone, or over another fascia) let the
-    sound through; a line lying in the shadow of a shallower candidate (the far cortex
-    under a grey shadow) is no first interface. Either is flagged.
+    Row ``reach + k`` is the median over ``c``'s columns of ``log(work / T)`` at ``k``
+    rows under (``k < 0``: above) the contour, following its shape, less the frame's
+    ``log_tissue_ratio`` (so plain tissue is ~0 at any gain): lines parallel to
+    it (its reverberation copies) stand out of the speckle, which the median over
+    tens of columns averages away. NaN where the shifted contour leaves the image
+    on most columns.
     """
+    h = ev.work.shape[0]
+    cols, rows = c["cols"], c["rows"]
+    if cols.size > 48:  # every n-th column: enough for a median, bounded cost
+        step = int(np.ceil(cols.size / 48))
+        cols, rows = cols[::step], rows[::step]
+    k = np.arange(-reach, reach + 1)
+    rr = rows[None, :] + k[:, None]
+    inside = (rr >= 0) & (rr < h)
+    rc = np.clip(rr, 0, h - 1)
+    lw = np.log(ev.work[rc, cols[None, :]] + _EPS) - np.log(ev.tissue_beside[rc] + _EPS)
+    lw = np.where(inside, lw, np.nan)
+    enough = inside.mean(axis=1) >= 0.5
+    prof = np.full(k.size, np.nan)
+    if enough.any():
+        prof[enough] = np.nanmedian(lw[enough], axis=1) - ev.log_tissue_ratio
+    return prof
+
+
+def _series(prof: np.ndarray, reach: int, min_px: int, dark: float, tol: float) -> list[int]:
+    """Offsets (rows) of the equally spaced series of lines through offset 0 of ``prof``.
+
+    A member is a local maximum of the profile brighter than the tissue (> 0); two
+    consecutive members have a trough darker than ``dark`` (a log ratio) between them
+    (the sound between reverberation copies comes back from nothing: shadow, not
+    tissue) and lie ``d`` apart, ``d`` the same for the whole series within ``tol``
+    (relative) + 1 row. Returns ``[0]`` alone when there is no such series.
+    """
+    v = np.nan_to_num(prof, nan=-10.0)
+    is_peak = np.zeros(v.size, bool)
+    is_peak[1:-1] = (v[1:-1] >= v[:-2]) & (v[1:-1] > v[2:]) & (v[1:-1] > 0)
+    peaks = np.flatnonzero(is_peak) - reach
+    if peaks.size == 0:
+        return [0]
+
+    def trough_dark(a: int, b: int) -> bool:
+        lo, hi = min(a, b), max(a, b)
+        return hi - lo >= 2 and float(v[lo + 1 + reach : hi + reach].min()) < dark
+
+    def step_from(k: int, d: float, sign: int) -> int | None:
+        want = k + sign * d
+        near = peaks[np.abs(peaks - want) <= tol * d + 1.0]
+        if near.size == 0:
+            return None
+        q = int(near[np.argmin(np.abs(near - want))])
+        return q if (q - k) * sign >= min_px and trough_dark(k, q) else None
+
+    # The spacing: from the nearest member above or below (the first that exists).
+    members = [0]
+    for sign in (-1, 1):
+        side = peaks[(peaks * sign) >= min_px]
+        if side.size == 0:
+            continue
+        q = int(side[np.argmin(np.abs(side))])
+        if not trough_dark(0, q):
+            continue
+        d = float(abs(q))
+        for sgn in (-1, 1):
+            k = 0
+            while True:
+                nxt = step_from(k, d, sgn)
+                if nxt is None:
+                    break
+                members.append(nxt)
+                k = nxt
+        if len(members) >= 3:
+            return sorted(set(members))
+        members = [0]
+    return members
+
+
+def _mark_series(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams) -> list[dict]:
+    """Reverberation series: the top line is the reflector, the lines under it its copies.
+
+    Sound caught between a strong specular reflector (bone, whose acoustic impedance
+    is about twice soft tissue's) and the probe face, or inside the cortex, returns
+    as copies of the echo at equal depth steps under it, with shadow (nothing) between
+    them: a stack of three or more equally spaced lines over dark troughs
+    (:func:`_series`) is one reflector and its copies, wherever and whatever the
+    grey levels. Soft-tissue layers that happen to lie at equal depths have tissue,
+    not shadow, between them, so they never form a series.
+
+    The copies are flagged ``reverb`` (never chosen); the top line gets the strongest
+    member's strength (the whole stack is its evidence: the copies are brighter over
+    their dark troughs than the reflector over the tissue above it). A top line no
+    pass found (the passes took the copies, whose shadow beneath is darker) is
+    added, following the copy's shape, at the echo peak of each column. Returns the
+    candidates with such tops added.
+    """
+    reach = mm_to_px(p.far_shadow_mm, ev.dy)
+    min_px = max(2, mm_to_px(p.series_min_mm, ev.dy))
+    dark = float(np.log(p.series_trough_ratio))
+    h = ev.work.shape[0]
+    added: list[dict] = []
+    for c in list(cands):
+        if c.get("reverb"):
+            continue
+        members = _series(_underside_profile(ev, c, reach), reach, min_px, dark, p.reverb_tolerance)
+        if len(members) < 3:
+            continue
+        c["series"] = len(members)
+        top = members[0]
+        if top >= 0:
+            c["series_top"] = True
+            continue
+        c["reverb"] = True
+        # The top: an existing candidate over the same columns at that offset, or one
+        # made from c's shape moved up to the echo peak near it.
+        d = (members[1] - members[0]) if len(members) > 1 else -top
+        r = max(1, int(d) // 3)
+        best = None
+        for t in cands + added:
+            if t is c:
+                continue
+            cm = np.intersect1d(t["cols"], c["cols"])
+            if cm.size < 0.5 * c["cols"].size:
+                continue
+            off = float(np.median(t["dense"][cm] - c["dense"][cm])) if "dense" in t else np.nan
+            if abs(off - top) <= r:
+                best = t
+                break
+        if best is None:
+            base = np.clip(c["rows"] + top, 0, h - 1)
+            win = np.clip(base[None, :] + np.arange(-r, r + 1)[:, None], 0, h - 1)
+            rows = win[ev.work[win, c["cols"][None, :]].argmax(axis=0), np.arange(c["cols"].size)]
+            s = ev.score[rows, c["cols"]]
+            best = {
+                "cols": c["cols"],
+                "rows": rows,
+                "strength": float((s - p.null_z).sum() * ev.dx),
+                "shadow": median1d(ev.shadow_z[rows, c["cols"]]),
+                "grey": median1d(ev.work[rows, c["cols"]]),
+            }
+            d_ = np.full(c["dense"].size, np.nan)
+            d_[c["cols"]] = rows
+            best["dense"] = d_
+            added.append(best)
+        best["series_top"] = True
+        best["series"] = max(best.get("series", 0), len(members))
+        best["inherit"] = max(best.get("inherit", -np.inf), c["strength"])
+    return cands + added
+
+
+def _mark_echo_beneath(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams) -> None:
+    """Flag candidates that are no first interface: under a shadow, or over an echo.
+
+    Bone is the first strong reflector along the beam: it stops the sound, so nothing
+    under it is anatomy but the far cortex and reverberation. For two candidates over
+    the same columns, the upper ``c`` and the lower ``b``:
+
+    * the region between them (under ``c``, following its shape,
+      :func:`_underside_profile`) comes back darker than ``under_ratio`` of the
+      frame's typical tissue-to-level ratio (geometric mean: bright copies in the
+      shadow do not outweigh it), or ``c`` tops a reverberation series: ``b`` lies in
+      ``c``'s shadow and is flagged (the far cortex, a band);
+    * otherwise, with tissue between them, an echo ``b`` at least ``beneath_ratio`` as
+      bright as ``c`` means the sound went through ``c``: ``c`` is soft tissue (a fascia
+      over the bone) and is flagged.
+
+    Both are ratios measured in the frame itself, so they hold at any gain and
+    contrast. Candidates closer than two shadow gaps are judged on ``c``'s own shadow
+    z-score instead (no room between them to measure).
+    """
+    gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
+    reach = mm_to_px(p.far_shadow_mm, ev.dy)
+    dark = float(np.log(p.under_ratio))
     for c in cands:
+        if c.get("reverb"):
+            continue
         for b in cands:
             if b is c or b.get("reverb"):
                 continue
@@ -285,11 +455,18 @@ def _mark_echo_beneath(cands: list[dict], p: ShadowPathParams) -> None:
             # Under most of c, or c over most of b (a long fascia over the bone).
             if common.size < 0.5 * min(c["cols"].size, b["cols"].size):
                 continue
-            if np.median(b["dense"][common] - c["dense"][common]) <= 0:
+            off = float(np.median(b["dense"][common] - c["dense"][common]))
+            if off <= 0:
                 continue  # b is not below c
-            if c["shadow"] >= p.shadow_z_full:
-                # c casts a shadow: b lies inside it (the far cortex, a reverberation):
-                # not a first interface.
+            if off >= 2 * gap + 1:
+                if "prof" not in c:
+                    c["prof"] = _underside_profile(ev, c, reach)
+                seg = c["prof"][reach + gap : reach + min(reach, int(off) - gap) + 1]
+                seg = seg[np.isfinite(seg)]
+                shadowed = seg.size > 0 and float(np.percentile(seg, 25)) < dark
+            else:
+                shadowed = c["shadow"] >= p.shadow_z_full
+            if shadowed or c.get("series_top"):
                 b["beneath"] = True
             elif b["grey"] >= p.beneath_ratio * c["grey"]:
                 c["beneath"] = True
@@ -414,7 +591,8 @@ def frame_candidates(
         return FrameCandidates((), sp, "no bone found")
     _dense_rows(found)
     _mark_reverberations(found, p)
-    _mark_echo_beneath(found, p)
+    found = _mark_series(found, ev, p)
+    _mark_echo_beneath(found, ev, p)
     out = []
     for c in found:
         pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
@@ -427,6 +605,8 @@ def frame_candidates(
                 best = (strength, m, cols, rows)
         assert best is not None  # the piece around the apex is always offered
         strength, m, cols, rows = best
+        # A reverberation series' top carries the evidence of its copies.
+        strength = max(strength, c.get("inherit", -np.inf))
         out.append(
             BoneCandidate(
                 pts[m],

@@ -86,6 +86,13 @@ class EvidenceMaps:
         Robust z-scores of the echo and shadow log-ratios.
     score : ndarray, shape (h, w)
         ``sqrt(echo_z+ * shadow_z+)`` where scoring is allowed, else 0.
+    tissue_beside : ndarray, shape (h,)
+        The level the shadow windows are compared with (``shadow_percentile`` per row:
+        the tissue beside a shadow that covers most of the width), grey/255.
+    log_tissue_ratio : float
+        Median of ``log(work / tissue_beside(row))`` over the usable pixels: where plain
+        tissue lies against that level (speckle's geometric mean sits below a high
+        percentile), the baseline for ratios measured against ``tissue_beside``.
     """
 
     work: np.ndarray
@@ -99,6 +106,8 @@ class EvidenceMaps:
     echo_z: np.ndarray
     shadow_z: np.ndarray
     score: np.ndarray
+    tissue_beside: np.ndarray
+    log_tissue_ratio: float
 
 
 def working_image(
@@ -269,13 +278,23 @@ def bone_evidence(
     log_e = np.log((m_mid + _EPS) / (np.maximum(m_up, t_mid) + _EPS))
     if p.phase_symmetry:
         log_e = phase_symmetry_depth(work, dy, p.phase_wavelengths_mm) * np.float32(m_mid > t_mid)
-    log_s = np.log((t_far + _EPS) / (m_far + _EPS))
+    # Shadow windows in the log domain (geometric means): reverberation bands and the
+    # far cortex are thin bright lines in the shadow; an arithmetic mean lets them
+    # outweigh the dark between them, a mean of logs does not.
+    lcsum = np.zeros((h + 1, w), dtype=np.float32)
+    np.cumsum(np.log(work + _EPS), axis=0, out=lcsum[1:])
+    ltsum = np.zeros((h + 1, 1), dtype=np.float32)
+    np.cumsum(np.log(t_shadow + _EPS), out=ltsum[1:, 0])
+    log_s = column_window_mean(ltsum, bot + gap, bot + far) - column_window_mean(
+        lcsum, bot + gap, bot + far
+    )
     if p.near_shadow:
         # The shadow starts right under the surface: the near window localises it (a
         # line mm above the bone has tissue, then the shadow, beneath it).
-        m_sh = column_window_mean(csum, bot + gap, bot + near)
-        t_sh = column_window_mean(tsum, bot + gap, bot + near)
-        log_s = np.minimum(log_s, np.log((t_sh + _EPS) / (m_sh + _EPS)))
+        log_sh = column_window_mean(ltsum, bot + gap, bot + near) - column_window_mean(
+            lcsum, bot + gap, bot + near
+        )
+        log_s = np.minimum(log_s, log_sh)
 
     # Where the score may be: shadow windows mostly inside the image, a region above
     # inside the image and below the near field (gel, skin line, lens reverberation).
@@ -299,6 +318,24 @@ def bone_evidence(
     score = np.maximum(echo_z, 0) * gate
     score *= valid & covered
     np.minimum(score, np.float32(p.max_z), out=score)
+    sub = work[nf::2][:, usable][:, ::2]
+    # Plain tissue against the level beside: the per-row median ratio of the rows
+    # that are mostly tissue (the upper quartile of rows: shadow and bone fill the
+    # others' medians with dark).
+    base = np.log(sub + _EPS) - np.log(t_shadow[nf::2, None] + _EPS)
+    base = float(np.percentile(np.median(base, axis=1), 75)) if base.size else 0.0
     return EvidenceMaps(
-        work, colmean, fx, fy, dx, dy, usable, tissue, echo_z, shadow_z, score.astype(np.float32)
+        work,
+        colmean,
+        fx,
+        fy,
+        dx,
+        dy,
+        usable,
+        tissue,
+        echo_z,
+        shadow_z,
+        score.astype(np.float32),
+        t_shadow,
+        base,
     )

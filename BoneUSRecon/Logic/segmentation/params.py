@@ -197,6 +197,12 @@ class ShadowPathParams:
     """A candidate with an echo at least this fraction of its own grey level under it let the sound through: not bone (a ratio; bone returns far less from beneath it)."""
     reverb_tolerance: float = 0.12
     """Relative tolerance of the reverberation rules (depth ratio 2 or equal spacing), ours."""
+    series_min_mm: float = 1.0
+    """Least spacing of a reverberation series, mm (closer lines are one echo's thickness)."""
+    series_trough_ratio: float = 0.7
+    """Between consecutive lines of a reverberation series the grey is below this fraction of the tissue level at that depth (a ratio: shadow, not tissue, between copies)."""
+    under_ratio: float = 0.8
+    """A candidate under another lies in its shadow when the region between them comes back at less than this fraction of the frame's typical tissue-to-level ratio (geometric mean; a ratio: the cadaver's grey shadow is 0.65 of the tissue beside it)."""
     refine_mm: float = 0.4
     """Half-height of the window searched at full resolution around the path, mm."""
     refine_sigma_mm: float = 0.15
@@ -223,6 +229,9 @@ class ShadowPathParams:
                 "suppress_mm",
                 "kink_mm",
                 "refine_mm",
+                "series_min_mm",
+                "series_trough_ratio",
+                "under_ratio",
             ),
             (
                 "shadow_gap_mm",
