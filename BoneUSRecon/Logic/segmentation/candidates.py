@@ -52,6 +52,8 @@ from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
 
+import os
+_DEBUG = bool(os.environ.get("SEGDBG"))
 _EPS = 1e-3  # grey/255: guards log(0) in black regions
 
 
@@ -324,7 +326,13 @@ def _series(prof: np.ndarray, reach: int, min_px: int, dark: float, tol: float) 
         if near.size == 0:
             return None
         q = int(near[np.argmin(np.abs(near - want))])
-        return q if (q - k) * sign >= min_px and trough_dark(k, q) else None
+        if (q - k) * sign < min_px or not trough_dark(k, q):
+            return None
+        # Each copy is fainter than the line it copies (part of the sound is lost at
+        # every bounce): the deeper of two members is not the brighter, beyond the
+        # speckle left in the profile.
+        lo, hi = (k, q) if q > k else (q, k)
+        return q if v[hi + reach] <= v[lo + reach] + 0.15 else None
 
     # The spacing: from the nearest member above or below (the first that exists).
     members = [0]
@@ -344,8 +352,11 @@ def _series(prof: np.ndarray, reach: int, min_px: int, dark: float, tol: float) 
                     break
                 members.append(nxt)
                 k = nxt
-        if len(members) >= 3:
-            return sorted(set(members))
+        members = sorted(set(members))
+        vals = v[np.asarray(members) + reach]
+        # The reflector (the top) is the brightest of its series, the last copy the dimmest.
+        if len(members) >= 3 and vals[0] >= vals.max() - 0.05 and vals[-1] < vals[0]:
+            return members
         members = [0]
     return members
 
@@ -372,15 +383,26 @@ def _mark_series(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams) -> li
     min_px = max(2, mm_to_px(p.series_min_mm, ev.dy))
     dark = float(np.log(p.series_trough_ratio))
     h = ev.work.shape[0]
+    nf = mm_to_px(p.near_field_mm, ev.dy, minimum=0)
+    gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
     added: list[dict] = []
     for c in list(cands):
         if c.get("reverb"):
             continue
-        members = _series(_underside_profile(ev, c, reach), reach, min_px, dark, p.reverb_tolerance)
+        prof = _underside_profile(ev, c, reach)
+        members = _series(prof, reach, min_px, dark, p.reverb_tolerance)
         if len(members) < 3:
             continue
-        c["series"] = len(members)
         top = members[0]
+        # The reflector is a first interface: below the near field (gel, skin, lens
+        # echoes), with tissue, not shadow, above it.
+        above = prof[max(0, reach + top - reach // 2) : reach + top - gap]
+        above = above[np.isfinite(above)]
+        if float(np.median(c["rows"])) + top < nf or (
+            above.size >= gap and float(np.median(above)) < float(np.log(p.under_ratio))
+        ):
+            continue
+        c["series"] = len(members)
         if top >= 0:
             c["series_top"] = True
             continue
@@ -445,6 +467,19 @@ def _mark_echo_beneath(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams)
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
     reach = mm_to_px(p.far_shadow_mm, ev.dy)
     dark = float(np.log(p.under_ratio))
+    for b in cands:
+        if b.get("reverb"):
+            continue
+        # Lying in a shadow whatever cast it (the near cortex may be too faint to be a
+        # candidate): the region above, at the depths the tissue beside is measured,
+        # comes back darker than it.
+        b["prof"] = _underside_profile(ev, b, reach)
+        above = b["prof"][: reach - gap]
+        above = above[np.isfinite(above)]
+        if _DEBUG:
+            print(f"      above b{np.median(b['rows']):.0f} x{b['cols'][0]}-{b['cols'][-1]} med {np.median(above) if above.size else np.nan:.2f}")
+        if above.size >= gap and float(np.median(above)) < dark:
+            b["beneath"] = True
     for c in cands:
         if c.get("reverb"):
             continue
@@ -459,14 +494,20 @@ def _mark_echo_beneath(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams)
             if off <= 0:
                 continue  # b is not below c
             if off >= 2 * gap + 1:
-                if "prof" not in c:
-                    c["prof"] = _underside_profile(ev, c, reach)
-                seg = c["prof"][reach + gap : reach + min(reach, int(off) - gap) + 1]
+                # Under c over the columns b lies under, following c's shape.
+                m = np.isin(c["cols"], common, assume_unique=True)
+                sub = {"cols": c["cols"][m], "rows": c["rows"][m]}
+                seg = _underside_profile(ev, sub, reach)[
+                    reach + gap : reach + min(reach, int(off) - gap) + 1
+                ]
                 seg = seg[np.isfinite(seg)]
-                shadowed = seg.size > 0 and float(np.percentile(seg, 25)) < dark
+                shadowed = seg.size > 0 and float(np.median(seg)) < dark
             else:
                 shadowed = c["shadow"] >= p.shadow_z_full
-            if shadowed or c.get("series_top"):
+            if _DEBUG:
+                print(f"      pair c{np.median(c['rows']):.0f} x{c['cols'][0]}-{c['cols'][-1]} b{np.median(b['rows']):.0f} x{b['cols'][0]}-{b['cols'][-1]} off {off:.0f} shadowed {shadowed} top {c.get('series_top')} grey {c['grey']:.2f} {b['grey']:.2f} cshadow {c['shadow']:.2f}")
+            # What lies in a shadow comes back dimmer than what cast it.
+            if (shadowed or c.get("series_top")) and b["grey"] < c["grey"]:
                 b["beneath"] = True
             elif b["grey"] >= p.beneath_ratio * c["grey"]:
                 c["beneath"] = True

@@ -90,9 +90,10 @@ class EvidenceMaps:
         The level the shadow windows are compared with (``shadow_percentile`` per row:
         the tissue beside a shadow that covers most of the width), grey/255.
     log_tissue_ratio : float
-        Median of ``log(work / tissue_beside(row))`` over the usable pixels: where plain
-        tissue lies against that level (speckle's geometric mean sits below a high
-        percentile), the baseline for ratios measured against ``tissue_beside``.
+        Where plain tissue lies against ``tissue_beside``, in log: the upper quartile
+        over rows of the per-row median of ``log(work / tissue_beside)`` (rows mostly
+        tissue; speckle's median sits below a high percentile). The baseline of
+        ratios measured against ``tissue_beside``.
     """
 
     work: np.ndarray
@@ -278,23 +279,13 @@ def bone_evidence(
     log_e = np.log((m_mid + _EPS) / (np.maximum(m_up, t_mid) + _EPS))
     if p.phase_symmetry:
         log_e = phase_symmetry_depth(work, dy, p.phase_wavelengths_mm) * np.float32(m_mid > t_mid)
-    # Shadow windows in the log domain (geometric means): reverberation bands and the
-    # far cortex are thin bright lines in the shadow; an arithmetic mean lets them
-    # outweigh the dark between them, a mean of logs does not.
-    lcsum = np.zeros((h + 1, w), dtype=np.float32)
-    np.cumsum(np.log(work + _EPS), axis=0, out=lcsum[1:])
-    ltsum = np.zeros((h + 1, 1), dtype=np.float32)
-    np.cumsum(np.log(t_shadow + _EPS), out=ltsum[1:, 0])
-    log_s = column_window_mean(ltsum, bot + gap, bot + far) - column_window_mean(
-        lcsum, bot + gap, bot + far
-    )
+    log_s = np.log((t_far + _EPS) / (m_far + _EPS))
     if p.near_shadow:
         # The shadow starts right under the surface: the near window localises it (a
         # line mm above the bone has tissue, then the shadow, beneath it).
-        log_sh = column_window_mean(ltsum, bot + gap, bot + near) - column_window_mean(
-            lcsum, bot + gap, bot + near
-        )
-        log_s = np.minimum(log_s, log_sh)
+        m_sh = column_window_mean(csum, bot + gap, bot + near)
+        t_sh = column_window_mean(tsum, bot + gap, bot + near)
+        log_s = np.minimum(log_s, np.log((t_sh + _EPS) / (m_sh + _EPS)))
 
     # Where the score may be: shadow windows mostly inside the image, a region above
     # inside the image and below the near field (gel, skin line, lens reverberation).

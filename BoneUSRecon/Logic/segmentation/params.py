@@ -283,8 +283,8 @@ class RejectionParams:
     """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
     miss_cost: float = 0.3
     """Cost of a skipped frame, in units of the sweep's typical best candidate strength (ours)."""
-    beneath_factor: float = 0.3
-    """Value of a candidate with an echo as bright under it, relative to its strength (ours: sound went through it)."""
+    beneath_factor: float = 0.1
+    """Value of a candidate that is no first interface (an echo as bright under it: sound went through it; or it lies in a shadow: far cortex), relative to its strength (ours: 0.3 let a far cortex in the shadow of a faint near cortex carry the track on the hard tibia, recall 0.42 -> 0.70 at 0.1)."""
     strength_cap: float = 2.0
     """A candidate's strength counts up to this many typical strengths (one bright look-alike cannot buy a detour)."""
     min_length_mm: float = 1.5
