@@ -52,8 +52,6 @@ from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
 
-import os
-_DEBUG = bool(os.environ.get("SEGDBG"))
 _EPS = 1e-3  # grey/255: guards log(0) in black regions
 
 
@@ -272,31 +270,45 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
                 break
 
 
-def _underside_profile(ev: EvidenceMaps, c: dict, reach: int) -> np.ndarray:
-    """Log grey over the tissue beside, along ``c`` shifted by ``-reach .. reach`` rows.
+def _log_ratio(ev: EvidenceMaps) -> np.ndarray:
+    """``log(work / tissue_beside(row))`` less the frame's ``log_tissue_ratio``, (h, w).
 
-    Row ``reach + k`` is the median over ``c``'s columns of ``log(work / T)`` at ``k``
-    rows under (``k < 0``: above) the contour, following its shape, less the frame's
-    ``log_tissue_ratio`` (so plain tissue is ~0 at any gain): lines parallel to
-    it (its reverberation copies) stand out of the speckle, which the median over
-    tens of columns averages away. NaN where the shifted contour leaves the image
-    on most columns.
+    Plain tissue is ~0 in it at any gain and depth; a shadow is negative, an echo
+    positive.
     """
-    h = ev.work.shape[0]
+    lr = np.log(ev.work + np.float32(_EPS))
+    lr -= (np.log(ev.tissue_beside + np.float32(_EPS)) + np.float32(ev.log_tissue_ratio))[:, None]
+    return lr
+
+
+def _underside_profile(
+    lr: np.ndarray, c: dict, reach: int, only: np.ndarray | None = None
+) -> np.ndarray:
+    """The log ratio ``lr`` along ``c`` shifted by ``-reach .. reach`` rows, shape (2 reach + 1,).
+
+    Row ``reach + k`` is the median over ``c``'s columns (those in ``only``, if given)
+    of ``lr`` at ``k`` rows under (``k < 0``: above) the contour, following its shape:
+    lines parallel to it (its reverberation copies) stand out of the speckle, which
+    the median over tens of columns averages away. NaN where the shifted contour
+    leaves the image on most columns.
+    """
+    h = lr.shape[0]
     cols, rows = c["cols"], c["rows"]
+    if only is not None:
+        m = np.isin(cols, only, assume_unique=True)
+        cols, rows = cols[m], rows[m]
+    if cols.size == 0:
+        return np.full(2 * reach + 1, np.nan)
     if cols.size > 48:  # every n-th column: enough for a median, bounded cost
         step = int(np.ceil(cols.size / 48))
         cols, rows = cols[::step], rows[::step]
     k = np.arange(-reach, reach + 1)
     rr = rows[None, :] + k[:, None]
-    inside = (rr >= 0) & (rr < h)
-    rc = np.clip(rr, 0, h - 1)
-    lw = np.log(ev.work[rc, cols[None, :]] + _EPS) - np.log(ev.tissue_beside[rc] + _EPS)
-    lw = np.where(inside, lw, np.nan)
-    enough = inside.mean(axis=1) >= 0.5
-    prof = np.full(k.size, np.nan)
-    if enough.any():
-        prof[enough] = np.nanmedian(lw[enough], axis=1) - ev.log_tissue_ratio
+    # Rows past the image repeat its edge; the median is NaN where most of them are.
+    lw = lr[np.clip(rr, 0, h - 1), cols[None, :]]
+    mid = cols.size // 2
+    prof = np.partition(lw, mid, axis=1)[:, mid].astype(float)
+    prof[((rr >= 0) & (rr < h)).mean(axis=1) < 0.5] = np.nan
     return prof
 
 
@@ -361,7 +373,9 @@ def _series(prof: np.ndarray, reach: int, min_px: int, dark: float, tol: float) 
     return members
 
 
-def _mark_series(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams) -> list[dict]:
+def _mark_series(
+    cands: list[dict], ev: EvidenceMaps, lr: np.ndarray, p: ShadowPathParams
+) -> list[dict]:
     """Reverberation series: the top line is the reflector, the lines under it its copies.
 
     Sound caught between a strong specular reflector (bone, whose acoustic impedance
@@ -389,7 +403,7 @@ def _mark_series(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams) -> li
     for c in list(cands):
         if c.get("reverb"):
             continue
-        prof = _underside_profile(ev, c, reach)
+        prof = c["prof"] = _underside_profile(lr, c, reach)
         members = _series(prof, reach, min_px, dark, p.reverb_tolerance)
         if len(members) < 3:
             continue
@@ -444,7 +458,9 @@ def _mark_series(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams) -> li
     return cands + added
 
 
-def _mark_echo_beneath(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams) -> None:
+def _mark_echo_beneath(
+    cands: list[dict], ev: EvidenceMaps, lr: np.ndarray, p: ShadowPathParams
+) -> None:
     """Flag candidates that are no first interface: under a shadow, or over an echo.
 
     Bone is the first strong reflector along the beam: it stops the sound, so nothing
@@ -473,12 +489,11 @@ def _mark_echo_beneath(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams)
         # Lying in a shadow whatever cast it (the near cortex may be too faint to be a
         # candidate): the region above, at the depths the tissue beside is measured,
         # comes back darker than it.
-        b["prof"] = _underside_profile(ev, b, reach)
+        if "prof" not in b:
+            b["prof"] = _underside_profile(lr, b, reach)
         above = b["prof"][: reach - gap]
         above = above[np.isfinite(above)]
-        if _DEBUG:
-            print(f"      above b{np.median(b['rows']):.0f} x{b['cols'][0]}-{b['cols'][-1]} med {np.median(above) if above.size else np.nan:.2f}")
-        if above.size >= gap and float(np.median(above)) < dark:
+        if above.size >= gap and median1d(above) < dark:
             b["beneath"] = True
     for c in cands:
         if c.get("reverb"):
@@ -490,26 +505,27 @@ def _mark_echo_beneath(cands: list[dict], ev: EvidenceMaps, p: ShadowPathParams)
             # Under most of c, or c over most of b (a long fascia over the bone).
             if common.size < 0.5 * min(c["cols"].size, b["cols"].size):
                 continue
-            off = float(np.median(b["dense"][common] - c["dense"][common]))
+            off = median1d(b["dense"][common] - c["dense"][common])
             if off <= 0:
                 continue  # b is not below c
-            if off >= 2 * gap + 1:
-                # Under c over the columns b lies under, following c's shape.
-                m = np.isin(c["cols"], common, assume_unique=True)
-                sub = {"cols": c["cols"][m], "rows": c["rows"][m]}
-                seg = _underside_profile(ev, sub, reach)[
-                    reach + gap : reach + min(reach, int(off) - gap) + 1
-                ]
-                seg = seg[np.isfinite(seg)]
-                shadowed = seg.size > 0 and float(np.median(seg)) < dark
-            else:
-                shadowed = c["shadow"] >= p.shadow_z_full
-            if _DEBUG:
-                print(f"      pair c{np.median(c['rows']):.0f} x{c['cols'][0]}-{c['cols'][-1]} b{np.median(b['rows']):.0f} x{b['cols'][0]}-{b['cols'][-1]} off {off:.0f} shadowed {shadowed} top {c.get('series_top')} grey {c['grey']:.2f} {b['grey']:.2f} cshadow {c['shadow']:.2f}")
             # What lies in a shadow comes back dimmer than what cast it.
-            if (shadowed or c.get("series_top")) and b["grey"] < c["grey"]:
-                b["beneath"] = True
-            elif b["grey"] >= p.beneath_ratio * c["grey"]:
+            if b["grey"] < c["grey"]:
+                if c.get("series_top"):
+                    shadowed = True
+                elif off >= 2 * gap + 1:
+                    # Under c over the columns b lies under, following c's shape.
+                    prof = c["prof"] if common.size == c["cols"].size else None
+                    if prof is None:
+                        prof = _underside_profile(lr, c, reach, common)
+                    seg = prof[reach + gap : reach + min(reach, int(off) - gap) + 1]
+                    seg = seg[np.isfinite(seg)]
+                    shadowed = seg.size > 0 and median1d(seg) < dark
+                else:
+                    shadowed = c["shadow"] >= p.shadow_z_full
+                if shadowed:
+                    b["beneath"] = True
+                    continue
+            if b["grey"] >= p.beneath_ratio * c["grey"]:
                 c["beneath"] = True
 
 
@@ -632,8 +648,9 @@ def frame_candidates(
         return FrameCandidates((), sp, "no bone found")
     _dense_rows(found)
     _mark_reverberations(found, p)
-    found = _mark_series(found, ev, p)
-    _mark_echo_beneath(found, ev, p)
+    lr = _log_ratio(ev)
+    found = _mark_series(found, ev, lr, p)
+    _mark_echo_beneath(found, ev, lr, p)
     out = []
     for c in found:
         pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
