@@ -1,0 +1,125 @@
+"""Bone under a grey shadow with reverberation bands and a far cortex (issue 10, seg2).
+
+Each rule of ``candidates`` that keeps the track on the near cortex has a test with
+ground truth: the reverberation series (equally spaced, fading copies over dark troughs
+under the reflector), the first-reflector rule (a line in the shadow of a shallower
+one, or under a region darker than the tissue beside it, is no first interface), and
+the controls that must not fire (parallel fasciae with tissue between them; a fascia
+with tissue beneath over the bone).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from BoneUSRecon.Logic.segmentation import segment_sweep
+from BoneUSRecon.Logic.segmentation.candidates import frame_candidates
+from BoneUSRecon.Logic.simulation.scoring import score_simulation
+
+S = 0.1  # mm per pixel of the synthetic frames
+
+
+def _speckle(h: int, w: int, seed: int) -> np.ndarray:
+    return 60.0 * np.random.default_rng(seed).rayleigh(1.0, (h, w))
+
+
+def _line(y: np.ndarray, depth: np.ndarray, amp: float, sigma: float = 0.12) -> np.ndarray:
+    return amp * np.exp(-0.5 * ((y - depth[None, :]) / sigma) ** 2)
+
+
+def banded_bone_frame(
+    seed: int, *, depth_mm: float = 6.0, band_mm: float = 2.2, far_mm: float = 9.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A gently curved bone echo over a grey shadow (~0.5 of the tissue) holding four
+    fading reverberation bands every ``band_mm`` and the far cortex ``far_mm`` deeper
+    (brighter than the deepest bands, dimmer than the echo).
+
+    Returns the frame (uint8), the true echo depth (mm) per column and the mask of the
+    bone's columns.
+    """
+    h, w = 260, 200
+    x = np.arange(w) * S
+    y = (np.arange(h) * S)[:, None]
+    on = np.abs(x - 10.0) < 7.0
+    surf = depth_mm + 0.02 * (x - 10.0) ** 2
+    img = _speckle(h, w, seed)
+    d = y - surf[None, :]
+    shadow = on[None, :] & (d > 0.3)
+    img = np.where(shadow, 0.35 * img, img)
+    img += np.where(on[None, :], _line(y, surf, 190.0), 0.0)
+    for m in range(1, 5):
+        img += np.where(shadow, _line(y, surf + m * band_mm, 120.0 * 0.8 ** (m - 1), 0.2), 0.0)
+    img += np.where(shadow, _line(y, surf + far_mm, 110.0, 0.15), 0.0)
+    return np.clip(img, 0, 255).astype(np.uint8), surf, on
+
+
+def _depth(c) -> float:
+    return float(np.median(c.points_px[:, 1])) * S
+
+
+def _value(c) -> float:
+    """A candidate's value to the track (its strength, less if no first interface)."""
+    return c.strength * (0.1 if c.echo_beneath else 1.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_reverberation_bands_and_far_cortex_lose_to_the_near_cortex(seed):
+    img, surf, on = banded_bone_frame(seed)
+    fc = frame_candidates(img, (S, S))
+    best = max(fc.usable, key=_value)
+    i = np.clip(np.rint(best.points_px[:, 0]).astype(int), 0, img.shape[1] - 1)
+    err = np.abs(best.points_px[:, 1] * S - surf[i])
+    assert np.median(err) < 0.15
+    for c in fc.candidates:
+        dd = _depth(c) - float(np.median(surf[on]))
+        if dd > 1.0:
+            # Under the near cortex: a copy (never chosen) or no first interface.
+            assert c.reverberation or c.echo_beneath, (round(dd, 2), c.strength)
+
+
+def test_a_line_in_a_grey_shadow_is_no_first_interface():
+    """The far cortex alone under a faint near cortex (too faint to be a candidate):
+    the region above it is darker than the tissue beside it at the same depths."""
+    h, w = 260, 200
+    x = np.arange(w) * S
+    y = (np.arange(h) * S)[:, None]
+    on = np.abs(x - 10.0) < 5.0  # the bone fills half the width, tissue beside it
+    surf = np.full(w, 6.0)
+    img = _speckle(h, w, 5)
+    img = np.where(on[None, :] & (y > surf[None, :] + 0.3), 0.45 * img, img)
+    img += np.where(on[None, :], _line(y, surf + 9.0, 150.0), 0.0)
+    fc = frame_candidates(np.clip(img, 0, 255).astype(np.uint8), (S, S))
+    far = [c for c in fc.candidates if abs(_depth(c) - 15.0) < 0.5]
+    assert far and all(c.echo_beneath or c.reverberation for c in far)
+
+
+def test_parallel_fasciae_with_tissue_between_are_no_reverberation_series():
+    """Three equally spaced, fading bright layers with tissue (not shadow) between them
+    over a bone: none is a copy, and the bone under them is not in a shadow."""
+    h, w = 260, 200
+    y = (np.arange(h) * S)[:, None]
+    bone = np.full(w, 14.0)
+    img = _speckle(h, w, 7)
+    img = np.where(y > bone[None, :] + 0.3, 0.15 * img, img)
+    img += _line(y, bone, 200.0)
+    for m, amp in enumerate((170.0, 140.0, 110.0)):
+        img += _line(y, np.full(w, 4.0 + 2.5 * m), amp)
+    fc = frame_candidates(np.clip(img, 0, 255).astype(np.uint8), (S, S))
+    assert not any(c.reverberation for c in fc.candidates)
+    best = max(fc.usable, key=_value)
+    assert abs(_depth(best) - 14.0) < 0.2
+    assert not best.echo_beneath
+
+
+@pytest.mark.parametrize("seed", [1, 7])
+def test_grey_shadow_sweep_keeps_the_near_cortex(sim_factory, seed):
+    """The simulated grey shadow (0.4 of the echo, 0.65 of the tissue beside, four
+    reverberation bands and the far cortex) alone on a small tibia sweep: the track
+    stays on the near cortex (before: recall 0.00, 97 % of frames on a band or the far
+    cortex 7 mm deeper; measured now 0.95-0.97, none wrong, median 0.03 mm)."""
+    sim = sim_factory(bone="tibia", seed=seed, realism="hard", hard_conditions=("grey_shadow",))
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["recall"] >= 0.9
+    assert s["wrong_share"] <= 0.02
+    assert s["median_mm"] <= 0.3
