@@ -123,3 +123,23 @@ def test_grey_shadow_sweep_keeps_the_near_cortex(sim_factory, seed):
     assert s["recall"] >= 0.9
     assert s["wrong_share"] <= 0.02
     assert s["median_mm"] <= 0.3
+
+
+def test_a_bone_wider_than_a_bright_fascia_over_dark_muscle_is_not_in_its_shadow():
+    """A fascia brighter than the bone, over hypoechoic muscle (darker than the tissue
+    beside it) that ends above the bone: the bone reaches beyond the fascia's columns,
+    so it lies in no shadow of the fascia (a shadow is as wide as its reflector)."""
+    h, w = 200, 200
+    x = np.arange(w) * S
+    y = (np.arange(h) * S)[:, None]
+    img = _speckle(h, w, 11)
+    under = (np.abs(x - 10.0) < 4.0)[None, :]
+    img = np.where(under & (y > 4.3) & (y < 9.5), 0.55 * img, img)  # muscle belly
+    img += np.where(under, _line(y, np.full(w, 4.0), 230.0), 0.0)  # the fascia
+    bone = (np.abs(x - 10.0) < 8.5)[None, :]
+    img = np.where(bone & (y > 10.3), 0.2 * img, img)
+    img += np.where(bone, _line(y, np.full(w, 10.0), 170.0), 0.0)
+    fc = frame_candidates(np.clip(img, 0, 255).astype(np.uint8), (S, S))
+    at_bone = [c for c in fc.usable if abs(_depth(c) - 10.0) < 0.3]
+    assert at_bone and not any(c.echo_beneath for c in at_bone)
+    assert abs(_depth(max(fc.usable, key=_value)) - 10.0) < 0.3

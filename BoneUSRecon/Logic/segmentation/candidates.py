@@ -508,8 +508,9 @@ def _mark_echo_beneath(
             off = median1d(b["dense"][common] - c["dense"][common])
             if off <= 0:
                 continue  # b is not below c
-            # What lies in a shadow comes back dimmer than what cast it.
-            if b["grey"] < c["grey"]:
+            # What lies in a shadow comes back dimmer than what cast it, and within the
+            # columns of what cast it (a shadow is as wide as its reflector).
+            if b["grey"] < c["grey"] and common.size >= 0.8 * b["cols"].size:
                 if c.get("series_top"):
                     shadowed = True
                 elif off >= 2 * gap + 1:
