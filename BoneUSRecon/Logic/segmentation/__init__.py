@@ -17,7 +17,9 @@ arrive and the second on the frames so far:
   itself: per-depth tissue levels, robust z-scores; echo against the tissue above it,
   shadow against the tissue at the same depth beside it, soft tissue above) and
   repeated optimal paths across columns; look-alikes (skin over a no-contact gap,
-  reverberation copies, fascia, vessels) handled by the rules of :mod:`.candidates`.
+  reverberation copies and series, fascia, vessels, the far cortex and anything else
+  in a shadow: bone is the first strong reflector) handled by the rules of
+  :mod:`.candidates`.
 * ``"snake"``: the paper's open active contour with balloon and regional energies and
   its posterior choice of points (:mod:`.snake`, :mod:`.posterior`); its contour is the
   frame's one candidate, scored on the same evidence and chosen by the same track.

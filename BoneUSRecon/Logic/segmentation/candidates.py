@@ -19,13 +19,25 @@ Look-alikes handled per frame (each with a simulated test in
   The posterior wall has anechoic lumen above it: no cover.
 * **a line over another echo** (a fascia over the bone): bone stops the sound, so
   anything under it returns much fainter than its echo; a candidate with an echo at
-  least ``beneath_ratio`` as bright under most of its columns is marked
-  ``echo_beneath`` and valued less by the track.
+  least ``beneath_ratio`` as bright under most of its columns, and tissue (not
+  shadow) between them, is marked ``echo_beneath`` and valued less by the track.
+* **no first interface** (the far cortex, a band, under a grey shadow): bone is the
+  first strong reflector along the beam, so nothing under it is anatomy. A candidate
+  is marked ``echo_beneath`` when the region above it comes back darker than the
+  tissue beside it at the same depths (it lies in a shadow, whatever cast it), or
+  when it lies under a brighter candidate, within its columns, with shadow between
+  them (:func:`_mark_echo_beneath`). Regions are judged on profiles that follow a
+  candidate's shape and take the median over its columns (:func:`_underside_profile`),
+  so speckle averages out and ratios of a few tenths are measurable.
 * **reverberation copies**: a candidate lying, column by column, at twice the depth of
   a shallower one (probe-face reverberation: the echo travels the path twice), or one
   of a series of equally spaced parallel copies under a line (reverberation inside a
   layer) is marked ``reverberation`` and never chosen: sound that made a copy did not
-  come from a new interface.
+  come from a new interface. A series is found from the profile of any of its lines
+  (:func:`_series`: three or more equally spaced, fading lines over dark troughs);
+  its top, added if no pass found it, carries the series' evidence
+  (:func:`_mark_series`): under a grey shadow the copies, with the darkest shadow
+  beneath them, outscore the faint reflector itself.
 
 Flanks: the path may change depth by up to ``max_slope`` (tan 72 degrees) per lateral
 mm with a small quadratic penalty, and the shadow windows hang below each column (the
@@ -312,14 +324,29 @@ def _underside_profile(
     return prof
 
 
-def _series(prof: np.ndarray, reach: int, min_px: int, dark: float, tol: float) -> list[int]:
+def _series(
+    prof: np.ndarray, reach: int, min_px: int, dark: float, tol: float, *, strict: bool
+) -> list[int]:
     """Offsets (rows) of the equally spaced series of lines through offset 0 of ``prof``.
 
-    A member is a local maximum of the profile brighter than the tissue (> 0); two
-    consecutive members have a trough darker than ``dark`` (a log ratio) between them
-    (the sound between reverberation copies comes back from nothing: shadow, not
-    tissue) and lie ``d`` apart, ``d`` the same for the whole series within ``tol``
-    (relative) + 1 row. Returns ``[0]`` alone when there is no such series.
+    A member is a local maximum of the profile brighter than the tissue (> 0);
+    consecutive members lie ``d`` apart, ``d`` the same for the whole series within
+    ``tol`` (relative) + 1 row. A series has three members or more, and the troughs
+    between its members are, on average, darker than ``dark`` (a log ratio): the sound
+    between reverberation copies comes back from nothing, shadow not tissue (layers of
+    soft tissue have tissue between them).
+
+    ``strict`` (the profile follows the reflector's own shape, so its copies are
+    parallel to it and sharp in the profile): offset 0 must be the top, and the series
+    must fade: each copy is no brighter than the line above it (part of the sound is
+    lost at every bounce), beyond the speckle left in the profile (0.15 in log; the
+    deepest member is exempt, the far cortex may lie where it falls), and the top is
+    the brightest. Without, the profile may follow another line's shape (a far cortex,
+    whose shape the copies do not share, lying anywhere under them), so the series is
+    sought among the lines above offset 0, which may or may not be a member, and
+    brightness is not judged.
+
+    Returns the members' offsets, shallowest first, or ``[0]`` when there is no series.
     """
     v = np.nan_to_num(prof, nan=-10.0)
     is_peak = np.zeros(v.size, bool)
@@ -328,49 +355,64 @@ def _series(prof: np.ndarray, reach: int, min_px: int, dark: float, tol: float) 
     if peaks.size == 0:
         return [0]
 
-    def trough_dark(a: int, b: int) -> bool:
-        lo, hi = min(a, b), max(a, b)
-        return hi - lo >= 2 and float(v[lo + 1 + reach : hi + reach].min()) < dark
-
     def step_from(k: int, d: float, sign: int) -> int | None:
         want = k + sign * d
         near = peaks[np.abs(peaks - want) <= tol * d + 1.0]
         if near.size == 0:
             return None
         q = int(near[np.argmin(np.abs(near - want))])
-        if (q - k) * sign < min_px or not trough_dark(k, q):
-            return None
-        # Each copy is fainter than the line it copies (part of the sound is lost at
-        # every bounce): the deeper of two members is not the brighter, beyond the
-        # speckle left in the profile.
-        lo, hi = (k, q) if q > k else (q, k)
-        return q if v[hi + reach] <= v[lo + reach] + 0.15 else None
+        return q if (q - k) * sign >= min_px else None
 
-    # The spacing: from the nearest member above or below (the first that exists).
-    members = [0]
-    for sign in (-1, 1):
-        side = peaks[(peaks * sign) >= min_px]
-        if side.size == 0:
-            continue
-        q = int(side[np.argmin(np.abs(side))])
-        if not trough_dark(0, q):
-            continue
-        d = float(abs(q))
-        for sgn in (-1, 1):
-            k = 0
-            while True:
-                nxt = step_from(k, d, sgn)
-                if nxt is None:
-                    break
+    def chain(start: int, d: float, signs: tuple[int, ...]) -> list[int]:
+        members = [start]
+        for sgn in signs:
+            k = start
+            while (nxt := step_from(k, d, sgn)) is not None and nxt <= 0:
                 members.append(nxt)
                 k = nxt
-        members = sorted(set(members))
-        vals = v[np.asarray(members) + reach]
-        # The reflector (the top) is the brightest of its series, the last copy the dimmest.
-        if len(members) >= 3 and vals[0] >= vals.max() - 0.05 and vals[-1] < vals[0]:
-            return members
-        members = [0]
-    return members
+        return sorted(set(members))
+
+    def valid(members: list[int]) -> bool:
+        if len(members) < 3:
+            return False
+        m = np.asarray(members) + reach
+        troughs = [float(v[a + 1 : b].min()) for a, b in zip(m[:-1], m[1:], strict=True)]
+        if float(np.mean(troughs)) >= dark:
+            return False
+        vals = v[m]
+        # The deepest member is exempt from fading: the far cortex may lie where the
+        # last copy falls (it is still dimmer than the top).
+        return not strict or (
+            bool(np.all(np.diff(vals[:-1]) <= 0.15)) and vals[0] >= vals.max() - 0.05
+        )
+
+    if strict:
+        # From offset 0 down, the spacing set by the nearest line below.
+        below = peaks[peaks >= min_px]
+        if below.size:
+            d = float(below.min())
+            members = [0]
+            k = 0
+            while (nxt := step_from(k, d, 1)) is not None:
+                members.append(nxt)
+                k = nxt
+            if valid(members):
+                return members
+        return [0]
+    # Loose: a series among the lines above offset 0 (0 itself may be a copy or lie
+    # under the series, as a far cortex does), the spacing set by a line and the next
+    # one above it; the longest series wins.
+    above = np.sort(peaks[peaks <= -min_px])[::-1]  # nearest first
+    best: list[int] = [0]
+    for i, q in enumerate(above[:4]):
+        nxt_up = above[i + 1 :][above[i + 1 :] <= q - min_px]
+        if nxt_up.size == 0:
+            continue
+        d = float(q - nxt_up[0])
+        members = chain(int(q), d, (-1, 1))
+        if valid(members) and len(members) > len(best):
+            best = members
+    return best
 
 
 def _mark_series(
@@ -381,17 +423,21 @@ def _mark_series(
     Sound caught between a strong specular reflector (bone, whose acoustic impedance
     is about twice soft tissue's) and the probe face, or inside the cortex, returns
     as copies of the echo at equal depth steps under it, with shadow (nothing) between
-    them: a stack of three or more equally spaced lines over dark troughs
-    (:func:`_series`) is one reflector and its copies, wherever and whatever the
-    grey levels. Soft-tissue layers that happen to lie at equal depths have tissue,
-    not shadow, between them, so they never form a series.
+    them: a stack of three or more equally spaced, fading lines over dark troughs
+    (:func:`_series`) is one reflector and its copies, wherever and whatever the grey
+    levels. Soft-tissue layers that happen to lie at equal depths have tissue, not
+    shadow, between them, so they never form a series.
 
-    The copies are flagged ``reverb`` (never chosen); the top line gets the strongest
-    member's strength (the whole stack is its evidence: the copies are brighter over
-    their dark troughs than the reflector over the tissue above it). A top line no
-    pass found (the passes took the copies, whose shadow beneath is darker) is
-    added, following the copy's shape, at the echo peak of each column. Returns the
-    candidates with such tops added.
+    A series is first seen from any candidate's profile (loosely: the candidate may be
+    a far cortex, not parallel to the copies), then confirmed strictly from its top's
+    own profile (parallel copies, fading, the top brightest). The top is an existing
+    candidate at the series' offset, or one made by moving the candidate's shape up to
+    the strongest echo within half a spacing per column (a pass may have taken only
+    the copies, whose shadow beneath is darker than the reflector's). The top must be
+    a first interface: below the near field (gel, skin, lens echoes), with tissue, not
+    shadow, above it. The copies are flagged ``reverb`` (never chosen) and the top
+    gets the strongest member's strength (the whole stack is its evidence). Returns
+    the candidates with such tops added.
     """
     reach = mm_to_px(p.far_shadow_mm, ev.dy)
     min_px = max(2, mm_to_px(p.series_min_mm, ev.dy))
@@ -399,61 +445,75 @@ def _mark_series(
     h = ev.work.shape[0]
     nf = mm_to_px(p.near_field_mm, ev.dy, minimum=0)
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
+    size = max(1, int(round(1.0 / ev.dx)) | 1)
     added: list[dict] = []
+
+    def confirmed(t: dict) -> bool:
+        if "prof" not in t:
+            t["prof"] = _underside_profile(lr, t, reach)
+        prof = t["prof"]
+        if len(_series(prof, reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
+            return False
+        above = prof[reach // 2 : reach - gap]
+        above = above[np.isfinite(above)]
+        return float(np.median(t["rows"])) >= nf and not (
+            above.size >= gap and median1d(above) < float(np.log(p.under_ratio))
+        )
+
     for c in list(cands):
         if c.get("reverb"):
             continue
-        prof = c["prof"] = _underside_profile(lr, c, reach)
-        members = _series(prof, reach, min_px, dark, p.reverb_tolerance)
+        if "prof" not in c:
+            c["prof"] = _underside_profile(lr, c, reach)
+        if confirmed(c):
+            c["series_top"] = True
+            continue
+        members = _series(c["prof"], reach, min_px, dark, p.reverb_tolerance, strict=False)
         if len(members) < 3:
             continue
         top = members[0]
-        # The reflector is a first interface: below the near field (gel, skin, lens
-        # echoes), with tissue, not shadow, above it.
-        above = prof[max(0, reach + top - reach // 2) : reach + top - gap]
-        above = above[np.isfinite(above)]
-        if float(np.median(c["rows"])) + top < nf or (
-            above.size >= gap and float(np.median(above)) < float(np.log(p.under_ratio))
-        ):
-            continue
-        c["series"] = len(members)
-        if top >= 0:
-            c["series_top"] = True
-            continue
-        c["reverb"] = True
         # The top: an existing candidate over the same columns at that offset, or one
-        # made from c's shape moved up to the echo peak near it.
-        d = (members[1] - members[0]) if len(members) > 1 else -top
-        r = max(1, int(d) // 3)
+        # made from c's shape moved up to the strongest echo near it.
+        d = float(members[1] - members[0])
+        rw = max(1, int(0.45 * d))
         best = None
         for t in cands + added:
-            if t is c:
+            if t is c or t.get("reverb"):
                 continue
-            cm = np.intersect1d(t["cols"], c["cols"])
-            if cm.size < 0.5 * c["cols"].size:
-                continue
-            off = float(np.median(t["dense"][cm] - c["dense"][cm])) if "dense" in t else np.nan
-            if abs(off - top) <= r:
-                best = t
-                break
-        if best is None:
+            cm = _common(t, c)
+            if cm.size >= 0.5 * c["cols"].size:
+                if abs(median1d(t["dense"][cm] - c["dense"][cm]) - top) <= rw:
+                    best = t
+                    break
+        new = best is None
+        if new:
             base = np.clip(c["rows"] + top, 0, h - 1)
-            win = np.clip(base[None, :] + np.arange(-r, r + 1)[:, None], 0, h - 1)
-            rows = win[ev.work[win, c["cols"][None, :]].argmax(axis=0), np.arange(c["cols"].size)]
-            s = ev.score[rows, c["cols"]]
+            win = np.clip(base[None, :] + np.arange(-rw, rw + 1)[:, None], 0, h - 1)
+            pick = ev.echo_z[win, c["cols"][None, :]].argmax(axis=0)
+            rows = win[pick, np.arange(c["cols"].size)]
+            if size > 1 and rows.size >= size:
+                rows = median_filter(rows, size=size, mode="nearest")
+            sc = ev.score[rows, c["cols"]]
+            dense = np.full(c["dense"].size, np.nan)
+            dense[c["cols"]] = rows
             best = {
                 "cols": c["cols"],
                 "rows": rows,
-                "strength": float((s - p.null_z).sum() * ev.dx),
+                "strength": float((sc - p.null_z).sum() * ev.dx),
                 "shadow": median1d(ev.shadow_z[rows, c["cols"]]),
                 "grey": median1d(ev.work[rows, c["cols"]]),
+                "dense": dense,
             }
-            d_ = np.full(c["dense"].size, np.nan)
-            d_[c["cols"]] = rows
-            best["dense"] = d_
+        if not confirmed(best):
+            continue
+        if new:
             added.append(best)
+        # On the series: a copy; under it: in the reflector's shadow (a far cortex).
+        if min(abs(m) for m in members) <= 1:
+            c["reverb"] = True
+        else:
+            c["beneath"] = True
         best["series_top"] = True
-        best["series"] = max(best.get("series", 0), len(members))
         best["inherit"] = max(best.get("inherit", -np.inf), c["strength"])
     return cands + added
 
