@@ -337,7 +337,10 @@ def _series(
     soft tissue have tissue between them).
 
     ``strict`` (the profile follows the reflector's own shape, so its copies are
-    parallel to it and sharp in the profile): offset 0 must be the top, and the series
+    parallel to it and sharp in the profile): offset 0 must be the top, no line
+    between two members is brighter than the upper one, every trough is darker than the tissue
+    over the top and their mean by ``dark`` more (soft tissue layers have the same
+    tissue between them as above them), and the series
     must fade: each copy is no brighter than the line above it (part of the sound is
     lost at every bounce), beyond the speckle left in the profile (0.15 in log; the
     deepest member is exempt, the far cortex may lie where it falls), and the top is
@@ -379,21 +382,35 @@ def _series(
         troughs = [float(v[a + 1 : b].min()) for a, b in zip(m[:-1], m[1:], strict=True)]
         if float(np.mean(troughs)) >= dark:
             return False
+        if not strict:
+            return True
+        # The troughs are shadow: darker than the tissue over the reflector, every one
+        # (soft-tissue layers have the same tissue between them as above them).
+        cover = v[max(0, reach - reach // 2) : max(1, reach - min_px)]
+        cover = cover[cover > -10.0]
+        if cover.size == 0:
+            return False
+        lid = float(np.median(cover))
+        if float(np.mean(troughs)) >= lid + dark or max(troughs) >= lid:
+            return False
+        # Only shadow between copies: no line between two members brighter than the
+        # upper one (a brighter layer between them is tissue, not a gap in a shadow).
+        for a, b in zip(members[:-1], members[1:], strict=True):
+            inner = peaks[(peaks > a) & (peaks < b)] + reach
+            if inner.size and float(v[inner].max()) > float(v[a + reach]) + 0.05:
+                return False
         vals = v[m]
         # The deepest member is exempt from fading: the far cortex may lie where the
         # last copy falls (it is still dimmer than the top).
-        return not strict or (
-            bool(np.all(np.diff(vals[:-1]) <= 0.15)) and vals[0] >= vals.max() - 0.05
-        )
+        return bool(np.all(np.diff(vals[:-1]) <= 0.15)) and vals[0] >= vals.max() - 0.05
 
     if strict:
-        # From offset 0 down, the spacing set by the nearest line below.
-        below = peaks[peaks >= min_px]
-        if below.size:
-            d = float(below.min())
+        # From offset 0 down, the spacing set by one of the nearest lines below (the
+        # nearest may be speckle or the echo's own tail).
+        for q in np.sort(peaks[peaks >= min_px])[:3]:
             members = [0]
             k = 0
-            while (nxt := step_from(k, d, 1)) is not None:
+            while (nxt := step_from(k, float(q), 1)) is not None:
                 members.append(nxt)
                 k = nxt
             if valid(members):
