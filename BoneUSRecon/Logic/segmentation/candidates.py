@@ -519,9 +519,12 @@ def _mark_series(
                 "strength": float((sc - p.null_z).sum() * ev.dx),
                 "shadow": median1d(ev.shadow_z[rows, c["cols"]]),
                 "grey": median1d(ev.work[rows, c["cols"]]),
+                "echo": median1d(ev.echo_z[rows, c["cols"]]),
                 "dense": dense,
             }
-        if not confirmed(best):
+        # A copy returns less than its reflector; over the shadow it may stand out
+        # more, but a line with much more echo contrast than the top was not made by it.
+        if c["echo"] > p.copy_echo_ratio * max(best["echo"], 0.0) or not confirmed(best):
             continue
         if new:
             added.append(best)
@@ -715,6 +718,7 @@ def frame_candidates(
                         "rows": rows,
                         "strength": float((s - p.null_z).sum() * ev.dx),
                         "shadow": median1d(ev.shadow_z[rows, cols]),
+                        "echo": median1d(ev.echo_z[rows, cols]),
                         "grey": median1d(ev.work[rows, cols]),
                     }
                 )

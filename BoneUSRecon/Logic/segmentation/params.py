@@ -201,6 +201,8 @@ class ShadowPathParams:
     """Least spacing of a reverberation series, mm (closer lines are one echo's thickness)."""
     series_trough_ratio: float = 0.7
     """Between consecutive lines of a reverberation series the grey is below this fraction of the tissue level at that depth (a ratio: shadow, not tissue, between copies)."""
+    copy_echo_ratio: float = 1.5
+    """A line is no copy of a series' top if its echo z-score exceeds the top's by more than this factor (a ratio: a copy returns less sound than its reflector, though over the shadow it may stand out up to ~1.4x more, measured on the simulated far cortex; the L14 bone under muscle layers stands out 3x more than the layers)."""
     under_ratio: float = 0.8
     """A candidate under another lies in its shadow when the region between them comes back at less than this fraction of the frame's typical tissue-to-level ratio (geometric mean; a ratio: the cadaver's grey shadow is 0.65 of the tissue beside it)."""
     refine_mm: float = 0.4
@@ -232,6 +234,7 @@ class ShadowPathParams:
                 "series_min_mm",
                 "series_trough_ratio",
                 "under_ratio",
+                "copy_echo_ratio",
             ),
             (
                 "shadow_gap_mm",
