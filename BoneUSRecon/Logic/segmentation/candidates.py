@@ -324,10 +324,26 @@ def _underside_profile(
     return prof
 
 
+def _profile_peaks(prof: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]:
+    """``prof`` with NaN as -10, and the offsets of its local maxima brighter than tissue."""
+    v = np.nan_to_num(prof, nan=-10.0)
+    is_peak = np.zeros(v.size, bool)
+    is_peak[1:-1] = (v[1:-1] >= v[:-2]) & (v[1:-1] > v[2:]) & (v[1:-1] > 0)
+    return v, np.flatnonzero(is_peak) - reach
+
+
 def _series(
-    prof: np.ndarray, reach: int, min_px: int, dark: float, tol: float, *, strict: bool
+    vp: tuple[np.ndarray, np.ndarray],
+    reach: int,
+    min_px: int,
+    dark: float,
+    tol: float,
+    *,
+    strict: bool,
 ) -> list[int]:
-    """Offsets (rows) of the equally spaced series of lines through offset 0 of ``prof``.
+    """Offsets (rows) of an equally spaced series of lines in a profile.
+
+    ``vp`` is :func:`_profile_peaks` of an :func:`_underside_profile`.
 
     A member is a local maximum of the profile brighter than the tissue (> 0);
     consecutive members lie ``d`` apart, ``d`` the same for the whole series within
@@ -351,20 +367,22 @@ def _series(
 
     Returns the members' offsets, shallowest first, or ``[0]`` when there is no series.
     """
-    v = np.nan_to_num(prof, nan=-10.0)
-    is_peak = np.zeros(v.size, bool)
-    is_peak[1:-1] = (v[1:-1] >= v[:-2]) & (v[1:-1] > v[2:]) & (v[1:-1] > 0)
-    peaks = np.flatnonzero(is_peak) - reach
-    if peaks.size == 0:
+    v, peaks = vp
+    # A series needs two lines besides the top (strict: below offset 0; loose: three
+    # above it): most profiles stop here.
+    if (peaks >= min_px).sum() < 2 if strict else (peaks <= -min_px).sum() < 3:
         return [0]
+    plist = [int(q) for q in peaks]  # a handful: plain Python beats numpy calls here
 
     def step_from(k: int, d: float, sign: int) -> int | None:
         want = k + sign * d
-        near = peaks[np.abs(peaks - want) <= tol * d + 1.0]
-        if near.size == 0:
-            return None
-        q = int(near[np.argmin(np.abs(near - want))])
-        return q if (q - k) * sign >= min_px else None
+        lim = tol * d + 1.0
+        best, err = None, lim + 1e-9
+        for q in plist:  # the nearest, the shallower of two as near
+            e = abs(q - want)
+            if e < err:
+                best, err = q, e
+        return best if best is not None and (best - k) * sign >= min_px else None
 
     def chain(start: int, d: float, signs: tuple[int, ...]) -> list[int]:
         members = [start]
@@ -469,7 +487,9 @@ def _mark_series(
         if "prof" not in t:
             t["prof"] = _underside_profile(lr, t, reach)
         prof = t["prof"]
-        if len(_series(prof, reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
+        if "peaks" not in t:
+            t["peaks"] = _profile_peaks(prof, reach)
+        if len(_series(t["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
             return False
         above = prof[reach // 2 : reach - gap]
         above = above[np.isfinite(above)]
@@ -485,7 +505,7 @@ def _mark_series(
         if confirmed(c):
             c["series_top"] = True
             continue
-        members = _series(c["prof"], reach, min_px, dark, p.reverb_tolerance, strict=False)
+        members = _series(c["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=False)
         if len(members) < 3:
             continue
         top = members[0]
