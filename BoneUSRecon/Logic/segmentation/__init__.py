@@ -27,12 +27,16 @@ arrive and the second on the frames so far:
 Measured (issue 10; ``Testing/benchmarks/bench_segmentation.py --table-only``, tables
 in ``Testing/benchmarks/README.md``): standard simulated sweeps, frame recall
 1.00, no wrong-structure frame, kept points 0.03 mm median; every hard condition
-alone but the grey shadow, recall 0.80-1.00 and no wrong frame; the full
-``realism="hard"`` sweeps, recall 0.35-0.93 (the previous segmenter found no bone), no
-wrong frame on radius, ulna and clavicle but 45 % on tibia and humerus, where the
-track follows the far cortex or a reverberation band under the grey shadow (the open
-problem, with the real L14 recording compressed to a 1.3x echo). The real L14 as
-recorded: 21/21 frames on the bone, 0.040 mm median from its reference contours.
+alone on the tibia, recall 0.80-1.00 and no wrong frame (the grey shadow with its
+reverberation bands and far cortex 1.00, was 0.00 with 97 % of frames on a band); the
+full ``realism="hard"`` sweeps, recall 0.75-0.93 with at most 3 % wrong frames (tibia
+and humerus were 0.35/0.47 with 47/45 % wrong). Open: the grey shadow alone on the
+small bones (radius, ulna, clavicle: recall 0.45-0.60, was 0.00, at most 5 % wrong),
+whose series tops are found only in part; the real L14 recording with its echo
+compressed, where the augmentation also erases the shadow (0.93-0.96 of the tissue
+beside, 0.80 as recorded), so nothing but a 1.2x echo tells bone from fascia. The
+real L14 as recorded: 21/21 frames on the bone, 0.040 mm median from its reference
+contours.
 
 Features tried (measured, frame recall on hard sweeps): local phase symmetry along
 depth (own 1-D log-Gabor filters, Hacihaliloglu's measure; 2-D ``phasepack.phasesym``
@@ -43,6 +47,13 @@ working image (0.4 mm): standard clavicle recall 0.97 -> 0.60: dropped. Shadow d
 (a long window to 12 mm beside the near one): kept, it is what separates a vessel
 lumen or a gap between fasciae from a bone's shadow. Karamalis' confidence maps were
 not tried (a sparse random-walk solve per frame does not fit 30 frames/s).
+Geometric-mean (log-domain) shadow windows, so that bright bands in a shadow weigh
+less: grey-shadow tibia 0.00 -> 0.75 alone, but the real L14 1.00 -> 0.90 and no gain
+once the reverberation series existed: dropped. A search for the reflector at the
+top of the shadow a far cortex lies in (column by column, where the log ratio
+returns to the tissue level): the bands inside the shadow stop it early, radius hard
+0.85 -> 0.72: dropped. Kept: reverberation series and first-reflector rules on
+profiles that follow a candidate's shape (:mod:`.candidates`).
 """
 
 from __future__ import annotations
