@@ -44,11 +44,8 @@ from BoneUSRecon.Logic.segmentation import (
     SegmentationResult,
 )
 from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
-from BoneUSRecon.Logic.segmentation.driver import (
-    contours_from_track,
-    frame_candidates_for,
-    select_bone_track,
-)
+from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
+from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sequence_io import write_sweep
 from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
 
@@ -127,13 +124,14 @@ def _segment_one(
 
 def _select(
     frames: list[FrameCandidates],
-    poses: np.ndarray,
+    track: IncrementalTrack,
     params: SegmentationParams,
     t_seg: float,
 ) -> SegmentationResult:
     """Sweep-level step at each refit: one bone track over all frames so far, exactly
-    as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline."""
-    choice = select_bone_track(frames, poses, params.rejection)
+    as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline
+    (``track`` holds the same frames, linked as they arrived)."""
+    choice = track.solve()
     contours = contours_from_track(np.arange(len(frames)), frames, choice, params)
     return SegmentationResult(
         contours,
@@ -204,6 +202,7 @@ class LiveReconstructor:
         self.params = params
         self.live = live
         self._frames: list[_Frame] = []
+        self._track = IncrementalTrack(params.segmentation.rejection)
         self._prior: np.ndarray | None = None
         self._shape: tuple[int, int] | None = None
         self._stride = 1
@@ -259,11 +258,18 @@ class LiveReconstructor:
         if self._since_thinning % self._stride:
             self._since_thinning += 1
             self.counts["thinned"] += 1
+            # A frame not processed leaves the time a processed one takes: spend it on
+            # the links the last thinning left owed, so the next refit need not.
+            if self._track.owed:
+                t0 = time.perf_counter()
+                self._track.work(self._segment_s / max(len(self._frames), 1))
+                self._segment_s += time.perf_counter() - t0
             return None
         self._since_thinning += 1
         sx, sy = pixel_spacing(m)
         t0 = time.perf_counter()
         fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
+        self._track.add(fc, m)  # links to its predecessors, once
         self._segment_s += time.perf_counter() - t0
         frame = _Frame(m, float(timestamp), fc)
         reason = frame.reason
@@ -277,6 +283,7 @@ class LiveReconstructor:
     def _thin(self) -> None:
         """Keep every other frame and process every ``2 * stride``-th from now on."""
         self._frames = self._frames[::2]
+        self._track.keep(range(0, len(self._track), 2))
         self._stride *= 2
         self._since_thinning = 1  # the frame just added counts as processed
 
@@ -330,7 +337,7 @@ class LiveReconstructor:
             raise BoneUSReconError(f"waiting for frames: {n_ok} of {need} with a bone contour")
         seg = _select(
             [f.candidates for f in frames],
-            sweep.image_to_reference,
+            self._track,
             self.params.segmentation,
             self._segment_s,
         )
@@ -342,13 +349,14 @@ class LiveReconstructor:
         )
 
     def memory_bytes(self) -> int:
-        """Approximate bytes held for the kept frames (contours and poses)."""
+        """Approximate bytes held for the kept frames (contours, poses, track links)."""
         return int(
             sum(
                 sum(c.points_px.nbytes + c.intensity.nbytes + 200 for c in f.candidates.candidates)
                 + 200
                 for f in self._frames
             )
+            + self._track.memory_bytes()
         )
 
 
