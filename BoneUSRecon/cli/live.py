@@ -232,8 +232,10 @@ def run_session(
         elif recon.counts["wrong_size"] > wrong_size:
             res.skipped["image size differs from the first frame's"] += 1
 
-    def publish(r: Any) -> None:
-        write_polydata(r.surface, out)
+    def publish(r: Any, fast: bool = False) -> None:
+        # Refits rewrite the file every few seconds: the fast .vtp flavour (LZ4, ~3 ms
+        # instead of ~55 ms of CPU for 10,000 points); the final surface the usual one.
+        write_polydata(r.surface, out, fast=fast)
         if send_surface:
             receiver.send(polydata_message(r.surface, send_surface))
 
@@ -254,7 +256,7 @@ def run_session(
                 try:
                     t, c = time.monotonic(), time.thread_time()
                     res.recon = recon.refit(with_points=False)
-                    publish(res.recon)
+                    publish(res.recon, fast=True)
                     res.refit_s.append(time.monotonic() - t)
                     res.refit_cpu_s.append(time.thread_time() - c)
                     done = time.monotonic()

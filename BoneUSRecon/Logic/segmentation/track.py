@@ -275,9 +275,17 @@ def _finish(
     link_dev: np.ndarray,
     reason: list[str],
     p: RejectionParams,
+    keys: Sequence[int] | None = None,
+    details: dict[tuple[int, int, int, int], str] | None = None,
 ) -> TrackChoice:
     """The track from the dynamic programme's scores and back-pointers (``nodes`` in
-    frame order), and why each frame off it is off it."""
+    frame order), and why each frame off it is off it.
+
+    ``keys`` (one per frame, stable while the frames are kept) and ``details`` let a
+    caller that solves again and again (live) keep the rejection details between
+    solves: a detail depends only on the frame, its nearest frame on the track, that
+    frame's choice and position.
+    """
     n, m = len(frames), len(nodes)
     chosen = np.full(n, -1, dtype=np.intp)
     conf = np.zeros(n)
@@ -320,6 +328,10 @@ def _finish(
         reason[f] = REASONS["jump"]
         if track_frames.size:
             g = int(track_frames[np.argmin(np.abs(track_frames - f))])
+            key = (keys[f], keys[g], int(chosen[g]), g) if keys is not None else None
+            if details is not None and key in details:
+                detail[f] = details[key]
+                continue
             g_ref = pixels_to_reference(
                 poses[g], _sampled(frames[g].candidates[chosen[g]].points_px, frames[g].spacing)
             )
@@ -333,4 +345,6 @@ def _finish(
                 if np.isfinite(dmin)
                 else f"no overlap with frame {g}"
             )
+            if details is not None and key is not None:
+                details[key] = detail[f]
     return TrackChoice(chosen, conf, reason, detail)

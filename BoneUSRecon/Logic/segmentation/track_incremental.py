@@ -94,6 +94,8 @@ class IncrementalTrack:
         self._next_uid = 0
         #: ``(frame uid, predecessor uid)`` pairs still to link (after :meth:`keep`).
         self._owed: list[tuple[int, int]] = []
+        #: Rejection details from earlier solves (see :func:`~.track._finish`).
+        self._details: dict[tuple[int, int, int, int], str] = {}
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -152,6 +154,7 @@ class IncrementalTrack:
             raise IndexError(f"positions out of range 0..{len(self._frames) - 1}")
         self._frames = [self._frames[i] for i in idx]
         kept = {fr.uid for fr in self._frames}
+        self._details = {}  # positions change: details name frames by position
         self._owed = []
         for g, fr in enumerate(self._frames):
             fr.links = {u: v for u, v in fr.links.items() if u in kept}
@@ -190,6 +193,8 @@ class IncrementalTrack:
         nodes = [(f, c) for f, fr in enumerate(frames) for c in fr.nodes]
         if not nodes:
             return TrackChoice(np.full(n, -1, dtype=np.intp), np.zeros(n), reason, [""] * n)
+        if len(self._details) > 8 * n:
+            self._details.clear()  # choices that changed long ago
         fcs = [fr.candidates for fr in frames]
         typical = _typical_strength(fcs)
         value_arr = np.array([_node_value(fcs[f].candidates[c], typical, p) for f, c in nodes])
@@ -226,6 +231,8 @@ class IncrementalTrack:
             np.array(link_dev),
             reason,
             p,
+            keys=[fr.uid for fr in frames],
+            details=self._details,
         )
 
     def memory_bytes(self) -> int:
