@@ -318,6 +318,113 @@ def test_frames_faster_than_processing_are_dropped(sim_small):
     assert receiver.counts["dropped"] == sim_small.sweep.n_frames - 4
 
 
+class _PacedReceiver:
+    """A FrameReceiver stand-in: the sweep's frames become available one every
+    ``period`` seconds (a server at 1/period frames/s), whatever the session is doing."""
+
+    def __init__(self, sweep, period: float) -> None:
+        from BoneUSRecon.Logic.live import PosedFrame
+
+        self.frames = [
+            PosedFrame(np.asarray(image), sweep.image_to_reference[k], float(sweep.timestamps[k]))
+            for k, image in sweep.iter_frames()
+        ]
+        self.period = period
+        self.next = 0
+        self.t0 = time.monotonic()
+        self.counts = {"dropped": 0}
+        self.queue = self  # run_session asks queue.empty()
+        self.backlog: list[int] = []  # frames already available at each get
+
+    def _available(self) -> int:
+        return min(len(self.frames), int((time.monotonic() - self.t0) / self.period) + 1)
+
+    def empty(self) -> bool:
+        return self.next >= self._available()
+
+    @property
+    def ended(self) -> bool:
+        return self.next >= len(self.frames)
+
+    def get(self, timeout: float):
+        deadline = time.monotonic() + timeout
+        while self.empty() and not self.ended and time.monotonic() < deadline:
+            time.sleep(min(0.002, self.period))
+        if self.empty():
+            return None
+        self.backlog.append(self._available() - self.next)
+        self.next += 1
+        return self.frames[self.next - 1]
+
+    def stop(self) -> None:
+        pass
+
+    def send(self, message) -> bool:
+        return True
+
+
+def test_session_latency_accounting(sim_small, tmp_path):
+    """Each refit's latency is the time from due to the surface written: the frame in
+    hand when it fell due (at most one frame's processing, plus the poll), then the
+    refit and the write. Frames arriving during a refit wait and are all processed."""
+    import dataclasses
+
+    from BoneUSRecon.cli.live import run_session
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams
+
+    sweep = sim_small.sweep
+    # 6 control points along the bone: refits from the 12th frame with a contour on.
+    params = ReconstructionParams()
+    params = dataclasses.replace(params, fit=dataclasses.replace(params.fit, control_points=(6, 5)))
+    recon = LiveReconstructor(params, LiveParams(update_every_s=0.06))
+    add_wall: list[float] = []
+    add = recon.add_frame
+
+    def timed_add(*a, **kw):
+        t = time.monotonic()
+        out = add(*a, **kw)
+        add_wall.append(time.monotonic() - t)
+        return out
+
+    spans: list[tuple[float, float]] = []
+    refit = recon.refit
+
+    def timed_refit(*a, **kw):
+        t = time.monotonic()
+        try:
+            return refit(*a, **kw)
+        finally:
+            if not kw.get("final"):
+                spans.append((t, time.monotonic()))
+
+    recon.add_frame = timed_add  # type: ignore[method-assign]
+    recon.refit = timed_refit  # type: ignore[method-assign]
+    receiver = _PacedReceiver(sweep, period=0.03)
+    out = tmp_path / "live.vtp"
+    res = run_session(receiver, recon, out, update_every_s=0.06)
+    assert res.received == recon.counts["added"] == sweep.n_frames  # none lost
+    assert res.refits >= 2 and res.final is not None
+    n = res.refits
+    assert len(res.latencies_s) == len(res.refit_wait_s) == len(res.refit_s) == n
+    assert len(res.refit_cpu_s) == n
+    for lat, wait, wall, cpu in zip(
+        res.latencies_s, res.refit_wait_s, res.refit_s, res.refit_cpu_s, strict=True
+    ):
+        assert lat == pytest.approx(wait + wall, abs=1e-9)
+        assert 0.0 <= wait <= max(add_wall) + 0.05 + 0.1  # + the poll; + slack on a busy machine
+        assert 0.0 < cpu <= wall + 1e-3  # one thread's CPU cannot exceed its wall time
+    # Frames arrived while a refit ran (longer than a frame period): they were queued,
+    # then processed. Refits slower than --update-every are spaced by their own
+    # duration, so frames get at least half of the time.
+    assert max(receiver.backlog) >= 2
+    for (s0, e0), (s1, _) in zip(spans[:-1], spans[1:], strict=True):
+        assert s1 - e0 >= e0 - s0
+    np.testing.assert_array_equal(
+        _points(res.final.surface), _points(reconstruct(sweep, params).surface)
+    )
+    assert _points(read_polydata(out)).shape == _points(res.final.surface).shape
+
+
 def test_nothing_listening_and_port_in_use(sim_small):
     port = _free_port()
     with pytest.raises(
