@@ -2,10 +2,16 @@
 
 Frames arrive one at a time (from an OpenIGTLink server, :mod:`BoneUSRecon.cli.igtl`, or a
 Slicer volume node that OpenIGTLinkIF updates). :class:`LiveReconstructor` does the
-per-frame work once, as each frame arrives (the frame's candidate bone contours,
-cached), and the sweep-level work at each refit, over all frames so far (one bone
-track chosen jointly over the frames, resampling, fit, mesh). Every refit therefore
+per-frame work once, as each frame arrives: the frame's candidate bone contours, and
+their links to the candidates of the frames before it
+(:class:`~BoneUSRecon.Logic.segmentation.track_incremental.IncrementalTrack`: the
+projections and distances that are nearly all of the bone track's cost). At each
+refit it does the sweep-level work over all frames so far: the track's dynamic
+programme over the stored links (one bone track chosen jointly over the frames, the
+same as offline, bit for bit), then resampling, fit and mesh. Every refit therefore
 equals an offline :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far.
+At 480x640, one core: ~12 ms per frame, ~0.11 s per refit of 300-400 frames
+(``Testing/benchmarks/bench_live.py``).
 
 The two calls into the segmentation stage are isolated in :func:`_segment_one` and
 :func:`_select`; the rest is :func:`~BoneUSRecon.Logic.pipeline.reconstruction_from_segmentation`,
@@ -68,20 +74,23 @@ class LiveParams:
     ----------
     update_every_s : float
         Seconds between refits (default 1.0). A refit chooses the bone track over all
-        kept frames and refits the surface: 0.2-0.6 s of one core for 150-220 frames
-        of 480x640 (``Testing/benchmarks/bench_live.py``), so raise it on a slow
-        machine to leave time for the frames.
+        kept frames and refits the surface: 0.06-0.13 s of one core for 100-400
+        frames of 480x640 (``Testing/benchmarks/bench_live.py``). A session spaces
+        refits that take longer than this by their own duration, so that frames
+        keep at least half of the time.
     queue_frames : int
         Frames waiting to be processed before new ones are dropped (default 64:
         about 2 s at 30 frames/s, ~20 MB at 480x640; covers a refit and a burst).
     max_frames : int
         Frames kept for the surface (default 400: 13 s at 30 frames/s, more than the
         paper's longest sweep of 250 and ~25 slices per control point along the
-        bone; <1 MB of contours; a live refit plus writing the surface then takes
-        ~0.15 s of one core at 480x640, within the 0.2 s a refit may lag). When reached, every other kept
-        frame is dropped and from then on only every second arriving frame is
-        processed (then every fourth, ...): the whole scanned extent stays covered
-        at a halved density, and memory and refit time stay bounded.
+        bone; ~2 MB of contours and track links; a live refit plus writing the
+        surface then takes ~0.11 s of one core at 480x640, within the 0.2 s a refit
+        may lag). When reached, every other kept frame is dropped and from then on
+        only every second arriving frame is processed (then every fourth, ...): the
+        whole scanned extent stays covered at a halved density, and memory and refit
+        time stay bounded. Frames that become neighbours are linked in the time the
+        frames not processed leave.
     pose_tolerance_s : float
         Largest timestamp difference between an image and a transform paired with
         it (default 0.02 s). PLUS stamps all messages of one tracked frame with the
@@ -336,9 +345,9 @@ class LiveReconstructor:
             The end of a session: fit whatever there is. Otherwise (live refits) it
             waits for ``MIN_FRAMES_PER_CONTROL_POINT`` frames with a contour per
             control point along the bone. Either way the bone track is chosen over all
-            kept frames, as :func:`~BoneUSRecon.Logic.pipeline.reconstruct` does (the
-            dynamic programme over frames costs little beside the fit; ``max_frames``
-            bounds the frames kept).
+            kept frames, as :func:`~BoneUSRecon.Logic.pipeline.reconstruct` does (only
+            the dynamic programme runs here, over the links made as frames arrived,
+            ~10 ms for 400 frames; ``max_frames`` bounds the frames kept).
         with_points : bool
             Build :attr:`Reconstruction.points` (the segmented points as polydata);
             False leaves it empty, which saves a fifth of a live refit that only
