@@ -94,6 +94,24 @@ def test_live_thinning_bounds_memory(sim_small):
     assert live.counts["added"] == sweep.n_frames
     r = live.refit(final=True)
     assert evaluate_surface(r.surface, sim_small.gold).mean < 0.6
+    # The track over the kept frames (linked as they came, then again after each
+    # thinning) is the batch track over those frames.
+    from BoneUSRecon.Logic.segmentation.driver import contours_from_track
+    from BoneUSRecon.Logic.segmentation.track import select_bone_track
+
+    kept = live._frames
+    fcs = [f.candidates for f in kept]
+    choice = select_bone_track(fcs, np.stack([f.pose for f in kept]))
+    batch = contours_from_track(np.arange(len(kept)), fcs, choice)
+    assert len(r.segmentation.contours) == len(batch)
+    for a, b in zip(r.segmentation.contours, batch, strict=True):
+        assert (a.frame, a.reason, a.detail, a.confidence) == (
+            b.frame,
+            b.reason,
+            b.detail,
+            b.confidence,
+        )
+        np.testing.assert_array_equal(a.points_px, b.points_px)
 
 
 def test_live_wrong_frame_size(sim_small):
