@@ -443,6 +443,25 @@ def test_session_latency_accounting(sim_small, tmp_path):
     assert _points(read_polydata(out)).shape == _points(res.final.surface).shape
 
 
+def test_serve_keeps_its_rate_with_a_client(sim_small):
+    """With a client connected, the replay is paced by --fps alone (a waiting accept()
+    before every frame used to hold it to ~19 frames/s whatever was asked)."""
+    sweep = sim_small.sweep
+    server, t = _serve(sweep, fps=400)
+    receiver = FrameReceiver("127.0.0.1", server.port, PoseAssembler(), FAST).start()
+    got = []
+    t0 = time.monotonic()
+    while len(got) < sweep.n_frames and time.monotonic() - t0 < 10:
+        if receiver.get(timeout=0.1) is not None:
+            got.append(time.monotonic())
+    receiver.stop()
+    server.stop()
+    t.join(timeout=5)
+    assert len(got) == sweep.n_frames
+    # 40 frames at 400 frames/s take 0.1 s; at 50 ms per frame they took 2 s.
+    assert got[-1] - got[0] < 1.0
+
+
 def test_nothing_listening_and_port_in_use(sim_small):
     port = _free_port()
     with pytest.raises(
