@@ -114,6 +114,23 @@ def test_live_thinning_bounds_memory(sim_small):
         np.testing.assert_array_equal(a.points_px, b.points_px)
 
 
+def test_live_links_owed_after_thinning_in_spare_time(sim_small):
+    """A thinning leaves neighbours to link: spare time (work) links them, a slice at a
+    time, and nothing is left for the next refit."""
+    sweep = sim_small.sweep
+    live = LiveReconstructor(live=LiveParams(max_frames=24))
+    for k, image in sweep.iter_frames():
+        live.add_frame(image, sweep.image_to_reference[k], sweep.timestamps[k])
+        if live.counts["added"] > 1 and live.n_frames < live.counts["added"]:
+            break  # just thinned (24 -> 12)
+    owed = live.owed
+    assert owed > 0
+    assert live.work(0.0) and 0 < live.owed < owed  # at least one pair, not all
+    while live.work(0.001):
+        pass
+    assert live.owed == 0 and not live.work(1.0)
+
+
 def test_live_wrong_frame_size(sim_small):
     live = LiveReconstructor()
     sweep = sim_small.sweep

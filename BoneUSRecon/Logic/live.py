@@ -244,6 +244,7 @@ class LiveReconstructor:
         self._arrived = 0
         self._since_thinning = 0
         self._segment_s = 0.0
+        self._processed = 0
         #: Frames given to :meth:`add_frame`, frames not processed because of
         #: ``max_frames`` thinning, frames refused for a different image size.
         self.counts = {"added": 0, "thinned": 0, "wrong_size": 0}
@@ -297,10 +298,11 @@ class LiveReconstructor:
             # the links the last thinning left owed, so the next refit need not.
             if self._track.owed:
                 t0 = time.perf_counter()
-                self._track.work(self._segment_s / max(len(self._frames), 1))
+                self._track.work(self._segment_s / max(self._processed, 1))
                 self._segment_s += time.perf_counter() - t0
             return None
         self._since_thinning += 1
+        self._processed += 1
         sx, sy = pixel_spacing(m)
         t0 = time.perf_counter()
         fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
@@ -314,6 +316,34 @@ class LiveReconstructor:
         if len(self._frames) >= self.live.max_frames:
             self._thin()
         return reason
+
+    @property
+    def owed(self) -> int:
+        """Pairs of frames still to link after a thinning (see :meth:`work`)."""
+        return self._track.owed
+
+    def work(self, budget_s: float) -> bool:
+        """Spare time (nothing to process): link frames that a thinning made neighbours.
+
+        Refits make what is still owed themselves; linking ahead keeps the first refit
+        after a thinning as fast as the others.
+
+        Parameters
+        ----------
+        budget_s : float
+            CPU seconds to spend at most (one pair of frames is linked at least).
+
+        Returns
+        -------
+        bool
+            Whether anything was left to do.
+        """
+        if not self._track.owed:
+            return False
+        t0 = time.perf_counter()
+        self._track.work(budget_s)
+        self._segment_s += time.perf_counter() - t0
+        return True
 
     def _thin(self) -> None:
         """Keep every other frame and process every ``2 * stride``-th from now on."""

@@ -115,7 +115,12 @@ def session(
 
     def counted_get(timeout):
         waiting.append(receiver.queue.qsize())
+        if waiting[-1] > peak[0]:
+            peak[:] = [waiting[-1], time.monotonic() - t_start]
         return get(timeout)
+
+    t_start = time.monotonic()
+    peak = [0, 0.0]
 
     receiver._emit, receiver.get = timed_emit, counted_get
     recorder = SweepRecorder(record) if record else None
@@ -133,6 +138,7 @@ def session(
         "intake_gap_s": float(np.diff(intake).max()) if len(intake) > 1 else 0.0,
         "intake_gaps_s": np.diff(intake),
         "max_waiting": max(waiting, default=0),
+        "max_waiting_at_s": peak[1],
         "main_cpu_s": time.thread_time() - c0,
     }
     return res
@@ -348,7 +354,8 @@ def main() -> None:
         print(
             f"  intake: gaps between frames queued p99 {np.percentile(gaps, 99):.0f} ms, "
             f"max {gaps.max():.0f} ms (period {1000 / args.fps:.0f} ms); at most "
-            f"{res.bench['max_waiting']} frames waiting (queue {64})"
+            f"{res.bench['max_waiting']} frames waiting (queue 64), at "
+            f"{res.bench['max_waiting_at_s']:.0f} s"
         )
 
         cpu_budget(sim.sweep, args.cpu_frames)
