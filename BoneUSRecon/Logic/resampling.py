@@ -41,6 +41,7 @@ import numpy as np
 from scipy.interpolate import BSpline
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.params_check import check_fields
 from BoneUSRecon.Logic.robust import mad_scale, robust_weights
 from BoneUSRecon.Logic.sweep import Sweep, frame_planes
 
@@ -115,9 +116,14 @@ class ResamplingParams:
     max_gap_mm: float = 3.0
 
     def __post_init__(self) -> None:
-        if int(self.n_rays) < 2:
+        check_fields(
+            self,
+            positive=("axis_bandwidth_mm", "max_gap_mm", "min_radius_mm", "max_radius_mm"),
+            within={"auto_span_quantile": "[0, 0.5]"},
+        )
+        if self.n_rays < 2:
             raise BoneUSReconError(f"need at least 2 rays per slice, got {self.n_rays}")
-        if int(self.n_rays) > MAX_RAYS:
+        if self.n_rays > MAX_RAYS:
             raise BoneUSReconError(
                 f"at most {MAX_RAYS} rays per slice, got {self.n_rays} (the paper uses 15)"
             )
@@ -133,8 +139,11 @@ class ResamplingParams:
             0 < self.angle_step_deg * (self.n_rays - 1) < 360
         ):
             raise BoneUSReconError(f"angle step {self.angle_step_deg} degrees is out of range")
-        if self.axis_bandwidth_mm <= 0 or self.max_gap_mm <= 0:
-            raise BoneUSReconError("axis bandwidth and maximum gap must be positive (mm)")
+        if self.min_radius_mm >= self.max_radius_mm:
+            raise BoneUSReconError(
+                f"ResamplingParams.min_radius_mm ({self.min_radius_mm}) must be below "
+                f"max_radius_mm ({self.max_radius_mm})"
+            )
 
 
 @dataclass(frozen=True, eq=False)
