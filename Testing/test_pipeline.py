@@ -144,6 +144,6 @@ def test_distance_texture_matches_segmented_points(recon_small):
 
     r = recon_small
     pts = numpy_support.vtk_to_numpy(r.surface.GetPoints().GetData())
-    seg = r.segmentation.points_mm(r.sweep)[0]
+    seg = r.segmentation.points_mm(r.sweep).xyz
     dist = numpy_support.vtk_to_numpy(r.surface.GetPointData().GetArray("Distance"))
     assert np.allclose(dist, cKDTree(seg).query(pts)[0])

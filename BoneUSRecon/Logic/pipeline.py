@@ -428,7 +428,7 @@ def control_point_table(
     recon = source if isinstance(source, Reconstruction) else reconstruct(source, params, progress)
     p = recon.params
     grid = recon.grid
-    seg_pts = recon.segmentation.points_mm(recon.sweep)[0]
+    seg_pts = recon.segmentation.points_mm(recon.sweep).xyz
     rows: list[tuple[int, float]] = []
     for n, e in enumerate(counts):
         report(progress, "table", n, len(counts))

@@ -76,6 +76,7 @@ _LAZY = {
     "points_polydata": "polydata",
     "FrameContour": "result",
     "SegmentationResult": "result",
+    "SegmentationPoints": "result",
 }
 
 __all__ = [
@@ -89,6 +90,7 @@ __all__ = [
     "RejectionParams",
     "FrameContour",
     "SegmentationResult",
+    "SegmentationPoints",
     "Detection",
     "segment_frame",
     "segment_sweep",
