@@ -57,22 +57,25 @@ PATH_PARAMETERS = ("calibrationFile",)
 #: choice parameters (a QComboBox each).
 CHOICE_PARAMETERS = ("segmenter",)
 
-#: Used when BoneUSRecon cannot be imported yet (dependencies not installed):
-#: the better default first, then the paper's snake.
+#: Used only when BoneUSRecon cannot be imported yet (its own dependency lazy_loader
+#: not installed, or Python older than 3.10), while Slicer loads the module: a copy of
+#: ``BoneUSRecon.Logic.segmentation.SEGMENTER_NAMES`` (a test keeps them equal).
 SEGMENTER_FALLBACK = ("shadowpath", "snake")
 
 
 def segmenterNames() -> tuple[str, ...]:
-    """Names of ``BoneUSRecon.Logic.segmentation.SEGMENTERS``, the default first."""
+    """``BoneUSRecon.Logic.segmentation.SEGMENTER_NAMES``, the default first.
+
+    Read without loading numpy, SciPy or VTK (the package defines the names itself).
+    """
     try:
-        from BoneUSRecon.Logic.segmentation import SEGMENTERS, SegmentationParams
+        from BoneUSRecon.Logic.segmentation import SEGMENTER_NAMES
     except Exception:  # noqa: BLE001
         # Called while Slicer loads the module: dependencies may not be installed yet
         # (ImportError) or be of a version that fails to import; the module must load
         # anyway (the Apply button installs them), so offer the known names.
         return SEGMENTER_FALLBACK
-    default = SegmentationParams().method
-    return (default,) + tuple(sorted(n for n in SEGMENTERS if n != default))
+    return tuple(SEGMENTER_NAMES)
 
 
 def calibrationPath(path: Any) -> str | None:

@@ -226,7 +226,7 @@ def test_segmenter_choices_are_the_library_segmenters() -> None:
     names = segmenterNames()
     assert set(names) == set(seg.SEGMENTERS)
     assert names[0] == seg.SegmentationParams().method  # the default is offered first
-    assert "snake" in names and set(SEGMENTER_FALLBACK) <= set(names)
+    assert "snake" in names and SEGMENTER_FALLBACK == names
 
 
 def test_dependencies_never_pip_install_vtk() -> None:

@@ -45,64 +45,19 @@ not tried (a sparse random-walk solve per frame does not fit 30 frames/s).
 
 from __future__ import annotations
 
-from BoneUSRecon.Logic._lazy import lazy_attributes
+import lazy_loader
 
-#: Names of the segmenters, the default first: the keys of :data:`SEGMENTERS`. Here,
-#: importing nothing, so that the CLI's parsers list them at start-up;
-#: :class:`SegmentationParams` checks a name against them.
+#: Names of the segmenters, the default first: the keys of :data:`SEGMENTERS` (the one
+#: list; ``driver`` checks its table against it). Defined here, importing nothing, so
+#: that the CLI's parsers list them at start-up; :class:`SegmentationParams` checks a
+#: name against them.
 SEGMENTER_NAMES = ("shadowpath", "snake")
 
-# The rest is imported lazily (PEP 562), as in BoneUSRecon.Logic: the segmenters load
-# numpy, scipy and VTK, and even params.py (its frozen dataclasses) costs ~14 ms.
-_LAZY = {
-    "SEGMENTERS": "driver",
-    "segment_frame": "driver",
-    "segment_sweep": "driver",
-    "frame_candidates_for": "driver",
-    "contours_from_track": "driver",
-    "frame_candidates": "candidates",
-    "FrameCandidates": "candidates",
-    "BoneCandidate": "candidates",
-    "select_bone_track": "track",
-    "TrackChoice": "track",
-    "bone_evidence": "evidence",
-    "Detection": "detection",
-    "REFERENCE_PIXEL_MM": "params",
-    "SegmentationParams": "params",
-    "SnakeParams": "params",
-    "PosteriorParams": "params",
-    "ShadowPathParams": "params",
-    "RejectionParams": "params",
-    "points_polydata": "polydata",
-    "FrameContour": "result",
-    "SegmentationResult": "result",
-    "SegmentationPoints": "result",
-}
+# The rest is imported on first use, from the names listed in ``__init__.pyi`` (as in
+# BoneUSRecon.Logic): the segmenters load numpy, SciPy and VTK.
+__getattr__, _, _lazy_names = lazy_loader.attach_stub(__name__, __file__)
+__all__ = ["SEGMENTER_NAMES", *_lazy_names]
 
-__all__ = [
-    "SEGMENTERS",
-    "SEGMENTER_NAMES",
-    "REFERENCE_PIXEL_MM",
-    "SegmentationParams",
-    "SnakeParams",
-    "PosteriorParams",
-    "ShadowPathParams",
-    "RejectionParams",
-    "FrameContour",
-    "SegmentationResult",
-    "SegmentationPoints",
-    "Detection",
-    "segment_frame",
-    "segment_sweep",
-    "frame_candidates_for",
-    "contours_from_track",
-    "frame_candidates",
-    "FrameCandidates",
-    "BoneCandidate",
-    "select_bone_track",
-    "TrackChoice",
-    "bone_evidence",
-    "points_polydata",
-]
 
-__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, __all__)
+def __dir__() -> list[str]:
+    return __all__

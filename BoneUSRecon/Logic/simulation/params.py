@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.params_check import check_fields
 
-# BONES and the reference sweep's defaults live in the import-free names.py (the CLI's
-# parsers list them at start-up).
-from BoneUSRecon.Logic.simulation.names import (
+# BONES and the reference sweep's defaults live in the package's import-free __init__
+# (the CLI's parsers list them at start-up).
+from BoneUSRecon.Logic.simulation import (
     BONES,
     CORRUPTION_KINDS,
     DEFAULT_BONE,
