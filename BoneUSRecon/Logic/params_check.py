@@ -78,7 +78,7 @@ def _int(label: str, v: Any) -> int:
     except TypeError:
         pass
     if isinstance(v, numbers.Real) and math.isfinite(v) and float(v).is_integer():
-        return int(v)
+        return int(float(v))
     raise ParameterTypeError(f"{label} must be an integer, got {v!r}")
 
 

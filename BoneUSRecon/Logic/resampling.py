@@ -34,7 +34,7 @@ distance from the vertex to the nearer end of the contour segment it lies on.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -216,7 +216,7 @@ def _pad(contours: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     out = np.full((len(contours), kmax, d), np.nan)
     for r, c in enumerate(contours):  # one copy per slice; the hot work below is batched
         out[r, : c.shape[0]] = c
-    return out, np.isfinite(out).all(axis=-1)
+    return out, np.logical_and.reduce(np.isfinite(out), axis=-1)
 
 
 def _circle_centres(xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float) -> np.ndarray:
@@ -251,7 +251,9 @@ def _circle_centres(xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float) 
     return np.where(good[:, None], np.stack([cx, cy], axis=1), fallback)
 
 
-def _fit_axis(t: np.ndarray, c: np.ndarray, params: ResamplingParams) -> tuple[object, np.ndarray]:
+def _fit_axis(
+    t: np.ndarray, c: np.ndarray, params: ResamplingParams
+) -> tuple[Callable[..., np.ndarray], np.ndarray]:
     """Robust axis c(t): penalised cubic spline or line, IRLS Huber then Tukey.
 
     The spline is a P-spline (Eilers & Marx): cubic B-splines with knots every

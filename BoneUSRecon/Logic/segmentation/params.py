@@ -149,7 +149,7 @@ class ShadowPathParams:
     phase_wavelengths_mm: tuple[float, ...] = (0.6, 1.2, 2.4)
     """Log-Gabor wavelengths of the phase symmetry, mm."""
     mid_mm: float = 0.4
-    """Height of the bright band, mm (ours: a thin real cortical echo; 0.6 mm diluted the 1.3x echo of issue 10's cadaver levels, frame recall 0.40 -> 0.55 on the low-contrast simulation)."""
+    """Height of the bright band, mm (ours: a thin real cortical echo; a thicker band dilutes a low-contrast echo of 1.3x the tissue above it)."""
     up_mm: float = 1.5
     """Height of the region right above the band that the echo must outshine, mm."""
     shadow_gap_mm: float = 1.5

@@ -16,7 +16,7 @@ Our ground truth for tests, benchmarks and the demo. Small files, one per stage:
 * :mod:`.augment` -- augmentations of a recorded sweep (mirror, gain, speckle,
   resampling, crop) with consistent poses, to test on real data without new data.
 
-Simulator version 2 (compared with the real L14 recording): the shadow under bone is
+As on the real L14 recording (``SIMULATOR_VERSION`` 2), the shadow under bone is
 grey (speckle at ~15-40 % of the tissue's grey level, ``shadow_transmission`` 0.22)
 with faint reverberation copies of the bone echo every 3 mm; the bone echo has a
 ~0.5-1 mm tail *below* the surface (its peak stays on the true surface, which is

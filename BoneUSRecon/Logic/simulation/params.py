@@ -64,7 +64,7 @@ class ImagingParams:
     #: Peak amplitude of the bone echo at normal incidence (the brightest thing).
     bone_amplitude: float = 16.0
     #: Exponent of cos(incidence) in the bone echo: specular reflection fades fast
-    #: off-normal. 3 (was 2): on the real L14 recording the flanks of the bone at
+    #: off-normal. 3: on the real L14 recording the flanks of the bone at
     #: ~55-60 degrees are ~10-15 dB weaker than its top (grey ~100 against ~210).
     specular_exponent: float = 3.0
     #: Diffuse part of the bone echo (fraction of bone_amplitude, times cos(incidence)):
@@ -80,8 +80,8 @@ class ImagingParams:
     bone_tail: float = 0.45
     #: Decay length (mm) of that tail.
     bone_tail_mm: float = 0.4
-    #: Amplitude transmitted into the acoustic shadow below bone. 0.22 (was 0.03, an
-    #: almost black shadow): on the real L14 recording the shadow is grey, its speckle
+    #: Amplitude transmitted into the acoustic shadow below bone. 0.22: on the real
+    #: L14 recording the shadow is grey (not black), its speckle
     #: at 15-40 % of the tissue's grey level (side lobes, multiple reflections).
     shadow_transmission: float = 0.22
     #: Amplitude of reverberation copies of the bone echo inside the shadow, relative to
