@@ -41,6 +41,7 @@ BAD = [
     (PosteriorParams, "neighbour_px", -10, "must be > 0"),
     (RejectionParams, "max_skip", -1, "must be >= 0, got -1"),
     (RejectionParams, "min_track_frames", 1.5, "must be an integer"),
+    (RejectionParams, "min_overlap_share", 1.5, r"must lie in \[0, 1\]"),
     (SegmentationParams, "snake", ShadowPathParams(), "must be a SnakeParams"),
     (FitParams, "degree", (2.7, 2), r"must be an integer, got 2.7"),
     (FitParams, "degree", (2, 2, 2), r"must have 2 values"),

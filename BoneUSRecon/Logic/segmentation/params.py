@@ -297,6 +297,8 @@ class RejectionParams:
     """Contours farther apart than this many tolerances are never linked."""
     max_skip: int = 8
     """A track may skip this many frames between two of its contours."""
+    min_overlap_share: float = 0.3
+    """Contours of two frames are linked only if they overlap laterally over at least this share of the shorter one (ours: a partial contour of the bone overlaps a full one completely; side-by-side structures barely)."""
     min_track_frames: int = 3
     """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
     miss_cost: float = 0.3
@@ -323,6 +325,7 @@ class RejectionParams:
                 "min_length_mm",
                 "min_points",
             ),
+            within={"min_overlap_share": "[0, 1]"},
         )
 
 
