@@ -410,7 +410,9 @@ def test_session_latency_accounting(sim_small, tmp_path):
     sweep = sim_small.sweep
     # 6 control points along the bone: refits from the 12th frame with a contour on.
     params = ReconstructionParams()
-    params = dataclasses.replace(params, fit=dataclasses.replace(params.fit, control_points=(6, 5)))
+    params = dataclasses.replace(
+        params, fit=dataclasses.replace(params.fit, n_control_points=(6, 5))
+    )
     recon = LiveReconstructor(params, LiveParams(update_every_s=0.06))
     add_wall: list[float] = []
     add = recon.add_frame

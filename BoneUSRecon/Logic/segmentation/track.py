@@ -192,7 +192,7 @@ def _links(
         ):
             continue
         d, share, z = _in_plane_deviation(a, b)
-        if share < 0.3 or not np.isfinite(d):
+        if share < p.min_overlap_share or not np.isfinite(d):
             continue
         tol = p.tolerance_mm + p.tolerance_per_mm * z
         if d > p.max_deviation * tol:

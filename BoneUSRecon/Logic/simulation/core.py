@@ -256,8 +256,8 @@ def _sample_gold(
     d = P - m[:, None, :3, 3]
     i = np.einsum("smk,sk->sm", d, m[:, :3, 0]) / np.einsum("sk,sk->s", m[:, :3, 0], m[:, :3, 0])[:, None]
     j = np.einsum("smk,sk->sm", d, m[:, :3, 1]) / np.einsum("sk,sk->s", m[:, :3, 1], m[:, :3, 1])[:, None]
-    m = int(params.black_margin_px)
-    seen = (i >= m) & (i <= params.width - 1 - m) & (j >= 0) & (j <= params.height - 1)
+    margin = int(params.black_margin_px)
+    seen = (i >= margin) & (i <= params.width - 1 - margin) & (j >= 0) & (j <= params.height - 1)
     w = np.where((up >= params.imaging.visible_cos) & seen, area, 0.0).reshape(-1)
     if w.sum() <= 0:
         return np.empty((0, 3))
