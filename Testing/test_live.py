@@ -357,7 +357,7 @@ class _PacedReceiver:
     """A FrameReceiver stand-in: the sweep's frames become available one every
     ``period`` seconds (a server at 1/period frames/s), whatever the session is doing."""
 
-    def __init__(self, sweep, period: float) -> None:
+    def __init__(self, sweep, period: float, maxsize: int = 64) -> None:
         from BoneUSRecon.Logic.live import PosedFrame
 
         self.frames = [
@@ -368,7 +368,8 @@ class _PacedReceiver:
         self.next = 0
         self.t0 = time.monotonic()
         self.counts = {"dropped": 0}
-        self.queue = self  # run_session asks queue.empty()
+        self.queue = self  # run_session asks queue.empty(), qsize(), maxsize
+        self.maxsize = maxsize
         self.backlog: list[int] = []  # frames already available at each get
 
     def _available(self) -> int:
@@ -376,6 +377,9 @@ class _PacedReceiver:
 
     def empty(self) -> bool:
         return self.next >= self._available()
+
+    def qsize(self) -> int:
+        return self._available() - self.next
 
     @property
     def ended(self) -> bool:
@@ -479,6 +483,29 @@ def test_serve_keeps_its_rate_with_a_client(sim_small):
     assert len(got) == sweep.n_frames
     # 40 frames at 400 frames/s take 0.1 s; at 50 ms per frame they took 2 s.
     assert got[-1] - got[0] < 1.0
+
+
+def test_session_puts_frames_before_refits_when_behind(sim_small, tmp_path):
+    """Frames waiting beyond half the queue: refits wait until they are processed
+    (the frames would otherwise overflow the queue and be lost)."""
+    from BoneUSRecon.cli.live import run_session
+
+    sweep = sim_small.sweep
+    recon = LiveReconstructor(live=LiveParams(update_every_s=0.001))
+    receiver = _PacedReceiver(sweep, period=1e-6, maxsize=8)  # all 40 waiting at once
+    waiting_at_refit: list[int] = []
+    refit = recon.refit
+
+    def watched_refit(*a, **kw):
+        if not kw.get("final"):
+            waiting_at_refit.append(receiver.qsize())
+        return refit(*a, **kw)
+
+    recon.refit = watched_refit  # type: ignore[method-assign]
+    res = run_session(receiver, recon, tmp_path / "live.vtp", update_every_s=0.001)
+    assert res.received == sweep.n_frames
+    assert waiting_at_refit and max(waiting_at_refit) <= 4
+    assert res.final is not None
 
 
 def test_nothing_listening_and_port_in_use(sim_small):

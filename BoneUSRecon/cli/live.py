@@ -267,6 +267,10 @@ def run_session(
             now = time.monotonic()
             if now < due:
                 continue
+            if new and receiver.queue.qsize() > receiver.queue.maxsize // 2:
+                # Falling behind (a busy core): frames first. A late refit is only late,
+                # a dropped frame is lost to the surface for good.
+                continue
             spent = 0.0
             if new:
                 try:
