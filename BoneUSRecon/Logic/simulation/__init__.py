@@ -35,7 +35,13 @@ True
 from __future__ import annotations
 
 from BoneUSRecon.Logic._lazy import lazy_attributes
-from BoneUSRecon.Logic.simulation.names import BONES, CORRUPTION_KINDS, HARD_CONDITIONS, REALISMS
+from BoneUSRecon.Logic.simulation.names import (
+    BONES,
+    CORRUPTION_KINDS,
+    GOLD_REGIONS,
+    HARD_CONDITIONS,
+    REALISMS,
+)
 
 # The rest is imported lazily (PEP 562), as in BoneUSRecon.Logic: the simulator loads
 # numpy, scipy and VTK, and even params.py costs ~9 ms, while the CLI's parsers only
@@ -51,6 +57,7 @@ _LAZY = {
     "Simulation": "core",
     "check_output_dir": "core",
     "check_params": "core",
+    "sample_gold": "core",
     "simulate": "core",
     "simulation_info": "core",
     "write_simulation": "core",
@@ -61,6 +68,7 @@ __all__ = [
     "BONES",
     "BONE_SPECS",
     "CORRUPTION_KINDS",
+    "GOLD_REGIONS",
     "HARD_CONDITIONS",
     "REALISMS",
     "SIMULATOR_VERSION",
@@ -73,6 +81,7 @@ __all__ = [
     "check_output_dir",
     "check_params",
     "echo_levels",
+    "sample_gold",
     "simulate",
     "simulation_info",
     "write_simulation",

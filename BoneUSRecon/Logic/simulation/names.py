@@ -17,6 +17,7 @@ __all__ = [
     "DEFAULT_SEED",
     "REALISMS",
     "HARD_CONDITIONS",
+    "GOLD_REGIONS",
 ]
 
 #: The bones the simulator knows (the long bones of the paper's introduction).
@@ -33,6 +34,12 @@ DEFAULT_WIDTH = 320
 DEFAULT_HEIGHT = 256
 DEFAULT_SPACING_MM = 0.15
 DEFAULT_SEED = 0
+
+#: Where the gold points are digitised (``SimulationParams.gold_region``): ``imaged``
+#: (between the planes of the first and last frames that showed bone) or ``swept``
+#: (the whole axis range those frames' sections touch, the definition before issue 11's
+#: follow-up).
+GOLD_REGIONS = ("imaged", "swept")
 
 #: Realism presets: ``standard`` (simulator version 2, tuned on the L14 recording) and
 #: ``hard`` (the levels measured on a real cadaver sweep, issue 10; see :mod:`.hard`).
