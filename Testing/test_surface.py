@@ -191,6 +191,23 @@ def test_surface_reaches_the_flanks_of_a_steep_bone(radius_sim):
     assert np.sum(a * (radius_sim.distance_to_truth(c) <= 0.35)) / a.sum() >= 0.97
 
 
+def test_contours_stopping_early_on_the_flanks_leave_no_bites(radius_sim):
+    # A segmenter's usual failure on a steep flank: the contour stops early, in some
+    # slices and not in their neighbours. The edge follows the outermost data of each
+    # few millimetres of sweep, so the surface still covers the flanks the neighbours
+    # saw (the 0.75 quantile of the window gave 93.5 % within 1 mm, mean 0.295 mm).
+    rng = np.random.default_rng(0)
+    bitten = []
+    for k, p in radius_sim.contours_mm():
+        a, b = (int(len(p) * rng.uniform(0, 0.25)) if rng.random() < 0.6 else 0 for _ in "ab")
+        bitten.append((k, p[a : len(p) - b]))
+    _, _, surf = surface_from_contours(bitten, radius_sim.sweep)
+    d = evaluate.point_to_surface_distances(surf, radius_sim.gold)[0]
+    assert np.mean(d <= 1.0) >= 0.96 and d.mean() < 0.25
+    c, a = triangle_centroids(surf)
+    assert np.sum(a * (radius_sim.distance_to_truth(c) <= 0.35)) / a.sum() >= 0.97
+
+
 def test_edge_is_as_long_as_the_true_support_outline(radius_sim):
     # A saw-tooth or bitten edge is longer than the outline of the data; a smooth one
     # that follows the data is as long. (Trimming at whole grid cells gave 226 mm here

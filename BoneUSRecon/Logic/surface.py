@@ -9,9 +9,9 @@ The surface reaches exactly as far as the data, with a smooth edge:
    last ray the fit kept (an end the fit rejected is not data).
 2. **Consistent along the sweep.** Each end of the interval is filtered over
    ``support_window_mm`` along the sweep (a running quantile, ``edge_quantile``
-   outward: one slice whose contour stops early, or reaches too far, is a bite or a
-   spike, not the bone's extent; then a running mean of the same width: a smooth
-   edge), then interpolated between slices.
+   outward, by default the window's outermost kept data: one slice whose contour
+   stops early on a flank is a bite, not the bone's extent; then a running mean of
+   the same width: a smooth edge), then interpolated between slices.
    Consecutive kept slices farther apart than ``gap_factor`` slice spacings (and than
    the window) are not bridged: a long gap in the data stays a hole.
 3. **Sub-grid edge.** The support is a signed distance-like field ``F(u, v)`` (mm,
@@ -78,11 +78,17 @@ class SurfaceParams:
     edge_quantile : float
         The edge filter's statistic: each end of the slices' data interval is replaced
         by this quantile (outward) of its values within the window, before the
-        running mean (0.5..1). 0.75: in a window of about five slices the single most
-        extreme slice is ignored whichever way it sticks out (a one-slice spike or
-        bite), while an edge that several slices agree on is kept; the median (0.5)
-        pulled the edge inside the data where the contours' ends scatter (simulated
-        tibia: 97.1 % of gold points within 1 mm against 98.0 %). Ours.
+        running mean (0.5..1). 1 (the outermost kept data in the window): the support
+        counts only rays the robust fit kept, so a false reach is already gone, while
+        the common failure left is a contour that stops early on a steep flank (the
+        oblique echo fades), and a bone's visible width changes over centimetres,
+        not from one slice to the next. On simulated sweeps of the five bones
+        (150 frames, seeds 7 and 13), against 0.75: gold within 1 mm 97.6-99.7 %
+        against 95.9-99.3 % (humerus 95.9 -> 97.6 %, tibia 97.9 -> 98.8 % on seed 13),
+        mean 0.165-0.205 mm against 0.176-0.239 mm, for a surface-to-true-bone p95 of
+        0.06-0.16 mm against 0.06-0.11 mm; from true contours the same to 0.002 mm.
+        0.75 ignored the single most extreme slice of a window of about five either
+        way, and with it data that were there. Ours.
     margin_mm : float
         Extend the mesh this far (mm, along the surface) past the filtered edge of the
         data (>= 0). 0: the surface ends where the data do. Ours.
@@ -100,7 +106,7 @@ class SurfaceParams:
 
     step_mm: float = 0.5
     support_window_mm: float = 3.0
-    edge_quantile: float = 0.75
+    edge_quantile: float = 1.0
     margin_mm: float = 0.0
     gap_factor: float | None = 4.0
     max_distance_mm: float | None = None
