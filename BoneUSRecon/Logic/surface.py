@@ -12,8 +12,9 @@ The surface reaches exactly as far as the data, with a smooth edge:
    outward, by default the window's outermost kept data: one slice whose contour
    stops early on a flank is a bite, not the bone's extent; then a running mean of
    the same width: a smooth edge), then interpolated between slices.
-   Consecutive kept slices farther apart than ``gap_factor`` slice spacings (and than
-   the window) are not bridged: a long gap in the data stays a hole.
+   Consecutive kept slices farther apart than ``gap_factor`` slice spacings (in mm and
+   in frames, and than the window) are not bridged: a long gap in the data stays a
+   hole.
 3. **Sub-grid edge.** The support is a signed distance-like field ``F(u, v)`` (mm,
    positive inside) on a regular ``(u, v)`` grid spaced ``step_mm`` on the surface and
    covering only the support's extent; the triangulated grid is clipped at ``F = 0``
@@ -93,12 +94,18 @@ class SurfaceParams:
         Extend the mesh this far (mm, along the surface) past the filtered edge of the
         data (>= 0). 0: the surface ends where the data do. Ours.
     gap_factor : float or None
-        Consecutive kept slices farther apart than this many median slice spacings
-        (and than ``support_window_mm``) are not bridged: the mesh opens a hole where
-        the spline has nothing to follow (unitless). 4: bridges three missing or
-        rejected slices (the spline spans them well: a simulated sparse sweep, 2.8 mm
-        between slices, lost 3 % of its gold points within 1 mm to a hole over one
-        rejected frame at 3). ``None`` bridges every gap. Ours.
+        Consecutive kept slices farther apart than this many slice spacings are not
+        bridged: the mesh opens a hole where the spline has nothing to follow
+        (unitless). A gap is bridged when it is at most this many median spacings
+        (mm) or at most this many frames of the recording (with a grid: where the
+        probe moved faster, missing frames leave a longer gap in mm), or no wider
+        than ``support_window_mm``. 4: bridges three missing or rejected slices (the
+        spline spans them well: a simulated sparse sweep, 2.8 mm between slices, lost
+        3 % of its gold points within 1 mm to a hole over one rejected frame at 3;
+        counted in mm only, three rejected frames where the probe moved fast opened a
+        hole on simulated humerus and clavicle sweeps with 10 % corrupted frames:
+        95.6 % and 98.3 % within 1 mm against 97.4 % and 99.7 % bridged). ``None``
+        bridges every gap. Ours.
     max_distance_mm : float or None
         If set, also cut the mesh where it is farther than this (mm) from every
         segmented point.
@@ -241,6 +248,10 @@ def surface_support(
         breaks = np.zeros(max(s.size - 1, 0), bool)
     else:
         breaks = np.diff(s) > max(params.gap_factor * spacing, params.support_window_mm)
+        if grid is not None:
+            # Also bridged: at most gap_factor frames apart, however far the probe went.
+            frames = np.asarray(grid.frames)[rows]
+            breaks &= np.abs(np.diff(frames)) > params.gap_factor
     starts = np.r_[0, np.flatnonzero(breaks) + 1]
     ends_ = np.r_[np.flatnonzero(breaks), s.size - 1]
     spans = np.stack([s[starts], s[ends_]], axis=1)
