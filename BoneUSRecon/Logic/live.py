@@ -33,6 +33,7 @@ import numpy as np
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.fileio import check_output_path
+from BoneUSRecon.Logic.params_check import check_fields
 from BoneUSRecon.Logic.pipeline import (
     Reconstruction,
     ReconstructionParams,
@@ -100,11 +101,12 @@ class LiveParams:
     reconnect_s: float = 3.0
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if not self.update_every_s > 0:
             raise BoneUSReconError(f"update_every_s must be > 0 s, got {self.update_every_s}")
-        if int(self.queue_frames) < 1:
+        if self.queue_frames < 1:
             raise BoneUSReconError(f"queue_frames must be >= 1, got {self.queue_frames}")
-        if int(self.max_frames) < 10:
+        if self.max_frames < 10:
             raise BoneUSReconError(f"max_frames must be >= 10, got {self.max_frames}")
         if not self.pose_tolerance_s >= 0:
             raise BoneUSReconError(f"pose_tolerance_s must be >= 0 s, got {self.pose_tolerance_s}")
@@ -324,7 +326,7 @@ class LiveReconstructor:
         sweep = self.sweep()
         t0 = time.perf_counter()
         frames = self._frames
-        need = MIN_FRAMES_PER_CONTROL_POINT * self.params.fit.control_points[0]
+        need = MIN_FRAMES_PER_CONTROL_POINT * self.params.fit.n_control_points[0]
         n_ok = sum(not f.reason for f in frames)
         if not final and n_ok < need:
             raise BoneUSReconError(f"waiting for frames: {n_ok} of {need} with a bone contour")

@@ -41,6 +41,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 
 from BoneUSRecon.Logic.bspline import FitResult
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.params_check import check_fields
 from BoneUSRecon.Logic.resampling import ResampledGrid
 
 __all__ = [
@@ -119,6 +120,7 @@ class SurfaceParams:
     max_distance_mm: float | None = None
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if not self.step_mm > 0:
             raise BoneUSReconError(f"mesh step_mm must be positive (mm), got {self.step_mm}")
         if not self.support_window_mm >= 0:

@@ -11,6 +11,7 @@ import csv
 import os
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from vtkmodules.util import numpy_support
@@ -139,6 +140,9 @@ def write_polydata(pd: vtkPolyData, path: str | os.PathLike[str]) -> Path:
     """
     p = check_output_path(path, SURFACE_EXTENSIONS)
     ext = p.suffix.lower()
+    # The writers share SetFileName/SetInputData/Write, but no VTK base class declares
+    # them (vtkXMLWriter and vtkWriter are siblings): Any for the type checker.
+    w: Any
     with atomic_path(p) as tmp:
         if ext == ".vtp":
             w = vtkXMLPolyDataWriter()
@@ -188,7 +192,7 @@ def read_polydata(path: str | os.PathLike[str]) -> vtkPolyData:
         raise BoneUSReconError(
             f"unknown surface format {ext or '(none)'!r}; use one of {', '.join(readers)}", p
         )
-    r = readers[ext]()
+    r: Any = readers[ext]()  # as the writers: SetFileName, GetOutput on no common base
     if ext == ".vtk" and hasattr(r, "IsFilePolyData"):
         r.SetFileName(str(p))
         if not r.IsFilePolyData():

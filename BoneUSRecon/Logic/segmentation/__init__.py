@@ -22,85 +22,25 @@ arrive and the second on the frames so far:
   its posterior choice of points (:mod:`.snake`, :mod:`.posterior`); its contour is the
   frame's one candidate, scored on the same evidence and chosen by the same track.
 
-Measured (issue 10; ``Testing/benchmarks/bench_segmentation.py --table-only``, tables
-in ``Testing/benchmarks/README.md``): standard simulated sweeps, frame recall
-1.00, no wrong-structure frame, kept points 0.03 mm median; every hard condition
-alone but the grey shadow, recall 0.80-1.00 and no wrong frame; the full
-``realism="hard"`` sweeps, recall 0.35-0.93 (the previous segmenter found no bone), no
-wrong frame on radius, ulna and clavicle but 45 % on tibia and humerus, where the
-track follows the far cortex or a reverberation band under the grey shadow (the open
-problem, with the real L14 recording compressed to a 1.3x echo). The real L14 as
-recorded: 21/21 frames on the bone, 0.040 mm median from its reference contours.
-
-Features tried (measured, frame recall on hard sweeps): local phase symmetry along
-depth (own 1-D log-Gabor filters, Hacihaliloglu's measure; 2-D ``phasepack.phasesym``
-costs 33-60 ms on the working image alone, over the frame budget) instead of the
-echo log-ratio: tibia/radius hard 0.50/0.53 -> 0.00/0.00, standard 1.00/0.95 ->
-0.57/0.62: dropped (``ShadowPathParams.phase_symmetry`` off). Lateral smoothing of the
-working image (0.4 mm): standard clavicle recall 0.97 -> 0.60: dropped. Shadow depth
-(a long window to 12 mm beside the near one): kept, it is what separates a vessel
-lumen or a gap between fasciae from a bone's shadow. Karamalis' confidence maps were
-not tried (a sparse random-walk solve per frame does not fit 30 frames/s).
+Measured figures (frame recall, wrong frames, distances on simulated and real sweeps)
+and the features tried and dropped are in ``Testing/benchmarks/README.md``.
 """
 
 from __future__ import annotations
 
-from BoneUSRecon.Logic._lazy import lazy_attributes
+import lazy_loader
 
-#: Names of the segmenters, the default first: the keys of :data:`SEGMENTERS`. Here,
-#: importing nothing, so that the CLI's parsers list them at start-up;
-#: :class:`SegmentationParams` checks a name against them.
+#: Names of the segmenters, the default first: the keys of :data:`SEGMENTERS` (the one
+#: list; ``driver`` checks its table against it). Defined here, importing nothing, so
+#: that the CLI's parsers list them at start-up; :class:`SegmentationParams` checks a
+#: name against them.
 SEGMENTER_NAMES = ("shadowpath", "snake")
 
-# The rest is imported lazily (PEP 562), as in BoneUSRecon.Logic: the segmenters load
-# numpy, scipy and VTK, and even params.py (its frozen dataclasses) costs ~14 ms.
-_LAZY = {
-    "SEGMENTERS": "driver",
-    "segment_frame": "driver",
-    "segment_sweep": "driver",
-    "frame_candidates_for": "driver",
-    "contours_from_track": "driver",
-    "frame_candidates": "candidates",
-    "FrameCandidates": "candidates",
-    "BoneCandidate": "candidates",
-    "select_bone_track": "track",
-    "TrackChoice": "track",
-    "bone_evidence": "evidence",
-    "Detection": "detection",
-    "REFERENCE_PIXEL_MM": "params",
-    "SegmentationParams": "params",
-    "SnakeParams": "params",
-    "PosteriorParams": "params",
-    "ShadowPathParams": "params",
-    "RejectionParams": "params",
-    "points_polydata": "polydata",
-    "FrameContour": "result",
-    "SegmentationResult": "result",
-}
+# The rest is imported on first use, from the names listed in ``__init__.pyi`` (as in
+# BoneUSRecon.Logic): the segmenters load numpy, SciPy and VTK.
+__getattr__, _, _lazy_names = lazy_loader.attach_stub(__name__, __file__)
+__all__ = ["SEGMENTER_NAMES", *_lazy_names]
 
-__all__ = [
-    "SEGMENTERS",
-    "SEGMENTER_NAMES",
-    "REFERENCE_PIXEL_MM",
-    "SegmentationParams",
-    "SnakeParams",
-    "PosteriorParams",
-    "ShadowPathParams",
-    "RejectionParams",
-    "FrameContour",
-    "SegmentationResult",
-    "Detection",
-    "segment_frame",
-    "segment_sweep",
-    "frame_candidates_for",
-    "contours_from_track",
-    "frame_candidates",
-    "FrameCandidates",
-    "BoneCandidate",
-    "select_bone_track",
-    "TrackChoice",
-    "bone_evidence",
-    "points_polydata",
-]
 
-__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, __all__)
+def __dir__() -> list[str]:
+    return __all__

@@ -221,7 +221,7 @@ def select_bone_track(
                     ):
                         continue
                     d, share, z = _in_plane_deviation(a, b_mm[kb])
-                    if share < 0.3 or not np.isfinite(d):
+                    if share < p.min_overlap_share or not np.isfinite(d):
                         continue
                     tol = p.tolerance_mm + p.tolerance_per_mm * z
                     if d > p.max_deviation * tol:

@@ -284,8 +284,8 @@ def _sample_gold(
     d = P - m[:, None, :3, 3]
     i = np.einsum("smk,sk->sm", d, m[:, :3, 0]) / np.einsum("sk,sk->s", m[:, :3, 0], m[:, :3, 0])[:, None]
     j = np.einsum("smk,sk->sm", d, m[:, :3, 1]) / np.einsum("sk,sk->s", m[:, :3, 1], m[:, :3, 1])[:, None]
-    m = int(params.black_margin_px)
-    seen = (i >= m) & (i <= params.width - 1 - m) & (j >= 0) & (j <= params.height - 1)
+    margin = int(params.black_margin_px)
+    seen = (i >= margin) & (i <= params.width - 1 - margin) & (j >= 0) & (j <= params.height - 1)
     planes = _end_planes(path, contours) if params.gold_region == "imaged" else None
 
     def imaged(x: np.ndarray) -> np.ndarray:
