@@ -57,6 +57,12 @@ DEFAULT_HEIGHT = 256
 DEFAULT_SPACING_MM = 0.15
 DEFAULT_SEED = 0
 
+#: Where the gold points are digitised (``SimulationParams.gold_region``): ``imaged``
+#: (between the planes of the first and last frames that showed bone) or ``swept``
+#: (the whole axis range those frames' sections touch, the definition before issue 11's
+#: follow-up).
+GOLD_REGIONS = ("imaged", "swept")
+
 #: Realism presets: ``standard`` (simulator version 2, tuned on the L14 recording) and
 #: ``hard`` (the levels measured on a real cadaver sweep, issue 10; see :mod:`.hard`).
 REALISMS = ("standard", "hard")
@@ -86,6 +92,7 @@ __all__ = [
     "DEFAULT_SEED",
     "DEFAULT_SPACING_MM",
     "DEFAULT_WIDTH",
+    "GOLD_REGIONS",
     "HARD_CONDITIONS",
     "REALISMS",
     *_lazy_names,

@@ -8,6 +8,7 @@ from .core import (
     Simulation,
     check_output_dir,
     check_params,
+    sample_gold,
     simulate,
     simulation_info,
     write_simulation,
@@ -23,6 +24,7 @@ DEFAULT_HEIGHT: int
 DEFAULT_SEED: int
 DEFAULT_SPACING_MM: float
 DEFAULT_WIDTH: int
+GOLD_REGIONS: tuple[str, ...]
 HARD_CONDITIONS: tuple[str, ...]
 REALISMS: tuple[str, ...]
 
@@ -36,6 +38,7 @@ __all__ = [
     "DEFAULT_SEED",
     "DEFAULT_SPACING_MM",
     "DEFAULT_WIDTH",
+    "GOLD_REGIONS",
     "HARD_CONDITIONS",
     "REALISMS",
     "SIMULATOR_VERSION",
@@ -48,6 +51,7 @@ __all__ = [
     "check_output_dir",
     "check_params",
     "echo_levels",
+    "sample_gold",
     "simulate",
     "simulation_info",
     "write_simulation",

@@ -18,6 +18,7 @@ from BoneUSRecon.Logic.simulation import (
     DEFAULT_SEED,
     DEFAULT_SPACING_MM,
     DEFAULT_WIDTH,
+    GOLD_REGIONS,
     HARD_CONDITIONS,
     REALISMS,
 )
@@ -25,6 +26,7 @@ from BoneUSRecon.Logic.simulation import (
 __all__ = [
     "BONES",
     "CORRUPTION_KINDS",
+    "GOLD_REGIONS",
     "HARD_CONDITIONS",
     "REALISMS",
     "HardParams",
@@ -332,6 +334,15 @@ class SimulationParams:
     gold_points: int = 1145
     #: Standard deviation of the digitiser noise, per axis (mm).
     gold_noise_mm: float = 0.2
+    #: Where the gold points are digitised (one of :data:`GOLD_REGIONS`). ``imaged``
+    #: (default): the bone the sweep imaged, between the planes of the first and last
+    #: frames that showed bone; the paper digitised the bone where it was scanned, and
+    #: the simulator's image is a plane with no elevational thickness, so nothing beyond
+    #: the end planes is imaged. ``swept`` (before issue 11's follow-up): the whole axis
+    #: range those frames' sections touch; with the probe yawed a few degrees across a
+    #: wide bone that reaches up to ~4 mm beyond an end plane on one side (3-4 % of the
+    #: points on a 150-frame tibia or humerus), bone no frame imaged.
+    gold_region: str = "imaged"
     #: Image formation parameters.
     imaging: ImagingParams = field(default_factory=ImagingParams)
     #: Realism preset (one of :data:`REALISMS`): ``standard`` (default, simulator
@@ -359,6 +370,10 @@ class SimulationParams:
         # The messages the CLI shows for its options (--frames, --size, --corrupt, ...).
         if self.bone not in BONES:
             raise BoneUSReconError(f"unknown bone {self.bone!r}; choose one of {', '.join(BONES)}")
+        if self.gold_region not in GOLD_REGIONS:
+            raise BoneUSReconError(
+                f"gold_region: unknown region {self.gold_region!r}; use one of {', '.join(GOLD_REGIONS)}"
+            )
         if self.realism not in REALISMS:
             raise BoneUSReconError(
                 f"realism: unknown preset {self.realism!r}; use one of {', '.join(REALISMS)}"
