@@ -299,8 +299,10 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         transformSequence=None,
         calibration=None,
         segmenter=None,
-        controlPoints=(_DEFAULT["controlPointsU"], _DEFAULT["controlPointsV"]),
-        degrees=(_DEFAULT["degreeU"], _DEFAULT["degreeV"]),
+        controlPointsU=_DEFAULT["controlPointsU"],
+        controlPointsV=_DEFAULT["controlPointsV"],
+        degreeU=_DEFAULT["degreeU"],
+        degreeV=_DEFAULT["degreeV"],
         rays=_DEFAULT["rays"],
         outputSurface=None,
         outputPoints=None,
@@ -316,9 +318,11 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         :param calibration: PLUS configuration XML path, 4x4 ImageToProbe array, or
             linear transform node; None to use the frames' own geometry.
         :param segmenter: a name of BoneUSRecon.Logic.segmentation.SEGMENTERS (None: default).
-        :param controlPoints: (e, f) B-spline control points.
-        :param degrees: (p, q) B-spline degrees.
+        :param controlPointsU, controlPointsV: B-spline control points along and across (e, f).
+        :param degreeU, degreeV: B-spline degrees along and across (p, q).
         :param rays: rays per frame.
+            These six are the parameter node's values, made library parameters by
+            BoneSurfaceReconstructionLib.parameters.parameters_from_widget_values.
         :param outputSurface: model node to fill (new if None).
         :param outputPoints: model or markups fiducial node to fill (new if None).
         :param progress: callable(stage, done, total).
@@ -331,20 +335,25 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         import time
 
         from BoneSurfaceReconstructionLib import mrml
-        from BoneSurfaceReconstructionLib.parameters import calibrationMatrix, reconstructionParams
+        from BoneSurfaceReconstructionLib.parameters import (
+            calibrationMatrix,
+            parameters_from_widget_values,
+        )
         from BoneUSRecon.Logic.progress import Cancelled, cancellable
 
         if not inputNode:
             raise ValueError(_("Input sweep is invalid."))
         if isinstance(calibration, (str, os.PathLike)):
             calibration = calibrationMatrix(calibration)
-        params = reconstructionParams(
-            segmenter=segmenter,
-            controlPointsU=controlPoints[0],
-            controlPointsV=controlPoints[1],
-            degreeU=degrees[0],
-            degreeV=degrees[1],
-            rays=rays,
+        params = parameters_from_widget_values(
+            {
+                "segmenter": segmenter,
+                "controlPointsU": controlPointsU,
+                "controlPointsV": controlPointsV,
+                "degreeU": degreeU,
+                "degreeV": degreeV,
+                "rays": rays,
+            }
         )
         startTime = time.time()
         logging.info("Bone surface reconstruction started")
@@ -400,15 +409,14 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
     def processParameterNode(self, parameterNode, progress=None):
         """Same as :meth:`process`, reading every argument from the parameter node and
         storing the created output nodes back into it."""
+        from BoneSurfaceReconstructionLib.parameters import widgetValues
+
         p = parameterNode
         result = self.process(
             p.inputNode,
             transformSequence=p.transformSequence,
             calibration=p.calibrationFile,
-            segmenter=p.segmenter,
-            controlPoints=(p.controlPointsU, p.controlPointsV),
-            degrees=(p.degreeU, p.degreeV),
-            rays=p.rays,
+            **widgetValues(p),
             outputSurface=p.outputSurface,
             outputPoints=p.outputPoints,
             progress=progress,
@@ -500,7 +508,7 @@ class BoneSurfaceReconstructionTest(ScriptedLoadableModuleTest):
         p.controlPointsU = 10
         viaNode = logic.processParameterNode(p)
         self.assertIs(p.outputSurface, viaNode.surface_node)
-        explicit = logic.process(nodes.browser, controlPoints=(10, _DEFAULT["controlPointsV"]))
+        explicit = logic.process(nodes.browser, controlPointsU=10)
         a = slicer.util.arrayFromModelPoints(viaNode.surface_node)
         b = slicer.util.arrayFromModelPoints(explicit.surface_node)
         self.assertEqual(a.shape, b.shape)

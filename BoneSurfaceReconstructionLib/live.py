@@ -156,7 +156,7 @@ class LiveSurface:
             self._due = self._clock() + self.live.update_every_s
 
     def _frame(self) -> tuple[np.ndarray, np.ndarray]:
-        from BoneSurfaceReconstructionLib import mrml
+        from BoneSurfaceReconstructionLib import mrml_sweep as mrml
 
         v = self.volume
         image = mrml._image_array(v.GetImageData(), mrml._node_label(v))
@@ -249,7 +249,8 @@ def addLiveSection(widget: Any) -> Any:
             from BoneSurfaceReconstructionLib import dependencies
             from BoneSurfaceReconstructionLib.parameters import (
                 calibrationMatrix,
-                reconstructionParams,
+                parameters_from_widget_values,
+                widgetValues,
             )
 
             node = widget._parameterNode
@@ -257,18 +258,7 @@ def addLiveSection(widget: Any) -> Any:
                 dependencies.requireBoneUSRecon()
                 from BoneUSRecon.Logic.live import LiveParams
 
-                params = (
-                    reconstructionParams(
-                        segmenter=node.segmenter,
-                        controlPointsU=node.controlPointsU,
-                        controlPointsV=node.controlPointsV,
-                        degreeU=node.degreeU,
-                        degreeV=node.degreeV,
-                        rays=node.rays,
-                    )
-                    if node
-                    else None
-                )
+                params = parameters_from_widget_values(widgetValues(node)) if node else None
                 cal = calibrationMatrix(node.calibrationFile) if node else None
                 self.live = LiveSurface(
                     volumeSelector.currentNode(),

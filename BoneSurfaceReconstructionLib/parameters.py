@@ -10,6 +10,7 @@ control points for elongated bones, 15 rays per frame.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from typing import Any
 
 __all__ = [
@@ -19,14 +20,20 @@ __all__ = [
     "CHOICE_PARAMETERS",
     "SEGMENTER_FALLBACK",
     "segmenterNames",
-    "reconstructionParams",
+    "parameters_from_widget_values",
+    "widgetValues",
     "calibrationPath",
     "calibrationMatrix",
 ]
 
 #: name -> (default, minimum, maximum, tooltip) for the integer parameters.
 INT_PARAMETERS: dict[str, tuple[int, int, int, str]] = {
-    "controlPointsU": (15, 4, 60, "B-spline control points along the sweep (e; paper: 15 for ulna/radius, 10-15 best)."),
+    "controlPointsU": (
+        15,
+        4,
+        60,
+        "B-spline control points along the sweep (e; paper: 15 for ulna/radius, 10-15 best).",
+    ),
     "controlPointsV": (5, 3, 30, "B-spline control points across the bone (f; paper: 5)."),
     "degreeU": (2, 1, 5, "B-spline degree along the sweep (p; paper: 2, quadratic)."),
     "degreeV": (2, 1, 5, "B-spline degree across the bone (q; paper: 2, quadratic)."),
@@ -50,22 +57,25 @@ PATH_PARAMETERS = ("calibrationFile",)
 #: choice parameters (a QComboBox each).
 CHOICE_PARAMETERS = ("segmenter",)
 
-#: Used when BoneUSRecon cannot be imported yet (dependencies not installed):
-#: the better default first, then the paper's snake.
+#: Used only when BoneUSRecon cannot be imported yet (its own dependency lazy_loader
+#: not installed, or Python older than 3.10), while Slicer loads the module: a copy of
+#: ``BoneUSRecon.Logic.segmentation.SEGMENTER_NAMES`` (a test keeps them equal).
 SEGMENTER_FALLBACK = ("shadowpath", "snake")
 
 
 def segmenterNames() -> tuple[str, ...]:
-    """Names of ``BoneUSRecon.Logic.segmentation.SEGMENTERS``, the default first."""
+    """``BoneUSRecon.Logic.segmentation.SEGMENTER_NAMES``, the default first.
+
+    Read without loading numpy, SciPy or VTK (the package defines the names itself).
+    """
     try:
-        from BoneUSRecon.Logic.segmentation import SEGMENTERS, SegmentationParams
+        from BoneUSRecon.Logic.segmentation import SEGMENTER_NAMES
     except Exception:  # noqa: BLE001
         # Called while Slicer loads the module: dependencies may not be installed yet
         # (ImportError) or be of a version that fails to import; the module must load
         # anyway (the Apply button installs them), so offer the known names.
         return SEGMENTER_FALLBACK
-    default = SegmentationParams().method
-    return (default,) + tuple(sorted(n for n in SEGMENTERS if n != default))
+    return tuple(SEGMENTER_NAMES)
 
 
 def calibrationPath(path: Any) -> str | None:
@@ -84,34 +94,53 @@ def calibrationMatrix(path: Any) -> Any:
     return read_calibration(text)
 
 
-def reconstructionParams(
-    segmenter: str | None = None,
-    controlPointsU: int | None = None,
-    controlPointsV: int | None = None,
-    degreeU: int | None = None,
-    degreeV: int | None = None,
-    rays: int | None = None,
-) -> Any:
-    """The :class:`~BoneUSRecon.Logic.pipeline.ReconstructionParams` for these choices.
+def widgetValues(parameterNode: Any) -> dict[str, Any]:
+    """The parameter node's values that make up the reconstruction parameters.
 
-    ``None`` keeps the library's default. Raises ``BoneUSReconError`` (a ValueError) for
-    combinations the fit cannot use (fewer control points than degree + 1).
+    ``segmenter`` and every name of :data:`INT_PARAMETERS`, as stored in the node:
+    what :func:`parameters_from_widget_values` takes.
     """
-    from BoneSurfaceReconstructionLib.mrml import make_params
-
-    return make_params(
-        segmenter=segmenter,
-        control_points=_pair(controlPointsU, controlPointsV, "controlPoints"),
-        degrees=_pair(degreeU, degreeV, "degree"),
-        rays=rays,
-    )
+    return {name: getattr(parameterNode, name) for name in ("segmenter", *INT_PARAMETERS)}
 
 
-def _pair(u: int | None, v: int | None, key: str) -> tuple[int, int] | None:
-    """``(u, v)``, a missing half taken from the defaults; None if both are missing."""
-    if u is None and v is None:
-        return None
-    return (
-        int(u) if u is not None else INT_PARAMETERS[key + "U"][0],
-        int(v) if v is not None else INT_PARAMETERS[key + "V"][0],
+def parameters_from_widget_values(values: Mapping[str, Any]) -> Any:
+    """The :class:`~BoneUSRecon.Logic.pipeline.ReconstructionParams` for the module's values.
+
+    The one place the module's parameters (the names of :data:`INT_PARAMETERS` and
+    ``segmenter``) become the library's; the explicit ``process`` arguments, the
+    parameter node and the live session all come through here.
+
+    Parameters
+    ----------
+    values : mapping
+        ``segmenter``, ``controlPointsU``/``V``, ``degreeU``/``V``, ``rays``; a missing
+        or ``None`` value keeps the library's default.
+
+    Returns
+    -------
+    ReconstructionParams
+
+    Raises
+    ------
+    BoneUSReconError
+        (a ValueError) An unknown name in ``values``, or values the library refuses
+        (fewer control points than degree + 1, an unknown segmenter).
+    """
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams, params_with
+
+    given = {k: v for k, v in values.items() if v is not None}
+    unknown = sorted(set(given) - {"segmenter", *INT_PARAMETERS})
+    if unknown:
+        raise BoneUSReconError(f"unknown module parameter {unknown[0]!r}")
+    degree = None
+    if "degreeU" in given or "degreeV" in given:
+        p, q = ReconstructionParams().fit.degree
+        degree = (given.get("degreeU", p), given.get("degreeV", q))
+    return params_with(
+        segmenter=given.get("segmenter"),
+        along=given.get("controlPointsU"),
+        around=given.get("controlPointsV"),
+        degree=degree,
+        rays=given.get("rays"),
     )

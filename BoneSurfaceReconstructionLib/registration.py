@@ -31,9 +31,9 @@ class SceneRegistration:
 
 def _worldPolyData(node: Any, what: str) -> Any:
     """The node's polydata in world coordinates (a copy), normals moved along."""
+    from BoneSurfaceReconstructionLib.mrml_sweep import _to_world
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.registration import transform_polydata
-    from BoneSurfaceReconstructionLib.mrml import _to_world
 
     if node is None or not node.IsA("vtkMRMLModelNode"):
         raise BoneUSReconError(f"the {what} must be a model node")
@@ -70,6 +70,7 @@ def registerModelToModel(
     :param landmarks: ``(source (K, 3), target (K, 3))`` RAS points, optional.
     :raises BoneUSReconError: (a ValueError) bad nodes, units, landmarks, or no overlap.
     """
+    from BoneSurfaceReconstructionLib.mrml import show_surface
     from BoneUSRecon.Logic.registration import (
         RegistrationParams,
         model_from_polydata,
@@ -78,7 +79,6 @@ def registerModelToModel(
         transform_polydata,
     )
     from BoneUSRecon.Logic.sweep import matrix_to_vtk
-    from BoneSurfaceReconstructionLib.mrml import show_surface
 
     source = _worldPolyData(sourceNode, "source")
     target = _worldPolyData(targetNode, "target")

@@ -205,11 +205,11 @@ def test_manifest_names_paths_and_overrides(cohort):
     )
     assert jobs[2].gold is None and jobs[6].target == cohort / "data" / "model.stl"
     a2 = jobs[5]
-    assert (a2.params.resampling.n_rays, a2.params.fit.control_points) == (11, (10, 4))
+    assert (a2.params.resampling.n_rays, a2.params.fit.n_control_points) == (11, (10, 4))
     assert jobs[0].params == read_manifest(cohort / "manifest.csv")[1].params  # defaults
     m = cohort / "along.csv"
     m.write_text("sweep,along,around\ndata/a.mha,9,\ndata/a.mha,,4\n")
-    assert [j.params.fit.control_points for j in read_manifest(m)] == [(9, 5), (15, 4)]
+    assert [j.params.fit.n_control_points for j in read_manifest(m)] == [(9, 5), (15, 4)]
 
 
 @pytest.mark.parametrize(

@@ -142,12 +142,12 @@ def test_robust_fit_ignores_false_frames_and_outlier_points():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"degree": (0, 2)}, "degree must be at least 1"),
-        ({"control_points": (2, 5)}, "too few for degree"),
-        ({"method": "magic"}, "unknown fit method"),
-        ({"robust": "cauchy"}, "unknown robust"),
+        ({"degree": (0, 2)}, r"FitParams.degree must be at least 1, got \(0, 2\)"),
+        ({"n_control_points": (2, 5)}, "too few for degree"),
+        ({"method": "magic"}, "FitParams.method must be one of direct, separable, got 'magic'"),
+        ({"robust": "cauchy"}, "FitParams.robust must be one of tukey, huber, none"),
         ({"thin_weight": -1.0}, "thin_weight must be >= 0, got -1.0"),
-        ({"thin_share": 0.0}, "thin_share must be in"),
+        ({"thin_share": 0.0}, r"thin_share must lie in \(0, 1\], got 0.0"),
     ],
 )
 def test_bad_parameters_refused(kwargs, match):
@@ -158,11 +158,11 @@ def test_bad_parameters_refused(kwargs, match):
 def test_more_control_points_than_data_refused():
     _, u, v, pts, _ = known_surface(m=12, n=6, e=5, f=3)
     with pytest.raises(BoneUSReconError, match="too few valid grid points for 20 x 5"):
-        fit_surface(pts, FitParams(control_points=(20, 5)))
+        fit_surface(pts, FitParams(n_control_points=(20, 5)))
     sparse = np.full_like(pts, np.nan)
     sparse[:, :2] = pts[:, :2]  # only 2 rays hit anywhere
     with pytest.raises(BoneUSReconError, match="2 rays"):
-        fit_surface(sparse, FitParams(control_points=(5, 3)))
+        fit_surface(sparse, FitParams(n_control_points=(5, 3)))
 
 
 def test_unsupported_control_points_refused_without_smoothing_and_held_with_it():

@@ -86,7 +86,7 @@ def test_segment_writes_csv_and_refuses_stl(capsys, sim_small, tmp_path):
 
 def test_cli_and_slicer_module_build_the_same_parameters():
     # Both go through Logic.pipeline.params_with: same values, same refusals.
-    from BoneSurfaceReconstructionLib.mrml import make_params
+    from BoneSurfaceReconstructionLib.parameters import parameters_from_widget_values
     from BoneUSRecon.cli.reconstruct import params_from_args
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.pipeline import params_to_dict, params_with
@@ -96,13 +96,16 @@ def test_cli_and_slicer_module_build_the_same_parameters():
          "--control-points", "10", "4", "--rays", "21"]
     )
     cli = params_from_args(args)
-    module = make_params(segmenter="snake", degrees=(3, 1), control_points=(10, 4), rays=21)
+    module = parameters_from_widget_values(
+        {"segmenter": "snake", "degreeU": 3, "degreeV": 1, "controlPointsU": 10,
+         "controlPointsV": 4, "rays": 21}
+    )
     assert params_to_dict(cli) == params_to_dict(module)
-    assert (cli.segmentation.method, cli.fit.degree, cli.fit.control_points, cli.resampling.n_rays) == (
+    assert (cli.segmentation.method, cli.fit.degree, cli.fit.n_control_points, cli.resampling.n_rays) == (
         "snake", (3, 1), (10, 4), 21)
     assert params_to_dict(params_with()) != params_to_dict(cli)
     for kw, match in [({"segmenter": "magic"}, "unknown segmenter 'magic'"),
-                      ({"control_points": (3, 5), "degree": (3, 2)}, "too few"),
+                      ({"n_control_points": (3, 5), "degree": (3, 2)}, "too few"),
                       ({"rays": 0}, "at least 2 rays")]:
         with pytest.raises(BoneUSReconError, match=match):
             params_with(**kw)

@@ -19,6 +19,7 @@ MODULES = [
     "BoneUSRecon.Logic.poses",
     "BoneUSRecon.Logic.progress",
     "BoneUSRecon.Logic.reasons",
+    "BoneUSRecon.Logic.segmentation.track_incremental",
     "BoneUSRecon.Logic.sweep",
     "BoneUSRecon.cli.common",
 ]

@@ -127,6 +127,30 @@ def test_every_written_surface_format_reads_back(tmp_path, ext):
     np.testing.assert_allclose(r, 10.0, atol=1e-4)
 
 
+def test_fast_vtp_reads_back_the_same(tmp_path):
+    """The live flavour of .vtp (LZ4, raw appended data) keeps points, cells and arrays."""
+    from vtkmodules.vtkFiltersSources import vtkSphereSource
+
+    src = vtkSphereSource()
+    src.SetThetaResolution(40)
+    src.Update()
+    mesh = src.GetOutput()
+    dist = np.linspace(0.0, 1.0, mesh.GetNumberOfPoints())
+    mesh.GetPointData().AddArray(
+        points_to_polydata(np.zeros((dist.size, 3)), {"Distance": dist})
+        .GetPointData()
+        .GetArray("Distance")
+    )
+    slow = write_polydata(mesh, tmp_path / "slow.vtp")
+    fast = write_polydata(mesh, tmp_path / "fast.vtp", fast=True)
+    assert b"LZ4" in fast.read_bytes()[:2000] and b"LZ4" not in slow.read_bytes()[:2000]
+    a, b = read_polydata(slow), read_polydata(fast)
+    np.testing.assert_array_equal(polydata_points(a), polydata_points(b))
+    assert a.GetNumberOfPolys() == b.GetNumberOfPolys() == mesh.GetNumberOfPolys()
+    back = b.GetPointData().GetArray("Distance")
+    np.testing.assert_array_equal([back.GetValue(i) for i in range(dist.size)], dist)
+
+
 def test_points_csv_round_trip_and_header_order(tmp_path):
     pts = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.5]])
     write_points_csv(pts, tmp_path / "g.csv")

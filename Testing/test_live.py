@@ -94,6 +94,41 @@ def test_live_thinning_bounds_memory(sim_small):
     assert live.counts["added"] == sweep.n_frames
     r = live.refit(final=True)
     assert evaluate_surface(r.surface, sim_small.gold).mean < 0.6
+    # The track over the kept frames (linked as they came, then again after each
+    # thinning) is the batch track over those frames.
+    from BoneUSRecon.Logic.segmentation.driver import contours_from_track
+    from BoneUSRecon.Logic.segmentation.track import select_bone_track
+
+    kept = live._frames
+    fcs = [f.candidates for f in kept]
+    choice = select_bone_track(fcs, np.stack([f.pose for f in kept]))
+    batch = contours_from_track(np.arange(len(kept)), fcs, choice)
+    assert len(r.segmentation.contours) == len(batch)
+    for a, b in zip(r.segmentation.contours, batch, strict=True):
+        assert (a.frame, a.reason, a.detail, a.confidence) == (
+            b.frame,
+            b.reason,
+            b.detail,
+            b.confidence,
+        )
+        np.testing.assert_array_equal(a.points_px, b.points_px)
+
+
+def test_live_links_owed_after_thinning_in_spare_time(sim_small):
+    """A thinning leaves neighbours to link: spare time (work) links them, a slice at a
+    time, and nothing is left for the next refit."""
+    sweep = sim_small.sweep
+    live = LiveReconstructor(live=LiveParams(max_frames=24))
+    for k, image in sweep.iter_frames():
+        live.add_frame(image, sweep.image_to_reference[k], sweep.timestamps[k])
+        if live.counts["added"] > 1 and live.n_frames < live.counts["added"]:
+            break  # just thinned (24 -> 12)
+    owed = live.owed
+    assert owed > 0
+    assert live.work(0.0) and 0 < live.owed < owed  # at least one pair, not all
+    while live.work(0.001):
+        pass
+    assert live.owed == 0 and not live.work(1.0)
 
 
 def test_live_wrong_frame_size(sim_small):
@@ -316,6 +351,161 @@ def test_frames_faster_than_processing_are_dropped(sim_small):
     assert receiver.queue.qsize() == 4
     assert receiver.counts["images"] == sim_small.sweep.n_frames
     assert receiver.counts["dropped"] == sim_small.sweep.n_frames - 4
+
+
+class _PacedReceiver:
+    """A FrameReceiver stand-in: the sweep's frames become available one every
+    ``period`` seconds (a server at 1/period frames/s), whatever the session is doing."""
+
+    def __init__(self, sweep, period: float, maxsize: int = 64) -> None:
+        from BoneUSRecon.Logic.live import PosedFrame
+
+        self.frames = [
+            PosedFrame(np.asarray(image), sweep.image_to_reference[k], float(sweep.timestamps[k]))
+            for k, image in sweep.iter_frames()
+        ]
+        self.period = period
+        self.next = 0
+        self.t0 = time.monotonic()
+        self.counts = {"dropped": 0}
+        self.queue = self  # run_session asks queue.empty(), qsize(), maxsize
+        self.maxsize = maxsize
+        self.backlog: list[int] = []  # frames already available at each get
+
+    def _available(self) -> int:
+        return min(len(self.frames), int((time.monotonic() - self.t0) / self.period) + 1)
+
+    def empty(self) -> bool:
+        return self.next >= self._available()
+
+    def qsize(self) -> int:
+        return self._available() - self.next
+
+    @property
+    def ended(self) -> bool:
+        return self.next >= len(self.frames)
+
+    def get(self, timeout: float):
+        deadline = time.monotonic() + timeout
+        while self.empty() and not self.ended and time.monotonic() < deadline:
+            time.sleep(min(0.002, self.period))
+        if self.empty():
+            return None
+        self.backlog.append(self._available() - self.next)
+        self.next += 1
+        return self.frames[self.next - 1]
+
+    def stop(self) -> None:
+        pass
+
+    def send(self, message) -> bool:
+        return True
+
+
+def test_session_latency_accounting(sim_small, tmp_path):
+    """Each refit's latency is the time from due to the surface written: the frame in
+    hand when it fell due (at most one frame's processing, plus the poll), then the
+    refit and the write. Frames arriving during a refit wait and are all processed."""
+    import dataclasses
+
+    from BoneUSRecon.cli.live import run_session
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams
+
+    sweep = sim_small.sweep
+    # 6 control points along the bone: refits from the 12th frame with a contour on.
+    params = ReconstructionParams()
+    params = dataclasses.replace(
+        params, fit=dataclasses.replace(params.fit, n_control_points=(6, 5))
+    )
+    recon = LiveReconstructor(params, LiveParams(update_every_s=0.06))
+    add_wall: list[float] = []
+    add = recon.add_frame
+
+    def timed_add(*a, **kw):
+        t = time.monotonic()
+        out = add(*a, **kw)
+        add_wall.append(time.monotonic() - t)
+        return out
+
+    spans: list[tuple[float, float]] = []
+    refit = recon.refit
+
+    def timed_refit(*a, **kw):
+        t = time.monotonic()
+        try:
+            return refit(*a, **kw)
+        finally:
+            if not kw.get("final"):
+                spans.append((t, time.monotonic()))
+
+    recon.add_frame = timed_add  # type: ignore[method-assign]
+    recon.refit = timed_refit  # type: ignore[method-assign]
+    receiver = _PacedReceiver(sweep, period=0.03)
+    out = tmp_path / "live.vtp"
+    res = run_session(receiver, recon, out, update_every_s=0.06)
+    assert res.received == recon.counts["added"] == sweep.n_frames  # none lost
+    assert res.refits >= 2 and res.final is not None
+    n = res.refits
+    assert len(res.latencies_s) == len(res.refit_wait_s) == len(res.refit_s) == n
+    assert len(res.refit_cpu_s) == n
+    for lat, wait, wall, cpu in zip(
+        res.latencies_s, res.refit_wait_s, res.refit_s, res.refit_cpu_s, strict=True
+    ):
+        assert lat == pytest.approx(wait + wall, abs=1e-9)
+        assert 0.0 <= wait <= max(add_wall) + 0.05 + 0.1  # + the poll; + slack on a busy machine
+        assert 0.0 < cpu <= wall + 1e-3  # one thread's CPU cannot exceed its wall time
+    # Frames arrived while a refit ran (longer than a frame period): they were queued,
+    # then processed. Refits slower than --update-every are spaced by their own
+    # duration, so frames get at least half of the time.
+    assert max(receiver.backlog) >= 2
+    for (s0, e0), (s1, _) in zip(spans[:-1], spans[1:], strict=True):
+        assert s1 - e0 >= e0 - s0
+    np.testing.assert_array_equal(
+        _points(res.final.surface), _points(reconstruct(sweep, params).surface)
+    )
+    assert _points(read_polydata(out)).shape == _points(res.final.surface).shape
+
+
+def test_serve_keeps_its_rate_with_a_client(sim_small):
+    """With a client connected, the replay is paced by --fps alone (a waiting accept()
+    before every frame used to hold it to ~19 frames/s whatever was asked)."""
+    sweep = sim_small.sweep
+    server, t = _serve(sweep, fps=400)
+    receiver = FrameReceiver("127.0.0.1", server.port, PoseAssembler(), FAST).start()
+    got = []
+    t0 = time.monotonic()
+    while len(got) < sweep.n_frames and time.monotonic() - t0 < 10:
+        if receiver.get(timeout=0.1) is not None:
+            got.append(time.monotonic())
+    receiver.stop()
+    server.stop()
+    t.join(timeout=5)
+    assert len(got) == sweep.n_frames
+    # 40 frames at 400 frames/s take 0.1 s; at 50 ms per frame they took 2 s.
+    assert got[-1] - got[0] < 1.0
+
+
+def test_session_puts_frames_before_refits_when_behind(sim_small, tmp_path):
+    """Frames waiting beyond half the queue: refits wait until they are processed
+    (the frames would otherwise overflow the queue and be lost)."""
+    from BoneUSRecon.cli.live import run_session
+
+    sweep = sim_small.sweep
+    recon = LiveReconstructor(live=LiveParams(update_every_s=0.001))
+    receiver = _PacedReceiver(sweep, period=1e-6, maxsize=8)  # all 40 waiting at once
+    waiting_at_refit: list[int] = []
+    refit = recon.refit
+
+    def watched_refit(*a, **kw):
+        if not kw.get("final"):
+            waiting_at_refit.append(receiver.qsize())
+        return refit(*a, **kw)
+
+    recon.refit = watched_refit  # type: ignore[method-assign]
+    res = run_session(receiver, recon, tmp_path / "live.vtp", update_every_s=0.001)
+    assert res.received == sweep.n_frames
+    assert waiting_at_refit and max(waiting_at_refit) <= 4
+    assert res.final is not None
 
 
 def test_nothing_listening_and_port_in_use(sim_small):

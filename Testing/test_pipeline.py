@@ -134,7 +134,7 @@ def test_blank_sweep_refused_with_file_name(sim_small, tmp_path):
 
 
 def test_more_control_points_than_slices_refused(sim_small, recon_small):
-    params = dataclasses.replace(ReconstructionParams(), fit=FitParams(control_points=(60, 5)))
+    params = dataclasses.replace(ReconstructionParams(), fit=FitParams(n_control_points=(60, 5)))
     with pytest.raises(BoneUSReconError, match="too few valid grid points for 60 x 5"):
         surface_from_contours(recon_small.segmentation.contours_mm(sim_small.sweep), sim_small.sweep, params)
 
@@ -144,6 +144,6 @@ def test_distance_texture_matches_segmented_points(recon_small):
 
     r = recon_small
     pts = numpy_support.vtk_to_numpy(r.surface.GetPoints().GetData())
-    seg = r.segmentation.points_mm(r.sweep)[0]
+    seg = r.segmentation.points_mm(r.sweep).xyz
     dist = numpy_support.vtk_to_numpy(r.surface.GetPointData().GetArray("Distance"))
     assert np.allclose(dist, cKDTree(seg).query(pts)[0])

@@ -168,6 +168,9 @@ def test_sweep_rejects_frames_without_bone_and_keeps_the_rest():
     assert set(r.rejected) == {4, 9}
     assert all(c.confidence > 0.5 for c in r.accepted)
     pts, frame, inten, conf = r.points_mm(sw)
+    named = r.points_mm(sw)
+    assert named.xyz is not pts and np.array_equal(named.xyz, pts)
+    assert np.array_equal(named.frame, frame) and np.array_equal(named.confidence, conf)
     assert pts.shape == (r.n_points, 3) and set(frame) == set(range(12)) - {4, 9}
     assert inten.min() > 100 and conf.min() > 0.5
     per_frame = r.contours_mm(sw)
@@ -189,7 +192,7 @@ def test_points_polydata_arrays():
     r = segment_sweep(sw)
     pd = points_polydata(r, sw)
     assert pd.GetNumberOfPoints() == r.n_points
-    np.testing.assert_allclose(polydata_points(pd), r.points_mm(sw)[0])
+    np.testing.assert_allclose(polydata_points(pd), r.points_mm(sw).xyz)
     for name in ("Frame", "Intensity", "Confidence"):
         assert pd.GetPointData().GetArray(name) is not None
     frames = numpy_support.vtk_to_numpy(pd.GetPointData().GetArray("Frame"))

@@ -19,7 +19,7 @@ def shadowpath_corrupted(sim_small_corrupted):
 
 
 def distances(result, sim):
-    return sim.distance_to_truth(result.points_mm(sim.sweep)[0])
+    return sim.distance_to_truth(result.points_mm(sim.sweep).xyz)
 
 
 def test_shadowpath_accuracy_mm(shadowpath_clean, sim_small):

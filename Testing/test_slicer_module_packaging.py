@@ -209,6 +209,8 @@ def test_sample_data_registered_with_the_file_checksum() -> None:
         "Resources/requirements.txt",
         "Lib/sampledata.py",
         "Lib/mrml.py",
+        "Lib/mrml_sweep.py",
+        "Lib/mrml_display.py",
     ):
         assert needed in cmake, needed
 

@@ -226,7 +226,7 @@ def test_segmenter_choices_are_the_library_segmenters() -> None:
     names = segmenterNames()
     assert set(names) == set(seg.SEGMENTERS)
     assert names[0] == seg.SegmentationParams().method  # the default is offered first
-    assert "snake" in names and set(SEGMENTER_FALLBACK) <= set(names)
+    assert "snake" in names and SEGMENTER_FALLBACK == names
 
 
 def test_dependencies_never_pip_install_vtk() -> None:
@@ -245,7 +245,7 @@ def test_requirements_cover_every_third_party_import_of_the_library() -> None:
     # import (VTK excepted: Slicer ships it), or Apply would fail with ImportError.
     from BoneSurfaceReconstructionLib import dependencies
 
-    files = [*(ROOT / "BoneUSRecon" / "Logic").rglob("*.py"), LIB / "mrml.py"]
+    files = [*(ROOT / "BoneUSRecon" / "Logic").rglob("*.py"), *LIB.glob("mrml*.py")]
     names: set[str] = set()
     for f in files:
         for node in ast.walk(ast.parse(f.read_text())):
@@ -256,7 +256,8 @@ def test_requirements_cover_every_third_party_import_of_the_library() -> None:
     # The batch command's extra (Logic/batch.py: dask[distributed], pyarrow if present)
     # runs from the command line, never from the Slicer module.
     batch_extra = {"dask", "distributed", "pyarrow"}
-    third_party = names - set(sys.stdlib_module_names) - {"BoneUSRecon", "vtkmodules", "vtk", "slicer"}
+    ours = {"BoneUSRecon", "BoneSurfaceReconstructionLib"}
+    third_party = names - set(sys.stdlib_module_names) - ours - {"vtkmodules", "vtk", "slicer"}
     third_party -= batch_extra
     assert "numpy" in third_party  # the scan works
     assert third_party <= set(dependencies.REQUIREMENTS), sorted(third_party - set(dependencies.REQUIREMENTS))
@@ -326,7 +327,7 @@ slicer = pytest.importorskip("slicer")  # the PyPI package slicer-core (test ext
 from vtkmodules.vtkCommonMath import vtkMatrix4x4  # noqa: E402
 from vtkmodules.vtkCommonTransforms import vtkGeneralTransform  # noqa: E402
 
-from BoneSurfaceReconstructionLib import mrml  # noqa: E402
+from BoneSurfaceReconstructionLib import mrml, mrml_sweep  # noqa: E402
 from BoneUSRecon.Logic.sweep import matrix_to_vtk, vtk_to_matrix  # noqa: E402
 
 
@@ -398,7 +399,7 @@ def test_scene_poses_match_slicer_own_pixel_to_world_mapping(scene) -> None:
     # pixel of each displayed frame is; the sweep read back must agree to 1e-9 mm.
     sweep = _synthetic_sweep(n=6)
     nodes = mrml.sweep_to_scene(sweep, scene)
-    logic = mrml._sequences_logic(scene)
+    logic = mrml_sweep._sequences_logic(scene)
     for k in range(sweep.n_frames):
         nodes.browser.SetSelectedItemNumber(k)
         logic.UpdateProxyNodesFromSequences(nodes.browser)
@@ -436,7 +437,7 @@ def _plus_like_scene(scene, n: int = 5, h: int = 20, w: int = 30):
         tr.SetMatrixTransformToParent(matrix_to_vtk(p))
         tseq.SetDataNodeAtValue(tr, f"{0.1 * k:.3f}")
         tr.UnRegister(None)
-    logic = mrml._sequences_logic(scene)
+    logic = mrml_sweep._sequences_logic(scene)
     browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", "Recording")
     browser.SetAndObserveMasterSequenceNodeID(iseq.GetID())
     browser.AddSynchronizedSequenceNodeID(tseq.GetID())
@@ -457,7 +458,7 @@ def test_tracked_hierarchy_with_flipped_ijk_to_ras(scene) -> None:
     flip = np.diag([-1.0, -1.0, 1.0, 1.0])
     np.testing.assert_allclose(sweep.image_to_reference, probe @ image_to_probe @ flip, atol=1e-9)
     # ... and it is what Slicer displays, frame by frame.
-    logic = mrml._sequences_logic(scene)
+    logic = mrml_sweep._sequences_logic(scene)
     for k in range(sweep.n_frames):
         browser.SetSelectedItemNumber(k)
         logic.UpdateProxyNodesFromSequences(browser)
@@ -483,7 +484,7 @@ def test_browser_whose_master_is_the_tracker(scene) -> None:
     # found by their own time stamps, and the image sequence is picked automatically.
     sweep = _synthetic_sweep(n=6)
     nodes = mrml.sweep_to_scene(sweep, scene)
-    logic = mrml._sequences_logic(scene)
+    logic = mrml_sweep._sequences_logic(scene)
     browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", "TrackerMaster")
     browser.SetAndObserveMasterSequenceNodeID(nodes.transform_sequence.GetID())
     browser.AddSynchronizedSequenceNodeID(nodes.image_sequence.GetID())
@@ -727,18 +728,34 @@ def test_self_test_scenario_meets_its_accuracy(small_sim, scene) -> None:
     assert result.nodes.surface_node.GetPolyData().GetNumberOfCells() > 0
 
 
-def test_make_params_maps_the_module_choices() -> None:
+def test_parameters_from_widget_values_maps_the_module_choices() -> None:
     pytest.importorskip("BoneUSRecon.Logic.pipeline")
-    from BoneSurfaceReconstructionLib.parameters import reconstructionParams
+    from BoneSurfaceReconstructionLib.parameters import (
+        INT_PARAMETERS,
+        parameters_from_widget_values,
+        widgetValues,
+    )
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams
 
-    p = reconstructionParams(segmenter="snake", controlPointsU=10, controlPointsV=4, degreeU=3, degreeV=1, rays=21)
+    values = {"segmenter": "snake", "controlPointsU": 10, "controlPointsV": 4, "degreeU": 3,
+              "degreeV": 1, "rays": 21}
+    p = parameters_from_widget_values(values)
     assert p.segmentation.method == "snake"
-    assert tuple(p.fit.control_points) == (10, 4) and tuple(p.fit.degree) == (3, 1)
+    assert p.fit.n_control_points == (10, 4) and p.fit.degree == (3, 1)
     assert p.resampling.n_rays == 21
+    assert parameters_from_widget_values(widgetValues(types.SimpleNamespace(**values))) == p
+    # The module's defaults are the library's.
+    defaults = {name: v[0] for name, v in INT_PARAMETERS.items()}
+    assert parameters_from_widget_values(defaults) == ReconstructionParams()
+    assert parameters_from_widget_values({}) == ReconstructionParams()
+    # Half a pair keeps the other half.
+    assert parameters_from_widget_values({"controlPointsV": 4}).fit.n_control_points == (15, 4)
     with pytest.raises(BoneUSReconError, match="too few"):
-        reconstructionParams(controlPointsU=3, degreeU=3)
+        parameters_from_widget_values({"controlPointsU": 3, "degreeU": 3})
     with pytest.raises(BoneUSReconError, match="unknown segmenter"):
-        reconstructionParams(segmenter="magic")
+        parameters_from_widget_values({"segmenter": "magic"})
+    with pytest.raises(BoneUSReconError, match="unknown module parameter 'controlPoints'"):
+        parameters_from_widget_values({"controlPoints": (10, 4)})
 
 
 # ---- the module's Logic class -------------------------------------------------------
@@ -784,7 +801,7 @@ def module_logic(monkeypatch: pytest.MonkeyPatch):
 def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None:
     nodes = mrml.sweep_to_scene(small_sim.sweep, scene)
     logic = module_logic.BoneSurfaceReconstructionLogic()
-    explicit = logic.process(nodes.browser, controlPoints=(10, 5), rays=15)
+    explicit = logic.process(nodes.browser, controlPointsU=10, controlPointsV=5, rays=15)
     p = types.SimpleNamespace(
         inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
         segmenter=module_logic._SEGMENTERS[0], controlPointsU=10, controlPointsV=5,

@@ -338,12 +338,14 @@ def read_manifest(path: str | os.PathLike[str], base_params: Any = None) -> list
                 raise BoneUSReconError(
                     f"{where}: give 'control-points' or 'along'/'around', not both", manifest
                 )
-            base = (base_params or ReconstructionParams()).fit.control_points
+            base = (base_params or ReconstructionParams()).fit.n_control_points
             values["control_points"] = (
                 base[0] if along is None else along,
                 base[1] if around is None else around,
             )
         try:
+            if "control_points" in values:  # the column's name, params_with's n_control_points
+                values["n_control_points"] = values.pop("control_points")
             params = params_with(base_params, **values)
         except (BoneUSReconError, ValueError, TypeError) as exc:
             msg = exc.message if isinstance(exc, BoneUSReconError) else str(exc)

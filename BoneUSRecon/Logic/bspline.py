@@ -82,13 +82,18 @@ Thin data (beyond the paper; ``direct`` method)
 
 from __future__ import annotations
 
+import functools
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.interpolate import BSpline
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, eigh, solve_triangular
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.params_check import check_fields
 from BoneUSRecon.Logic.robust import mad_scale, robust_weights, row_medians
 
 __all__ = [
@@ -113,8 +118,10 @@ class FitParams:
     degree : (int, int)
         Degrees ``(p, q)`` in u (along the bone) and v (around it). Paper II.D: quadratic
         ``(2, 2)``. Order = degree + 1.
-    control_points : (int, int)
-        ``(e, f)`` control points in u and v. Paper II.D: 15 x 5 for elongated bones.
+    n_control_points : (int, int)
+        Numbers ``(e, f)`` of control points in u and v. Paper II.D: 15 x 5 for
+        elongated bones. The keyword ``control_points`` (its former name) is still
+        accepted, with a ``DeprecationWarning``.
     method : str
         ``"direct"`` (exact weighted tensor-product least squares, default) or
         ``"separable"`` (the paper's de Boor two-stage scheme); see module docstring.
@@ -152,7 +159,7 @@ class FitParams:
     """
 
     degree: tuple[int, int] = (2, 2)
-    control_points: tuple[int, int] = (15, 5)
+    n_control_points: tuple[int, int] = (15, 5)
     method: str = "direct"
     robust: str = "tukey"
     robust_iterations: int = 6
@@ -163,29 +170,49 @@ class FitParams:
     thin_share: float = 0.001
 
     def __post_init__(self) -> None:
-        p, q = (int(x) for x in self.degree)
-        e, f = (int(x) for x in self.control_points)
+        check_fields(
+            self,
+            positive=("min_scale_mm",),
+            non_negative=("robust_iterations", "smoothing", "thin_weight"),
+            within={"thin_share": "(0, 1]"},
+            choices={"method": ("direct", "separable"), "robust": ("tukey", "huber", "none")},
+        )
+        (p, q), (e, f) = self.degree, self.n_control_points
         if p < 1 or q < 1:
-            raise BoneUSReconError(f"spline degree must be at least 1, got {p} {q}")
+            raise BoneUSReconError(f"FitParams.degree must be at least 1, got {self.degree}")
         if e < p + 1 or f < q + 1:
             raise BoneUSReconError(
                 f"{e} x {f} control points are too few for degree {p} {q}: need at "
                 f"least degree + 1 in each direction"
             )
-        if self.method not in ("direct", "separable"):
-            raise BoneUSReconError(
-                f"unknown fit method {self.method!r}; use 'direct' or 'separable'"
+
+    @property
+    def control_points(self) -> tuple[int, int]:
+        """Deprecated name of :attr:`n_control_points`."""
+        warnings.warn(
+            "FitParams.control_points is now n_control_points", DeprecationWarning, stacklevel=2
+        )
+        return self.n_control_points
+
+
+def _accept_old_control_points(init: Callable[..., None]) -> Callable[..., None]:
+    """``FitParams(control_points=...)``, the former keyword, still works (with a warning)."""
+
+    @functools.wraps(init)
+    def __init__(self: FitParams, *args: Any, control_points: Any = None, **kwargs: Any) -> None:
+        if control_points is not None:
+            warnings.warn(
+                "FitParams(control_points=...) is now n_control_points=...",
+                DeprecationWarning,
+                stacklevel=2,
             )
-        if self.robust not in ("tukey", "huber", "none"):
-            raise BoneUSReconError(
-                f"unknown robust weight {self.robust!r}; use tukey, huber or none"
-            )
-        if self.smoothing < 0 or self.min_scale_mm <= 0 or self.robust_iterations < 0:
-            raise BoneUSReconError("smoothing must be >= 0, min scale > 0, iterations >= 0")
-        if not self.thin_weight >= 0:
-            raise BoneUSReconError(f"thin_weight must be >= 0, got {self.thin_weight}")
-        if not 0 < self.thin_share <= 1:
-            raise BoneUSReconError(f"thin_share must be in (0, 1], got {self.thin_share}")
+            kwargs["n_control_points"] = control_points
+        init(self, *args, **kwargs)
+
+    return __init__
+
+
+FitParams.__init__ = _accept_old_control_points(FitParams.__init__)  # type: ignore[method-assign]
 
 
 def averaging_knots(params: np.ndarray, n_ctrl: int, degree: int) -> np.ndarray:
@@ -658,7 +685,7 @@ def fit_surface(
     --------
     >>> uu, vv = np.meshgrid(np.linspace(0, 30, 20), np.linspace(-1, 1, 9), indexing="ij")
     >>> grid = np.stack([uu, 5 * vv, 2 - vv**2], axis=-1)
-    >>> fit = fit_surface(grid, FitParams(control_points=(5, 4)), u=uu[:, 0], v=vv[0])
+    >>> fit = fit_surface(grid, FitParams(n_control_points=(5, 4)), u=uu[:, 0], v=vv[0])
     >>> bool(fit.rms_mm < 1e-6)  # a quadratic in (u, v) is in the spline space
     True
     """
@@ -666,7 +693,7 @@ def fit_surface(
     if pts.ndim != 3 or pts.shape[2] != 3:
         raise BoneUSReconError(f"grid points must have shape (m, n, 3), got {pts.shape}")
     m, n = pts.shape[:2]
-    (p, q), (e, f) = params.degree, params.control_points
+    (p, q), (e, f) = params.degree, params.n_control_points
     present = np.isfinite(pts).all(-1)
     w0 = np.ones((m, n)) if weights is None else np.asarray(weights, float).copy()
     w0 = np.where(present, w0, 0.0)

@@ -2,10 +2,16 @@
 
 Frames arrive one at a time (from an OpenIGTLink server, :mod:`BoneUSRecon.cli.igtl`, or a
 Slicer volume node that OpenIGTLinkIF updates). :class:`LiveReconstructor` does the
-per-frame work once, as each frame arrives (the frame's candidate bone contours,
-cached), and the sweep-level work at each refit, over all frames so far (one bone
-track chosen jointly over the frames, resampling, fit, mesh). Every refit therefore
+per-frame work once, as each frame arrives: the frame's candidate bone contours, and
+their links to the candidates of the frames before it
+(:class:`~BoneUSRecon.Logic.segmentation.track_incremental.IncrementalTrack`: the
+projections and distances that are nearly all of the bone track's cost). At each
+refit it does the sweep-level work over all frames so far: the track's dynamic
+programme over the stored links (one bone track chosen jointly over the frames, the
+same as offline, bit for bit), then resampling, fit and mesh. Every refit therefore
 equals an offline :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far.
+At 480x640, one core: ~12 ms per frame, ~0.11 s per refit of 300-400 frames
+(``Testing/benchmarks/bench_live.py``).
 
 The two calls into the segmentation stage are isolated in :func:`_segment_one` and
 :func:`_select`; the rest is :func:`~BoneUSRecon.Logic.pipeline.reconstruction_from_segmentation`,
@@ -33,6 +39,7 @@ import numpy as np
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.fileio import check_output_path
+from BoneUSRecon.Logic.params_check import check_fields
 from BoneUSRecon.Logic.pipeline import (
     Reconstruction,
     ReconstructionParams,
@@ -44,11 +51,10 @@ from BoneUSRecon.Logic.segmentation import (
     SegmentationResult,
 )
 from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
-from BoneUSRecon.Logic.segmentation.driver import (
-    contours_from_track,
-    frame_candidates_for,
-    select_bone_track,
-)
+from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
+from BoneUSRecon.Logic.segmentation.result import FrameContour
+from BoneUSRecon.Logic.segmentation.track import TrackChoice
+from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sequence_io import write_sweep
 from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
 
@@ -69,20 +75,23 @@ class LiveParams:
     ----------
     update_every_s : float
         Seconds between refits (default 1.0). A refit chooses the bone track over all
-        kept frames and refits the surface: 0.2-0.6 s of one core for 150-220 frames
-        of 480x640 (``Testing/benchmarks/bench_live.py``), so raise it on a slow
-        machine to leave time for the frames.
+        kept frames and refits the surface: 0.06-0.13 s of one core for 100-400
+        frames of 480x640 (``Testing/benchmarks/bench_live.py``). A session spaces
+        refits that take longer than this by their own duration, so that frames
+        keep at least half of the time.
     queue_frames : int
         Frames waiting to be processed before new ones are dropped (default 64:
         about 2 s at 30 frames/s, ~20 MB at 480x640; covers a refit and a burst).
     max_frames : int
         Frames kept for the surface (default 400: 13 s at 30 frames/s, more than the
         paper's longest sweep of 250 and ~25 slices per control point along the
-        bone; <1 MB of contours; a live refit plus writing the surface then takes
-        ~0.15 s of one core at 480x640, within the 0.2 s a refit may lag). When reached, every other kept
-        frame is dropped and from then on only every second arriving frame is
-        processed (then every fourth, ...): the whole scanned extent stays covered
-        at a halved density, and memory and refit time stay bounded.
+        bone; ~2 MB of contours and track links; a live refit plus writing the
+        surface then takes ~0.11 s of one core at 480x640, within the 0.2 s a refit
+        may lag). When reached, every other kept frame is dropped and from then on
+        only every second arriving frame is processed (then every fourth, ...): the
+        whole scanned extent stays covered at a halved density, and memory and refit
+        time stay bounded. Frames that become neighbours are linked in the time the
+        frames not processed leave.
     pose_tolerance_s : float
         Largest timestamp difference between an image and a transform paired with
         it (default 0.02 s). PLUS stamps all messages of one tracked frame with the
@@ -100,11 +109,12 @@ class LiveParams:
     reconnect_s: float = 3.0
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if not self.update_every_s > 0:
             raise BoneUSReconError(f"update_every_s must be > 0 s, got {self.update_every_s}")
-        if int(self.queue_frames) < 1:
+        if self.queue_frames < 1:
             raise BoneUSReconError(f"queue_frames must be >= 1, got {self.queue_frames}")
-        if int(self.max_frames) < 10:
+        if self.max_frames < 10:
             raise BoneUSReconError(f"max_frames must be >= 10, got {self.max_frames}")
         if not self.pose_tolerance_s >= 0:
             raise BoneUSReconError(f"pose_tolerance_s must be >= 0 s, got {self.pose_tolerance_s}")
@@ -126,15 +136,38 @@ def _segment_one(
 
 
 def _select(
-    frames: list[FrameCandidates],
-    poses: np.ndarray,
+    frames: list[_Frame],
+    track: IncrementalTrack,
     params: SegmentationParams,
     t_seg: float,
 ) -> SegmentationResult:
     """Sweep-level step at each refit: one bone track over all frames so far, exactly
-    as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline."""
-    choice = select_bone_track(frames, poses, params.rejection)
-    contours = contours_from_track(np.arange(len(frames)), frames, choice, params)
+    as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline
+    (``track`` holds the same frames, linked as they arrived).
+
+    A frame's contour record depends only on the frame, its position and the track's
+    verdict on it: records whose verdict did not change since the last refit are
+    reused (most of them), the others made again.
+    """
+    choice = track.solve()
+    verdicts = [
+        (n, int(choice.chosen[n]), choice.reason[n], choice.detail[n], float(choice.confidence[n]))
+        for n in range(len(frames))
+    ]
+    todo = [n for n, fr in enumerate(frames) if fr.contour is None or fr.contour[0] != verdicts[n]]
+    if todo:
+        sub = TrackChoice(
+            choice.chosen[todo],
+            choice.confidence[todo],
+            [choice.reason[n] for n in todo],
+            [choice.detail[n] for n in todo],
+        )
+        made = contours_from_track(
+            np.array(todo), [frames[n].candidates for n in todo], sub, params
+        )
+        for n, c in zip(todo, made, strict=True):
+            frames[n].contour = (verdicts[n], c)
+    contours = tuple(fr.contour[1] for fr in frames)  # type: ignore[index]
     return SegmentationResult(
         contours,
         params.method,
@@ -151,6 +184,8 @@ class _Frame:
     pose: np.ndarray
     timestamp: float
     candidates: FrameCandidates
+    #: The track's verdict at the last refit and the contour record made from it.
+    contour: tuple[tuple[int, int, str, str, float], FrameContour] | None = None
 
     @property
     def reason(self) -> str:
@@ -204,12 +239,14 @@ class LiveReconstructor:
         self.params = params
         self.live = live
         self._frames: list[_Frame] = []
+        self._track = IncrementalTrack(params.segmentation.rejection)
         self._prior: np.ndarray | None = None
         self._shape: tuple[int, int] | None = None
         self._stride = 1
         self._arrived = 0
         self._since_thinning = 0
         self._segment_s = 0.0
+        self._processed = 0
         #: Frames given to :meth:`add_frame`, frames not processed because of
         #: ``max_frames`` thinning, frames refused for a different image size.
         self.counts = {"added": 0, "thinned": 0, "wrong_size": 0}
@@ -259,11 +296,19 @@ class LiveReconstructor:
         if self._since_thinning % self._stride:
             self._since_thinning += 1
             self.counts["thinned"] += 1
+            # A frame not processed leaves the time a processed one takes: spend it on
+            # the links the last thinning left owed, so the next refit need not.
+            if self._track.owed:
+                t0 = time.perf_counter()
+                self._track.work(self._segment_s / max(self._processed, 1))
+                self._segment_s += time.perf_counter() - t0
             return None
         self._since_thinning += 1
+        self._processed += 1
         sx, sy = pixel_spacing(m)
         t0 = time.perf_counter()
         fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
+        self._track.add(fc, m)  # links to its predecessors, once
         self._segment_s += time.perf_counter() - t0
         frame = _Frame(m, float(timestamp), fc)
         reason = frame.reason
@@ -274,9 +319,38 @@ class LiveReconstructor:
             self._thin()
         return reason
 
+    @property
+    def owed(self) -> int:
+        """Pairs of frames still to link after a thinning (see :meth:`work`)."""
+        return self._track.owed
+
+    def work(self, budget_s: float) -> bool:
+        """Spare time (nothing to process): link frames that a thinning made neighbours.
+
+        Refits make what is still owed themselves; linking ahead keeps the first refit
+        after a thinning as fast as the others.
+
+        Parameters
+        ----------
+        budget_s : float
+            CPU seconds to spend at most (one pair of frames is linked at least).
+
+        Returns
+        -------
+        bool
+            Whether anything was left to do.
+        """
+        if not self._track.owed:
+            return False
+        t0 = time.perf_counter()
+        self._track.work(budget_s)
+        self._segment_s += time.perf_counter() - t0
+        return True
+
     def _thin(self) -> None:
         """Keep every other frame and process every ``2 * stride``-th from now on."""
         self._frames = self._frames[::2]
+        self._track.keep(range(0, len(self._track), 2))
         self._stride *= 2
         self._since_thinning = 1  # the frame just added counts as processed
 
@@ -303,9 +377,9 @@ class LiveReconstructor:
             The end of a session: fit whatever there is. Otherwise (live refits) it
             waits for ``MIN_FRAMES_PER_CONTROL_POINT`` frames with a contour per
             control point along the bone. Either way the bone track is chosen over all
-            kept frames, as :func:`~BoneUSRecon.Logic.pipeline.reconstruct` does (the
-            dynamic programme over frames costs little beside the fit; ``max_frames``
-            bounds the frames kept).
+            kept frames, as :func:`~BoneUSRecon.Logic.pipeline.reconstruct` does (only
+            the dynamic programme runs here, over the links made as frames arrived,
+            ~10 ms for 400 frames; ``max_frames`` bounds the frames kept).
         with_points : bool
             Build :attr:`Reconstruction.points` (the segmented points as polydata);
             False leaves it empty, which saves a fifth of a live refit that only
@@ -324,13 +398,13 @@ class LiveReconstructor:
         sweep = self.sweep()
         t0 = time.perf_counter()
         frames = self._frames
-        need = MIN_FRAMES_PER_CONTROL_POINT * self.params.fit.control_points[0]
+        need = MIN_FRAMES_PER_CONTROL_POINT * self.params.fit.n_control_points[0]
         n_ok = sum(not f.reason for f in frames)
         if not final and n_ok < need:
             raise BoneUSReconError(f"waiting for frames: {n_ok} of {need} with a bone contour")
         seg = _select(
-            [f.candidates for f in frames],
-            sweep.image_to_reference,
+            frames,
+            self._track,
             self.params.segmentation,
             self._segment_s,
         )
@@ -342,13 +416,14 @@ class LiveReconstructor:
         )
 
     def memory_bytes(self) -> int:
-        """Approximate bytes held for the kept frames (contours and poses)."""
+        """Approximate bytes held for the kept frames (contours, poses, track links)."""
         return int(
             sum(
                 sum(c.points_px.nbytes + c.intensity.nbytes + 200 for c in f.candidates.candidates)
                 + 200
                 for f in self._frames
             )
+            + self._track.memory_bytes()
         )
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +22,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from BoneUSRecon.Logic.bspline import FitParams, FitResult, fit_surface
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.evaluation import evaluate_surface
+from BoneUSRecon.Logic.params_check import check_fields
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.resampling import ResampledGrid, ResamplingParams, resample
 from BoneUSRecon.Logic.segmentation import (
@@ -64,6 +66,9 @@ class ReconstructionParams:
     resampling: ResamplingParams = field(default_factory=ResamplingParams)
     fit: FitParams = field(default_factory=FitParams)
     surface: SurfaceParams = field(default_factory=SurfaceParams)
+
+    def __post_init__(self) -> None:
+        check_fields(self)  # each part is an instance of its class (which checked itself)
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,11 +114,14 @@ def params_with(
     *,
     segmenter: str | None = None,
     degree: Sequence[int] | None = None,
-    control_points: Sequence[int] | None = None,
+    n_control_points: Sequence[int] | None = None,
+    along: int | None = None,
+    around: int | None = None,
     rays: int | None = None,
     fit_method: str | None = None,
     robust: str | None = None,
     axis: str | None = None,
+    control_points: Sequence[int] | None = None,
 ) -> ReconstructionParams:
     """``base`` with the user's choices: what the CLI options and the Slicer module set.
 
@@ -123,8 +131,14 @@ def params_with(
         Values for everything left ``None`` (default: the paper's defaults).
     segmenter : str, optional
         A name in :data:`BoneUSRecon.Logic.segmentation.SEGMENTERS`.
-    degree, control_points : (int, int), optional
-        Spline degrees ``(p, q)`` and control points ``(e, f)``, along and around the bone.
+    degree, n_control_points : (int, int), optional
+        Spline degrees ``(p, q)`` and numbers of control points ``(e, f)``, along and
+        around the bone.
+    along, around : int, optional
+        One of the two control-point counts (``e`` or ``f``), the other kept (from
+        ``n_control_points`` if given, else from ``base``).
+    control_points : (int, int), optional
+        Former name of ``n_control_points`` (``DeprecationWarning``).
     rays : int, optional
         Rays per slice.
     fit_method : {"direct", "separable"}, optional
@@ -145,14 +159,22 @@ def params_with(
     seg = p.segmentation
     if segmenter is not None:
         seg = dataclasses.replace(seg, method=segmenter)  # SegmentationParams checks the name
+    if control_points is not None:
+        warnings.warn(
+            "params_with(control_points=...) is now n_control_points=...",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        n_control_points = control_points if n_control_points is None else n_control_points
+    if along is not None or around is not None:
+        e, f = p.fit.n_control_points if n_control_points is None else n_control_points
+        n_control_points = (e if along is None else along, f if around is None else around)
+    # FitParams and ResamplingParams coerce and check the values (15.0 -> 15; 15.5 refused).
     fit_changes: dict[str, Any] = {
         k: v
         for k, v in (
-            ("degree", None if degree is None else tuple(int(x) for x in degree)),
-            (
-                "control_points",
-                None if control_points is None else tuple(int(x) for x in control_points),
-            ),
+            ("degree", None if degree is None else tuple(degree)),
+            ("n_control_points", None if n_control_points is None else tuple(n_control_points)),
             ("method", fit_method),
             ("robust", robust),
         )
@@ -160,7 +182,7 @@ def params_with(
     }
     res_changes: dict[str, Any] = {
         k: v
-        for k, v in (("n_rays", None if rays is None else int(rays)), ("axis", axis))
+        for k, v in (("n_rays", rays), ("axis", axis))
         if v is not None
     }
     return dataclasses.replace(
@@ -359,7 +381,7 @@ def _summary(
         "mean_resampling_distance_mm": grid.mean_resampling_distance_mm,
         "axis_length_mm": float(grid.axis_position[-1]),
         "degree": list(params.fit.degree),
-        "control_points": list(params.fit.control_points),
+        "control_points": list(params.fit.n_control_points),
         "fit_method": fit.method,
         "fit_rms_mm": fit.rms_mm,
         "fit_rms_all_mm": fit.rms_all_mm,
@@ -406,11 +428,11 @@ def control_point_table(
     recon = source if isinstance(source, Reconstruction) else reconstruct(source, params, progress)
     p = recon.params
     grid = recon.grid
-    seg_pts = recon.segmentation.points_mm(recon.sweep)[0]
+    seg_pts = recon.segmentation.points_mm(recon.sweep).xyz
     rows: list[tuple[int, float]] = []
     for n, e in enumerate(counts):
         report(progress, "table", n, len(counts))
-        fp = dataclasses.replace(p.fit, control_points=(int(e), p.fit.control_points[1]))
+        fp = dataclasses.replace(p.fit, n_control_points=(int(e), p.fit.n_control_points[1]))
         try:
             fit = fit_surface(grid.points, fp, u=grid.axis_position, v=grid.angles)
         except BoneUSReconError as exc:  # name the sweep, as reconstruct() does

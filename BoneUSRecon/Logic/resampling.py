@@ -34,13 +34,14 @@ distance from the vertex to the nearer end of the contour segment it lies on.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import BSpline
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.params_check import check_fields
 from BoneUSRecon.Logic.robust import mad_scale, robust_weights
 from BoneUSRecon.Logic.sweep import Sweep, frame_planes
 
@@ -115,9 +116,14 @@ class ResamplingParams:
     max_gap_mm: float = 3.0
 
     def __post_init__(self) -> None:
-        if int(self.n_rays) < 2:
+        check_fields(
+            self,
+            positive=("axis_bandwidth_mm", "max_gap_mm", "min_radius_mm", "max_radius_mm"),
+            within={"auto_span_quantile": "[0, 0.5]"},
+        )
+        if self.n_rays < 2:
             raise BoneUSReconError(f"need at least 2 rays per slice, got {self.n_rays}")
-        if int(self.n_rays) > MAX_RAYS:
+        if self.n_rays > MAX_RAYS:
             raise BoneUSReconError(
                 f"at most {MAX_RAYS} rays per slice, got {self.n_rays} (the paper uses 15)"
             )
@@ -133,8 +139,11 @@ class ResamplingParams:
             0 < self.angle_step_deg * (self.n_rays - 1) < 360
         ):
             raise BoneUSReconError(f"angle step {self.angle_step_deg} degrees is out of range")
-        if self.axis_bandwidth_mm <= 0 or self.max_gap_mm <= 0:
-            raise BoneUSReconError("axis bandwidth and maximum gap must be positive (mm)")
+        if self.min_radius_mm >= self.max_radius_mm:
+            raise BoneUSReconError(
+                f"ResamplingParams.min_radius_mm ({self.min_radius_mm}) must be below "
+                f"max_radius_mm ({self.max_radius_mm})"
+            )
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,7 +216,7 @@ def _pad(contours: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     out = np.full((len(contours), kmax, d), np.nan)
     for r, c in enumerate(contours):  # one copy per slice; the hot work below is batched
         out[r, : c.shape[0]] = c
-    return out, np.isfinite(out).all(axis=-1)
+    return out, np.logical_and.reduce(np.isfinite(out), axis=-1)
 
 
 def _circle_centres(xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float) -> np.ndarray:
@@ -242,7 +251,9 @@ def _circle_centres(xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float) 
     return np.where(good[:, None], np.stack([cx, cy], axis=1), fallback)
 
 
-def _fit_axis(t: np.ndarray, c: np.ndarray, params: ResamplingParams) -> tuple[object, np.ndarray]:
+def _fit_axis(
+    t: np.ndarray, c: np.ndarray, params: ResamplingParams
+) -> tuple[Callable[..., np.ndarray], np.ndarray]:
     """Robust axis c(t): penalised cubic spline or line, IRLS Huber then Tukey.
 
     The spline is a P-spline (Eilers & Marx): cubic B-splines with knots every

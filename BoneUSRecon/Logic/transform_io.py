@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -170,7 +171,7 @@ def read_transform(path: str | os.PathLike[str], *, coordinates: str = "LPS") ->
     return _check_matrix(np.linalg.inv(f), p)
 
 
-def _itk_matrix(tx: object, path: Path) -> np.ndarray:
+def _itk_matrix(tx: Any, path: Path) -> np.ndarray:
     """The 4x4 matrix of a linear ITK transform (composites multiplied out)."""
     import SimpleITK as sitk
 

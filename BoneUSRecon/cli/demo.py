@@ -40,8 +40,8 @@ PAPER_RANGE_MM = (1.16, 1.71)
 
 def register(subparsers: Any) -> None:
     """Add the ``demo`` sub-command."""
-    # simulation.names imports nothing: the parser's start-up stays light.
-    from BoneUSRecon.Logic.simulation.names import BONES
+    # The package's constants import nothing: the parser's start-up stays light.
+    from BoneUSRecon.Logic.simulation import BONES
 
     p = subparsers.add_parser(
         "demo",

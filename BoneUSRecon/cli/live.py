@@ -30,6 +30,8 @@ from BoneUSRecon.cli.reconstruct import add_reconstruction_options, params_from_
 __all__ = ["register", "run", "run_demo", "run_session", "SessionResult"]
 
 DEFAULT_PORT = 18944  # the OpenIGTLink port PlusServer and Slicer use
+#: GIL switch interval during a session (s): see :func:`run_session`.
+RECEIVE_SWITCH_S = 0.001
 
 
 def register(subparsers: Any) -> None:
@@ -116,7 +118,12 @@ class SessionResult:
     received: int = 0
     skipped: Counter[str] = field(default_factory=Counter)
     refits: int = 0
+    #: Per refit, seconds from when it was due to the surface written (and sent):
+    #: ``refit_wait_s + refit_s``.
     latencies_s: list[float] = field(default_factory=list)
+    #: Per refit, seconds from due to its start: the frame in hand is finished first.
+    refit_wait_s: list[float] = field(default_factory=list)
+    #: Per refit, wall seconds of the refit, the write and the send.
     refit_s: list[float] = field(default_factory=list)
     #: CPU seconds of this thread per refit (refit + write + send): the latency on an idle core.
     refit_cpu_s: list[float] = field(default_factory=list)
@@ -209,6 +216,12 @@ def run_session(
     from BoneUSRecon.Logic.vtkio import write_polydata
 
     res = SessionResult(counts=receiver.counts)  # the receiver's live counts until the end
+    # The receiving thread needs the GIL for a moment per message. Python hands it
+    # over every 5 ms by default, and a thread asking for it behind a busy one may wait
+    # several of those periods (up to ~90 ms measured during a refit); at 1 ms the
+    # receiving thread never waited more than ~17 ms, half a frame at 30 frames/s.
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(min(switch, RECEIVE_SWITCH_S))
     status = _Status(quiet)
     t0 = time.monotonic()
     due = t0 + update_every_s
@@ -232,8 +245,10 @@ def run_session(
         elif recon.counts["wrong_size"] > wrong_size:
             res.skipped["image size differs from the first frame's"] += 1
 
-    def publish(r: Any) -> None:
-        write_polydata(r.surface, out)
+    def publish(r: Any, fast: bool = False) -> None:
+        # Refits rewrite the file every few seconds: the fast .vtp flavour (LZ4, ~3 ms
+        # instead of ~55 ms of CPU for 10,000 points); the final surface the usual one.
+        write_polydata(r.surface, out, fast=fast)
         if send_surface:
             receiver.send(polydata_message(r.surface, send_surface))
 
@@ -242,6 +257,8 @@ def run_session(
             now = time.monotonic()
             if duration_s is not None and now - t0 >= duration_s:
                 break
+            if recon.owed and receiver.queue.empty():
+                recon.work(0.005)  # spare time: a slice of the links a thinning left owed
             f = receiver.get(timeout=max(0.0, min(0.05, due - now)))
             if f is not None:
                 take(f)
@@ -250,15 +267,22 @@ def run_session(
             now = time.monotonic()
             if now < due:
                 continue
+            if new and receiver.queue.qsize() > receiver.queue.maxsize // 2:
+                # Falling behind (a busy core): frames first. A late refit is only late,
+                # a dropped frame is lost to the surface for good.
+                continue
+            spent = 0.0
             if new:
                 try:
                     t, c = time.monotonic(), time.thread_time()
                     res.recon = recon.refit(with_points=False)
-                    publish(res.recon)
-                    res.refit_s.append(time.monotonic() - t)
-                    res.refit_cpu_s.append(time.thread_time() - c)
+                    publish(res.recon, fast=True)
                     done = time.monotonic()
+                    res.refit_cpu_s.append(time.thread_time() - c)
+                    res.refit_wait_s.append(t - due)
+                    res.refit_s.append(done - t)
                     res.latencies_s.append(done - due)
+                    spent = done - t
                     if pending:
                         res.frame_to_surface_s.append(
                             (done - sum(pending) / len(pending), done - pending[0])
@@ -274,11 +298,15 @@ def run_session(
             window = [w for w in window if w > now - 2.0]
             rate = len(window) / min(2.0, max(now - t0, 1e-3))
             status.show(_status_text(res, rate, receiver))
-            due = max(due + update_every_s, time.monotonic())
+            # The next refit no sooner than this one took: frames get at least half of
+            # the time even when refits are slower than --update-every (else one frame
+            # between two refits, and the queue overflows).
+            due = max(due + update_every_s, time.monotonic() + spent)
     except KeyboardInterrupt:
         res.interrupted = True
     finally:
         receiver.stop()
+        sys.setswitchinterval(switch)
     # What was already received is part of the session (bounded by the queue).
     while (f := receiver.get(timeout=0.0)) is not None:
         take(f)

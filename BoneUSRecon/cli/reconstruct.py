@@ -64,17 +64,14 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
 
 def params_from_args(args: argparse.Namespace) -> Any:
     """Build :class:`ReconstructionParams` from the options (raises on absurd values)."""
-    from BoneUSRecon.Logic.pipeline import ReconstructionParams, params_with
+    from BoneUSRecon.Logic.pipeline import params_with
 
-    control_points = getattr(args, "control_points", None)
-    along, around = getattr(args, "along", None), getattr(args, "around", None)
-    if along is not None or around is not None:
-        e, f = control_points or ReconstructionParams().fit.control_points
-        control_points = (e if along is None else along, f if around is None else around)
     return params_with(
         segmenter=getattr(args, "segmenter", None),
         degree=getattr(args, "degree", None),
-        control_points=control_points,
+        n_control_points=getattr(args, "control_points", None),
+        along=getattr(args, "along", None),
+        around=getattr(args, "around", None),
         rays=getattr(args, "rays", None),
         fit_method=getattr(args, "fit_method", None),
         robust=getattr(args, "robust", None),

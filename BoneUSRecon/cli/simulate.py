@@ -20,9 +20,9 @@ __all__ = ["register", "run"]
 
 def register(subparsers: Any) -> None:
     """Add the ``simulate`` sub-command."""
-    # simulation.names imports nothing: the parser's start-up stays light (no numpy,
-    # scipy, nor the ~9 ms of making the parameter dataclasses).
-    from BoneUSRecon.Logic.simulation import names
+    # The package's constants import nothing: the parser's start-up stays light (no
+    # numpy, scipy, nor the ~9 ms of making the parameter dataclasses).
+    from BoneUSRecon.Logic import simulation as names
 
     d = argparse.Namespace(
         n_frames=names.DEFAULT_FRAMES, width=names.DEFAULT_WIDTH, height=names.DEFAULT_HEIGHT,
@@ -81,13 +81,13 @@ def run(args: argparse.Namespace) -> int:
     """Simulate, write the files and print where they are."""
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.simulation import (
+        HARD_CONDITIONS,
         SimulationParams,
         check_output_dir,
         check_params,
         simulate,
         write_simulation,
     )
-    from BoneUSRecon.Logic.simulation.names import HARD_CONDITIONS
 
     width, height = parse_size(args.size, example="320x256")
     conditions = tuple(c.strip() for c in str(args.hard_conditions).split(",") if c.strip())

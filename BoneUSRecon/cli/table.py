@@ -82,9 +82,9 @@ def run(args: argparse.Namespace) -> int:
     plot = check_output_path(args.plot, (".png",)) if args.plot else None
     params = params_from_args(args)
     if args.around is not None:
-        params = params_with(params, control_points=(params.fit.control_points[0], args.around))
+        params = params_with(params, around=args.around)
     for e in args.counts:  # refuse absurd counts before the work
-        params_with(params, control_points=(e, params.fit.control_points[1]))
+        params_with(params, along=e)
     if len(set(args.counts)) != len(args.counts):
         raise BoneUSReconError("control-point counts repeat")
     gold = read_points(args.gold)
@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
             {
                 "control_points": [r[0] for r in rows],
                 "mean_distance_mm": [r[1] for r in rows],
-                "control_points_around": params.fit.control_points[1],
+                "control_points_around": params.fit.n_control_points[1],
                 "gold_points": int(gold.shape[0]),
                 "plot": str(plot) if plot else None,
             }

@@ -11,13 +11,21 @@ tuned on: seed 11) and writes it to a temporary folder, then, on 127.0.0.1:
    runs on **one core** (``sched_setaffinity``; BLAS/OpenMP threads 1), the server on
    the other. Every ``--every`` seconds it prints frames received/dropped, the frame
    rate, the refit latency after due, the frame-to-surface time and the resident
-   memory (RSS and anonymous), so that a drift shows.
+   memory (RSS and anonymous), so that a drift shows; at the end the CPU per frame
+   (receiving thread and processing thread), the largest gap between two frames
+   taken in by the receiving thread, and the most frames ever waiting;
+3. **CPU budget** (no network, this process, one core): the sweep replayed back and
+   forth through a :class:`LiveReconstructor` for ``--cpu-frames`` frames (default
+   900: past ``max_frames`` and a thinning), a refit + fast write every 30 frames (once
+   a second at 30 frames/s): thread CPU per frame and per refit, by frames kept, and
+   the CPU one second of a 30 frames/s stream needs.
 
 The server runs in its own process, so the live process pays only for receiving. The
-machine may be shared: CPU seconds per frame are printed beside wall times. Run::
+machine may be shared: CPU seconds per frame are printed beside wall times; a refit's
+CPU time is its latency on a free core. Run::
 
     python Testing/benchmarks/bench_live.py [--seconds 180] [--frames 150] [--fps 30]
-        [--update-every 1] [--every 30]
+        [--update-every 1] [--every 30] [--cpu-frames 900]
 """
 
 from __future__ import annotations
@@ -95,8 +103,29 @@ def session(
 
     live = LiveParams(update_every_s=update_every, reconnect_s=0.5)
     receiver = FrameReceiver("127.0.0.1", port, PoseAssembler(), live).start()
+    # Instrumented: when the receiving thread queues each frame, how many wait when
+    # the session takes one.
+    intake: list[float] = []
+    waiting: list[int] = []
+    emit, get = receiver._emit, receiver.get
+
+    def timed_emit(frames):
+        intake.extend(time.monotonic() for _ in frames)
+        emit(frames)
+
+    def counted_get(timeout):
+        waiting.append(receiver.queue.qsize())
+        if waiting[-1] > peak[0]:
+            peak[:] = [waiting[-1], time.monotonic() - t_start]
+        return get(timeout)
+
+    t_start = time.monotonic()
+    peak = [0, 0.0]
+
+    receiver._emit, receiver.get = timed_emit, counted_get
     recorder = SweepRecorder(record) if record else None
-    return run_session(
+    c0 = time.thread_time()
+    res = run_session(
         receiver,
         LiveReconstructor(live=live),
         out,
@@ -104,6 +133,74 @@ def session(
         recorder=recorder,
         duration_s=duration,
         on_refit=on_refit,
+    )
+    res.bench = {
+        "intake_gap_s": float(np.diff(intake).max()) if len(intake) > 1 else 0.0,
+        "intake_gaps_s": np.diff(intake),
+        "max_waiting": max(waiting, default=0),
+        "max_waiting_at_s": peak[1],
+        "main_cpu_s": time.thread_time() - c0,
+    }
+    return res
+
+
+def cpu_budget(sweep, n_frames: int, every: int = 30) -> None:
+    """Section 3: thread CPU of add_frame and of refit + fast write, no network."""
+    import tempfile as _tf
+
+    from BoneUSRecon.Logic.live import LiveReconstructor
+    from BoneUSRecon.Logic.vtkio import write_polydata
+
+    idx = sweep.valid_indices
+    frames = [np.array(sweep.frames[k]) for k in idx]
+    live = LiveReconstructor()
+    add_cpu, kept_at, refit_cpu = [], [], []
+    processed = []
+    with _tf.TemporaryDirectory() as d:
+        out = Path(d) / "s.vtp"
+        for i in range(n_frames):
+            j = i % len(idx)
+            if (i // len(idx)) % 2:  # back and forth: the probe sweeps the bone again
+                j = len(idx) - 1 - j
+            c = time.thread_time()
+            r = live.add_frame(frames[j], sweep.image_to_reference[idx[j]], i / 30)
+            add_cpu.append(time.thread_time() - c)
+            processed.append(r is not None)
+            if (i + 1) % every == 0:
+                c = time.thread_time()
+                try:
+                    write_polydata(live.refit(with_points=False).surface, out, fast=True)
+                except Exception:  # noqa: BLE001 (not enough frames yet)
+                    continue
+                refit_cpu.append(time.thread_time() - c)
+                kept_at.append(live.n_frames)
+    add = np.array(add_cpu) * 1000
+    proc = np.array(processed)
+    ref = np.array(refit_cpu) * 1000
+    kept = np.array(kept_at)
+    print(f"\n3. CPU budget: {n_frames} frames in this process, a refit every {every}")
+    print(
+        f"  add_frame, processed frame (segment + link) : median {np.median(add[proc]):.1f} ms, "
+        f"p95 {np.percentile(add[proc], 95):.1f} ms ({proc.sum()} frames)"
+    )
+    if (~proc).any():
+        print(
+            f"  add_frame, thinned frame (owed links)       : mean {add[~proc].mean():.1f} ms "
+            f"({(~proc).sum()} frames)"
+        )
+    for lo, hi in ((0, 200), (200, 300), (300, 401)):
+        sel = (kept >= lo) & (kept < hi)
+        if sel.any():
+            print(
+                f"  refit + fast write, {lo:3d}-{hi - 1:3d} frames kept  : median "
+                f"{np.median(ref[sel]):.0f} ms, max {ref[sel].max():.0f} ms ({sel.sum()} refits)"
+            )
+    first = proc.copy()
+    first[np.argmin(proc) if (~proc).any() else len(proc) :] = False  # before any thinning
+    per_s = 30 * np.median(add[first]) + np.median(ref[kept >= 300])
+    print(
+        f"  one second at 30 frames/s, before thinning  : {per_s:.0f} ms of CPU "
+        f"({per_s / 30:.1f} ms per frame, refit at 300-400 frames kept)"
     )
 
 
@@ -121,6 +218,9 @@ def main() -> None:
     ap.add_argument("--update-every", type=float, default=1.0)
     ap.add_argument("--every", type=float, default=30.0, help="print a line every S seconds")
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument(
+        "--cpu-frames", type=int, default=900, help="frames of the CPU budget (default 900)"
+    )
     args = ap.parse_args()
 
     from vtkmodules.util.numpy_support import vtk_to_numpy
@@ -180,6 +280,11 @@ def main() -> None:
         print(
             f"  refit + write CPU time    : median {np.median(cpu_refit):.0f} ms, max {cpu_refit.max():.0f} ms"
         )
+        print(
+            f"  intake                    : largest gap {1000 * res.bench['intake_gap_s']:.0f} ms "
+            f"between frames (period {1000 / args.fps:.0f} ms); at most "
+            f"{res.bench['max_waiting']} frames waiting"
+        )
 
         # 2. endurance: looped replay on one core
         port = free_port()
@@ -235,6 +340,25 @@ def main() -> None:
             f"  refit + write CPU time (the latency on an idle core): median "
             f"{np.median(cpu_refit):.0f} ms, p95 {np.percentile(cpu_refit, 95):.0f} ms, max {cpu_refit.max():.0f} ms"
         )
+        wait = np.array(res.refit_wait_s) * 1000
+        print(
+            f"  refit waited for the frame in hand: median {np.median(wait):.0f} ms, "
+            f"max {wait.max():.0f} ms"
+        )
+        main = res.bench["main_cpu_s"]
+        gaps = res.bench["intake_gaps_s"] * 1000
+        print(
+            f"  CPU per frame: processing thread {1000 * main / max(res.received, 1):.1f} ms, "
+            f"receiving thread {1000 * (cpu - main) / max(res.received, 1):.1f} ms"
+        )
+        print(
+            f"  intake: gaps between frames queued p99 {np.percentile(gaps, 99):.0f} ms, "
+            f"max {gaps.max():.0f} ms (period {1000 / args.fps:.0f} ms); at most "
+            f"{res.bench['max_waiting']} frames waiting (queue 64), at "
+            f"{res.bench['max_waiting_at_s']:.0f} s"
+        )
+
+        cpu_budget(sim.sweep, args.cpu_frames)
 
 
 def receiver_dropped(r) -> int:

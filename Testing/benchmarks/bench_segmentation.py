@@ -210,7 +210,7 @@ def main() -> None:
                 print(f"{bone:9} {m:10} failed: {exc}")
                 continue
             dt = (time.perf_counter() - t) / sim.sweep.n_valid
-            pts = r.points_mm(sim.sweep)[0]
+            pts = r.points_mm(sim.sweep).xyz
             d = sim.distance_to_truth(pts)
             allv[m].append(d)
             caught = len(corrupted & set(r.rejected)) / max(1, len(corrupted))

@@ -129,8 +129,8 @@ def icp(
         # tumbles onto the far side of the bone, where its turned normals match again).
         x *= min(
             1.0,
-            MAX_STEP_RAD / max(np.linalg.norm(x[:3]), 1e-300),
-            MAX_STEP_MM / max(np.linalg.norm(x[3:]), 1e-300),
+            MAX_STEP_RAD / max(float(np.linalg.norm(x[:3])), 1e-300),
+            MAX_STEP_MM / max(float(np.linalg.norm(x[3:])), 1e-300),
         )
         dr = rotation_matrix(x[:3])
         step = np.eye(4)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.params_check import check_fields
 
 __all__ = ["INIT_METHODS", "RegistrationParams"]
 
@@ -117,6 +118,7 @@ class RegistrationParams:
     coarse_points: int = 300
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if self.init not in INIT_METHODS:
             raise BoneUSReconError(
                 f"RegistrationParams.init must be one of {', '.join(INIT_METHODS)}, got {self.init!r}"

@@ -24,96 +24,25 @@ arrive and the second on the frames so far:
   its posterior choice of points (:mod:`.snake`, :mod:`.posterior`); its contour is the
   frame's one candidate, scored on the same evidence and chosen by the same track.
 
-Measured (issue 10; ``Testing/benchmarks/bench_segmentation.py --table-only``, tables
-in ``Testing/benchmarks/README.md``): standard simulated sweeps, frame recall
-1.00, no wrong-structure frame, kept points 0.03 mm median; every hard condition
-alone on the tibia, recall 0.80-1.00 and no wrong frame (the grey shadow with its
-reverberation bands and far cortex 1.00, was 0.00 with 97 % of frames on a band); the
-full ``realism="hard"`` sweeps, recall 0.75-0.93 with at most 3 % wrong frames (tibia
-and humerus were 0.35/0.47 with 47/45 % wrong). Open: the grey shadow alone on the
-small bones (radius, ulna, clavicle: recall 0.45-0.60, was 0.00, at most 5 % wrong),
-whose series tops are found only in part; the real L14 recording with its echo
-compressed, where the augmentation also erases the shadow (0.93-0.96 of the tissue
-beside, 0.80 as recorded), so nothing but a 1.2x echo tells bone from fascia. The
-real L14 as recorded: 21/21 frames on the bone, 0.040 mm median from its reference
-contours.
-
-Features tried (measured, frame recall on hard sweeps): local phase symmetry along
-depth (own 1-D log-Gabor filters, Hacihaliloglu's measure; 2-D ``phasepack.phasesym``
-costs 33-60 ms on the working image alone, over the frame budget) instead of the
-echo log-ratio: tibia/radius hard 0.50/0.53 -> 0.00/0.00, standard 1.00/0.95 ->
-0.57/0.62: dropped (``ShadowPathParams.phase_symmetry`` off). Lateral smoothing of the
-working image (0.4 mm): standard clavicle recall 0.97 -> 0.60: dropped. Shadow depth
-(a long window to 12 mm beside the near one): kept, it is what separates a vessel
-lumen or a gap between fasciae from a bone's shadow. Karamalis' confidence maps were
-not tried (a sparse random-walk solve per frame does not fit 30 frames/s).
-Geometric-mean (log-domain) shadow windows, so that bright bands in a shadow weigh
-less: grey-shadow tibia 0.00 -> 0.75 alone, but the real L14 1.00 -> 0.90 and no gain
-once the reverberation series existed: dropped. A search for the reflector at the
-top of the shadow a far cortex lies in (column by column, where the log ratio
-returns to the tissue level): the bands inside the shadow stop it early, radius hard
-0.85 -> 0.72: dropped. Kept: reverberation series and first-reflector rules on
-profiles that follow a candidate's shape (:mod:`.candidates`).
+Measured figures (frame recall, wrong frames, distances on simulated and real sweeps)
+and the features tried and dropped are in ``Testing/benchmarks/README.md``.
 """
 
 from __future__ import annotations
 
-from BoneUSRecon.Logic._lazy import lazy_attributes
+import lazy_loader
 
-#: Names of the segmenters, the default first: the keys of :data:`SEGMENTERS`. Here,
-#: importing nothing, so that the CLI's parsers list them at start-up;
-#: :class:`SegmentationParams` checks a name against them.
+#: Names of the segmenters, the default first: the keys of :data:`SEGMENTERS` (the one
+#: list; ``driver`` checks its table against it). Defined here, importing nothing, so
+#: that the CLI's parsers list them at start-up; :class:`SegmentationParams` checks a
+#: name against them.
 SEGMENTER_NAMES = ("shadowpath", "snake")
 
-# The rest is imported lazily (PEP 562), as in BoneUSRecon.Logic: the segmenters load
-# numpy, scipy and VTK, and even params.py (its frozen dataclasses) costs ~14 ms.
-_LAZY = {
-    "SEGMENTERS": "driver",
-    "segment_frame": "driver",
-    "segment_sweep": "driver",
-    "frame_candidates_for": "driver",
-    "contours_from_track": "driver",
-    "frame_candidates": "candidates",
-    "FrameCandidates": "candidates",
-    "BoneCandidate": "candidates",
-    "select_bone_track": "track",
-    "TrackChoice": "track",
-    "bone_evidence": "evidence",
-    "Detection": "detection",
-    "REFERENCE_PIXEL_MM": "params",
-    "SegmentationParams": "params",
-    "SnakeParams": "params",
-    "PosteriorParams": "params",
-    "ShadowPathParams": "params",
-    "RejectionParams": "params",
-    "points_polydata": "polydata",
-    "FrameContour": "result",
-    "SegmentationResult": "result",
-}
+# The rest is imported on first use, from the names listed in ``__init__.pyi`` (as in
+# BoneUSRecon.Logic): the segmenters load numpy, SciPy and VTK.
+__getattr__, _, _lazy_names = lazy_loader.attach_stub(__name__, __file__)
+__all__ = ["SEGMENTER_NAMES", *_lazy_names]
 
-__all__ = [
-    "SEGMENTERS",
-    "SEGMENTER_NAMES",
-    "REFERENCE_PIXEL_MM",
-    "SegmentationParams",
-    "SnakeParams",
-    "PosteriorParams",
-    "ShadowPathParams",
-    "RejectionParams",
-    "FrameContour",
-    "SegmentationResult",
-    "Detection",
-    "segment_frame",
-    "segment_sweep",
-    "frame_candidates_for",
-    "contours_from_track",
-    "frame_candidates",
-    "FrameCandidates",
-    "BoneCandidate",
-    "select_bone_track",
-    "TrackChoice",
-    "bone_evidence",
-    "points_polydata",
-]
 
-__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, __all__)
+def __dir__() -> list[str]:
+    return __all__

@@ -12,7 +12,6 @@ Two public steps, usable separately (e.g. live, as frames arrive):
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 
@@ -196,8 +195,3 @@ def segment_sweep(
     if not result.accepted:
         raise BoneUSReconError("no bone contour found in any frame", sweep.source)
     return result
-
-
-def with_method(params: SegmentationParams, method: str) -> SegmentationParams:
-    """``params`` with another segmenter name."""
-    return dataclasses.replace(params, method=method)

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.params_check import check_fields
 from BoneUSRecon.Logic.segmentation import SEGMENTER_NAMES
 
 __all__ = [
@@ -28,18 +29,6 @@ __all__ = [
     "RejectionParams",
     "SegmentationParams",
 ]
-
-
-def _check_ranges(obj: object, positive: tuple[str, ...], non_negative: tuple[str, ...]) -> None:
-    """Raise :class:`BoneUSReconError` naming the first field out of range."""
-    for name in positive:
-        v = getattr(obj, name)
-        if not v > 0:
-            raise BoneUSReconError(f"{type(obj).__name__}.{name} must be > 0, got {v!r}")
-    for name in non_negative:
-        v = getattr(obj, name)
-        if not v >= 0:
-            raise BoneUSReconError(f"{type(obj).__name__}.{name} must be >= 0, got {v!r}")
 
 
 #: Size (mm) of one "pixel" of the paper. All pixel-valued parameters below are in
@@ -99,6 +88,35 @@ class SnakeParams:
     restart_above_mm: float = 1.0
     """A restart begins this far above the caught contour's highest point, mm (ours)."""
 
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            positive=(
+                "force_unit",
+                "tau",
+                "mid_mm",
+                "up_mm",
+                "down_mm",
+                "max_step_px",
+                "max_iterations",
+            ),
+            non_negative=(
+                "stop_px",
+                "w1",
+                "w2",
+                "k1",
+                "k2",
+                "k_regional",
+                "smooth_mm",
+                "min_iterations",
+                "init_below_px",
+                "margin_mm",
+                "max_restarts",
+                "restart_above_mm",
+            ),
+            within={"n_points": "[3, 100000]"},
+        )
+
 
 @dataclass(frozen=True)
 class PosteriorParams:
@@ -108,6 +126,9 @@ class PosteriorParams:
     """Keep points with intensity > I_mean + k_intensity * I_var (paper: 0.005; 8-bit grey values)."""
     neighbour_px: float = 10.0
     """Points closer than this are connected, reference px (paper: 10 px = 1 mm)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, positive=("neighbour_px",))
 
 
 @dataclass(frozen=True)
@@ -128,7 +149,7 @@ class ShadowPathParams:
     phase_wavelengths_mm: tuple[float, ...] = (0.6, 1.2, 2.4)
     """Log-Gabor wavelengths of the phase symmetry, mm."""
     mid_mm: float = 0.4
-    """Height of the bright band, mm (ours: a thin real cortical echo; 0.6 mm diluted the 1.3x echo of issue 10's cadaver levels, frame recall 0.40 -> 0.55 on the low-contrast simulation)."""
+    """Height of the bright band, mm (ours: a thin real cortical echo; a thicker band dilutes a low-contrast echo of 1.3x the tissue above it)."""
     up_mm: float = 1.5
     """Height of the region right above the band that the echo must outshine, mm."""
     shadow_gap_mm: float = 1.5
@@ -213,10 +234,11 @@ class ShadowPathParams:
     """Added to the echo's peak depth to give the surface depth, mm (the peak of the echo is the surface)."""
 
     def __post_init__(self) -> None:
-        _check_ranges(
+        check_fields(
             self,
-            (
+            positive=(
                 "work_mm",
+                "phase_wavelengths_mm",
                 "mid_mm",
                 "up_mm",
                 "shadow_mm",
@@ -231,12 +253,13 @@ class ShadowPathParams:
                 "suppress_mm",
                 "kink_mm",
                 "refine_mm",
+                "kink_slope",
                 "series_min_mm",
                 "series_trough_ratio",
                 "under_ratio",
                 "copy_echo_ratio",
             ),
-            (
+            non_negative=(
                 "shadow_gap_mm",
                 "cover_gap_mm",
                 "cover_ratio",
@@ -249,16 +272,20 @@ class ShadowPathParams:
                 "beneath_ratio",
                 "reverb_tolerance",
                 "refine_sigma_mm",
+                "cover_min_mm",
+                "fov_margin_mm",
             ),
+            within={
+                "tissue_percentile": "(0, 100)",
+                "shadow_percentile": "(0, 100)",
+                "contact_dark_fraction": "[0, 1]",
+                "fov_grey": "[0, 255]",
+                "fov_fraction": "[0, 1)",
+            },
         )
         if not self.shadow_z_full > self.shadow_z_zero:
             raise BoneUSReconError(
                 f"ShadowPathParams.shadow_z_full must be > shadow_z_zero, got {self.shadow_z_full!r}"
-            )
-        if not (0 < self.tissue_percentile < 100 and 0 < self.shadow_percentile < 100):
-            raise BoneUSReconError(
-                "ShadowPathParams.tissue_percentile and shadow_percentile must lie in (0, 100), "
-                f"got {self.tissue_percentile!r}, {self.shadow_percentile!r}"
             )
 
 
@@ -282,6 +309,8 @@ class RejectionParams:
     """Contours farther apart than this many tolerances are never linked."""
     max_skip: int = 8
     """A track may skip this many frames between two of its contours."""
+    min_overlap_share: float = 0.3
+    """Contours of two frames are linked only if they overlap laterally over at least this share of the shorter one (ours: a partial contour of the bone overlaps a full one completely; side-by-side structures barely)."""
     min_track_frames: int = 3
     """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
     miss_cost: float = 0.3
@@ -296,10 +325,10 @@ class RejectionParams:
     """Tracked contours with fewer points are rejected ("contour too short")."""
 
     def __post_init__(self) -> None:
-        _check_ranges(
+        check_fields(
             self,
-            ("tolerance_mm", "max_deviation", "min_track_frames"),
-            (
+            positive=("tolerance_mm", "max_deviation", "min_track_frames"),
+            non_negative=(
                 "tolerance_per_mm",
                 "max_skip",
                 "miss_cost",
@@ -308,6 +337,7 @@ class RejectionParams:
                 "min_length_mm",
                 "min_points",
             ),
+            within={"min_overlap_share": "[0, 1]"},
         )
 
 
@@ -327,6 +357,7 @@ class SegmentationParams:
     """The sweep-level choice of one bone track, applied to every segmenter's candidates."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if self.method not in SEGMENTER_NAMES:
             raise BoneUSReconError(
                 f"unknown segmenter {self.method!r}; use one of {', '.join(sorted(SEGMENTER_NAMES))}"

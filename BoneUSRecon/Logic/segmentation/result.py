@@ -3,14 +3,31 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from BoneUSRecon.Logic.segmentation.params import SegmentationParams
 from BoneUSRecon.Logic.sweep import Sweep
 
-__all__ = ["FrameContour", "SegmentationResult"]
+__all__ = ["FrameContour", "SegmentationPoints", "SegmentationResult"]
+
+
+class SegmentationPoints(NamedTuple):
+    """Every kept point of a sweep (:meth:`SegmentationResult.points_mm`), one row each.
+
+    A named tuple: ``result.points_mm(sweep).xyz`` reads better than ``[0]``, and
+    ``pts, frame, intensity, confidence = ...`` still unpacks.
+    """
+
+    xyz: np.ndarray
+    """Positions in reference mm, (K, 3)."""
+    frame: np.ndarray
+    """Frame index of each point in the sweep, (K,) int64."""
+    intensity: np.ndarray
+    """Grey level of the image at each point, (K,)."""
+    confidence: np.ndarray
+    """Its frame's contour confidence, (K,)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,16 +95,18 @@ class SegmentationResult:
         """``[(frame, points (K, 3) mm)]`` of the accepted frames, ordered along each contour."""
         return [(c.frame, c.points_mm(sweep)) for c in self.accepted]
 
-    def points_mm(self, sweep: Sweep) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """All kept points: ``(points (K, 3) mm, frame (K,), intensity (K,), confidence (K,))``."""
+    def points_mm(self, sweep: Sweep) -> SegmentationPoints:
+        """All kept points of the accepted frames, with their frame, intensity and confidence."""
         acc = self.accepted
         if not acc:
-            return np.empty((0, 3)), np.empty(0, np.int64), np.empty(0), np.empty(0)
+            return SegmentationPoints(
+                np.empty((0, 3)), np.empty(0, np.int64), np.empty(0), np.empty(0)
+            )
         pts = np.concatenate([c.points_mm(sweep) for c in acc])
         frame = np.concatenate([np.full(c.points_px.shape[0], c.frame, np.int64) for c in acc])
         inten = np.concatenate([c.intensity for c in acc])
         conf = np.concatenate([np.full(c.points_px.shape[0], c.confidence) for c in acc])
-        return pts, frame, inten, conf
+        return SegmentationPoints(pts, frame, inten, conf)
 
     def summary(self) -> dict[str, Any]:
         """Counts and rejection reasons, for the CLI and the report."""

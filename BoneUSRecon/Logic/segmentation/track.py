@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
@@ -117,6 +117,90 @@ def _deviation(
     return _in_plane_deviation(a, b_px * np.asarray(b_spacing, dtype=float))
 
 
+# The pieces of the track that only depend on one frame, or on one pair of frames, are
+# the functions below: :func:`select_bone_track` runs them over a whole sweep, and
+# :class:`~.track_incremental.IncrementalTrack` (live) once per frame or pair as frames
+# arrive, so both choose the same track.
+
+
+def _frame_reason(fc: FrameCandidates) -> str:
+    """Why a frame cannot be on the track whatever its neighbours ("" if it can)."""
+    if not fc.usable:
+        return REASONS["reverb"] if fc.candidates else REASONS["none"]
+    if max(c.strength for c in fc.usable) <= 0:
+        return REASONS["weak"]
+    return ""
+
+
+def _is_node(cand: BoneCandidate) -> bool:
+    """A candidate the track may pass through."""
+    # No evidence above the null level along the contour (e.g. a snake
+    # stopped in speckle): not a candidate.
+    return not cand.reverberation and cand.strength > 0
+
+
+def _typical_strength(frames: Sequence[FrameCandidates]) -> float:
+    """The sweep's typical strength: the median over frames of each one's strongest."""
+    best = [max((c.strength for c in fc.usable), default=np.nan) for fc in frames]
+    best_arr = np.asarray(best, dtype=float)
+    pos = best_arr[np.isfinite(best_arr) & (best_arr > 0)]
+    return float(np.median(pos)) if pos.size else 1.0
+
+
+def _node_value(cand: BoneCandidate, typical: float, p: RejectionParams) -> float:
+    """A node's value on a path: its strength relative to the sweep's typical one."""
+    return min(max(cand.strength, 0.0) / typical, p.strength_cap) * (
+        p.beneath_factor if cand.echo_beneath else 1.0
+    )
+
+
+def _node_points(
+    cand: BoneCandidate, spacing: tuple[float, float], pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]]:
+    """A node's sampled contour: reference mm, (lateral, depth) mm in its plane, and its
+    bounding box there (most pairs, a fascia and the bone mm apart in depth, are ruled
+    out on the boxes without the point-to-contour distances)."""
+    pts = _sampled(cand.points_px, spacing)
+    b = pts * np.asarray(spacing, dtype=float)
+    box = (float(b[:, 0].min()), float(b[:, 0].max()), float(b[:, 1].min()), float(b[:, 1].max()))
+    return pixels_to_reference(pose, pts), b, box
+
+
+def _links(
+    a_ref: np.ndarray,
+    plane: tuple[np.ndarray, np.ndarray, np.ndarray],
+    b_nodes: Sequence[tuple[np.ndarray, tuple[float, float, float, float]]],
+    p: RejectionParams,
+) -> list[tuple[int, float]]:
+    """Edges from contour a (reference mm) to a later frame's nodes.
+
+    ``plane`` is that frame's ``(origin, axes, normal)``; ``b_nodes`` its nodes'
+    ``(lateral-depth mm, box)`` (:func:`_node_points`). Returns ``(index into b_nodes,
+    deviation d / tol)`` for each node that may follow a; the edge costs ``dev ** 2``.
+    """
+    out: list[tuple[int, float]] = []
+    # Contour a in the later frame's plane, once for all of its candidates.
+    a = _project(a_ref, *plane)
+    reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * float(a[:, 2].max()))
+    a_box = (float(a[:, 0].min()), float(a[:, 0].max()), float(a[:, 1].min()), float(a[:, 1].max()))
+    for i, (b, bb) in enumerate(b_nodes):
+        if (
+            bb[0] > a_box[1] + 1.0
+            or bb[1] < a_box[0] - 1.0
+            or bb[2] > a_box[3] + reach
+            or bb[3] < a_box[2] - reach
+        ):
+            continue
+        d, share, z = _in_plane_deviation(a, b)
+        if share < p.min_overlap_share or not np.isfinite(d):
+            continue
+        tol = p.tolerance_mm + p.tolerance_per_mm * z
+        if d > p.max_deviation * tol:
+            continue
+        out.append((i, d / tol))
+    return out
+
+
 def select_bone_track(
     frames: Sequence[FrameCandidates],
     image_to_reference: np.ndarray,
@@ -141,43 +225,26 @@ def select_bone_track(
     p = params
     n = len(frames)
     poses = np.asarray(image_to_reference, dtype=float).reshape(n, 4, 4)
-    reason = [""] * n
+    reason = [_frame_reason(fc) for fc in frames]
     detail = [""] * n
     chosen = np.full(n, -1, dtype=np.intp)
     conf = np.zeros(n)
-    nodes: list[tuple[int, int]] = []  # (frame, candidate index)
-    for f, fc in enumerate(frames):
-        for c, cand in enumerate(fc.candidates):
-            # No evidence above the null level along the contour (e.g. a snake
-            # stopped in speckle): not a candidate.
-            if not cand.reverberation and cand.strength > 0:
-                nodes.append((f, c))
-    best = [max((c.strength for c in fc.usable), default=np.nan) for fc in frames]
-    best_arr = np.asarray(best, dtype=float)
-    pos = best_arr[np.isfinite(best_arr) & (best_arr > 0)]
-    typical = float(np.median(pos)) if pos.size else 1.0
-    for f, fc in enumerate(frames):
-        if not fc.usable:
-            reason[f] = REASONS["reverb"] if fc.candidates else REASONS["none"]
-        elif max(c.strength for c in fc.usable) <= 0:
-            reason[f] = REASONS["weak"]
+    nodes = [
+        (f, c)
+        for f, fc in enumerate(frames)
+        for c, cand in enumerate(fc.candidates)
+        if _is_node(cand)
+    ]
     if not nodes:
         return TrackChoice(chosen, conf, reason, detail)
 
     m = len(nodes)
-    value = np.array(
-        [
-            min(max(frames[f].candidates[c].strength, 0.0) / typical, p.strength_cap)
-            * (p.beneath_factor if frames[f].candidates[c].echo_beneath else 1.0)
-            for f, c in nodes
-        ]
-    )
-    ref = [
-        pixels_to_reference(
-            poses[f], _sampled(frames[f].candidates[c].points_px, frames[f].spacing)
-        )
-        for f, c in nodes
+    typical = _typical_strength(frames)
+    value = np.array([_node_value(frames[f].candidates[c], typical, p) for f, c in nodes])
+    geometry = [
+        _node_points(frames[f].candidates[c], frames[f].spacing, poses[f]) for f, c in nodes
     ]
+    ref = [gm[0] for gm in geometry]
     by_frame: dict[int, list[int]] = {}
     for k, (f, _) in enumerate(nodes):
         by_frame.setdefault(f, []).append(k)
@@ -185,50 +252,48 @@ def select_bone_track(
     back = np.full(m, -1, dtype=np.intp)
     link_dev = np.zeros(m)
     origin, axes, normal = frame_planes(poses)
-    b_mm = [
-        _sampled(frames[f].candidates[c].points_px, frames[f].spacing)
-        * np.asarray(frames[f].spacing, dtype=float)
-        for f, c in nodes
-    ]
-    # Bounding boxes (lateral, depth) of every node in its own plane: most pairs (a
-    # fascia and the bone, mm apart in depth) are ruled out on them without the
-    # point-to-contour distances.
-    box = [
-        (float(b[:, 0].min()), float(b[:, 0].max()), float(b[:, 1].min()), float(b[:, 1].max()))
-        for b in b_mm
-    ]
     for g in sorted(by_frame):
+        ks = by_frame[g]
+        b_nodes = [geometry[kb][1:] for kb in ks]
         for f in range(max(0, g - p.max_skip - 1), g):
             for ka in by_frame.get(f, ()):
-                # Contour a in g's plane, once for all of g's candidates.
-                a = _project(ref[ka], origin[g], axes[g], normal[g])
-                reach = p.max_deviation * (
-                    p.tolerance_mm + p.tolerance_per_mm * float(a[:, 2].max())
-                )
-                a_box = (
-                    float(a[:, 0].min()),
-                    float(a[:, 0].max()),
-                    float(a[:, 1].min()),
-                    float(a[:, 1].max()),
-                )
-                for kb in by_frame[g]:
-                    bb = box[kb]
-                    if (
-                        bb[0] > a_box[1] + 1.0
-                        or bb[1] < a_box[0] - 1.0
-                        or bb[2] > a_box[3] + reach
-                        or bb[3] < a_box[2] - reach
-                    ):
-                        continue
-                    d, share, z = _in_plane_deviation(a, b_mm[kb])
-                    if share < 0.3 or not np.isfinite(d):
-                        continue
-                    tol = p.tolerance_mm + p.tolerance_per_mm * z
-                    if d > p.max_deviation * tol:
-                        continue
-                    s = score[ka] - (d / tol) ** 2 - p.miss_cost * (g - f - 1) + value[kb]
+                for i, dev in _links(ref[ka], (origin[g], axes[g], normal[g]), b_nodes, p):
+                    kb = ks[i]
+                    s = score[ka] - dev**2 - p.miss_cost * (g - f - 1) + value[kb]
                     if s > score[kb]:
-                        score[kb], back[kb], link_dev[kb] = s, ka, d / tol
+                        score[kb], back[kb], link_dev[kb] = s, ka, dev
+    return _finish(frames, poses, nodes, value, score, back, link_dev, reason, p)
+
+
+def _finish(
+    frames: Sequence[FrameCandidates],
+    poses: np.ndarray,
+    nodes: list[tuple[int, int]],
+    value: np.ndarray,
+    score: np.ndarray,
+    back: np.ndarray,
+    link_dev: np.ndarray,
+    reason: list[str],
+    p: RejectionParams,
+    keys: Sequence[int] | None = None,
+    details: dict[tuple[int, int, int, int], str] | None = None,
+) -> TrackChoice:
+    """The track from the dynamic programme's scores and back-pointers (``nodes`` in
+    frame order), and why each frame off it is off it.
+
+    ``keys`` (one per frame, stable while the frames are kept) and ``details`` let a
+    caller that solves again and again (live) keep the rejection details between
+    solves: a detail depends only on the frame, its nearest frame on the track, that
+    frame's choice and position.
+    """
+    n, m = len(frames), len(nodes)
+    chosen = np.full(n, -1, dtype=np.intp)
+    conf = np.zeros(n)
+    reason = list(reason)
+    detail = [""] * n
+    by_frame: dict[int, list[int]] = {}
+    for k, (f, _) in enumerate(nodes):
+        by_frame.setdefault(f, []).append(k)
     # The track: the best-valued end whose path links at least ``min_track_frames``
     # frames (fewer if the sweep has fewer): one frame alone, or two, can be speckle
     # that happens to look like a line; a bone continues through the sweep.
@@ -263,6 +328,10 @@ def select_bone_track(
         reason[f] = REASONS["jump"]
         if track_frames.size:
             g = int(track_frames[np.argmin(np.abs(track_frames - f))])
+            key = (keys[f], keys[g], int(chosen[g]), g) if keys is not None else None
+            if details is not None and key in details:
+                detail[f] = details[key]
+                continue
             g_ref = pixels_to_reference(
                 poses[g], _sampled(frames[g].candidates[chosen[g]].points_px, frames[g].spacing)
             )
@@ -276,4 +345,6 @@ def select_bone_track(
                 if np.isfinite(dmin)
                 else f"no overlap with frame {g}"
             )
+            if details is not None and key is not None:
+                details[key] = detail[f]
     return TrackChoice(chosen, conf, reason, detail)

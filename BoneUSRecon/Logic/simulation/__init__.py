@@ -16,7 +16,7 @@ Our ground truth for tests, benchmarks and the demo. Small files, one per stage:
 * :mod:`.augment` -- augmentations of a recorded sweep (mirror, gain, speckle,
   resampling, crop) with consistent poses, to test on real data without new data.
 
-Simulator version 2 (compared with the real L14 recording): the shadow under bone is
+As on the real L14 recording (``SIMULATOR_VERSION`` 2), the shadow under bone is
 grey (speckle at ~15-40 % of the tissue's grey level, ``shadow_transmission`` 0.22)
 with faint reverberation copies of the bone echo every 3 mm; the bone echo has a
 ~0.5-1 mm tail *below* the surface (its peak stays on the true surface, which is
@@ -34,48 +34,70 @@ True
 
 from __future__ import annotations
 
-from BoneUSRecon.Logic._lazy import lazy_attributes
-from BoneUSRecon.Logic.simulation.names import BONES, CORRUPTION_KINDS, HARD_CONDITIONS, REALISMS
+import lazy_loader
 
-# The rest is imported lazily (PEP 562), as in BoneUSRecon.Logic: the simulator loads
-# numpy, scipy and VTK, and even params.py costs ~9 ms, while the CLI's parsers only
-# list the names (see .names).
-_LAZY = {
-    "HardParams": "params",
-    "ImagingParams": "params",
-    "SimulationParams": "params",
-    "BONE_SPECS": "bones",
-    "BoneGeometry": "bones",
-    "BoneSpec": "bones",
-    "SIMULATOR_VERSION": "core",
-    "Simulation": "core",
-    "check_output_dir": "core",
-    "check_params": "core",
-    "simulate": "core",
-    "simulation_info": "core",
-    "write_simulation": "core",
-    "echo_levels": "levels",
-}
+# The simulator's names and the reference sweep's defaults are defined here, importing
+# nothing: the CLI's ``simulate`` and ``demo`` parsers list them at start-up, and
+# :class:`.params.SimulationParams` takes its defaults from here (one list). The rest is
+# imported on first use, from the names listed in ``__init__.pyi`` (as in
+# BoneUSRecon.Logic): the simulator loads numpy, SciPy and VTK.
 
+#: The bones the simulator knows (the long bones of the paper's introduction).
+BONES = ("radius", "ulna", "tibia", "humerus", "clavicle")
+
+#: Kinds of corrupted frames: the failures of a per-frame segmenter.
+CORRUPTION_KINDS = ("shadow_clutter", "false_echo", "contact_loss")
+
+# The issue's reference sweep: 150 frames of 256 x 320 pixels at 0.15 mm (a 38 x 48 mm
+# field of view, usual for a 7.5 MHz linear probe) over the paper's clavicle phantom.
+DEFAULT_BONE = "clavicle"
+DEFAULT_FRAMES = 150
+DEFAULT_WIDTH = 320
+DEFAULT_HEIGHT = 256
+DEFAULT_SPACING_MM = 0.15
+DEFAULT_SEED = 0
+
+#: Where the gold points are digitised (``SimulationParams.gold_region``): ``imaged``
+#: (between the planes of the first and last frames that showed bone) or ``swept``
+#: (the whole axis range those frames' sections touch, the definition before issue 11's
+#: follow-up).
+GOLD_REGIONS = ("imaged", "swept")
+
+#: Realism presets: ``standard`` (simulator version 2, tuned on the L14 recording) and
+#: ``hard`` (the levels measured on a real cadaver sweep, issue 10; see :mod:`.hard`).
+REALISMS = ("standard", "hard")
+
+#: The conditions of the ``hard`` preset, each switchable (``SimulationParams.hard_conditions``):
+#: a low-contrast bone echo, a grey shadow with reverberation bands and far-cortex
+#: echoes, a crest-shaped then oval bone, bright fascia running off the bone at its
+#: level, a skin edge over a no-contact gap with reverberation copies, a vessel, and
+#: a bone depth going from 25 to 5 mm along the sweep.
+HARD_CONDITIONS = (
+    "low_contrast",
+    "grey_shadow",
+    "crest",
+    "fascia",
+    "skin_gap",
+    "vessel",
+    "depth_ramp",
+)
+
+__getattr__, _, _lazy_names = lazy_loader.attach_stub(__name__, __file__)
 __all__ = [
     "BONES",
-    "BONE_SPECS",
     "CORRUPTION_KINDS",
+    "DEFAULT_BONE",
+    "DEFAULT_FRAMES",
+    "DEFAULT_HEIGHT",
+    "DEFAULT_SEED",
+    "DEFAULT_SPACING_MM",
+    "DEFAULT_WIDTH",
+    "GOLD_REGIONS",
     "HARD_CONDITIONS",
     "REALISMS",
-    "SIMULATOR_VERSION",
-    "BoneGeometry",
-    "BoneSpec",
-    "HardParams",
-    "ImagingParams",
-    "Simulation",
-    "SimulationParams",
-    "check_output_dir",
-    "check_params",
-    "echo_levels",
-    "simulate",
-    "simulation_info",
-    "write_simulation",
+    *_lazy_names,
 ]
 
-__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, __all__)
+
+def __dir__() -> list[str]:
+    return __all__

@@ -334,7 +334,7 @@ class BoneGeometry:
         n = np.cross(Pp, Ps)
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
-    def top_height(self, s: np.ndarray, n_phi: int = 720) -> np.ndarray:
+    def top_height(self, s: np.ndarray | float, n_phi: int = 720) -> np.ndarray:
         """Height ``z`` of the highest surface point of the cross-section at ``s`` (mm)."""
         s = np.atleast_1d(np.asarray(s, float))
         phi = np.linspace(0, 2 * np.pi, n_phi, endpoint=False)

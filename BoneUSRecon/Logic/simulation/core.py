@@ -27,7 +27,7 @@ from BoneUSRecon.Logic.simulation.params import BONES, SimulationParams
 from BoneUSRecon.Logic.simulation.sections import BoneSections, bone_sections, visible_contours
 from BoneUSRecon.Logic.sweep import Sweep
 
-__all__ = ["Simulation", "simulate", "write_simulation", "check_params", "check_output_dir", "simulation_info"]
+__all__ = ["Simulation", "simulate", "write_simulation", "check_params", "sample_gold", "check_output_dir", "simulation_info"]
 
 #: Version of the simulation model, written to ``simulation.json``; bump when the
 #: images or geometry for a given seed change.
@@ -49,7 +49,8 @@ class Simulation:
     truth_faces : ndarray (F, 3)
         Triangles (vertex indices, outward-oriented).
     gold : ndarray (K, 3)
-        Digitised points on the imaged upper bone surface, with ``gold_noise_mm`` noise.
+        Digitised points on the imaged upper bone surface, with ``gold_noise_mm`` noise
+        (over ``params.gold_region``; :func:`sample_gold` gives the other definition).
     corrupted : ndarray of int
         Indices of the corrupted frames, increasing.
     corruption_kinds : dict[int, str]
@@ -223,11 +224,35 @@ def check_params(params: SimulationParams) -> None:
         )
 
 
+def _end_planes(path: ProbePath, contours: list[np.ndarray]) -> np.ndarray | None:
+    """The first and last frames that showed bone as planes ``(2, 4)``: unit normal and offset.
+
+    Each normal points into the sweep (towards the mean centre of those frames), so a
+    point ``x`` is on the imaged side of both when ``x @ n + c >= 0`` for each. None
+    when fewer than two frames showed bone.
+    """
+    seen = np.flatnonzero([len(c) > 0 for c in contours])
+    if seen.size < 2:
+        return None
+    m = path.image_to_reference
+    inner = m[seen, :3, 3].mean(axis=0)
+    planes = np.empty((2, 4))
+    for row, k in enumerate((seen[0], seen[-1])):
+        n = np.cross(m[k, :3, 0], m[k, :3, 1])
+        n /= np.linalg.norm(n)
+        c = -float(n @ m[k, :3, 3])
+        if n @ inner + c < 0:
+            n, c = -n, -c
+        planes[row] = (*n, c)
+    return planes
+
+
 def _sample_gold(
     geom: BoneGeometry,
     s_range: tuple[float, float],
     path: ProbePath,
     params: SimulationParams,
+    contours: list[np.ndarray],
     rng: np.random.Generator,
 ) -> np.ndarray:
     """Uniform-by-area points on the imaged upper surface, plus isotropic noise.
@@ -236,6 +261,9 @@ def _sample_gold(
     visible_cos``, the same threshold as the visible contours: what the probe sees
     and a digitiser reaches from above) and inside the field of view of the frame
     nearest along the bone (a narrow image does not show the whole width of a tibia).
+    With ``gold_region="imaged"`` also between the planes of the first and last frames
+    that showed bone (``contours``): the image is a plane, so bone beyond them was not
+    imaged; ``"swept"`` keeps the whole axis range (see ``SimulationParams.gold_region``).
     """
     k = int(params.gold_points)
     if k == 0:
@@ -256,17 +284,51 @@ def _sample_gold(
     d = P - m[:, None, :3, 3]
     i = np.einsum("smk,sk->sm", d, m[:, :3, 0]) / np.einsum("sk,sk->s", m[:, :3, 0], m[:, :3, 0])[:, None]
     j = np.einsum("smk,sk->sm", d, m[:, :3, 1]) / np.einsum("sk,sk->s", m[:, :3, 1], m[:, :3, 1])[:, None]
-    m = int(params.black_margin_px)
-    seen = (i >= m) & (i <= params.width - 1 - m) & (j >= 0) & (j <= params.height - 1)
-    w = np.where((up >= params.imaging.visible_cos) & seen, area, 0.0).reshape(-1)
+    margin = int(params.black_margin_px)
+    seen = (i >= margin) & (i <= params.width - 1 - margin) & (j >= 0) & (j <= params.height - 1)
+    planes = _end_planes(path, contours) if params.gold_region == "imaged" else None
+
+    def imaged(x: np.ndarray) -> np.ndarray:
+        if planes is None:
+            return np.ones(x.shape[:-1], bool)
+        return np.all(x @ planes[:, :3].T + planes[:, 3] >= 0, axis=-1)
+
+    w = np.where((up >= params.imaging.visible_cos) & seen & imaged(P), area, 0.0).reshape(-1)
     if w.sum() <= 0:
         return np.empty((0, 3))
-    cell = rng.choice(w.size, size=k, p=w / w.sum())
     ds, dphi = s[1] - s[0], phi[1] - phi[0]
-    ss = np.clip(S.reshape(-1)[cell] + rng.uniform(-0.5, 0.5, k) * ds, *s_range)
-    pp = PH.reshape(-1)[cell] + rng.uniform(-0.5, 0.5, k) * dphi
-    pts = geom.surface(ss, pp)
+    # The jitter within a grid cell can carry a point up to half a cell past an end
+    # plane: such draws are replaced (with "swept" the first draw is kept whole, as
+    # before the region was introduced, so its points are unchanged for a given seed).
+    got: list[np.ndarray] = []
+    n_got = 0
+    while n_got < k:
+        cell = rng.choice(w.size, size=k, p=w / w.sum())
+        ss = np.clip(S.reshape(-1)[cell] + rng.uniform(-0.5, 0.5, k) * ds, *s_range)
+        pp = PH.reshape(-1)[cell] + rng.uniform(-0.5, 0.5, k) * dphi
+        pts = geom.surface(ss, pp)
+        pts = pts[imaged(pts)]
+        got.append(pts)
+        n_got += len(pts)
+    pts = np.concatenate(got)[:k]
     return pts + rng.normal(0.0, params.gold_noise_mm, pts.shape)
+
+
+def sample_gold(sim: Simulation, region: str | None = None) -> np.ndarray:
+    """The gold points of ``sim`` digitised over ``region`` (``"imaged"`` or ``"swept"``).
+
+    Same generator as :func:`simulate`, so ``sample_gold(sim)`` equals ``sim.gold``;
+    a benchmark reports both definitions with ``sample_gold(sim, "swept")``.
+    """
+    params = effective_params(replace(sim.params, gold_region=region or sim.params.gold_region))
+    return _sample_gold(
+        sim.geometry,
+        sim.swept_range_mm,
+        sim.path,
+        params,
+        sim.true_contours_px,
+        np.random.default_rng([int(params.seed), 5]),
+    )
 
 
 def _neighbour(geom: BoneGeometry, params: SimulationParams) -> BoneGeometry | None:
@@ -363,7 +425,7 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     seen = np.array([c.shape[0] > 0 for c in contours])
     sr = sections.s_range[seen] if seen.any() else sections.s_range
     swept = (float(max(sr.min(), 0.0)), float(min(sr.max(), geom.length)))
-    gold = _sample_gold(geom, swept, path, params, np.random.default_rng([seed, 5]))
+    gold = _sample_gold(geom, swept, path, params, contours, np.random.default_rng([seed, 5]))
     report(progress, "geometry", 2, 3)
     verts, faces = geom.mesh(*_MESH)
 

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-# BONES and the reference sweep's defaults live in the import-free names.py (the CLI's
-# parsers list them at start-up).
-from BoneUSRecon.Logic.simulation.names import (
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.params_check import check_fields
+
+# BONES and the reference sweep's defaults live in the package's import-free __init__
+# (the CLI's parsers list them at start-up).
+from BoneUSRecon.Logic.simulation import (
     BONES,
     CORRUPTION_KINDS,
     DEFAULT_BONE,
@@ -15,6 +18,7 @@ from BoneUSRecon.Logic.simulation.names import (
     DEFAULT_SEED,
     DEFAULT_SPACING_MM,
     DEFAULT_WIDTH,
+    GOLD_REGIONS,
     HARD_CONDITIONS,
     REALISMS,
 )
@@ -22,6 +26,7 @@ from BoneUSRecon.Logic.simulation.names import (
 __all__ = [
     "BONES",
     "CORRUPTION_KINDS",
+    "GOLD_REGIONS",
     "HARD_CONDITIONS",
     "REALISMS",
     "HardParams",
@@ -61,7 +66,7 @@ class ImagingParams:
     #: Peak amplitude of the bone echo at normal incidence (the brightest thing).
     bone_amplitude: float = 16.0
     #: Exponent of cos(incidence) in the bone echo: specular reflection fades fast
-    #: off-normal. 3 (was 2): on the real L14 recording the flanks of the bone at
+    #: off-normal. 3: on the real L14 recording the flanks of the bone at
     #: ~55-60 degrees are ~10-15 dB weaker than its top (grey ~100 against ~210).
     specular_exponent: float = 3.0
     #: Diffuse part of the bone echo (fraction of bone_amplitude, times cos(incidence)):
@@ -77,8 +82,8 @@ class ImagingParams:
     bone_tail: float = 0.45
     #: Decay length (mm) of that tail.
     bone_tail_mm: float = 0.4
-    #: Amplitude transmitted into the acoustic shadow below bone. 0.22 (was 0.03, an
-    #: almost black shadow): on the real L14 recording the shadow is grey, its speckle
+    #: Amplitude transmitted into the acoustic shadow below bone. 0.22: on the real
+    #: L14 recording the shadow is grey (not black), its speckle
     #: at 15-40 % of the tissue's grey level (side lobes, multiple reflections).
     shadow_transmission: float = 0.22
     #: Amplitude of reverberation copies of the bone echo inside the shadow, relative to
@@ -101,6 +106,38 @@ class ImagingParams:
     #: Amplitude ratio of successive reverberation copies; 0.5 (the second half as
     #: strong as the first) in version 2.
     reverb_decay: float = 0.5
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            positive=(
+                "frequency_mhz",
+                "psf_axial_mm",
+                "psf_lateral_mm",
+                "psf_min_px",
+                "dynamic_range_db",
+                "bone_line_mm",
+                "bone_tail_mm",
+                "reverb_mm",
+            ),
+            non_negative=(
+                "attenuation_db_cm_mhz",
+                "skin_amplitude",
+                "fat_amplitude",
+                "fascia_amplitude",
+                "bone_amplitude",
+                "specular_exponent",
+                "diffuse_fraction",
+                "bone_tail",
+                "shadow_transmission",
+                "reverb_amplitude",
+                "dropouts_per_cm",
+                "noise_floor",
+                "reverb_copies",
+                "reverb_decay",
+            ),
+            within={"tgc_compensation": "[0, 1]", "visible_cos": "[0, 1]"},
+        )
 
 
 @dataclass(frozen=True)
@@ -204,6 +241,47 @@ class HardParams:
     #: Skin-to-bone depth (mm) at the start and the end of the sweep: the cadaver's 25 -> 5 mm.
     depth_mm: tuple[float, float] = (25.0, 5.0)
 
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            positive=(
+                "reverb_mm",
+                "fascia_length_mm",
+                "gap_depth_mm",
+                "vessel_radius_mm",
+                "vessel_enhancement_mm",
+                "ringdown_mm",
+                "depth_mm",
+            ),
+            non_negative=(
+                "bone_amplitude",
+                "fascia_amplitude",
+                "shadow_transmission",
+                "reverb_amplitude",
+                "reverb_copies",
+                "reverb_decay",
+                "far_cortex",
+                "crest_exponent",
+                "fascia_attach_mm",
+                "fascia_strength",
+                "gap_amplitude",
+                "gap_copies",
+                "gap_decay",
+                "gap_transmission",
+                "vessel_gap_mm",
+                "vessel_enhancement",
+                "ringdown_amplitude",
+                "ringdown_copies",
+                "ringdown_decay",
+            ),
+            within={
+                "crest_range": "[0, 1]",
+                "visible_strength": "[0, 1]",
+                "visible_cos": "[0, 1]",
+                "gap_fraction": "[0, 0.5]",
+            },
+        )
+
 
 @dataclass(frozen=True)
 class SimulationParams:
@@ -256,6 +334,15 @@ class SimulationParams:
     gold_points: int = 1145
     #: Standard deviation of the digitiser noise, per axis (mm).
     gold_noise_mm: float = 0.2
+    #: Where the gold points are digitised (one of :data:`GOLD_REGIONS`). ``imaged``
+    #: (default): the bone the sweep imaged, between the planes of the first and last
+    #: frames that showed bone; the paper digitised the bone where it was scanned, and
+    #: the simulator's image is a plane with no elevational thickness, so nothing beyond
+    #: the end planes is imaged. ``swept`` (before issue 11's follow-up): the whole axis
+    #: range those frames' sections touch; with the probe yawed a few degrees across a
+    #: wide bone that reaches up to ~4 mm beyond an end plane on one side (3-4 % of the
+    #: points on a 150-frame tibia or humerus), bone no frame imaged.
+    gold_region: str = "imaged"
     #: Image formation parameters.
     imaging: ImagingParams = field(default_factory=ImagingParams)
     #: Realism preset (one of :data:`REALISMS`): ``standard`` (default, simulator
@@ -268,15 +355,50 @@ class SimulationParams:
     hard: HardParams = field(default_factory=HardParams)
 
     def __post_init__(self) -> None:
+        check_fields(
+            self,
+            non_negative=(
+                "seed",
+                "tilt_deg",
+                "lateral_jitter_mm",
+                "depth_jitter_mm",
+                "speed_variation",
+                "sweep_margin_mm",
+            ),
+            positive=("frame_rate_hz",),
+        )
+        # The messages the CLI shows for its options (--frames, --size, --corrupt, ...).
+        if self.bone not in BONES:
+            raise BoneUSReconError(f"unknown bone {self.bone!r}; choose one of {', '.join(BONES)}")
+        if self.gold_region not in GOLD_REGIONS:
+            raise BoneUSReconError(
+                f"gold_region: unknown region {self.gold_region!r}; use one of {', '.join(GOLD_REGIONS)}"
+            )
         if self.realism not in REALISMS:
-            raise ValueError(
+            raise BoneUSReconError(
                 f"realism: unknown preset {self.realism!r}; use one of {', '.join(REALISMS)}"
             )
         bad = [c for c in self.hard_conditions if c not in HARD_CONDITIONS]
         if bad:
-            raise ValueError(
+            raise BoneUSReconError(
                 f"hard_conditions: unknown condition {bad[0]!r}; use some of {', '.join(HARD_CONDITIONS)}"
             )
+        if self.n_frames < 2:
+            raise BoneUSReconError(f"need at least 2 frames, got {self.n_frames}")
+        if self.width < 16 or self.height < 16:
+            raise BoneUSReconError(
+                f"images must be at least 16 x 16 pixels, got {self.height} x {self.width}"
+            )
+        if not self.spacing_mm > 0:
+            raise BoneUSReconError(
+                f"pixel spacing must be a positive number of mm, got {self.spacing_mm}"
+            )
+        for name in ("corrupted_fraction", "invalid_fraction"):
+            v = getattr(self, name)
+            if not (0.0 <= v <= 1.0):
+                raise BoneUSReconError(f"{name.replace('_', ' ')} must be between 0 and 1, got {v}")
+        if self.gold_points < 0 or self.gold_noise_mm < 0:
+            raise BoneUSReconError("gold points and gold noise must not be negative")
 
     def has(self, condition: str) -> bool:
         """Whether the hard ``condition`` applies (``realism="hard"`` and listed)."""
