@@ -17,8 +17,9 @@ shown), point accuracy (median, p95, share > 2 mm), flank coverage (share of the
 contour's width covered) and the median steepest slope reached on the bone (beside the
 true contour's). Cases: every bone at standard realism; every bone at ``realism="hard"``;
 each hard condition alone on the tibia; the two shared real recordings and their hard
-augmentations (``augment.HARD_AUGMENTATIONS``), scored against the reference contours of
-``Testing/data`` (see its README for their precision).
+augmentations (``augment.HARD_AUGMENTATIONS``, and "cadaver": ``augment.harden`` with the
+reference contours, the cadaver's levels exactly), scored against the reference contours
+of ``Testing/data`` (see its README for their precision).
 
 Run: ``python Testing/benchmarks/bench_segmentation.py [--frames 60] [--overlay DIR]``
 (``--table-only`` for the frame-level table alone; ``--sim-frames``, ``--no-real``).
@@ -129,6 +130,10 @@ def frame_table(n_frames: int = 40, real: bool = True) -> None:
         sw = read_sweep(mha, calibration=xml)
         ref = read_reference_csv(csv)
         variants = {"": sw} | {f" {k}": f(sw) for k, f in augment.HARD_AUGMENTATIONS.items()}
+        # The cadaver's levels exactly: the echo compressed as "hard", the shadow under the
+        # reference contour brought to 0.54 of the tissue above the bone (a recording
+        # whose shadow is no darker than the tissue beside it gets none from "hard").
+        variants[" cadaver"] = augment.harden(sw, bone_contours=ref)
         for suffix, s in variants.items():
             for m in TABLE_METHODS:
                 t = time.perf_counter()
