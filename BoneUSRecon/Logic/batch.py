@@ -837,6 +837,17 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
         "distributed.worker.memory.monitor-interval": "1s",
         "distributed.worker.profile.enabled": False,
         "distributed.scheduler.worker-saturation": 1.0,
+        # One task per sweep, queued at the scheduler: nothing to steal, no replicas
+        # for the memory manager to drop, no dashboard or metrics to serve.
+        "distributed.scheduler.work-stealing": False,
+        "distributed.scheduler.active-memory-manager.start": False,
+        "distributed.scheduler.http.routes": [],
+        "distributed.worker.http.routes": [],
+        # Dask's variables for the workers it starts, less the malloc trim threshold
+        # (see WORKER_ENV).
+        "distributed.nanny.pre-spawn-environ": {
+            k: v for k, v in WORKER_ENV.items() if not k.startswith("DASK_")
+        },
     }
     logging.getLogger("distributed").setLevel(logging.ERROR)
     with dask.config.set(quiet):
@@ -893,12 +904,16 @@ WORKER_PRELOAD = (
 
 #: Set for the fork server, so for every local worker: Dask's own thread limits for
 #: worker processes (``distributed.nanny.pre-spawn-environ``; one BLAS thread per
-#: single-threaded worker), and its logging at ``error``.
+#: single-threaded worker), and its logging at ``error``. Not Dask's
+#: ``MALLOC_TRIM_THRESHOLD_=65536``: setting it also fixes glibc's mmap threshold at
+#: 128 KiB, so every frame-sized temporary array is mapped and unmapped afresh: 2.5x
+#: the page faults and ~0.09 s more system CPU per reference sweep (~4 %; measured
+#: on the one-process baseline of bench_batch.py). A worker holds one sweep at a
+#: time, so the memory trimming would return is one sweep's, which the next reuses.
 WORKER_ENV = {
     "OMP_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
-    "MALLOC_TRIM_THRESHOLD_": "65536",
     "DASK_LOGGING__DISTRIBUTED": "error",
 }
 
