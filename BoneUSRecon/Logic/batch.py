@@ -948,10 +948,11 @@ def start_worker_server(*, fork_this_process: bool = False) -> None:
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return
     multiprocessing.get_context("forkserver").set_forkserver_preload(list(WORKER_PRELOAD))
-    with _sigint_ignored(), _environ(**WORKER_ENV):
+    with _environ(**WORKER_ENV):
         if fork_this_process and _fork_server_here():
             return
-        multiprocessing.forkserver.ensure_running()
+        with _sigint_ignored():
+            multiprocessing.forkserver.ensure_running()
 
 
 def _fork_server_here() -> bool:
@@ -963,7 +964,8 @@ def _fork_server_here() -> bool:
     "alive" pipe, same server loop, :func:`multiprocessing.forkserver.main`) with
     ``os.fork`` in place of the new interpreter, and records the server where
     ``ensure_running`` looks for it. Forking is safe only while this process runs one
-    thread; the caller holds SIGINT ignored, which the server and its workers keep.
+    thread. The fork is made with SIGINT ignored, which the server and its workers
+    keep; the imports before it can still be interrupted.
 
     Returns
     -------
@@ -1004,16 +1006,17 @@ def _fork_server_here() -> bool:
                 os.close(alive_r)
                 os.close(alive_w)
                 return False
-            pid = os.fork()
-            if pid == 0:  # the server: serve until every client is gone, then exit
-                code = 1
-                try:
-                    os.close(alive_w)
-                    forkserver.main(listener.fileno(), alive_r, [])
-                except SystemExit:
-                    code = 0
-                finally:
-                    os._exit(code)
+            with _sigint_ignored():  # kept by the server and its workers
+                pid = os.fork()
+                if pid == 0:  # the server: serve until every client is gone, then exit
+                    code = 1
+                    try:
+                        os.close(alive_w)
+                        forkserver.main(listener.fileno(), alive_r, [])
+                    except SystemExit:
+                        code = 0
+                    finally:
+                        os._exit(code)
             os.close(alive_r)
         server._forkserver_address = address
         server._forkserver_alive_fd = alive_w
