@@ -889,7 +889,7 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
                 cluster.close(timeout=20)
 
 
-#: What every worker needs, imported once in the fork server rather than in each worker.
+#: What every worker needs, imported once by (or before) the fork server, not per worker.
 WORKER_PRELOAD = (
     "distributed",
     "numpy",
@@ -925,8 +925,8 @@ def start_worker_server(*, fork_this_process: bool = False) -> None:
     numpy, SciPy, VTK and the pipeline anew: about 2 s of CPU per worker, as much as
     a small sweep. The fork server imports :data:`WORKER_PRELOAD` once, and each worker
     is forked from it (without this process's threads, unlike a plain fork). Called
-    early (the CLI calls it before reading the manifest), its imports overlap this
-    process's. It starts with SIGINT ignored (see :func:`_sigint_ignored`) and with
+    early (the CLI calls it before reading the manifest), a fresh fork server's imports
+    overlap this process's. It starts with SIGINT ignored (see :func:`_sigint_ignored`) and with
     :data:`WORKER_ENV`, and passes both on. No-op where there is no fork server
     (Windows: workers are spawned).
 
