@@ -298,7 +298,9 @@ def test_batch_on_a_scheduler_equals_single_runs(capsys, cohort, singles, schedu
     errors = {r["name"]: r["error"] for r in doc["rows"] if r["status"] == "failed"}
     assert "broken.mha" in errors["broken"]
     assert "missing.mha: no such file" in errors["missing"]
-    assert errors["registered"].endswith("model.stl: could not read any points (corrupt or not this format)")
+    assert errors["registered"].endswith(
+        "model.stl: could not read any points (corrupt or not this format)"
+    )
 
     for name, ref in singles.items():
         assert sorted(os.listdir(out / name)) == ["points.vtp", "summary.json", "surface.vtp"]
@@ -461,6 +463,43 @@ def test_local_cluster_ctrl_c_then_resume_equals_single_runs(cohort, singles, sc
     for r in doc["rows"]:
         assert_same_as_single(out / r["name"], singles[r["name"].split("_")[0]])
     no_leftovers(out)
+
+
+FORK_SERVER_PROBE = """
+import multiprocessing, os, signal, sys
+from multiprocessing import forkserver
+if sys.argv[1] == "numpy":
+    import numpy
+from BoneUSRecon.Logic.batch import start_worker_server
+start_worker_server(fork_this_process=True)
+pid = forkserver._forkserver._forkserver_pid
+with open(f"/proc/{pid}/cmdline") as f, open("/proc/self/cmdline") as g:
+    forked = f.read() == g.read()
+with multiprocessing.get_context("forkserver").Pool(1) as pool:
+    ppid, sigint = pool.apply(os.getppid), pool.apply(signal.getsignal, (signal.SIGINT,))
+print(forked, ppid == pid, sigint == signal.SIG_IGN, signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+"""
+
+
+@pytest.mark.skipif(
+    sys.platform != "linux" or sys.version_info >= (3, 14),
+    reason="/proc; Python 3.14's fork server has another handshake (the plain one is used)",
+)
+@pytest.mark.parametrize("numpy_first", [False, True])
+def test_command_forks_its_own_fork_server(numpy_first):
+    """The command's fork server is a fork of it after its imports (one import set for
+    the command and the workers), unless numpy was imported before (its BLAS thread
+    count is then set): a fresh interpreter. Either way the workers ignore SIGINT and
+    the caller does not."""
+    r = subprocess.run(
+        [sys.executable, "-c", FORK_SERVER_PROBE, "numpy" if numpy_first else "-"],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == [str(not numpy_first), "True", "True", "False"], r.stdout
 
 
 def test_target_column_registers_the_sweep(sim_factory, tmp_path):

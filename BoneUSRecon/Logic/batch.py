@@ -839,6 +839,17 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
         "distributed.worker.memory.monitor-interval": "1s",
         "distributed.worker.profile.enabled": False,
         "distributed.scheduler.worker-saturation": 1.0,
+        # One task per sweep, queued at the scheduler: nothing to steal, no replicas
+        # for the memory manager to drop, no dashboard or metrics to serve.
+        "distributed.scheduler.work-stealing": False,
+        "distributed.scheduler.active-memory-manager.start": False,
+        "distributed.scheduler.http.routes": [],
+        "distributed.worker.http.routes": [],
+        # Dask's variables for the workers it starts, less the malloc trim threshold
+        # (see WORKER_ENV).
+        "distributed.nanny.pre-spawn-environ": {
+            k: v for k, v in WORKER_ENV.items() if not k.startswith("DASK_")
+        },
     }
     logging.getLogger("distributed").setLevel(logging.ERROR)
     with dask.config.set(quiet):
@@ -880,7 +891,7 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
                 cluster.close(timeout=20)
 
 
-#: What every worker needs, imported once in the fork server rather than in each worker.
+#: What every worker needs, imported once by (or before) the fork server, not per worker.
 WORKER_PRELOAD = (
     "distributed",
     "numpy",
@@ -895,27 +906,43 @@ WORKER_PRELOAD = (
 
 #: Set for the fork server, so for every local worker: Dask's own thread limits for
 #: worker processes (``distributed.nanny.pre-spawn-environ``; one BLAS thread per
-#: single-threaded worker), and its logging at ``error``.
+#: single-threaded worker), and its logging at ``error``. Not Dask's
+#: ``MALLOC_TRIM_THRESHOLD_=65536``: setting it also fixes glibc's mmap threshold at
+#: 128 KiB, so every frame-sized temporary array is mapped and unmapped afresh: 2.5x
+#: the page faults and ~0.09 s more system CPU per reference sweep (~4 %; measured
+#: on the one-process baseline of bench_batch.py). A worker holds one sweep at a
+#: time, so the memory trimming would return is one sweep's, which the next reuses.
 WORKER_ENV = {
     "OMP_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
-    "MALLOC_TRIM_THRESHOLD_": "65536",
     "DASK_LOGGING__DISTRIBUTED": "error",
 }
 
 
-def start_worker_server() -> None:
+def start_worker_server(*, fork_this_process: bool = False) -> None:
     """Start the fork server that local workers are forked from (idempotent).
 
     Dask starts each worker by default as a fresh interpreter ("spawn") that imports
     numpy, SciPy, VTK and the pipeline anew: about 2 s of CPU per worker, as much as
     a small sweep. The fork server imports :data:`WORKER_PRELOAD` once, and each worker
     is forked from it (without this process's threads, unlike a plain fork). Called
-    early (the CLI calls it before reading the manifest), its imports overlap this
-    process's. It starts with SIGINT ignored (see :func:`_sigint_ignored`) and with
+    early (the CLI calls it before reading the manifest), a fresh fork server's imports
+    overlap this process's. It starts with SIGINT ignored (see :func:`_sigint_ignored`) and with
     :data:`WORKER_ENV`, and passes both on. No-op where there is no fork server
     (Windows: workers are spawned).
+
+    Parameters
+    ----------
+    fork_this_process : bool
+        Import :data:`WORKER_PRELOAD` here, under :data:`WORKER_ENV` (so this process
+        keeps one BLAS thread), and make the fork server a fork of this process: the
+        imports are paid once for this process and the workers, not twice (~2 s of
+        CPU, measured in bench_batch.py). For a command line process that does no
+        numerical work itself; taken only while this process has a single thread and
+        has not imported numpy, and where ``multiprocessing.forkserver`` is laid out
+        as in Python 3.8-3.13 (see :func:`_fork_server_here`); else the plain fork
+        server.
     """
     import multiprocessing
     import multiprocessing.forkserver
@@ -923,8 +950,80 @@ def start_worker_server() -> None:
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return
     multiprocessing.get_context("forkserver").set_forkserver_preload(list(WORKER_PRELOAD))
-    with _sigint_ignored(), _environ(**WORKER_ENV):
-        multiprocessing.forkserver.ensure_running()
+    with _environ(**WORKER_ENV):
+        if fork_this_process and _fork_server_here():
+            return
+        with _sigint_ignored():
+            multiprocessing.forkserver.ensure_running()
+
+
+def _fork_server_here() -> bool:
+    """Start ``multiprocessing``'s fork server as a fork of this process, after its imports.
+
+    ``multiprocessing.forkserver.ensure_running`` starts the server as a fresh
+    interpreter that imports the preload list itself; no public option forks it from
+    the caller instead, so this does what ``ensure_running`` does (same listener, same
+    "alive" pipe, same server loop, :func:`multiprocessing.forkserver.main`) with
+    ``os.fork`` in place of the new interpreter, and records the server where
+    ``ensure_running`` looks for it. Forking is safe only while this process runs one
+    thread. The fork is made with SIGINT ignored, which the server and its workers
+    keep; the imports before it can still be interrupted.
+
+    Returns
+    -------
+    bool
+        False (nothing done) when this process has other threads or has imported
+        numpy already (its BLAS thread count is set), or ``multiprocessing.forkserver``
+        is not laid out as this expects (Python 3.14 adds an authentication key).
+    """
+    import importlib
+    import socket
+    import sys
+    from multiprocessing import connection, forkserver, resource_tracker, util
+
+    server = getattr(forkserver, "_forkserver", None)
+    fields = ("_forkserver_address", "_forkserver_alive_fd", "_forkserver_pid", "_lock")
+    if (
+        server is None
+        or not all(hasattr(server, f) for f in fields)
+        or hasattr(server, "_forkserver_authkey")
+        or threading.active_count() > 1
+        or "numpy" in sys.modules
+    ):
+        return False
+    for name in WORKER_PRELOAD:
+        importlib.import_module(name)
+    with server._lock:
+        if server._forkserver_pid is not None:
+            return False  # one is running: ensure_running checks it is alive
+        resource_tracker.ensure_running()
+        with socket.socket(socket.AF_UNIX) as listener:
+            address = connection.arbitrary_address("AF_UNIX")  # type: ignore[attr-defined]
+            listener.bind(address)
+            if not util.is_abstract_socket_namespace(address):
+                os.chmod(address, 0o600)
+            listener.listen()
+            alive_r, alive_w = os.pipe()
+            if threading.active_count() > 1:  # an import started a thread
+                os.close(alive_r)
+                os.close(alive_w)
+                return False
+            with _sigint_ignored():  # kept by the server and its workers
+                pid = os.fork()
+                if pid == 0:  # the server: serve until every client is gone, then exit
+                    code = 1
+                    try:
+                        os.close(alive_w)
+                        forkserver.main(listener.fileno(), alive_r, [])
+                    except SystemExit:
+                        code = 0
+                    finally:
+                        os._exit(code)
+            os.close(alive_r)
+        server._forkserver_address = address
+        server._forkserver_alive_fd = alive_w
+        server._forkserver_pid = pid
+    return True
 
 
 def _preload_workers() -> dict[str, Any]:

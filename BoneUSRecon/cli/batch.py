@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scheduler is not None and args.workers is not None:
         raise BoneUSReconError("--workers is for the local cluster; not with --scheduler")
     if args.scheduler is None and not args.resume:
-        start_worker_server()  # the workers' imports overlap the manifest's reading
+        start_worker_server(fork_this_process=True)  # one import set for us and the workers
     jobs = read_manifest(args.manifest)
     try:
         with ProgressBar(quiet=args.quiet or args.json) as bar:

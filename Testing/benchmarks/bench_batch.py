@@ -11,9 +11,14 @@ a fresh process as a user would:
 2. the same sweeps one after another in one Python process (``read_sweep`` +
    ``reconstruct`` + writing the surface and points; imports once): the strict
    baseline;
-3. a shell loop of ``bone-us-recon reconstruct SWEEP -o ... --points-out ...``, one
+3. the same, split over ``--workers`` plain processes started together (sweeps dealt
+   out in turn; no Dask): the control, what the cores give without any engine. Its
+   CPU over the one process's is what running processes side by side costs on this
+   machine (shared caches, other users); the batch's CPU over the control's is
+   Dask's own;
+4. a shell loop of ``bone-us-recon reconstruct SWEEP -o ... --points-out ...``, one
    command per sweep: what the batch replaces;
-4. ``batch --resume`` again: must do no work.
+5. ``batch --resume`` again: must do no work.
 
 It prints wall time, our CPU time (every descendant process, workers included) and the
 cores we obtained (CPU / wall), the CPU the *other* processes of the machine used
@@ -232,7 +237,7 @@ def main() -> int:
     e = env(args.all_cores)
     py = [sys.executable, "-m", "BoneUSRecon"]
     n = len(sweeps)
-    for sub in ("batch", "serial", "loop"):
+    for sub in ("batch", "serial", "loop", *(f"plain{i}" for i in range(args.workers))):
         if (work / sub).exists():
             import shutil
 
@@ -276,6 +281,28 @@ def main() -> int:
     assert r2.returncode == 0, r2.stderr
     print(serial.line("one process, one after another", n))
 
+    with Phase() as plain:
+        procs = [
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-c",
+                    SERIAL_SCRIPT,
+                    str(work / f"plain{i}"),
+                    args.segmenter,
+                    *map(str, sweeps[i :: args.workers]),
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=e,
+            )
+            for i in range(args.workers)
+        ]
+        errs = [p.communicate()[1] for p in procs]
+    assert all(p.returncode == 0 for p in procs), errs
+    print(plain.line(f"{args.workers} plain processes (no Dask)", n))
+
     loop = None
     if not args.skip_shell_loop:
         with Phase() as loop:
@@ -316,6 +343,10 @@ def main() -> int:
         f"throughput batch / one process      : {serial.wall / batch.wall:.2f}x wall, "
         f"{2 * serial.cpu / batch.cpu:.2f}x CPU-normalised (2 x serial CPU / batch CPU)"
     )
+    print(
+        f"throughput {args.workers} plain processes / one: {serial.wall / plain.wall:.2f}x wall, "
+        f"{2 * serial.cpu / plain.cpu:.2f}x CPU-normalised (the cores' own limit)"
+    )
     if loop is not None:
         print(
             f"throughput batch / shell loop       : {loop.wall / batch.wall:.2f}x wall, "
@@ -323,7 +354,8 @@ def main() -> int:
         )
     print(
         f"batch overhead (CPU) over one process: {batch.cpu - serial.cpu:+.1f} s "
-        f"({(batch.cpu - serial.cpu) / n:+.2f} s per sweep: cluster start, worker imports)"
+        f"({(batch.cpu - serial.cpu) / n:+.2f} s per sweep), of which side-by-side processes "
+        f"{plain.cpu - serial.cpu:+.1f} s and Dask {batch.cpu - plain.cpu:+.1f} s"
     )
 
     ok = [row for row in doc["rows"] if row["status"] == "ok"]
