@@ -86,10 +86,12 @@ def test_segment_writes_csv_and_refuses_stl(capsys, sim_small, tmp_path):
 
 def test_cli_and_slicer_module_build_the_same_parameters():
     # Both go through Logic.pipeline.params_with: same values, same refusals.
+    from dataclasses import asdict
+
     from BoneSurfaceReconstructionLib.parameters import parameters_from_widget_values
     from BoneUSRecon.cli.reconstruct import params_from_args
     from BoneUSRecon.Logic.errors import BoneUSReconError
-    from BoneUSRecon.Logic.pipeline import params_to_dict, params_with
+    from BoneUSRecon.Logic.pipeline import params_with
 
     args = build_parser().parse_args(
         ["reconstruct", "s.mha", "-o", "b.vtp", "--segmenter", "snake", "--degree", "3", "1",
@@ -100,10 +102,10 @@ def test_cli_and_slicer_module_build_the_same_parameters():
         {"segmenter": "snake", "degreeU": 3, "degreeV": 1, "controlPointsU": 10,
          "controlPointsV": 4, "rays": 21}
     )
-    assert params_to_dict(cli) == params_to_dict(module)
+    assert asdict(cli) == asdict(module)
     assert (cli.segmentation.method, cli.fit.degree, cli.fit.n_control_points, cli.resampling.n_rays) == (
         "snake", (3, 1), (10, 4), 21)
-    assert params_to_dict(params_with()) != params_to_dict(cli)
+    assert asdict(params_with()) != asdict(cli)
     for kw, match in [({"segmenter": "magic"}, "unknown segmenter 'magic'"),
                       ({"n_control_points": (3, 5), "degree": (3, 2)}, "too few"),
                       ({"rays": 0}, "at least 2 rays")]:

@@ -391,8 +391,9 @@ def fingerprint(job: BatchJob, *, with_report: bool = False) -> str:
     str
         Hex SHA-256.
     """
+    from dataclasses import asdict
+
     from BoneUSRecon import __version__
-    from BoneUSRecon.Logic.pipeline import params_to_dict
 
     inputs = {k: _file_identity(p) for k, p in job.inputs().items()}
     if job.sweep.suffix.lower() == ".mhd":
@@ -402,7 +403,7 @@ def fingerprint(job: BatchJob, *, with_report: bool = False) -> str:
                 inputs[f"sweep{ext}"] = _file_identity(data)
     doc = {
         "version": __version__,
-        "params": params_to_dict(job.params),
+        "params": asdict(job.params),
         "transform": job.transform,
         "report": bool(with_report),
         "inputs": inputs,
@@ -545,8 +546,10 @@ def run_sweep(
         ``failed`` with ``error`` the one-line reason. Only an interrupt or a
         cancelled batch raises.
     """
+    from dataclasses import asdict
+
     from BoneUSRecon.Logic.evaluation import evaluate_surface
-    from BoneUSRecon.Logic.pipeline import params_to_dict, reconstruct
+    from BoneUSRecon.Logic.pipeline import reconstruct
     from BoneUSRecon.Logic.sequence_io import read_sweep
     from BoneUSRecon.Logic.vtkio import read_points, write_points, write_polydata
 
@@ -584,7 +587,7 @@ def run_sweep(
                     tmp / REPORT_DIR,
                     read_points(job.gold) if job.gold is not None else None,
                     evaluation,
-                    params_to_dict(job.params),
+                    asdict(job.params),
                 )
             t_write = time.perf_counter() - t0
             row.update(_ok_fields(recon, evaluation))
@@ -602,7 +605,7 @@ def run_sweep(
                 summary=recon.summary,
                 timings_s={**t, "read": t_read, "write": t_write},
                 evaluation=evaluation.as_dict() if evaluation is not None else None,
-                parameters=params_to_dict(job.params),
+                parameters=asdict(job.params),
             )
         except (_Cancelled, KeyboardInterrupt):
             raise

@@ -41,7 +41,6 @@ __all__ = [
     "surface_from_contours",
     "reconstruction_from_segmentation",
     "control_point_table",
-    "params_to_dict",
     "params_with",
 ]
 
@@ -102,11 +101,6 @@ class Reconstruction:
     summary: dict[str, Any]
     timings: dict[str, float]
     params: ReconstructionParams
-
-
-def params_to_dict(params: Any) -> dict[str, Any]:
-    """A (nested) parameter dataclass as a JSON-ready dict."""
-    return dataclasses.asdict(params)
 
 
 def params_with(

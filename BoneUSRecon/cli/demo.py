@@ -217,11 +217,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _write_report(recon: Any, report_dir: Path, sim: Any, gold: Any, evaluation: Any,
                   table: Any, sim_params: Any, params: Any, bar: Any) -> Path:
-    from BoneUSRecon.Logic.pipeline import params_to_dict
+    from dataclasses import asdict
+
     from BoneUSRecon.Widgets.report import write_report
 
-    parameters = {"simulation": params_to_dict(sim_params),
-                  "reconstruction": params_to_dict(params)}
+    parameters = {"simulation": asdict(sim_params),
+                  "reconstruction": asdict(params)}
     return write_report(recon, report_dir, gold=gold, evaluation=evaluation, table=table,
                         parameters=parameters, progress=bar, truth_px=sim.true_contours_px,
                         simulated=True,

@@ -109,9 +109,11 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Reconstruct and write the surface (and points, report); print the summary."""
+    from dataclasses import asdict
+
     from BoneUSRecon.Logic.evaluation import evaluate_surface
     from BoneUSRecon.Logic.fileio import check_output_path
-    from BoneUSRecon.Logic.pipeline import params_to_dict, reconstruct
+    from BoneUSRecon.Logic.pipeline import reconstruct
     from BoneUSRecon.Logic.vtkio import (
         POINT_OUT_EXTENSIONS,
         SURFACE_EXTENSIONS,
@@ -161,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
 
             report_index = write_report(
                 recon, report_dir, gold=gold, evaluation=evaluation,
-                parameters=params_to_dict(params), progress=bar,
+                parameters=asdict(params), progress=bar,
             )
 
     s = recon.summary
