@@ -486,13 +486,8 @@ def sweep_to_scene(
     for n_k, (k, value) in enumerate(zip(idx, values, strict=True)):
         vol = scene.CreateNodeByClass("vtkMRMLScalarVolumeNode")
         vol.SetName(f"{name}-Image_{int(k):04d}")
-        img = vtkImageData()
-        img.SetDimensions(sweep.width, sweep.height, 1)
-        arr = numpy_support.numpy_to_vtk(
-            np.ascontiguousarray(sweep.frames[k]).reshape(-1), deep=True
-        )
-        arr.SetName("ImageScalars")
-        img.GetPointData().SetScalars(arr)
+        img = sweep.frame_image(int(k))
+        img.GetPointData().GetScalars().SetName("ImageScalars")  # Slicer's volume name
         vol.SetAndObserveImageData(img)  # spacing 1, origin 0, identity directions
         iseq.SetDataNodeAtValue(vol, value)
         vol.UnRegister(None)  # the sequence holds its own copy
