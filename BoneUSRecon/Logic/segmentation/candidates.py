@@ -136,19 +136,23 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     cand = np.empty((n + 1, h))
     shifts = cand[:n]
     from_null = cand[n]
-    cost = shift_cost[:, None]
+    # The cost laid out as (shift, row): a ufunc with a broadcast (n, 1) operand, or with
+    # the self-overlapping window as operand (numpy copies it first), costs 2-3x more
+    # per call than a copy then an in-place subtract of same-shape arrays.
+    cost = np.repeat(np.asarray(shift_cost, dtype=float)[:, None], h, axis=1)
     best = np.empty(h)
     null = 0.0
-    for c in range(1, w):
-        prev, cur = inner[c - 1], inner[c]
-        np.subtract(win[c - 1], cost, out=shifts)
+    subtract, reduce_max = np.subtract, np.maximum.reduce
+    for c, wprev, prev, cur in zip(range(1, w), win, inner, inner[1:]):
+        shifts[...] = wprev
+        subtract(shifts, cost, out=shifts)
         from_null.fill(null - switch)
         null_before[c] = null
         jb = int(prev.argmax())
         if prev[jb] - switch > null:
             null = prev[jb] - switch
             null_back[c] = jb
-        np.maximum.reduce(cand, axis=0, out=best)  # the ufunc itself: no wrapper per call
+        reduce_max(cand, axis=0, out=best)  # the ufunc itself: no wrapper per call
         cur += best
     path = np.full(w, -1, dtype=np.intp)
     last = score[w - 1, d : d + h]
