@@ -56,7 +56,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 
-from BoneUSRecon.Logic.segmentation.features import column_window_mean, mm_to_px
+from BoneUSRecon.Logic.segmentation.features import column_window_mean, median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["EvidenceMaps", "working_image", "field_of_view", "tissue_level", "bone_evidence"]
@@ -205,8 +205,8 @@ def _robust_z(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     v = x[valid][::3]
     if v.size < 10:
         return np.zeros_like(x)
-    med = float(np.median(v))
-    mad = float(np.median(np.abs(v - med))) * 1.4826
+    med = median1d(v)
+    mad = median1d(np.abs(v - med)) * 1.4826
     return (x - np.float32(med)) / np.float32(max(mad, 1e-3))
 
 
@@ -276,16 +276,27 @@ def bone_evidence(
     t_cov = column_window_mean(esum, cov_top, top - cov_a)
     t_mid = t_echo[:, None]
 
-    log_e = np.log((m_mid + _EPS) / (np.maximum(m_up, t_mid) + _EPS))
+    # In place where an operand is not needed again (the same operations in the same
+    # dtype as the plain expressions: the same values, fewer temporaries).
     if p.phase_symmetry:
         log_e = phase_symmetry_depth(work, dy, p.phase_wavelengths_mm) * np.float32(m_mid > t_mid)
-    log_s = np.log((t_far + _EPS) / (m_far + _EPS))
+    else:
+        den = np.maximum(m_up, t_mid, out=m_up)
+        den += _EPS
+        log_e = m_mid + _EPS
+        log_e /= den
+        np.log(log_e, out=log_e)
+    m_far += _EPS
+    log_s = np.divide(t_far + _EPS, m_far, out=m_far)
+    np.log(log_s, out=log_s)
     if p.near_shadow:
         # The shadow starts right under the surface: the near window localises it (a
         # line mm above the bone has tissue, then the shadow, beneath it).
         m_sh = column_window_mean(csum, bot + gap, bot + near)
         t_sh = column_window_mean(tsum, bot + gap, bot + near)
-        log_s = np.minimum(log_s, np.log((t_sh + _EPS) / (m_sh + _EPS)))
+        m_sh += _EPS
+        np.divide(t_sh + _EPS, m_sh, out=m_sh)
+        np.minimum(log_s, np.log(m_sh, out=m_sh), out=log_s)
 
     # Where the score may be: shadow windows mostly inside the image, a region above
     # inside the image and below the near field (gel, skin line, lens reverberation).
@@ -305,15 +316,19 @@ def bone_evidence(
     # Shadow gate: 0 where the region below is brighter than the tissue at its depth
     # (tissue, not shadow, under a fascia), 1 where it is clearly darker.
     lo, hi = np.float32(p.shadow_z_zero), np.float32(p.shadow_z_full)
-    gate = np.clip((shadow_z - lo) / (hi - lo), 0, 1)
-    score = np.maximum(echo_z, 0) * gate
+    gate = shadow_z - lo
+    gate /= hi - lo
+    np.clip(gate, 0, 1, out=gate)
+    score = np.maximum(echo_z, 0)
+    score *= gate
     score *= valid & covered
     np.minimum(score, np.float32(p.max_z), out=score)
     sub = work[nf::2][:, usable][:, ::2]
     # Plain tissue against the level beside: the per-row median ratio of the rows
     # that are mostly tissue (the upper quartile of rows: shadow and bone fill the
     # others' medians with dark).
-    base = np.log(sub + _EPS) - np.log(t_shadow[nf::2, None] + _EPS)
+    base = np.log(sub + _EPS, out=sub)
+    base -= np.log(t_shadow[nf::2, None] + _EPS)
     base = float(np.percentile(np.median(base, axis=1), 75)) if base.size else 0.0
     return EvidenceMaps(
         work,
@@ -326,7 +341,7 @@ def bone_evidence(
         tissue,
         echo_z,
         shadow_z,
-        score.astype(np.float32),
+        score.astype(np.float32, copy=False),
         t_shadow,
         base,
     )
