@@ -142,18 +142,26 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     cost = np.repeat(np.asarray(shift_cost, dtype=float)[:, None], h, axis=1)
     best = np.empty(h)
     null = 0.0
+    from_null.fill(null - switch)  # refilled only when the no-bone score changes
+    free = bool((shift_cost >= 0).all())  # no shift scores above its source row
     subtract, reduce_max = np.subtract, np.maximum.reduce
     for c, wprev, prev, cur in zip(range(1, w), win, inner, inner[1:]):
-        shifts[...] = wprev
-        subtract(shifts, cost, out=shifts)
-        from_null.fill(null - switch)
         null_before[c] = null
         jb = int(prev.argmax())
-        if prev[jb] - switch > null:
-            null = prev[jb] - switch
-            null_back[c] = jb
+        top = prev.item(jb)
+        if top < null - switch and free:
+            # Every shift scores below leaving no-bone (costs are >= 0): the best
+            # predecessor of every row is the no-bone state, exactly.
+            cur += null - switch
+            continue
+        shifts[...] = wprev
+        subtract(shifts, cost, out=shifts)
         reduce_max(cand, axis=0, out=best)  # the ufunc itself: no wrapper per call
         cur += best
+        if top - switch > null:
+            null = top - switch
+            null_back[c] = jb
+            from_null.fill(null - switch)
     path = np.full(w, -1, dtype=np.intp)
     last = score[w - 1, d : d + h]
     jb = int(last.argmax())
