@@ -145,7 +145,7 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     from_null.fill(null - switch)  # refilled only when the no-bone score changes
     free = bool((shift_cost >= 0).all())  # no shift scores above its source row
     subtract, reduce_max = np.subtract, np.maximum.reduce
-    for c, wprev, prev, cur in zip(range(1, w), win, inner, inner[1:]):
+    for c, wprev, prev, cur in zip(range(1, w), win[:-1], inner[:-1], inner[1:], strict=True):
         null_before[c] = null
         jb = int(prev.argmax())
         top = prev.item(jb)
