@@ -202,6 +202,31 @@ def phase_symmetry_depth(
     return num / den
 
 
+def _window_mean(csum: np.ndarray, a_off: int, b_off: int) -> np.ndarray:
+    """``column_window_mean(csum, j + a_off, j + b_off)`` for rows ``j = 0 .. H-1``.
+
+    The same values, computed on row slices where neither end is clipped (no gathered
+    copies of the cumulative sum: the windows of bone_evidence are fixed offsets).
+    """
+    h = csum.shape[0] - 1
+    j = np.arange(h)
+    a = np.clip(j + a_off, 0, h)
+    b = np.clip(j + b_off, 0, h)
+    out = np.empty((h, csum.shape[1]), csum.dtype)
+    # Rows whose window ends both lie in 0..h: plain slices.
+    lo = max(0, -a_off, -b_off)
+    hi = min(h, h - a_off + 1, h - b_off + 1)
+    if hi > lo:
+        np.subtract(csum[lo + b_off : hi + b_off], csum[lo + a_off : hi + a_off], out=out[lo:hi])
+        edge = np.r_[0:lo, hi:h]
+    else:
+        edge = j
+    if edge.size:
+        out[edge] = csum[b[edge]] - csum[a[edge]]
+    out /= np.maximum(b - a, 1).astype(csum.dtype)[:, None]
+    return out
+
+
 def _robust_z(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """``x`` over 1.4826 x its median absolute deviation about the median (over ``valid``)."""
     # Every 3rd valid pixel is plenty for a median (and 3x faster on the hot path).
@@ -268,13 +293,15 @@ def bone_evidence(
     esum = np.zeros((h + 1, 1), dtype=np.float32)
     np.cumsum(t_echo, out=esum[1:, 0])
     j = np.arange(h)
-    top = j - mid // 2
-    bot = top + mid
-    m_mid = column_window_mean(csum, top, bot)
-    m_up = column_window_mean(csum, top - up, top)
-    m_far = column_window_mean(csum, bot + gap, bot + far)
+    t0 = -(mid // 2)  # window offsets from the row: band top and bottom
+    b0 = t0 + mid
+    top = j + t0
+    bot = j + b0
+    m_mid = _window_mean(csum, t0, b0)
+    m_up = _window_mean(csum, t0 - up, t0)
+    m_far = _window_mean(csum, b0 + gap, b0 + far)
     cov_top = top - cov_b
-    m_cov = column_window_mean(csum, cov_top, top - cov_a)
+    m_cov = _window_mean(csum, t0 - cov_b, t0 - cov_a)
     t_far = column_window_mean(tsum, bot + gap, bot + far)
     t_cov = column_window_mean(esum, cov_top, top - cov_a)
     t_mid = t_echo[:, None]
@@ -295,7 +322,7 @@ def bone_evidence(
     if p.near_shadow:
         # The shadow starts right under the surface: the near window localises it (a
         # line mm above the bone has tissue, then the shadow, beneath it).
-        m_sh = column_window_mean(csum, bot + gap, bot + near)
+        m_sh = _window_mean(csum, b0 + gap, b0 + near)
         t_sh = column_window_mean(tsum, bot + gap, bot + near)
         m_sh += _EPS
         np.divide(t_sh + _EPS, m_sh, out=m_sh)
