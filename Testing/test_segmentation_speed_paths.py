@@ -58,7 +58,7 @@ def test_optimal_path_matches_plain_loop() -> None:
     rng = np.random.default_rng(3)
     steps = np.arange(-3, 4)
     with_bone = 0
-    for trial in range(40):
+    for trial in range(300):
         h, w = int(rng.integers(3, 40)), int(rng.integers(2, 60))
         # Coarse values make ties; long negative stretches take the no-bone shortcut.
         gain = np.round(rng.normal(-0.4, 1.0, (h, w)) * 4) / 4
@@ -70,7 +70,7 @@ def test_optimal_path_matches_plain_loop() -> None:
         plain = _plain_optimal_path(gain.copy(), cost, switch)
         assert np.array_equal(fast, plain), trial
         with_bone += bool((fast >= 0).any() and (fast < 0).any())
-    assert with_bone >= 10  # the trials exercise paths that enter and leave bone
+    assert with_bone >= 100  # the trials exercise paths that enter and leave bone
 
 
 def test_window_mean_matches_gathered_rows() -> None:
