@@ -166,16 +166,20 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     last = score[w - 1, d : d + h]
     jb = int(last.argmax())
     state = jb if last[jb] > null else -1
+    # Python scalars for the per-column lookups (same values: one elementwise subtract).
+    leave = (null_before - switch).tolist()
+    back = null_back.tolist()
+    v = np.empty(n)
     for c in range(w - 1, -1, -1):
         path[c] = state
         if c == 0:
             break
         if state >= 0:
-            v = score[c - 1, state : state + n] - shift_cost
+            np.subtract(score[c - 1, state : state + n], shift_cost, out=v)
             k = int(v.argmax())
-            state = -1 if null_before[c] - switch > v[k] else state + k - d
+            state = -1 if leave[c] > v.item(k) else state + k - d
         else:
-            state = int(null_back[c])
+            state = back[c]
     return path
 
 
