@@ -130,7 +130,7 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     # win[c] = (shift, row) view of column c's padded scores; inner[c] = its unpadded scores.
     win = sliding_window_view(score, n, axis=1).transpose(0, 2, 1)
     inner = score[:, d : d + h]
-    null_before = np.zeros(w)
+    null_before = [0.0] * w  # Python floats: a list store per column is cheapest
     null_back = np.full(w, -1, dtype=np.intp)
     # cand[s] = previous column's score shifted by s - d, minus its cost; cand[n] = from no-bone.
     cand = np.empty((n + 1, h))
@@ -166,8 +166,8 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     last = score[w - 1, d : d + h]
     jb = int(last.argmax())
     state = jb if last[jb] > null else -1
-    # Python scalars for the per-column lookups (same values: one elementwise subtract).
-    leave = (null_before - switch).tolist()
+    # Python scalars for the per-column lookups (the same double arithmetic).
+    leave = [x - switch for x in null_before]
     back = null_back.tolist()
     v = np.empty(n)
     for c in range(w - 1, -1, -1):
