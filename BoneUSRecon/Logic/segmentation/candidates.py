@@ -130,40 +130,56 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     # win[c] = (shift, row) view of column c's padded scores; inner[c] = its unpadded scores.
     win = sliding_window_view(score, n, axis=1).transpose(0, 2, 1)
     inner = score[:, d : d + h]
-    null_before = np.zeros(w)
+    null_before = [0.0] * w  # Python floats: a list store per column is cheapest
     null_back = np.full(w, -1, dtype=np.intp)
     # cand[s] = previous column's score shifted by s - d, minus its cost; cand[n] = from no-bone.
     cand = np.empty((n + 1, h))
     shifts = cand[:n]
     from_null = cand[n]
-    cost = shift_cost[:, None]
+    # The cost laid out as (shift, row): a ufunc with a broadcast (n, 1) operand, or with
+    # the self-overlapping window as operand (numpy copies it first), costs 2-3x more
+    # per call than a copy then an in-place subtract of same-shape arrays.
+    cost = np.repeat(np.asarray(shift_cost, dtype=float)[:, None], h, axis=1)
     best = np.empty(h)
     null = 0.0
-    for c in range(1, w):
-        prev, cur = inner[c - 1], inner[c]
-        np.subtract(win[c - 1], cost, out=shifts)
-        from_null.fill(null - switch)
+    from_null.fill(null - switch)  # refilled only when the no-bone score changes
+    free = bool((shift_cost >= 0).all())  # no shift scores above its source row
+    subtract, reduce_max = np.subtract, np.maximum.reduce
+    for c, wprev, prev, cur in zip(range(1, w), win[:-1], inner[:-1], inner[1:], strict=True):
         null_before[c] = null
         jb = int(prev.argmax())
-        if prev[jb] - switch > null:
-            null = prev[jb] - switch
-            null_back[c] = jb
-        np.maximum.reduce(cand, axis=0, out=best)  # the ufunc itself: no wrapper per call
+        top = prev.item(jb)
+        if top < null - switch and free:
+            # Every shift scores below leaving no-bone (costs are >= 0): the best
+            # predecessor of every row is the no-bone state, exactly.
+            cur += null - switch
+            continue
+        shifts[...] = wprev
+        subtract(shifts, cost, out=shifts)
+        reduce_max(cand, axis=0, out=best)  # the ufunc itself: no wrapper per call
         cur += best
+        if top - switch > null:
+            null = top - switch
+            null_back[c] = jb
+            from_null.fill(null - switch)
     path = np.full(w, -1, dtype=np.intp)
     last = score[w - 1, d : d + h]
     jb = int(last.argmax())
     state = jb if last[jb] > null else -1
+    # Python scalars for the per-column lookups (the same double arithmetic).
+    leave = [x - switch for x in null_before]
+    back = null_back.tolist()
+    v = np.empty(n)
     for c in range(w - 1, -1, -1):
         path[c] = state
         if c == 0:
             break
         if state >= 0:
-            v = score[c - 1, state : state + n] - shift_cost
+            np.subtract(score[c - 1, state : state + n], shift_cost, out=v)
             k = int(v.argmax())
-            state = -1 if null_before[c] - switch > v[k] else state + k - d
+            state = -1 if leave[c] > v.item(k) else state + k - d
         else:
-            state = int(null_back[c])
+            state = back[c]
     return path
 
 
@@ -215,7 +231,13 @@ def _refine(
     j = rows[r, k] + np.clip(frac, -0.5, 0.5) + p.surface_offset_mm / sy
     # Lateral median over ~0.6 mm: removes single-column speckle jumps.
     size = max(1, int(round(0.6 / ev.dx)) | 1)
-    if size > 1 and j.size >= size:
+    if size == 3 and j.size >= 3:
+        # The usual size: the median of three is one of them, so min/max give exactly
+        # ``median_filter(j, 3, mode="nearest")`` without scipy's per-call cost.
+        pj = np.concatenate((j[:1], j, j[-1:]))
+        a, b, c = pj[:-2], pj[1:-1], pj[2:]
+        j = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+    elif size > 1 and j.size >= size:
         j = median_filter(j, size=size, mode="nearest")
     i = (cols + 0.5) * ev.fx - 0.5
     return np.column_stack([i, j])
@@ -706,7 +728,8 @@ def frame_candidates(
     if not ev.usable.any():
         return FrameCandidates((), sp, "no imaged field of view")
     h, w = ev.score.shape
-    gain = (ev.score - np.float32(p.null_z)) * np.float32(ev.dx)
+    gain = ev.score - np.float32(p.null_z)
+    gain *= np.float32(ev.dx)
     n_shift = max(1, int(np.ceil(p.max_slope * ev.dx / ev.dy)))
     steps = np.arange(-n_shift, n_shift + 1)
     shift_cost = p.slope_penalty * (steps * ev.dy / ev.dx) ** 2 * ev.dx
@@ -715,9 +738,10 @@ def frame_candidates(
     found: list[dict] = []
     for _ in range(p.n_passes):
         pos = gain > 0
-        if not pos.any():
+        pos_rows = pos.any(axis=1)
+        if not pos_rows.any():
             break
-        rr = np.flatnonzero(pos.any(axis=1))
+        rr = np.flatnonzero(pos_rows)
         cc = np.flatnonzero(pos.any(axis=0))
         # Only the box holding positive gains matters (3-5x less work on typical frames).
         r0, r1 = max(0, rr[0] - 2 * n_shift), min(h, rr[-1] + 1 + 2 * n_shift)

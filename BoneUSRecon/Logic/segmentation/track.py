@@ -97,12 +97,20 @@ def _in_plane_deviation(a: np.ndarray, b_mm: np.ndarray) -> tuple[float, float, 
     ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
     bx, by = b_mm[:, 0], b_mm[:, 1]
     lo, hi = ax.min() - 1.0, ax.max() + 1.0
-    overlap = max(0.0, min(hi, bx.max()) - max(lo, bx.min()))
-    share = overlap / max(min(hi - lo, float(np.ptp(bx)) + 2.0), 1e-6)
-    inside = (bx >= lo) & (bx <= hi)
-    if not inside.any():
-        return np.inf, 0.0, median1d(az)
-    d2 = (bx[inside, None] - ax[None, :]) ** 2 + (by[inside, None] - ay[None, :]) ** 2
+    bx_min, bx_max = bx.min(), bx.max()
+    overlap = max(0.0, min(hi, bx_max) - max(lo, bx_min))
+    share = overlap / max(min(hi - lo, float(bx_max - bx_min) + 2.0), 1e-6)
+    if bx_min < lo or bx_max > hi:
+        inside = (bx >= lo) & (bx <= hi)
+        if not inside.any():
+            return np.inf, 0.0, median1d(az)
+        bx, by = bx[inside], by[inside]
+    # Squared distances built in place (the same operations as the plain expression).
+    d2 = np.subtract.outer(bx, ax)
+    d2 *= d2
+    dy = np.subtract.outer(by, ay)
+    dy *= dy
+    d2 += dy
     near = d2.argmin(axis=1)
     d = np.sqrt(d2[np.arange(near.size), near])
     return median1d(d), share, median1d(az[near])

@@ -1,0 +1,98 @@
+"""The fast code paths of the segmenter give exactly what the plain ones give.
+
+The speed-ups of branch ``segspeed`` (optimal path column loop, window means on row
+slices, median of three) must not change a single candidate: each is compared here,
+value for value, with the straightforward computation it replaces, on inputs built
+to hit its edge cases (ties, clipped windows, long no-bone stretches).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from scipy.ndimage import median_filter
+
+from BoneUSRecon.Logic.segmentation.candidates import _optimal_path
+from BoneUSRecon.Logic.segmentation.evidence import _window_mean
+from BoneUSRecon.Logic.segmentation.features import column_window_mean
+
+
+def _plain_optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np.ndarray:
+    """The optimal path as it was computed before the speed-up (every column in full)."""
+    h, w = gain.shape
+    n = shift_cost.size
+    d = n // 2
+    score = np.full((w, h + 2 * d), -np.inf)
+    score[:, d : d + h] = gain.T
+    win = sliding_window_view(score, n, axis=1).transpose(0, 2, 1)
+    null_before = np.zeros(w)
+    null_back = np.full(w, -1, dtype=np.intp)
+    null = 0.0
+    for c in range(1, w):
+        prev = score[c - 1, d : d + h]
+        cand = np.vstack([win[c - 1] - shift_cost[:, None], np.full((1, h), null - switch)])
+        null_before[c] = null
+        jb = int(prev.argmax())
+        if prev[jb] - switch > null:
+            null = prev[jb] - switch
+            null_back[c] = jb
+        score[c, d : d + h] += cand.max(axis=0)
+    path = np.full(w, -1, dtype=np.intp)
+    last = score[w - 1, d : d + h]
+    jb = int(last.argmax())
+    state = jb if last[jb] > null else -1
+    for c in range(w - 1, -1, -1):
+        path[c] = state
+        if c == 0:
+            break
+        if state >= 0:
+            v = score[c - 1, state : state + n] - shift_cost
+            k = int(v.argmax())
+            state = -1 if null_before[c] - switch > v[k] else state + k - d
+        else:
+            state = int(null_back[c])
+    return path
+
+
+def test_optimal_path_matches_plain_loop() -> None:
+    rng = np.random.default_rng(3)
+    steps = np.arange(-3, 4)
+    with_bone = 0
+    for trial in range(300):
+        h, w = int(rng.integers(3, 40)), int(rng.integers(2, 60))
+        # Coarse values make ties; long negative stretches take the no-bone shortcut.
+        gain = np.round(rng.normal(-0.4, 1.0, (h, w)) * 4) / 4
+        gain[:, rng.random(w) < 0.4] = -1.0
+        gain = gain.astype(np.float32)
+        cost = 0.05 * (steps * rng.uniform(0.5, 2.0)) ** 2 * 0.3
+        switch = float(rng.choice([0.5, 1.0, 2.0]))
+        fast = _optimal_path(gain.copy(), cost, switch)
+        plain = _plain_optimal_path(gain.copy(), cost, switch)
+        assert np.array_equal(fast, plain), trial
+        with_bone += bool((fast >= 0).any() and (fast < 0).any())
+    assert with_bone >= 100  # the trials exercise paths that enter and leave bone
+
+
+def test_window_mean_matches_gathered_rows() -> None:
+    rng = np.random.default_rng(4)
+    for h in (1, 4, 23):
+        x = rng.random((h, 5)).astype(np.float32)
+        csum = np.zeros((h + 1, 5), np.float32)
+        np.cumsum(x, axis=0, out=csum[1:])
+        j = np.arange(h)
+        for a in range(-h - 2, h + 3):
+            for b in range(-h - 2, h + 3):
+                assert np.array_equal(
+                    _window_mean(csum, a, b), column_window_mean(csum, j + a, j + b)
+                ), (h, a, b)
+
+
+def test_median_of_three_is_median_filter() -> None:
+    # The formula used by candidates._refine for the usual 3-column lateral median.
+    rng = np.random.default_rng(5)
+    for n in (3, 4, 9, 200):
+        j = np.round(rng.normal(0, 3, n))  # repeated values
+        pj = np.concatenate((j[:1], j, j[-1:]))
+        a, b, c = pj[:-2], pj[1:-1], pj[2:]
+        m = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+        assert np.array_equal(m, median_filter(j, size=3, mode="nearest"))
