@@ -16,9 +16,10 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   along the sweep (out of plane). It is a distance to a contour, not a depth at a
   column, so a steep flank that slides sideways between frames is no jump. Contours
   farther apart than ``max_deviation`` tolerances, or not overlapping, are not linked;
-  nor is a contour lying wholly a step (``max_step_mm``) under or over the other: the
-  tolerance's growth along the sweep is for a surface inclined to it, while a contour
-  a step under the bone's is its far cortex or a reverberation band in its shadow;
+  nor is a contour lying wholly a step (``max_step_mm + step_per_mm * z``) under or
+  over the other: the tolerance's growth along the sweep is for a surface inclined to
+  it (its flanks sliding sideways), while a whole contour a step under the bone's is
+  its far cortex or a reverberation band in its shadow;
 * each skipped frame costs ``miss_cost``.
 
 One decision over the whole sweep: no prior chained from an earlier frame, no rounds
@@ -213,7 +214,9 @@ def _links(
         ):
             continue
         d, share, z = _in_plane_deviation(a, b)
-        if share < p.min_overlap_share or not np.isfinite(d) or _stepped(a, b, p.max_step_mm):
+        if share < p.min_overlap_share or not np.isfinite(d):
+            continue
+        if _stepped(a, b, p.max_step_mm + p.step_per_mm * z):
             continue
         tol = p.tolerance_mm + p.tolerance_per_mm * z
         if d > p.max_deviation * tol:
