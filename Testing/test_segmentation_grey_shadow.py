@@ -157,3 +157,27 @@ def test_small_bone_far_cortex_under_its_bands_is_not_the_track(sim_factory):
     assert s["wrong_share"] <= 0.15
     assert s["recall"] >= 0.4
     assert s["median_mm"] <= 0.3
+
+
+def test_small_bone_series_top_and_no_step_onto_the_far_cortex(sim_factory):
+    """The clavicle under the grey shadow (seed 5, the bench's sweep: 40 frames 4.5 mm
+    apart). A series' top with no piece above the null level keeps its most echoing
+    piece, not its shortest; and the track does not step 7 mm down onto the far cortex
+    over a 4-frame skip link (18 mm), which the out-of-plane tolerance (1 + 0.4 x 18 mm)
+    alone allowed (``max_step_mm`` + ``step_per_mm`` x 18 = 5.8 mm; without it: recall 0.47, 30 % of frames on the far cortex;
+    with it 0.62, none; before both 0.57, none)."""
+    from dataclasses import replace
+
+    from BoneUSRecon.Logic.segmentation import SegmentationParams
+
+    sim = sim_factory(
+        bone="clavicle", seed=5, n_frames=40, realism="hard", hard_conditions=("grey_shadow",)
+    )
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["wrong_share"] <= 0.02
+    assert s["recall"] >= 0.6
+    assert s["median_mm"] <= 0.3
+    p = SegmentationParams()
+    loose = replace(p, rejection=replace(p.rejection, max_step_mm=1e6))  # the rule off
+    s = score_simulation(segment_sweep(sim.sweep, loose), sim).summary()
+    assert s["wrong_share"] >= 0.2  # the rule is what keeps it off the far cortex

@@ -781,13 +781,16 @@ def frame_candidates(
     for c in found:
         pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
         # Of the contour's convex pieces, the one with the most evidence is the candidate.
-        best = None
+        pieces = []
         for m in _convex_pieces(pts, sp, p, min_cols):
             cols, rows = c["cols"][m], c["rows"][m]
-            strength = float((ev.score[rows, cols] - p.null_z).sum() * ev.dx)
-            if best is None or strength > best[0]:
-                best = (strength, m, cols, rows)
-        assert best is not None  # the piece around the apex is always offered
+            pieces.append((float((ev.score[rows, cols] - p.null_z).sum() * ev.dx), m, cols, rows))
+        best = max(pieces, key=lambda q: q[0])  # the piece around the apex is always offered
+        if c.get("series_top") and best[0] <= 0:
+            # A series' top with no piece above the null level (its shadow is its
+            # copies' band): the least negative piece is merely the shortest; the
+            # reflector is the piece that echoes most (its evidence is the series').
+            best = max(pieces, key=lambda q: median1d(ev.echo_z[q[3], q[2]]))
         strength, m, cols, rows = best
         # A reverberation series' top carries the evidence of its copies.
         strength = max(strength, c.get("inherit", -np.inf))

@@ -16,6 +16,10 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   along the sweep (out of plane). It is a distance to a contour, not a depth at a
   column, so a steep flank that slides sideways between frames is no jump. Contours
   farther apart than ``max_deviation`` tolerances, or not overlapping, are not linked;
+  nor is a contour lying wholly a step (``max_step_mm + step_per_mm * z``) under or
+  over the other: the tolerance's growth along the sweep is for a surface inclined to
+  it (its flanks sliding sideways), while a whole contour a step under the bone's is
+  its far cortex or a reverberation band in its shadow;
 * each skipped frame costs ``miss_cost``.
 
 One decision over the whole sweep: no prior chained from an earlier frame, no rounds
@@ -116,6 +120,24 @@ def _in_plane_deviation(a: np.ndarray, b_mm: np.ndarray) -> tuple[float, float, 
     return median1d(d), share, median1d(az[near])
 
 
+def _stepped(a: np.ndarray, b_mm: np.ndarray, max_step_mm: float) -> bool:
+    """Whether contour b lies wholly under (or over) a, by more than ``max_step_mm``.
+
+    ``a``, ``b_mm`` as in :func:`_in_plane_deviation`. Over their common columns, the
+    depth of b less a's depth at the same lateral position: b is stepped when nine in
+    ten of these have one sign and their median exceeds ``max_step_mm``.
+    """
+    lo, hi = a[:, 0].min(), a[:, 0].max()
+    bi = b_mm[(b_mm[:, 0] >= lo) & (b_mm[:, 0] <= hi)]
+    if bi.shape[0] == 0:
+        return False
+    o = np.argsort(a[:, 0])
+    step = bi[:, 1] - np.interp(bi[:, 0], a[o, 0], a[o, 1])
+    return bool(
+        abs(median1d(step)) > max_step_mm and max((step > 0).mean(), (step < 0).mean()) >= 0.9
+    )
+
+
 def _deviation(
     a_ref: np.ndarray, b_px: np.ndarray, b_pose: np.ndarray, b_spacing: tuple[float, float]
 ) -> tuple[float, float, float]:
@@ -201,6 +223,8 @@ def _links(
             continue
         d, share, z = _in_plane_deviation(a, b)
         if share < p.min_overlap_share or not np.isfinite(d):
+            continue
+        if _stepped(a, b, p.max_step_mm + p.step_per_mm * z):
             continue
         tol = p.tolerance_mm + p.tolerance_per_mm * z
         if d > p.max_deviation * tol:
