@@ -93,6 +93,7 @@ def _registerSampleData() -> None:
 # BoneSurfaceReconstructionParameterNode
 #
 
+
 @parameterNodeWrapper
 class BoneSurfaceReconstructionParameterNode:
     """The module's parameters, saved with the scene.
@@ -116,8 +117,12 @@ class BoneSurfaceReconstructionParameterNode:
     transformSequence: vtkMRMLSequenceNode
     calibrationFile: pathlib.Path
     segmenter: Annotated[str, Choice(list(_SEGMENTERS))] = _SEGMENTERS[0]
-    controlPointsU: Annotated[int, WithinRange(*_RANGE["controlPointsU"])] = _DEFAULT["controlPointsU"]
-    controlPointsV: Annotated[int, WithinRange(*_RANGE["controlPointsV"])] = _DEFAULT["controlPointsV"]
+    controlPointsU: Annotated[int, WithinRange(*_RANGE["controlPointsU"])] = _DEFAULT[
+        "controlPointsU"
+    ]
+    controlPointsV: Annotated[int, WithinRange(*_RANGE["controlPointsV"])] = _DEFAULT[
+        "controlPointsV"
+    ]
     degreeU: Annotated[int, WithinRange(*_RANGE["degreeU"])] = _DEFAULT["degreeU"]
     degreeV: Annotated[int, WithinRange(*_RANGE["degreeV"])] = _DEFAULT["degreeV"]
     rays: Annotated[int, WithinRange(*_RANGE["rays"])] = _DEFAULT["rays"]
@@ -181,7 +186,9 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
         if self._parameterNode:
             self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
             self._parameterNodeGuiTag = None
-            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+            self.removeObserver(
+                self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply
+            )
 
     def onSceneStartClose(self, caller, event) -> None:
         self.setParameterNode(None)
@@ -198,10 +205,15 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
             if browser:
                 self._parameterNode.inputNode = browser
 
-    def setParameterNode(self, inputParameterNode: Optional[BoneSurfaceReconstructionParameterNode]) -> None:  # noqa: UP045 (Python 3.9)
+    def setParameterNode(
+        self,
+        inputParameterNode: Optional[BoneSurfaceReconstructionParameterNode],  # noqa: UP045 (Python 3.9)
+    ) -> None:
         if self._parameterNode:
             self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
-            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+            self.removeObserver(
+                self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply
+            )
         self._parameterNode = inputParameterNode
         if self._parameterNode:
             self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
@@ -213,12 +225,16 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
             self.ui.applyButton.toolTip = _("Reconstruct the bone surface")
             self.ui.applyButton.enabled = True
         else:
-            self.ui.applyButton.toolTip = _("Select an input sweep (sequence browser or volume sequence)")
+            self.ui.applyButton.toolTip = _(
+                "Select an input sweep (sequence browser or volume sequence)"
+            )
             self.ui.applyButton.enabled = False
 
     def onApplyButton(self) -> None:
         """Install missing packages (once, if the user agrees), then run the logic."""
-        with slicer.util.tryWithErrorDisplay(_("Failed to reconstruct the bone surface."), waitCursor=True):
+        with slicer.util.tryWithErrorDisplay(
+            _("Failed to reconstruct the bone surface."), waitCursor=True
+        ):
             dependencies.installRequirements(confirm=slicer.util.confirmOkCancelDisplay)
             dialog = slicer.util.createProgressDialog(
                 labelText=_("Reconstructing the bone surface..."), maximum=100
@@ -373,7 +389,9 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
             return None
         finally:
             self._cancelRequested = False
-        logging.info(f"Bone surface reconstruction completed in {time.time() - startTime:.2f} seconds")
+        logging.info(
+            f"Bone surface reconstruction completed in {time.time() - startTime:.2f} seconds"
+        )
         if targetModel:
             import dataclasses
 
@@ -484,13 +502,17 @@ class BoneSurfaceReconstructionTest(ScriptedLoadableModuleTest):
         """Reconstruct a simulated sweep through the scene; check the surface against the truth."""
         from BoneSurfaceReconstructionLib import selftest
 
-        dependencies.installRequirements(confirm=None if slicer.app.testingEnabled() else slicer.util.confirmOkCancelDisplay)
+        dependencies.installRequirements(
+            confirm=None if slicer.app.testingEnabled() else slicer.util.confirmOkCancelDisplay
+        )
         self.delayDisplay("Simulating a clavicle sweep and reconstructing it")
         result = selftest.runSelfTest(slicer.mrmlScene)
         logging.info(f"Self-test: {result}")
         self.assertEqual(result.failures(), [])
         self.assertGreater(result.nodes.surface_node.GetPolyData().GetNumberOfCells(), 0)
-        self.assertEqual(result.nodes.surface_node.GetDisplayNode().GetActiveScalarName(), "Distance")
+        self.assertEqual(
+            result.nodes.surface_node.GetDisplayNode().GetActiveScalarName(), "Distance"
+        )
         self.delayDisplay(
             f"Surface to truth {result.surface_to_truth_mean_mm:.2f} mm (mean), "
             f"gold to surface {result.gold_to_surface_mean_mm:.2f} mm: passed"

@@ -63,8 +63,12 @@ def simulatedSweep(
 
     return simulate(
         SimulationParams(
-            bone="clavicle", n_frames=n_frames, width=width, height=height,
-            spacing_mm=spacing_mm, seed=seed,
+            bone="clavicle",
+            n_frames=n_frames,
+            width=width,
+            height=height,
+            spacing_mm=spacing_mm,
+            seed=seed,
         )
     )
 

@@ -111,9 +111,13 @@ def test_simulate_help_defaults_match_the_simulator():
     d = SimulationParams()
     assert tuple(BONES) == tuple(BONE_SPECS)
     width, height = (int(v) for v in a.size.split("x"))  # --size WxH (issue 12)
-    assert {"n_frames": a.frames, "width": width, "height": height,
-            "spacing_mm": a.spacing, "seed": a.seed} == {
-        k: getattr(d, k) for k in ("n_frames", "width", "height", "spacing_mm", "seed")}
+    assert {
+        "n_frames": a.frames,
+        "width": width,
+        "height": height,
+        "spacing_mm": a.spacing,
+        "seed": a.seed,
+    } == {k: getattr(d, k) for k in ("n_frames", "width", "height", "spacing_mm", "seed")}
     with pytest.raises(SystemExit):
         parser.parse_args(["demo", "--bone", "femur"])
     assert parser.parse_args(["demo", "--bone", BONES[0]]).bone == BONES[0]
@@ -129,15 +133,31 @@ def test_shared_summary_rows():
         reconstruction_rows,
     )
 
-    s = {"segmented_frames": 30, "valid_frames": 38, "frames": 40, "rejected_frames": 8,
-         "fit_rejected_frames": [3, 9], "grid_shape": (30, 15), "grid_coverage": 0.987}
+    s = {
+        "segmented_frames": 30,
+        "valid_frames": 38,
+        "frames": 40,
+        "rejected_frames": 8,
+        "fit_rejected_frames": [3, 9],
+        "grid_shape": (30, 15),
+        "grid_coverage": 0.987,
+    }
     assert reconstruction_rows(s) == [
         ("frames used", "30 of 38 valid (40 in file)"),
         ("frames rejected", "8 by segmentation, 2 by the robust fit"),
         ("grid", "30 slices x 15 rays, 98.7% covered"),
     ]
-    ev = SimpleNamespace(n=5, mean=1.25, rms=1.5, median=1.0, p95=2.5, max=3.0,
-                         within_0_5=0.2, within_1=0.4, within_2=0.8)
+    ev = SimpleNamespace(
+        n=5,
+        mean=1.25,
+        rms=1.5,
+        median=1.0,
+        p95=2.5,
+        max=3.0,
+        within_0_5=0.2,
+        within_1=0.4,
+        within_2=0.8,
+    )
     rows = dict(evaluation_rows(ev, " (paper)"))
     assert rows["distance mean/RMS"] == "1.250 / 1.500 mm (paper)"
     assert rows["within 0.5/1/2 mm"] == "20.0% / 40.0% / 80.0%"

@@ -94,20 +94,46 @@ def test_cli_and_slicer_module_build_the_same_parameters():
     from BoneUSRecon.Logic.pipeline import params_with
 
     args = build_parser().parse_args(
-        ["reconstruct", "s.mha", "-o", "b.vtp", "--segmenter", "snake", "--degree", "3", "1",
-         "--control-points", "10", "4", "--rays", "21"]
+        [
+            "reconstruct",
+            "s.mha",
+            "-o",
+            "b.vtp",
+            "--segmenter",
+            "snake",
+            "--degree",
+            "3",
+            "1",
+            "--control-points",
+            "10",
+            "4",
+            "--rays",
+            "21",
+        ]
     )
     cli = params_from_args(args)
     module = parameters_from_widget_values(
-        {"segmenter": "snake", "degreeU": 3, "degreeV": 1, "controlPointsU": 10,
-         "controlPointsV": 4, "rays": 21}
+        {
+            "segmenter": "snake",
+            "degreeU": 3,
+            "degreeV": 1,
+            "controlPointsU": 10,
+            "controlPointsV": 4,
+            "rays": 21,
+        }
     )
     assert asdict(cli) == asdict(module)
-    assert (cli.segmentation.method, cli.fit.degree, cli.fit.n_control_points, cli.resampling.n_rays) == (
-        "snake", (3, 1), (10, 4), 21)
+    assert (
+        cli.segmentation.method,
+        cli.fit.degree,
+        cli.fit.n_control_points,
+        cli.resampling.n_rays,
+    ) == ("snake", (3, 1), (10, 4), 21)
     assert asdict(params_with()) != asdict(cli)
-    for kw, match in [({"segmenter": "magic"}, "unknown segmenter 'magic'"),
-                      ({"n_control_points": (3, 5), "degree": (3, 2)}, "too few"),
-                      ({"rays": 0}, "at least 2 rays")]:
+    for kw, match in [
+        ({"segmenter": "magic"}, "unknown segmenter 'magic'"),
+        ({"n_control_points": (3, 5), "degree": (3, 2)}, "too few"),
+        ({"rays": 0}, "at least 2 rays"),
+    ]:
         with pytest.raises(BoneUSReconError, match=match):
             params_with(**kw)

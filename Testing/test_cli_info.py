@@ -54,7 +54,9 @@ def test_info_json_matches_the_sweep(tmp_path, capsys):
     assert info["duration_s"] == pytest.approx(0.75)
     centre = np.array([w / 2, h / 2, 0, 1])
     c = np.array([(m @ centre)[:3] for m in sweep.image_to_reference[valid]])
-    assert info["sweep_length_mm"] == pytest.approx(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
+    assert info["sweep_length_mm"] == pytest.approx(
+        np.linalg.norm(np.diff(c, axis=0), axis=1).sum()
+    )
 
 
 def test_info_text(tmp_path, capsys):
@@ -71,7 +73,9 @@ def test_info_text(tmp_path, capsys):
     for key in ("width x height", "sweep length", "duration", "bounds"):
         assert key in lines
     # --transform picks another chain.
-    status, out, _ = run_cli(capsys, path, "--calibration", xml, "--transform", "ImageToTracker", "--json")
+    status, out, _ = run_cli(
+        capsys, path, "--calibration", xml, "--transform", "ImageToTracker", "--json"
+    )
     assert json.loads(out)["transform"] == "ProbeToTracker * ImageToProbe"
 
 
@@ -79,7 +83,12 @@ def test_info_real_recording(capsys):
     status, out, _ = run_cli(capsys, REAL_MHA, "--calibration", REAL_XML, "--json")
     info = json.loads(out)
     assert status == 0
-    assert (info["frames"], info["valid_frames"], info["width"], info["height"]) == (21, 21, 820, 616)
+    assert (info["frames"], info["valid_frames"], info["width"], info["height"]) == (
+        21,
+        21,
+        820,
+        616,
+    )
     assert info["spacing_mm"] == pytest.approx([0.085, 0.085], abs=0.001)
     s = read_sweep(REAL_MHA, calibration=REAL_XML)
     assert info["bounds_mm"] == pytest.approx(s.bounds_mm().tolist())

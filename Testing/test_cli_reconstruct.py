@@ -29,8 +29,16 @@ def done(files, tmp_path_factory):
     sweep, gold = files
     out = tmp_path_factory.mktemp("cli_out")
     args = [
-        "reconstruct", str(sweep), "-o", str(out / "bone.vtp"), "--gold", str(gold),
-        "--points-out", str(out / "points.vtp"), "--json", "-q",
+        "reconstruct",
+        str(sweep),
+        "-o",
+        str(out / "bone.vtp"),
+        "--gold",
+        str(gold),
+        "--points-out",
+        str(out / "points.vtp"),
+        "--json",
+        "-q",
     ]
     return out, args
 
@@ -75,9 +83,29 @@ def test_reconstruct_text_summary_and_options(capsys, files, tmp_path):
     sweep, gold = files
     code, stdout, err = run(
         capsys,
-        ["reconstruct", str(sweep), "-o", str(tmp_path / "b.stl"), "--degree", "3", "2",
-         "--control-points", "10", "4", "--rays", "11", "--fit-method", "separable", "--robust", "none",
-         "--axis", "line", "--points-out", str(tmp_path / "p.csv"), "-q"],
+        [
+            "reconstruct",
+            str(sweep),
+            "-o",
+            str(tmp_path / "b.stl"),
+            "--degree",
+            "3",
+            "2",
+            "--control-points",
+            "10",
+            "4",
+            "--rays",
+            "11",
+            "--fit-method",
+            "separable",
+            "--robust",
+            "none",
+            "--axis",
+            "line",
+            "--points-out",
+            str(tmp_path / "p.csv"),
+            "-q",
+        ],
     )
     assert code == 0, err
     assert "frames used" in stdout and "fit residual" in stdout and "11 rays" in stdout
@@ -112,7 +140,19 @@ def test_table_command_with_plot(capsys, files, tmp_path):
     png = tmp_path / "table.png"
     code, stdout, err = run(
         capsys,
-        ["table", str(sweep), "--gold", str(gold), "--control-points", "5", "15", "--plot", str(png), "--json", "-q"],
+        [
+            "table",
+            str(sweep),
+            "--gold",
+            str(gold),
+            "--control-points",
+            "5",
+            "15",
+            "--plot",
+            str(png),
+            "--json",
+            "-q",
+        ],
     )
     assert code == 0, err
     doc = json.loads(stdout)
@@ -133,14 +173,25 @@ def test_table_command_with_plot(capsys, files, tmp_path):
 )
 def test_reconstruct_absurd_parameters_refused(capsys, files, tmp_path, extra, match):
     sweep, _ = files
-    assert_refused(capsys, ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), *extra], match, tmp_path)
+    assert_refused(
+        capsys, ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), *extra], match, tmp_path
+    )
 
 
 def test_reconstruct_more_control_points_than_data_refused(capsys, files, tmp_path):
     sweep, _ = files
     assert_refused(
         capsys,
-        ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--control-points", "80", "5", "-q"],
+        [
+            "reconstruct",
+            str(sweep),
+            "-o",
+            str(tmp_path / "b.vtp"),
+            "--control-points",
+            "80",
+            "5",
+            "-q",
+        ],
         "too few valid grid points for 80 x 5",
         tmp_path,
     )
@@ -148,22 +199,52 @@ def test_reconstruct_more_control_points_than_data_refused(capsys, files, tmp_pa
 
 def test_reconstruct_bad_paths_refused(capsys, files, tmp_path):
     sweep, gold = files
-    assert_refused(capsys, ["reconstruct", str(sweep), "-o", str(tmp_path / "nope" / "b.vtp")], "does not exist", tmp_path)
-    assert_refused(capsys, ["reconstruct", str(sweep), "-o", str(tmp_path / "b.xyz")], "unknown output extension", tmp_path)
-    assert_refused(capsys, ["reconstruct", str(tmp_path / "missing.mha"), "-o", str(tmp_path / "b.vtp")], "no such file", tmp_path)
     assert_refused(
         capsys,
-        ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--points-out", str(tmp_path / "p.stl")],
-        "unknown output extension", tmp_path,
+        ["reconstruct", str(sweep), "-o", str(tmp_path / "nope" / "b.vtp")],
+        "does not exist",
+        tmp_path,
+    )
+    assert_refused(
+        capsys,
+        ["reconstruct", str(sweep), "-o", str(tmp_path / "b.xyz")],
+        "unknown output extension",
+        tmp_path,
+    )
+    assert_refused(
+        capsys,
+        ["reconstruct", str(tmp_path / "missing.mha"), "-o", str(tmp_path / "b.vtp")],
+        "no such file",
+        tmp_path,
+    )
+    assert_refused(
+        capsys,
+        [
+            "reconstruct",
+            str(sweep),
+            "-o",
+            str(tmp_path / "b.vtp"),
+            "--points-out",
+            str(tmp_path / "p.stl"),
+        ],
+        "unknown output extension",
+        tmp_path,
     )
     bad_gold = tmp_path / "bad.csv"
     bad_gold.write_text("x,y,z\n1,2,oops\n")
-    assert_refused(capsys, ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--gold", str(bad_gold)], "bad.csv", tmp_path)
+    assert_refused(
+        capsys,
+        ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--gold", str(bad_gold)],
+        "bad.csv",
+        tmp_path,
+    )
     not_dir = tmp_path / "file"
     not_dir.write_text("x")
     assert_refused(
-        capsys, ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--report", str(not_dir)],
-        "not a folder", tmp_path,
+        capsys,
+        ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--report", str(not_dir)],
+        "not a folder",
+        tmp_path,
     )
 
 
@@ -183,8 +264,10 @@ def test_reconstruct_refuses_a_foreign_report_folder_before_the_work(
     foreign.mkdir()
     (foreign / "thesis.tex").write_text("precious")
     assert_refused(
-        capsys, ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--report", str(foreign)],
-        "not a BoneUSRecon report", tmp_path,
+        capsys,
+        ["reconstruct", str(sweep), "-o", str(tmp_path / "b.vtp"), "--report", str(foreign)],
+        "not a BoneUSRecon report",
+        tmp_path,
     )
     assert os.listdir(foreign) == ["thesis.tex"]
 
@@ -196,7 +279,9 @@ def test_unwritable_output_folder_refused(capsys, files, tmp_path):
     ro.mkdir()
     ro.chmod(0o555)
     try:
-        assert_refused(capsys, ["reconstruct", str(sweep), "-o", str(ro / "b.vtp")], "not writable", ro)
+        assert_refused(
+            capsys, ["reconstruct", str(sweep), "-o", str(ro / "b.vtp")], "not writable", ro
+        )
     finally:
         ro.chmod(0o755)
 
@@ -216,6 +301,18 @@ def test_evaluate_bad_inputs_refused(capsys, files, tmp_path):
 
 def test_table_bad_inputs_refused(capsys, files, tmp_path):
     sweep, gold = files
-    assert_refused(capsys, ["table", str(sweep), "--gold", str(gold), "--plot", str(tmp_path / "t.jpg")], "unknown output extension", tmp_path)
-    assert_refused(capsys, ["table", str(sweep), "--gold", str(gold), "--control-points", "1"], "too few for degree", tmp_path)
-    assert_refused(capsys, ["table", str(sweep), "--gold", str(tmp_path / "g.csv")], "no such file", tmp_path)
+    assert_refused(
+        capsys,
+        ["table", str(sweep), "--gold", str(gold), "--plot", str(tmp_path / "t.jpg")],
+        "unknown output extension",
+        tmp_path,
+    )
+    assert_refused(
+        capsys,
+        ["table", str(sweep), "--gold", str(gold), "--control-points", "1"],
+        "too few for degree",
+        tmp_path,
+    )
+    assert_refused(
+        capsys, ["table", str(sweep), "--gold", str(tmp_path / "g.csv")], "no such file", tmp_path
+    )

@@ -36,8 +36,16 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
 
 def test_demo_writes_every_file_it_lists(demo: SimpleNamespace) -> None:
     files = demo.doc["files"]
-    assert set(files) == {"sweep", "truth", "gold", "json", "surface", "points",
-                          "evaluation", "report"}
+    assert set(files) == {
+        "sweep",
+        "truth",
+        "gold",
+        "json",
+        "surface",
+        "points",
+        "evaluation",
+        "report",
+    }
     for path in files.values():
         assert Path(path).is_file() and Path(path).stat().st_size > 0, path
     assert Path(files["report"]) == demo.out / "report" / "index.html"
@@ -67,8 +75,9 @@ def test_demo_surface_lies_on_the_true_bone(demo: SimpleNamespace) -> None:
     assert s["rejected_frames"] + len(s["fit_rejected_frames"]) <= 10
 
 
-def test_demo_numbers_match_the_evaluate_command(demo: SimpleNamespace,
-                                                 capsys: pytest.CaptureFixture) -> None:
+def test_demo_numbers_match_the_evaluate_command(
+    demo: SimpleNamespace, capsys: pytest.CaptureFixture
+) -> None:
     rc = main(["evaluate", str(demo.out / "surface.vtp"), str(demo.out / "gold.csv"), "--json"])
     assert rc == 0
     ev = json.loads(capsys.readouterr().out)
@@ -80,7 +89,9 @@ def test_demo_numbers_match_the_evaluate_command(demo: SimpleNamespace,
     assert set(shown) == set(ev)
     for k, v in ev.items():
         assert float(shown[k]) == pytest.approx(v, rel=1e-9, abs=1e-9), k
-    curve = {int(c): float(v) for c, v in re.findall(r'data-count="(\d+)" data-value="([^"]+)"', page)}
+    curve = {
+        int(c): float(v) for c, v in re.findall(r'data-count="(\d+)" data-value="([^"]+)"', page)
+    }
     assert curve == {r["control_points"]: pytest.approx(r["mean_mm"]) for r in demo.doc["table_i"]}
     assert sorted(curve) == [5, 10, 15, 20]
     # The demo's gold file is the simulator's, read back identically.
@@ -91,21 +102,28 @@ def test_demo_numbers_match_the_evaluate_command(demo: SimpleNamespace,
     assert any(f'id="img-frame-{k:04d}"' in page for k in rejected)
 
 
-def test_demo_summary_and_progress(tmp_path: Path, capsys: pytest.CaptureFixture,
-                                   monkeypatch: pytest.MonkeyPatch) -> None:
+def test_demo_summary_and_progress(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import sys
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # draw the bar, as on a terminal
     out = tmp_path / "d"
-    rc = main(["demo", str(out), "--frames", "20", "--size", "120x96", "--no-table",
-               "--no-report"])
+    rc = main(["demo", str(out), "--frames", "20", "--size", "120x96", "--no-table", "--no-report"])
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     lines = cap.out.splitlines()
     assert lines[0].startswith("Demo: clavicle phantom")
     text = cap.out
-    for key in ("frames used", "frames rejected", "distance mean/RMS", "within 0.5/1/2 mm",
-                "reconstructed surface", "gold points", "time"):
+    for key in (
+        "frames used",
+        "frames rejected",
+        "distance mean/RMS",
+        "within 0.5/1/2 mm",
+        "reconstructed surface",
+        "gold points",
+        "time",
+    ):
         assert re.search(rf"^\s+{re.escape(key)}\s+: ", text, re.M), key
     mean = float(re.search(r"distance mean/RMS\s+: ([\d.]+) /", text).group(1))
     saved = json.loads((out / "evaluation.json").read_text())

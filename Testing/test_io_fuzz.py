@@ -29,19 +29,57 @@ FUZZ = settings(
 )
 
 KEYS = [
-    "ObjectType", "NDims", "DimSize", "ElementType", "ElementDataFile", "CompressedData",
-    "CompressedDataSize", "BinaryData", "BinaryDataByteOrderMSB", "ElementByteOrderMSB",
-    "ElementNumberOfChannels", "HeaderSize", "UltrasoundImageOrientation",
-    "ImageToProbeTransform", "Seq_Frame0000_ImageToReferenceTransform",
-    "Seq_Frame0001_ImageToReferenceTransform", "Seq_Frame0000_ImageToReferenceTransformStatus",
-    "Seq_Frame0000_Timestamp", "Seq_Frame0000_ImageStatus", "Seq_Frame0000_ProbeToTrackerTransform",
+    "ObjectType",
+    "NDims",
+    "DimSize",
+    "ElementType",
+    "ElementDataFile",
+    "CompressedData",
+    "CompressedDataSize",
+    "BinaryData",
+    "BinaryDataByteOrderMSB",
+    "ElementByteOrderMSB",
+    "ElementNumberOfChannels",
+    "HeaderSize",
+    "UltrasoundImageOrientation",
+    "ImageToProbeTransform",
+    "Seq_Frame0000_ImageToReferenceTransform",
+    "Seq_Frame0001_ImageToReferenceTransform",
+    "Seq_Frame0000_ImageToReferenceTransformStatus",
+    "Seq_Frame0000_Timestamp",
+    "Seq_Frame0000_ImageStatus",
+    "Seq_Frame0000_ProbeToTrackerTransform",
     "Seq_Frame0000_ReferenceToTrackerTransform",
 ]
 VALUES = [
-    "3", "2", "0", "-1", "1", "4 3 2", "4 3 0", "99999 99999 99999", "MET_UCHAR", "MET_SHORT",
-    "MET_FLOAT", "MET_DOUBLE", "MET_FOO", "LOCAL", "data.raw", "LIST", "True", "False", "MF",
-    "UN", "nan", "1e308", "OK", "MISSING", "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1",
-    "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0", "0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0", "",
+    "3",
+    "2",
+    "0",
+    "-1",
+    "1",
+    "4 3 2",
+    "4 3 0",
+    "99999 99999 99999",
+    "MET_UCHAR",
+    "MET_SHORT",
+    "MET_FLOAT",
+    "MET_DOUBLE",
+    "MET_FOO",
+    "LOCAL",
+    "data.raw",
+    "LIST",
+    "True",
+    "False",
+    "MF",
+    "UN",
+    "nan",
+    "1e308",
+    "OK",
+    "MISSING",
+    "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1",
+    "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0",
+    "0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0",
+    "",
 ]
 TEXT = st.text(st.characters(codec="latin-1"), max_size=30)
 
@@ -89,7 +127,9 @@ def test_random_bytes(data):
 FRAMES = frames_u8(4, 6, 8)
 GOOD = build_fields(FRAMES)
 GOOD_Z = build_fields(FRAMES, compressed=True)
-TRACKED = build_fields(FRAMES, transforms=dict(tracked_transforms(4), ImageToProbe=np.tile(np.eye(4), (4, 1, 1))))
+TRACKED = build_fields(
+    FRAMES, transforms=dict(tracked_transforms(4), ImageToProbe=np.tile(np.eye(4), (4, 1, 1)))
+)
 RAW = pixel_bytes(FRAMES)
 ZRAW = zlib.compress(RAW)
 
@@ -97,9 +137,7 @@ ZRAW = zlib.compress(RAW)
 @st.composite
 def mutated_header(draw):
     """A valid header with a few lines deleted, duplicated, re-valued or re-keyed."""
-    fields, data = draw(
-        st.sampled_from([(GOOD, RAW), (GOOD_Z, ZRAW), (TRACKED, RAW)])
-    )
+    fields, data = draw(st.sampled_from([(GOOD, RAW), (GOOD_Z, ZRAW), (TRACKED, RAW)]))
     fields = [list(kv) for kv in fields]
     for _ in range(draw(st.integers(1, 4))):
         i = draw(st.integers(0, len(fields) - 1))
@@ -116,7 +154,9 @@ def mutated_header(draw):
             parts = fields[i][1].split()
             if parts:
                 j = draw(st.integers(0, len(parts) - 1))
-                parts[j] = draw(st.sampled_from(["nan", "inf", "-1", "0", "1e308", "x", "2.5", "99999"]))
+                parts[j] = draw(
+                    st.sampled_from(["nan", "inf", "-1", "0", "1e308", "x", "2.5", "99999"])
+                )
                 fields[i][1] = " ".join(parts)
         if not fields:
             break
@@ -144,7 +184,9 @@ def test_truncated_and_corrupted_files(which, cut, flips):
 
 @FUZZ
 @given(
-    data_file=st.one_of(st.sampled_from(["data.raw", "data.zraw", "missing.raw", "a" * 300, "."]), TEXT),
+    data_file=st.one_of(
+        st.sampled_from(["data.raw", "data.zraw", "missing.raw", "a" * 300, "."]), TEXT
+    ),
     compressed=st.booleans(),
     cut=st.integers(0, 400),
 )
@@ -172,7 +214,9 @@ def test_round_trip_property(shape, seed, name, compress, data):
     n, h, w = shape
     rng = np.random.default_rng(seed)
     m = np.tile(np.eye(4), (n, 1, 1))
-    m[:, :3, :3] = Rotation.random(n, random_state=seed).as_matrix() * rng.uniform(0.01, 2, (n, 1, 3))
+    m[:, :3, :3] = Rotation.random(n, random_state=seed).as_matrix() * rng.uniform(
+        0.01, 2, (n, 1, 3)
+    )
     m[:, :3, 3] = rng.normal(0, 1e3, (n, 3))
     valid = np.array(data.draw(st.lists(st.booleans(), min_size=n, max_size=n)))
     valid[rng.integers(n)] = True

@@ -19,9 +19,16 @@ ROOT = Path(__file__).resolve().parents[1]
 # Packages that must not appear in sys.modules (nor any of their submodules) after
 # importing Logic, and raw name prefixes (VTK's rendering module families).
 FORBIDDEN_PACKAGES = (
-    "slicer", "slicer_core", "qt", "ctk",
-    "PySide2", "PySide6", "PyQt5", "PyQt6",
-    "pyvista", "matplotlib.pyplot",
+    "slicer",
+    "slicer_core",
+    "qt",
+    "ctk",
+    "PySide2",
+    "PySide6",
+    "PyQt5",
+    "PyQt6",
+    "pyvista",
+    "matplotlib.pyplot",
 )
 FORBIDDEN_PREFIXES = ("vtkmodules.vtkRendering", "vtkmodules.vtkInteraction", "vtkmodules.vtkViews")
 

@@ -87,12 +87,22 @@ def test_a_wrong_type_is_also_a_type_error() -> None:
         (FitParams, {"degree": (np.int64(3), 2.0)}, {"degree": (3, 2)}),
         (FitParams, {"n_control_points": np.array([9, 4])}, {"n_control_points": (9, 4)}),
         (FitParams, {"per_frame": np.bool_(False)}, {"per_frame": False}),
-        (ResamplingParams, {"n_rays": np.int32(21), "max_gap_mm": 2}, {"n_rays": 21, "max_gap_mm": 2.0}),
-        (ShadowPathParams, {"n_passes": 2.0, "phase_wavelengths_mm": [1, 2]},
-         {"n_passes": 2, "phase_wavelengths_mm": (1.0, 2.0)}),
+        (
+            ResamplingParams,
+            {"n_rays": np.int32(21), "max_gap_mm": 2},
+            {"n_rays": 21, "max_gap_mm": 2.0},
+        ),
+        (
+            ShadowPathParams,
+            {"n_passes": 2.0, "phase_wavelengths_mm": [1, 2]},
+            {"n_passes": 2, "phase_wavelengths_mm": (1.0, 2.0)},
+        ),
         (LiveParams, {"max_frames": np.uint16(50)}, {"max_frames": 50}),
-        (SimulationParams, {"n_frames": 12.0, "spacing_mm": np.float32(0.25)},
-         {"n_frames": 12, "spacing_mm": 0.25}),
+        (
+            SimulationParams,
+            {"n_frames": 12.0, "spacing_mm": np.float32(0.25)},
+            {"n_frames": 12, "spacing_mm": 0.25},
+        ),
         (RegistrationParams, {"start_shifts_mm": [5, 10]}, {"start_shifts_mm": (5.0, 10.0)}),
         (SurfaceParams, {"gap_factor": None, "step_mm": 1}, {"gap_factor": None, "step_mm": 1.0}),
     ],
@@ -108,9 +118,22 @@ def test_good_values_coerced_to_declared_types(cls, changes, expected) -> None:
 
 @pytest.mark.parametrize(
     "cls",
-    [ShadowPathParams, SnakeParams, PosteriorParams, RejectionParams, SegmentationParams,
-     FitParams, ResamplingParams, SurfaceParams, LiveParams, RegistrationParams,
-     SimulationParams, ImagingParams, HardParams, ReconstructionParams],
+    [
+        ShadowPathParams,
+        SnakeParams,
+        PosteriorParams,
+        RejectionParams,
+        SegmentationParams,
+        FitParams,
+        ResamplingParams,
+        SurfaceParams,
+        LiveParams,
+        RegistrationParams,
+        SimulationParams,
+        ImagingParams,
+        HardParams,
+        ReconstructionParams,
+    ],
 )
 def test_defaults_pass_unchanged(cls) -> None:
     p = cls()

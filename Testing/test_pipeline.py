@@ -136,7 +136,9 @@ def test_blank_sweep_refused_with_file_name(sim_small, tmp_path):
 def test_more_control_points_than_slices_refused(sim_small, recon_small):
     params = dataclasses.replace(ReconstructionParams(), fit=FitParams(n_control_points=(60, 5)))
     with pytest.raises(BoneUSReconError, match="too few valid grid points for 60 x 5"):
-        surface_from_contours(recon_small.segmentation.contours_mm(sim_small.sweep), sim_small.sweep, params)
+        surface_from_contours(
+            recon_small.segmentation.contours_mm(sim_small.sweep), sim_small.sweep, params
+        )
 
 
 def test_distance_texture_matches_segmented_points(recon_small):

@@ -87,8 +87,8 @@ def recon(sim_small):
 
 
 def test_register_model_nodes_in_the_scene(scene, sim_small, recon) -> None:
-    from BoneSurfaceReconstructionLib.registration import registerModelToModel, summaryText
     from BoneSurfaceReconstructionLib import mrml
+    from BoneSurfaceReconstructionLib.registration import registerModelToModel, summaryText
 
     pts = polydata_points(recon.surface)
     truth = _rigid([0.0, 0.4, 1.0], 8.0, [-6.0, 7.0, 5.0], pts.mean(0))
@@ -134,8 +134,8 @@ def test_register_model_nodes_in_the_scene(scene, sim_small, recon) -> None:
 
 
 def test_bad_nodes_raise_value_errors(scene, recon) -> None:
-    from BoneSurfaceReconstructionLib.registration import registerModelToModel
     from BoneSurfaceReconstructionLib import mrml
+    from BoneSurfaceReconstructionLib.registration import registerModelToModel
 
     source = mrml.show_surface(recon.surface, scene, name="Surface")
     empty = scene.AddNewNodeByClass("vtkMRMLModelNode", "Empty")

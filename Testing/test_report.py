@@ -75,11 +75,22 @@ def _standin(rejected: tuple[int, ...] = (4, 17), invalid: int = 25) -> SimpleNa
         frames[k, np.round(j).astype(int), i[keep].astype(int)] = 230
         ok = k not in rejected
         contours.append(
-            FrameContour(k, ij, np.full(len(ij), 230.0), 0.9 if ok else 0.1, ok,
-                         "" if ok else "no acoustic shadow below the contour: score 0.12")
+            FrameContour(
+                k,
+                ij,
+                np.full(len(ij), 230.0),
+                0.9 if ok else 0.1,
+                ok,
+                "" if ok else "no acoustic shadow below the contour: score 0.12",
+            )
         )
-    sweep = Sweep(frames=frames, image_to_reference=mats, timestamps=np.arange(N) * 0.05,
-                  valid=valid, invalid_reasons={invalid: "ProbeToTracker status MISSING"})
+    sweep = Sweep(
+        frames=frames,
+        image_to_reference=mats,
+        timestamps=np.arange(N) * 0.05,
+        valid=valid,
+        invalid_reasons={invalid: "ProbeToTracker status MISSING"},
+    )
     seg = SegmentationResult(tuple(contours), "standin", SegmentationParams())
     pts = np.concatenate([c.points_mm(sweep) for c in seg.accepted])
     x = np.linspace(-2, N * GAP_MM, 80)
@@ -89,7 +100,9 @@ def _standin(rejected: tuple[int, ...] = (4, 17), invalid: int = 25) -> SimpleNa
     surface = grid.extract_surface(algorithm="dataset_surface").triangulate()
     surface.point_data["Distance"] = cKDTree(pts).query(np.asarray(surface.points))[0]
     return SimpleNamespace(
-        sweep=sweep, segmentation=seg, surface=surface,
+        sweep=sweep,
+        segmentation=seg,
+        surface=surface,
         points=points_to_polydata(pts, {"Frame": np.zeros(len(pts))}),
         summary={"frames_used": len(seg.accepted), "fit_rms_mm": 0.1},
         timings={"segmentation": 1.0, "fit": 0.2},
@@ -117,7 +130,10 @@ def written(standin: SimpleNamespace, tmp_path_factory: pytest.TempPathFactory):
     out = tmp_path_factory.mktemp("rep") / "report"
     steps: list[tuple[str, int, int]] = []
     index = rep.write_report(
-        standin, out, gold=gold, table=[(5, 1.4), (10, 1.1), (15, 1.0), (20, 0.95)],
+        standin,
+        out,
+        gold=gold,
+        table=[(5, 1.4), (10, 1.1), (15, 1.0), (20, 0.95)],
         parameters={"fit": {"control_points": [15, 5]}},
         progress=lambda *a: steps.append(a),
     )
@@ -126,13 +142,17 @@ def written(standin: SimpleNamespace, tmp_path_factory: pytest.TempPathFactory):
 
 def _images(page: str) -> dict[str, np.ndarray]:
     out = {}
-    for name, b64 in re.findall(r'<img id="img-([^"]+)"[^>]*src="data:image/png;base64,([^"]+)"', page):
+    for name, b64 in re.findall(
+        r'<img id="img-([^"]+)"[^>]*src="data:image/png;base64,([^"]+)"', page
+    ):
         out[name] = np.asarray(Image.open(io.BytesIO(base64.b64decode(b64))).convert("RGB"))
     return out
 
 
 def _is_picture(img: np.ndarray, min_colours: int = 8, min_std: float = 10.0) -> bool:
-    packed = (img[..., 0].astype(np.int32) << 16) | (img[..., 1].astype(np.int32) << 8) | img[..., 2]
+    packed = (
+        (img[..., 0].astype(np.int32) << 16) | (img[..., 1].astype(np.int32) << 8) | img[..., 2]
+    )
     return float(img.std()) > min_std and np.unique(packed).size >= min_colours
 
 
@@ -140,8 +160,14 @@ def test_page_holds_every_section_as_real_pictures(written: SimpleNamespace) -> 
     page = written.index.read_text(encoding="utf-8")
     assert written.index == written.out / "index.html"
     imgs = _images(page)
-    assert {"surface-top", "surface-oblique", "histogram", "table-i", "gold-errors",
-            "sweep"} <= set(imgs)
+    assert {
+        "surface-top",
+        "surface-oblique",
+        "histogram",
+        "table-i",
+        "gold-errors",
+        "sweep",
+    } <= set(imgs)
     # The sweep picture outlines invalid frame 25 in orange.
     sw = imgs["sweep"].astype(int)
     assert ((np.abs(sw - [0xFF, 0x95, 0x00]).max(axis=2)) < 40).sum() > 20
@@ -163,8 +189,15 @@ def test_page_holds_every_section_as_real_pictures(written: SimpleNamespace) -> 
     # The same pictures are beside the page as files, byte for byte decodable.
     files = sorted(p.stem for p in (written.out / "figures").glob("*.png"))
     assert len(files) == len(imgs)
-    for sec in ("sweep-section", "surface-section", "accuracy-section", "table-section",
-                "overlay-section", "parameters-section", "versions-section"):
+    for sec in (
+        "sweep-section",
+        "surface-section",
+        "accuracy-section",
+        "table-section",
+        "overlay-section",
+        "parameters-section",
+        "versions-section",
+    ):
         assert f'id="{sec}"' in page
     assert "control_points" in page and "vtk" in page and "numpy" in page
     assert written.steps[-1][1] == written.steps[-1][2]
@@ -218,8 +251,9 @@ def test_sweep_numbers_on_the_page(written: SimpleNamespace, standin: SimpleName
     assert "1.00 to 2.00 deg" in page
 
 
-def test_report_folder_is_replaced_atomically(tmp_path: Path, standin: SimpleNamespace,
-                                              monkeypatch: pytest.MonkeyPatch) -> None:
+def test_report_folder_is_replaced_atomically(
+    tmp_path: Path, standin: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
     out = tmp_path / "r"
     first = rep.write_report(standin, out)
     assert (out / rep.REPORT_MARKER).exists() and "accuracy-section" not in first.read_text()
@@ -276,10 +310,19 @@ def _chromium() -> str | None:
 def test_page_renders_in_a_headless_browser(written: SimpleNamespace, tmp_path: Path) -> None:
     shot = tmp_path / "page.png"
     cmd = [
-        _chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-        "--no-first-run", "--disable-background-networking", "--disable-component-update",
-        "--disable-sync", f"--user-data-dir={tmp_path / 'profile'}",
-        f"--screenshot={shot}", "--window-size=1200,3000", written.index.as_uri(),
+        _chromium(),
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        f"--user-data-dir={tmp_path / 'profile'}",
+        f"--screenshot={shot}",
+        "--window-size=1200,3000",
+        written.index.as_uri(),
     ]
     subprocess.run(cmd, check=True, capture_output=True, timeout=60)
     img = np.asarray(Image.open(shot).convert("RGB")).astype(int)

@@ -201,7 +201,12 @@ def test_write_read_round_trip(tmp_path, name, compress):
     img = sitk.ReadImage(str(out))
     assert np.array_equal(sitk.GetArrayFromImage(img), sweep.frames)
     keys = set(img.GetMetaDataKeys())
-    for k in ("ImageToReferenceTransform", "ImageToReferenceTransformStatus", "Timestamp", "ImageStatus"):
+    for k in (
+        "ImageToReferenceTransform",
+        "ImageToReferenceTransformStatus",
+        "Timestamp",
+        "ImageStatus",
+    ):
         assert f"Seq_Frame0005_{k}" in keys
     got = np.array(img.GetMetaData("Seq_Frame0002_ImageToReferenceTransform").split(), float)
     assert np.allclose(got.reshape(4, 4), sweep.image_to_reference[2], rtol=1e-5, atol=1e-4)
@@ -321,7 +326,15 @@ def test_mhd_with_separate_data_file(tmp_path, compress):
 
 @pytest.mark.parametrize(
     "orientation, flip",
-    [("MF", ()), ("MN", (1,)), ("UF", (2,)), ("UN", (1, 2)), ("mn", (1,)), ("UFA", (2,)), (None, ())],
+    [
+        ("MF", ()),
+        ("MN", (1,)),
+        ("UF", (2,)),
+        ("UN", (1, 2)),
+        ("mn", (1,)),
+        ("UFA", (2,)),
+        (None, ()),
+    ],
 )
 def test_orientation_converted_to_mf(tmp_path, orientation, flip):
     """PLUS (vtkPlusUsImageConverter): U flips image x (columns), N flips image y (rows);
@@ -380,7 +393,9 @@ def test_calibration_from_header_field(tmp_path, per_frame):
         path = make_file(tmp_path / "s.mha", transforms=tt)
     else:
         path = make_file(
-            tmp_path / "s.mha", transforms=t, global_fields={"ImageToProbeTransform": mat_text(calib)}
+            tmp_path / "s.mha",
+            transforms=t,
+            global_fields={"ImageToProbeTransform": mat_text(calib)},
         )
     s = read_sweep(path)
     assert np.allclose(s.image_to_reference, expected_chain(t, calib), atol=1e-9)
@@ -514,6 +529,7 @@ REAL_CALIB = np.array(
     ]
 )
 
+
 def test_real_recording():
     s = read_sweep(REAL_MHA, calibration=REAL_XML)
     assert (s.n_frames, s.width, s.height, s.n_valid) == (21, 820, 616, 21)
@@ -586,19 +602,36 @@ def _bad_cases(tmp: Path) -> dict[str, tuple[Path, dict, str]]:
     (tmp / "text.mha").write_text("hello world\nthis is not a header\n")
     cases["not a metafile (text)"] = (tmp / "text.mha", {}, "not a MetaIO metafile")
     add("truncated data", good, data[:-100], "truncated data")
-    add("dimsize too small", set_field(good, "DimSize", f"{W} {H} {N - 1}"), data, "disagrees with the data")
+    add(
+        "dimsize too small",
+        set_field(good, "DimSize", f"{W} {H} {N - 1}"),
+        data,
+        "disagrees with the data",
+    )
     add("no ElementDataFile", good[:-1], b"", "no ElementDataFile")
-    add("unknown ElementType", set_field(good, "ElementType", "MET_LONG_LONG"), data, "unknown ElementType")
+    add(
+        "unknown ElementType",
+        set_field(good, "ElementType", "MET_LONG_LONG"),
+        data,
+        "unknown ElementType",
+    )
     add("no ElementType", set_field(good, "ElementType", None), data, "no ElementType")
     zgood = build_fields(frames, compressed=True)
     zdata = bytearray(zlib.compress(data))
     zdata[40:60] = b"\xff" * 20
     add("corrupt zlib", zgood, bytes(zdata), r"corrupt compressed \(zlib\) data")
     add("truncated zlib", zgood, zlib.compress(data)[:-50], "truncated compressed data")
-    add("zlib dimsize", set_field(zgood, "DimSize", f"{W} {H} {N + 2}"), zlib.compress(data), "disagrees with the data")
+    add(
+        "zlib dimsize",
+        set_field(zgood, "DimSize", f"{W} {H} {N + 2}"),
+        zlib.compress(data),
+        "disagrees with the data",
+    )
     add(
         "non-numeric transform",
-        set_field(good, "Seq_Frame0003_ImageToReferenceTransform", "1 0 0 0 0 1 0 x 0 0 1 0 0 0 0 1"),
+        set_field(
+            good, "Seq_Frame0003_ImageToReferenceTransform", "1 0 0 0 0 1 0 x 0 0 1 0 0 0 0 1"
+        ),
         data,
         "Seq_Frame0003_ImageToReferenceTransform: non-numeric",
     )
@@ -621,7 +654,12 @@ def _bad_cases(tmp: Path) -> dict[str, tuple[Path, dict, str]]:
         r"every frame is invalid \(6 of 6; frame 0: ImageToReference status INVALID\)",
     )
     nan = np.full((N, 4, 4), np.nan)
-    add("NaN transforms", build_fields(frames, transforms={"ImageToReference": nan}), data, "every frame is invalid.*NaN")
+    add(
+        "NaN transforms",
+        build_fields(frames, transforms={"ImageToReference": nan}),
+        data,
+        "every frame is invalid.*NaN",
+    )
     add(
         "singular transforms",
         build_fields(frames, transforms={"ImageToReference": np.zeros((N, 4, 4))}),
@@ -632,7 +670,12 @@ def _bad_cases(tmp: Path) -> dict[str, tuple[Path, dict, str]]:
     two_d = set_field(set_field(good, "NDims", "2"), "DimSize", f"{W} {H}")
     add("2D image", two_d, frames[0].tobytes(), r"single 2D image \(NDims = 2\)")
     add("bad DimSize", set_field(good, "DimSize", "14 ten 6"), data, "DimSize must be integers")
-    add("bad timestamp", set_field(good, "Seq_Frame0002_Timestamp", "noon"), data, "Seq_Frame0002_Timestamp: not a number")
+    add(
+        "bad timestamp",
+        set_field(good, "Seq_Frame0002_Timestamp", "noon"),
+        data,
+        "Seq_Frame0002_Timestamp: not a number",
+    )
     mhd_missing = set_field(good, "ElementDataFile", "gone.raw")
     cases["missing data file"] = (
         write_file(tmp / "nodata.mhd", mhd_missing, b""),
@@ -640,7 +683,9 @@ def _bad_cases(tmp: Path) -> dict[str, tuple[Path, dict, str]]:
         "data file 'gone.raw' named by ElementDataFile not found",
     )
     cases["missing calibration file"] = (
-        write_file(tmp / "tracked.mha", build_fields(frames, transforms=tracked_transforms()), data),
+        write_file(
+            tmp / "tracked.mha", build_fields(frames, transforms=tracked_transforms()), data
+        ),
         {"calibration": tmp / "nope.xml"},
         "nope.xml: no such file",
     )
@@ -765,7 +810,10 @@ def test_crlf_header_and_header_size(tmp_path):
     (tmp_path / "crlf.mha").write_bytes(text.encode() + pixel_bytes(frames))
     assert np.array_equal(read_sweep(tmp_path / "crlf.mha").frames, frames)
     # .mhd whose data file starts with a 100-byte preamble skipped by HeaderSize.
-    fields = set_field(fields, "ElementDataFile", None) + [["HeaderSize", "100"], ["ElementDataFile", "d.raw"]]
+    fields = set_field(fields, "ElementDataFile", None) + [
+        ["HeaderSize", "100"],
+        ["ElementDataFile", "d.raw"],
+    ]
     path = write_file(tmp_path / "h.mhd", fields, b"")
     (tmp_path / "d.raw").write_bytes(b"\0" * 100 + pixel_bytes(frames))
     assert np.array_equal(read_sweep(path).frames, frames)
@@ -792,4 +840,6 @@ def test_to_uint8_nan_and_chunking(monkeypatch):
     finite = np.isfinite(a)
     assert np.abs(whole[finite].astype(float) - ref[finite]).max() <= 1
     assert np.array_equal(inten.to_uint8(np.full((2, 3, 4), np.nan)), np.zeros((2, 3, 4), np.uint8))
-    assert np.array_equal(inten.to_uint8(np.full((2, 3), 7000, np.uint16)), np.zeros((2, 3), np.uint8))
+    assert np.array_equal(
+        inten.to_uint8(np.full((2, 3), 7000, np.uint16)), np.zeros((2, 3), np.uint8)
+    )

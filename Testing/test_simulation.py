@@ -43,7 +43,9 @@ def test_same_seed_same_everything_other_seed_differs() -> None:
     assert np.array_equal(a.sweep.timestamps, b.sweep.timestamps)
     assert np.array_equal(a.gold, b.gold)
     assert a.corruption_kinds == b.corruption_kinds
-    assert all(np.array_equal(x, y) for x, y in zip(a.true_contours_px, b.true_contours_px, strict=True))
+    assert all(
+        np.array_equal(x, y) for x, y in zip(a.true_contours_px, b.true_contours_px, strict=True)
+    )
     assert not np.array_equal(a.sweep.frames, c.sweep.frames)
     assert not np.allclose(a.sweep.image_to_reference, c.sweep.image_to_reference)
     assert not np.allclose(a.gold, c.gold)
@@ -184,7 +186,9 @@ def test_poses_follow_the_bone_with_freehand_jitter(sim_small) -> None:
     mean_n = normal.mean(0) / np.linalg.norm(normal.mean(0))
     ang = np.degrees(np.arccos(np.clip(np.abs(normal @ mean_n), 0, 1)))
     assert ang.std() > 1.5 and ang.max() > 3.0
-    consecutive = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ni,ni->n", normal[1:], normal[:-1])), 0, 1)))
+    consecutive = np.degrees(
+        np.arccos(np.clip(np.abs(np.einsum("ni,ni->n", normal[1:], normal[:-1])), 0, 1))
+    )
     assert np.all(consecutive > 0.01)
     assert sim_small.path.angles_deg.std(0).min() > 0.3 * p.tilt_deg / 2
     # Frames march along the bone (x) with uneven steps.
@@ -207,7 +211,9 @@ def test_reverse_sweeps_the_other_way(sim_factory) -> None:
 
 
 # -- images ---------------------------------------------------------------------------------
-def _band_means(frame: np.ndarray, contour: np.ndarray, offset_px: float, half: int = 1) -> np.ndarray:
+def _band_means(
+    frame: np.ndarray, contour: np.ndarray, offset_px: float, half: int = 1
+) -> np.ndarray:
     i = contour[:, 0].astype(int)
     j = np.rint(contour[:, 1] + offset_px).astype(int)
     rows = np.clip(j[:, None] + np.arange(-half, half + 1), 0, frame.shape[0] - 1)
@@ -267,7 +273,10 @@ def test_forearm_scan_shows_the_other_bone_beside_the_target(sim_factory) -> Non
     assert with_n.neighbour.spec.name == "ulna"
     # Same truth, gold and contours: the neighbour is only a distractor in the image.
     assert np.array_equal(with_n.gold, without.gold)
-    assert all(np.array_equal(a, b) for a, b in zip(with_n.true_contours_px, without.true_contours_px, strict=True))
+    assert all(
+        np.array_equal(a, b)
+        for a, b in zip(with_n.true_contours_px, without.true_contours_px, strict=True)
+    )
     h = with_n.sweep.height
     for k in range(6):
         a = with_n.sweep.frames[k].astype(float)
@@ -366,7 +375,9 @@ def test_surface_from_true_contours_covers_the_imaged_gold():
 
 
 # -- corruption -----------------------------------------------------------------------------
-def test_corrupted_frames_are_recorded_and_do_what_they_say(sim_small_corrupted, sim_factory) -> None:
+def test_corrupted_frames_are_recorded_and_do_what_they_say(
+    sim_small_corrupted, sim_factory
+) -> None:
     sim = sim_small_corrupted
     clean = sim_factory(seed=1)  # same sweep without corruption
     n = sim.sweep.n_frames
@@ -429,7 +440,12 @@ def test_written_files_round_trip(tmp_path, sim_factory) -> None:
 
     sim = sim_factory(n_frames=12, corrupted_fraction=0.25, invalid_fraction=0.25, seed=4)
     paths = write_simulation(sim, tmp_path / "out" / "deeper")
-    assert {p.name for p in paths.values()} == {"sweep.mha", "truth.vtp", "gold.csv", "simulation.json"}
+    assert {p.name for p in paths.values()} == {
+        "sweep.mha",
+        "truth.vtp",
+        "gold.csv",
+        "simulation.json",
+    }
     sw = read_sweep(paths["sweep"])
     assert np.array_equal(np.asarray(sw.frames), sim.sweep.frames)
     v = sim.sweep.valid  # the reader does not keep poses of frames flagged INVALID
@@ -449,14 +465,35 @@ def test_written_files_round_trip(tmp_path, sim_factory) -> None:
     assert info["invalid_frames"] == np.flatnonzero(~sim.sweep.valid).tolist()
     assert "simulator_version" in info
     # Nothing else (no temporary files) left in the folder.
-    assert sorted(p.name for p in paths["sweep"].parent.iterdir()) == sorted(p.name for p in paths.values())
+    assert sorted(p.name for p in paths["sweep"].parent.iterdir()) == sorted(
+        p.name for p in paths.values()
+    )
 
 
 # -- CLI ---------------------------------------------------------------------------------------
 def test_cli_simulate_writes_and_reports(tmp_path, capsys) -> None:
     out = tmp_path / "sim"
-    rc = main(["simulate", "radius", str(out), "--frames", "5", "--width", "64", "--height", "64",
-               "--spacing", "0.6", "--corrupt", "0.4", "--seed", "3", "--reverse", "--json"])
+    rc = main(
+        [
+            "simulate",
+            "radius",
+            str(out),
+            "--frames",
+            "5",
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--spacing",
+            "0.6",
+            "--corrupt",
+            "0.4",
+            "--seed",
+            "3",
+            "--reverse",
+            "--json",
+        ]
+    )
     assert rc == 0
     info = json.loads(capsys.readouterr().out)
     assert info["frames"] == 5 and info["bone"] == "radius" and len(info["corrupted_frames"]) == 2
@@ -464,8 +501,23 @@ def test_cli_simulate_writes_and_reports(tmp_path, capsys) -> None:
         assert (out / name).stat().st_size > 0
     saved = json.loads((out / "simulation.json").read_text())
     assert saved["parameters"]["reverse"] is True and saved["neighbour"]["bone"] == "ulna"
-    rc = main(["simulate", "radius", str(tmp_path / "alone"), "--frames", "3", "--width", "64",
-               "--height", "64", "--spacing", "0.6", "--no-neighbour", "-q"])
+    rc = main(
+        [
+            "simulate",
+            "radius",
+            str(tmp_path / "alone"),
+            "--frames",
+            "3",
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--spacing",
+            "0.6",
+            "--no-neighbour",
+            "-q",
+        ]
+    )
     assert rc == 0 and "Simulated radius sweep" in capsys.readouterr().out
     assert json.loads((tmp_path / "alone" / "simulation.json").read_text())["neighbour"] is None
 

@@ -49,7 +49,11 @@ if str(MODULE_DIR) not in sys.path:
 # ====================================================================================
 def _module_python_files() -> list[str]:
     """The module file and every .py of its Lib package (relative to the root)."""
-    lib = [p.relative_to(MODULE_DIR).as_posix() for p in LIB.rglob("*.py") if "__pycache__" not in p.parts]
+    lib = [
+        p.relative_to(MODULE_DIR).as_posix()
+        for p in LIB.rglob("*.py")
+        if "__pycache__" not in p.parts
+    ]
     return sorted([f"{MODULE}.py", *lib])
 
 
@@ -123,7 +127,10 @@ def test_repository_root_holds_only_the_module_file() -> None:
     # Slicer's CLI-module factory scans the same folder for executables.
     assert not [p.name for p in ROOT.iterdir() if p.is_file() and os.access(p, os.X_OK)]
     # Resources where self.resourcePath() looks: <module folder>/Resources/...
-    assert 'self.resourcePath("UI/BoneSurfaceReconstruction.ui")' in (ROOT / f"{MODULE}.py").read_text()
+    assert (
+        'self.resourcePath("UI/BoneSurfaceReconstruction.ui")'
+        in (ROOT / f"{MODULE}.py").read_text()
+    )
     assert UI.is_file() and (ROOT / "Resources" / "Icons" / f"{MODULE}.png").is_file()
 
 
@@ -157,10 +164,17 @@ def test_cmake_lists_every_module_python_file_and_resource() -> None:
     assert not list(ROOT.glob("*/CMakeLists.txt"))
     # The library goes beside the module so that `import BoneUSRecon` works installed.
     assert "BoneUSRecon/*.py" in text
-    for key in ("EXTENSION_HOMEPAGE", "EXTENSION_CATEGORY", "EXTENSION_DESCRIPTION", "EXTENSION_ICONURL"):
+    for key in (
+        "EXTENSION_HOMEPAGE",
+        "EXTENSION_CATEGORY",
+        "EXTENSION_DESCRIPTION",
+        "EXTENSION_ICONURL",
+    ):
         assert re.search(rf"set\({key}\s+\S", text), key
     icon = re.search(r"set\(EXTENSION_ICONURL\s+\"[^\"]*/main/([^\"]+)\"", text)
-    assert icon and (ROOT / icon.group(1)).is_file(), "EXTENSION_ICONURL points at no file of the repository"
+    assert icon and (ROOT / icon.group(1)).is_file(), (
+        "EXTENSION_ICONURL points at no file of the repository"
+    )
 
 
 def test_cmake_check_catches_an_unlisted_file(tmp_path: Path) -> None:
@@ -175,8 +189,12 @@ def test_pip_packages_only_the_library() -> None:
     import tomllib
     from setuptools import find_namespace_packages
 
-    find = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
-    found = find_namespace_packages(where=str(ROOT), include=find["include"], exclude=find.get("exclude", ()))
+    find = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"][
+        "find"
+    ]
+    found = find_namespace_packages(
+        where=str(ROOT), include=find["include"], exclude=find.get("exclude", ())
+    )
     assert "BoneUSRecon" in found and "BoneUSRecon.Logic" in found
     assert all(p == "BoneUSRecon" or p.startswith("BoneUSRecon.") for p in found), found
     everything = find_namespace_packages(where=str(ROOT))
@@ -189,7 +207,10 @@ def test_ui_binds_every_parameter_with_matching_ranges() -> None:
     fields = _parameter_fields()
     bindings = _ui_bindings()
     assert set(bindings) == set(fields)
-    assert set(fields) == set(INT_PARAMETERS) | set(NODE_PARAMETERS) | {"segmenter", "calibrationFile"}
+    assert set(fields) == set(INT_PARAMETERS) | set(NODE_PARAMETERS) | {
+        "segmenter",
+        "calibrationFile",
+    }
     for name, (default, lo, hi, _tip) in INT_PARAMETERS.items():
         w = bindings[name]
         assert w.get("class") == "QSpinBox"
@@ -232,7 +253,9 @@ def test_segmenter_choices_are_the_library_segmenters() -> None:
 def test_dependencies_never_pip_install_vtk() -> None:
     from BoneSurfaceReconstructionLib import dependencies
 
-    names = {r.split(">")[0].split("=")[0].strip().lower() for r in dependencies.REQUIREMENTS.values()}
+    names = {
+        r.split(">")[0].split("=")[0].strip().lower() for r in dependencies.REQUIREMENTS.values()
+    }
     assert not names & {"vtk", "pyvista", "slicer-core"}
     # Everything is installed here: nothing to do, and the pip helper is not called.
     called: list[str] = []
@@ -260,7 +283,9 @@ def test_requirements_cover_every_third_party_import_of_the_library() -> None:
     third_party = names - set(sys.stdlib_module_names) - ours - {"vtkmodules", "vtk", "slicer"}
     third_party -= batch_extra
     assert "numpy" in third_party  # the scan works
-    assert third_party <= set(dependencies.REQUIREMENTS), sorted(third_party - set(dependencies.REQUIREMENTS))
+    assert third_party <= set(dependencies.REQUIREMENTS), sorted(
+        third_party - set(dependencies.REQUIREMENTS)
+    )
 
 
 def test_dependencies_install_only_what_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -283,8 +308,12 @@ def _slicer_like_interpreter(module_folder: Path, code: str) -> subprocess.Compl
     prelude = f"import sys; sys.path.append({str(module_folder)!r})\n"
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # no other BoneUSRecon
     return subprocess.run(
-        [sys.executable, "-S", "-c", prelude + code], capture_output=True, text=True, timeout=60,
-        cwd=module_folder.parent, env=env,
+        [sys.executable, "-S", "-c", prelude + code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=module_folder.parent,
+        env=env,
     )
 
 
@@ -360,7 +389,9 @@ def _world_of_pixels(volume, ij: np.ndarray) -> np.ndarray:
     volume.GetIJKToRASMatrix(m)
     ijk_to_ras = vtk_to_matrix(m)
     to_world = vtkGeneralTransform()
-    slicer.vtkMRMLTransformNode.GetTransformBetweenNodes(volume.GetParentTransformNode(), None, to_world)
+    slicer.vtkMRMLTransformNode.GetTransformBetweenNodes(
+        volume.GetParentTransformNode(), None, to_world
+    )
     ras = (np.c_[ij, np.zeros(len(ij)), np.ones(len(ij))] @ ijk_to_ras.T)[:, :3]
     return np.array([to_world.TransformPoint(*p) for p in ras])
 
@@ -472,7 +503,9 @@ def test_tracked_hierarchy_with_flipped_ijk_to_ras(scene) -> None:
 def test_calibration_replaces_the_image_geometry(scene) -> None:
     browser, iseq, _tseq, probe, image_to_probe, calib_node = _plus_like_scene(scene)
     # PLUS convention: frames directly under the probe transform, calibration maps pixels.
-    browser.GetProxyNode(iseq).SetAndObserveTransformNodeID(calib_node.GetParentTransformNode().GetID())
+    browser.GetProxyNode(iseq).SetAndObserveTransformNodeID(
+        calib_node.GetParentTransformNode().GetID()
+    )
     for calibration in (image_to_probe, calib_node):
         sweep = mrml.sweep_from_node(browser, calibration=calibration)
         np.testing.assert_allclose(sweep.image_to_reference, probe @ image_to_probe, atol=1e-9)
@@ -518,7 +551,9 @@ def test_real_plus_recording_roundtrip(scene) -> None:
     nodes = mrml.sweep_to_scene(sweep, scene, name="L14")
     read = mrml.sweep_from_node(nodes.browser)
     np.testing.assert_array_equal(read.frames, sweep.frames[sweep.valid])
-    np.testing.assert_allclose(read.image_to_reference, sweep.image_to_reference[sweep.valid], atol=1e-9)
+    np.testing.assert_allclose(
+        read.image_to_reference, sweep.image_to_reference[sweep.valid], atol=1e-9
+    )
     np.testing.assert_allclose(read.spacing_mm, sweep.spacing_mm, rtol=1e-12)
 
 
@@ -543,7 +578,9 @@ def test_invalid_frames_are_left_out_of_the_scene(scene) -> None:
     nodes = mrml.sweep_to_scene(bad, scene)
     np.testing.assert_array_equal(nodes.frames, [0, 1, 3, 4, 5])
     read = mrml.sweep_from_node(nodes.browser)
-    np.testing.assert_allclose(read.image_to_reference, s.image_to_reference[[0, 1, 3, 4, 5]], atol=1e-9)
+    np.testing.assert_allclose(
+        read.image_to_reference, s.image_to_reference[[0, 1, 3, 4, 5]], atol=1e-9
+    )
 
 
 def test_unusable_poses_in_the_scene_mark_frames_invalid(scene) -> None:
@@ -557,7 +594,9 @@ def test_unusable_poses_in_the_scene_mark_frames_invalid(scene) -> None:
     np.testing.assert_array_equal(read.valid, [True, True, True, False, True])
     assert read.invalid_reasons == {3: "pose is singular"}
     np.testing.assert_array_equal(read.image_to_reference[3], np.eye(4))
-    np.testing.assert_array_equal(read.image_to_reference[[0, 1, 2, 4]], sweep.image_to_reference[[0, 1, 2, 4]])
+    np.testing.assert_array_equal(
+        read.image_to_reference[[0, 1, 2, 4]], sweep.image_to_reference[[0, 1, 2, 4]]
+    )
 
 
 def test_transform_sequence_pairs_by_time_stamp(scene) -> None:
@@ -667,7 +706,9 @@ def test_points_go_to_a_model_or_a_markups_node(scene) -> None:
     pd = points_to_polydata(xyz, {"Frame": np.arange(40) // 4})
     model = mrml.show_points(pd, scene)
     np.testing.assert_allclose(slicer.util.arrayFromModelPoints(model), xyz)
-    np.testing.assert_array_equal(slicer.util.arrayFromModelPointData(model, "Frame"), np.arange(40) // 4)
+    np.testing.assert_array_equal(
+        slicer.util.arrayFromModelPointData(model, "Frame"), np.arange(40) // 4
+    )
     assert model.GetPolyData().GetNumberOfVerts() == 40
     markups = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "Pts")
     out = mrml.show_points(pd, scene, node=markups)
@@ -737,8 +778,14 @@ def test_parameters_from_widget_values_maps_the_module_choices() -> None:
     )
     from BoneUSRecon.Logic.pipeline import ReconstructionParams
 
-    values = {"segmenter": "snake", "controlPointsU": 10, "controlPointsV": 4, "degreeU": 3,
-              "degreeV": 1, "rays": 21}
+    values = {
+        "segmenter": "snake",
+        "controlPointsU": 10,
+        "controlPointsV": 4,
+        "degreeU": 3,
+        "degreeV": 1,
+        "rays": 21,
+    }
     p = parameters_from_widget_values(values)
     assert p.segmentation.method == "snake"
     assert p.fit.n_control_points == (10, 4) and p.fit.degree == (3, 1)
@@ -773,7 +820,11 @@ def module_logic(monkeypatch: pytest.MonkeyPatch):
             pass
 
     slm = types.ModuleType("slicer.ScriptedLoadableModule")
-    for name in ("ScriptedLoadableModule", "ScriptedLoadableModuleWidget", "ScriptedLoadableModuleTest"):
+    for name in (
+        "ScriptedLoadableModule",
+        "ScriptedLoadableModuleWidget",
+        "ScriptedLoadableModuleTest",
+    ):
         setattr(slm, name, type(name, (_Base,), {}))
 
     class ScriptedLoadableModuleLogic(_Base):
@@ -788,7 +839,11 @@ def module_logic(monkeypatch: pytest.MonkeyPatch):
     i18n = types.ModuleType("slicer.i18n")
     i18n.tr = lambda text: text
     i18n.translate = lambda context, text: text
-    for name, mod in (("ScriptedLoadableModule", slm), ("parameterNodeWrapper", pnw), ("i18n", i18n)):
+    for name, mod in (
+        ("ScriptedLoadableModule", slm),
+        ("parameterNodeWrapper", pnw),
+        ("i18n", i18n),
+    ):
         monkeypatch.setitem(sys.modules, f"slicer.{name}", mod)
         monkeypatch.setattr(slicer, name, mod, raising=False)
     monkeypatch.setitem(sys.modules, "qt", types.ModuleType("qt"))  # used by the Widget only
@@ -803,10 +858,20 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
     logic = module_logic.BoneSurfaceReconstructionLogic()
     explicit = logic.process(nodes.browser, controlPointsU=10, controlPointsV=5, rays=15)
     p = types.SimpleNamespace(
-        inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
-        segmenter=module_logic._SEGMENTERS[0], controlPointsU=10, controlPointsV=5,
-        degreeU=2, degreeV=2, rays=15, outputSurface=None, outputPoints=None,
-        targetModel=None, outputTransform=None, registeredModel=None,
+        inputNode=nodes.browser,
+        transformSequence=None,
+        calibrationFile=Path("."),
+        segmenter=module_logic._SEGMENTERS[0],
+        controlPointsU=10,
+        controlPointsV=5,
+        degreeU=2,
+        degreeV=2,
+        rays=15,
+        outputSurface=None,
+        outputPoints=None,
+        targetModel=None,
+        outputTransform=None,
+        registeredModel=None,
     )
     via_node = logic.processParameterNode(p)
     assert p.outputSurface is via_node.surface_node and p.outputPoints is via_node.points_node
@@ -823,7 +888,9 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
     assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == n_models
 
 
-def test_module_logic_loads_a_plus_file(module_logic, scene, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_module_logic_loads_a_plus_file(
+    module_logic, scene, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(slicer, "mrmlScene", scene, raising=False)
     logic = module_logic.BoneSurfaceReconstructionLogic()
     browser = logic.loadSweepFile(
@@ -831,7 +898,9 @@ def test_module_logic_loads_a_plus_file(module_logic, scene, monkeypatch: pytest
     )
     assert browser.GetScene() is scene and browser.GetNumberOfItems() == 21
     sweep = mrml.sweep_from_node(browser)
-    np.testing.assert_allclose(sweep.spacing_mm, [0.085, 0.085], atol=0.005)  # the calibration's scale
+    np.testing.assert_allclose(
+        sweep.spacing_mm, [0.085, 0.085], atol=0.005
+    )  # the calibration's scale
     # Without a calibration the reader has no pose for this file: a one-line error.
     with pytest.raises(ValueError, match="BoneUltrasound_L14"):
         logic.loadSweepFile(PLUS_DATA / "BoneUltrasound_L14.igs.mha", pathlib_empty())
@@ -869,10 +938,20 @@ def test_module_logic_cancel_is_a_flag_not_a_failure(module_logic, small_sim, sc
     assert len(steps) == 3  # stopped at the next step
     assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == n_models
     p = types.SimpleNamespace(
-        inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
-        segmenter=module_logic._SEGMENTERS[0], controlPointsU=10, controlPointsV=5,
-        degreeU=2, degreeV=2, rays=15, outputSurface=None, outputPoints=None,
-        targetModel=None, outputTransform=None, registeredModel=None,
+        inputNode=nodes.browser,
+        transformSequence=None,
+        calibrationFile=Path("."),
+        segmenter=module_logic._SEGMENTERS[0],
+        controlPointsU=10,
+        controlPointsV=5,
+        degreeU=2,
+        degreeV=2,
+        rays=15,
+        outputSurface=None,
+        outputPoints=None,
+        targetModel=None,
+        outputTransform=None,
+        registeredModel=None,
     )
     logic.requestCancel()  # a stale request is cleared when a run starts
     steps.clear()
@@ -896,10 +975,20 @@ def test_module_logic_registers_to_a_target_model(module_logic, small_sim, scene
     nodes = mrml.sweep_to_scene(small_sim.sweep, scene)
     logic = module_logic.BoneSurfaceReconstructionLogic()
     p = types.SimpleNamespace(
-        inputNode=nodes.browser, transformSequence=None, calibrationFile=Path("."),
-        segmenter=module_logic._SEGMENTERS[0], controlPointsU=15, controlPointsV=5,
-        degreeU=2, degreeV=2, rays=15, outputSurface=None, outputPoints=None,
-        targetModel=model, outputTransform=None, registeredModel=None,
+        inputNode=nodes.browser,
+        transformSequence=None,
+        calibrationFile=Path("."),
+        segmenter=module_logic._SEGMENTERS[0],
+        controlPointsU=15,
+        controlPointsV=5,
+        degreeU=2,
+        degreeV=2,
+        rays=15,
+        outputSurface=None,
+        outputPoints=None,
+        targetModel=model,
+        outputTransform=None,
+        registeredModel=None,
     )
     result = logic.processParameterNode(p)
     assert p.outputTransform is result.registration.transformNode

@@ -70,8 +70,9 @@ def test_image_centres_are_the_middle_of_the_corners():
     # An affine pose maps the pixel grid's middle to the mean of its four corners, an
     # independent way to the same point; tilted, scaled frames in arbitrary places.
     rng = np.random.default_rng(3)
-    mats = np.stack([pose(rng.uniform(-40, 40, 3), (0.1, 0.15), rng.uniform(-9, 9, 3))
-                     for _ in range(6)])
+    mats = np.stack(
+        [pose(rng.uniform(-40, 40, 3), (0.1, 0.15), rng.uniform(-9, 9, 3)) for _ in range(6)]
+    )
     s = Sweep(np.zeros((6, 8, 12), np.uint8), mats, np.zeros(6), np.ones(6, bool))
     s = s.replace(valid=np.array([True, False, True, True, False, True]))
     assert np.allclose(s.image_centres(), s.corners_mm().mean(axis=1))
@@ -97,8 +98,15 @@ def test_nan_timestamps_ignored_in_duration():
     "change, match",
     [
         (dict(frames=np.zeros((5, 8), np.uint8)), "shape"),
-        (dict(frames=np.zeros((0, 8, 12), np.uint8), image_to_reference=np.zeros((0, 4, 4)),
-              timestamps=np.zeros(0), valid=np.zeros(0, bool)), "zero frames"),
+        (
+            dict(
+                frames=np.zeros((0, 8, 12), np.uint8),
+                image_to_reference=np.zeros((0, 4, 4)),
+                timestamps=np.zeros(0),
+                valid=np.zeros(0, bool),
+            ),
+            "zero frames",
+        ),
         (dict(image_to_reference=np.zeros((4, 4, 4))), "expected 5 4x4 transforms"),
         (dict(timestamps=np.zeros(3)), "expected 5 timestamps"),
         (dict(valid=np.ones(6, bool)), "expected 5 valid flags"),

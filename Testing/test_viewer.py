@@ -45,8 +45,12 @@ def _sweep(n: int = 20, invalid: int = 7) -> Sweep:
         mats[k] = [[0, 0, 1, k * 2.0], [s, 0, 0, -64 * s / 2], [0, -s, 0, 0.0], [0, 0, 0, 1]]
     valid = np.ones(n, bool)
     valid[invalid] = False
-    return Sweep(frames=np.zeros((n, 100, 64), np.uint8), image_to_reference=mats,
-                 timestamps=np.arange(n) * 0.1, valid=valid)
+    return Sweep(
+        frames=np.zeros((n, 100, 64), np.uint8),
+        image_to_reference=mats,
+        timestamps=np.arange(n) * 0.1,
+        valid=valid,
+    )
 
 
 def _load(path: Path) -> np.ndarray:
@@ -63,8 +67,14 @@ ORANGE = (0xFF, 0x95, 0x00)
 
 def test_screenshot_shows_the_surface_points_and_frames(tmp_path: Path) -> None:
     out = tmp_path / "all.png"
-    got = show_surface(_surface(), points=_points(), gold=_points(60, 0.5, 1),
-                       sweep=_sweep(), screenshot=out, window_size=(800, 500))
+    got = show_surface(
+        _surface(),
+        points=_points(),
+        gold=_points(60, 0.5, 1),
+        sweep=_sweep(),
+        screenshot=out,
+        window_size=(800, 500),
+    )
     assert got == out
     img = _load(out)
     assert img.shape == (500, 800, 3)
@@ -96,12 +106,18 @@ def test_window_toggles_layers_and_picking_reports_distances() -> None:
 
     mesh = _surface()
     gold = _points(50, 0.7, 3)
-    pl, actors = render.make_plotter(mesh, points=_points(), gold=gold, sweep=_sweep(),
-                                     off_screen=True, window_size=(400, 300))
+    pl, actors = render.make_plotter(
+        mesh, points=_points(), gold=gold, sweep=_sweep(), off_screen=True, window_size=(400, 300)
+    )
     try:
         cb = _add_interaction(pl, mesh, actors, gold, render.DEFAULT_STYLE)
-        assert {"toggle:points", "toggle:gold", "toggle:frames", "toggle:invalid_frames",
-                "pick"} <= set(cb)
+        assert {
+            "toggle:points",
+            "toggle:gold",
+            "toggle:frames",
+            "toggle:invalid_frames",
+            "pick",
+        } <= set(cb)
         cb["toggle:gold"](False)
         assert not actors["gold"].GetVisibility() and actors["points"].GetVisibility()
         cb["toggle:gold"](True)
@@ -130,8 +146,9 @@ def test_distance_is_computed_from_points_when_missing() -> None:
     np.testing.assert_allclose(d, brute, atol=1e-9)
     # A surface that has Distance keeps it.
     s2 = _surface()
-    np.testing.assert_array_equal(with_distance(s2, pts).point_data["Distance"],
-                                  s2.point_data["Distance"])
+    np.testing.assert_array_equal(
+        with_distance(s2, pts).point_data["Distance"], s2.point_data["Distance"]
+    )
 
 
 def test_view_directions_lay_the_bone_horizontally() -> None:
@@ -161,8 +178,23 @@ def test_view_cli_screenshot_and_summary(tmp_path: Path, capsys: pytest.CaptureF
 
     sweep = write_sweep(_sweep(), tmp_path / "sweep.mha")
     shot = tmp_path / "view.png"
-    rc = main(["view", str(surf), "--points", str(pts), "--gold", str(gold), "--sweep",
-               str(sweep), "--screenshot", str(shot), "--size", "640x400", "-q"])
+    rc = main(
+        [
+            "view",
+            str(surf),
+            "--points",
+            str(pts),
+            "--gold",
+            str(gold),
+            "--sweep",
+            str(sweep),
+            "--screenshot",
+            str(shot),
+            "--size",
+            "640x400",
+            "-q",
+        ]
+    )
     out = capsys.readouterr()
     assert rc == 0, out.err
     assert "screenshot" in out.out and str(shot) in out.out and "1 invalid" in out.out
@@ -182,8 +214,11 @@ def test_view_cli_screenshot_and_summary(tmp_path: Path, capsys: pytest.CaptureF
     ],
 )
 def test_view_cli_refuses_bad_input_in_one_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch,
-    args: list[str], message: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+    args: list[str],
+    message: str,
 ) -> None:
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

@@ -196,7 +196,9 @@ def json_ready(obj: object, digits: int = 12) -> object:
     import math
 
     if isinstance(obj, dict):
-        return {str(k) if not isinstance(k, str) else k: json_ready(v, digits) for k, v in obj.items()}
+        return {
+            str(k) if not isinstance(k, str) else k: json_ready(v, digits) for k, v in obj.items()
+        }
     if isinstance(obj, (list, tuple)):
         return [json_ready(v, digits) for v in obj]
     if hasattr(obj, "tolist") and hasattr(obj, "dtype"):  # numpy array or scalar

@@ -175,9 +175,7 @@ def params_with(
         if v is not None
     }
     res_changes: dict[str, Any] = {
-        k: v
-        for k, v in (("n_rays", rays), ("axis", axis))
-        if v is not None
+        k: v for k, v in (("n_rays", rays), ("axis", axis)) if v is not None
     }
     return dataclasses.replace(
         p,

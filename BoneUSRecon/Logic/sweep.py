@@ -314,9 +314,7 @@ class Sweep:
         image in pixels with the scale in the transform.
         """
         if len(images) != len(transforms):
-            raise BoneUSReconError(
-                f"{len(images)} images but {len(transforms)} transforms", source
-            )
+            raise BoneUSReconError(f"{len(images)} images but {len(transforms)} transforms", source)
         if not images:
             raise BoneUSReconError("the sweep has zero frames", source)
         frames, mats = [], []

@@ -97,12 +97,25 @@ def use_offscreen_backend() -> None:
 #: imported up front by :func:`preload_rendering`. Names missing from another VTK
 #: build are skipped.
 _LAZY_VTK_MODULES = (
-    "vtkRenderingCore", "vtkRenderingOpenGL2", "vtkRenderingContext2D",
-    "vtkRenderingContextOpenGL2", "vtkRenderingFreeType", "vtkRenderingAnnotation",
-    "vtkRenderingVolume", "vtkRenderingVolumeOpenGL2", "vtkRenderingUI",
-    "vtkRenderingMatplotlib", "vtkRenderingHyperTreeGrid", "vtkInteractionStyle",
-    "vtkInteractionWidgets", "vtkChartsCore", "vtkViewsCore", "vtkViewsContext2D",
-    "vtkPythonContext2D", "vtkImagingMath", "vtkIOImage",
+    "vtkRenderingCore",
+    "vtkRenderingOpenGL2",
+    "vtkRenderingContext2D",
+    "vtkRenderingContextOpenGL2",
+    "vtkRenderingFreeType",
+    "vtkRenderingAnnotation",
+    "vtkRenderingVolume",
+    "vtkRenderingVolumeOpenGL2",
+    "vtkRenderingUI",
+    "vtkRenderingMatplotlib",
+    "vtkRenderingHyperTreeGrid",
+    "vtkInteractionStyle",
+    "vtkInteractionWidgets",
+    "vtkChartsCore",
+    "vtkViewsCore",
+    "vtkViewsContext2D",
+    "vtkPythonContext2D",
+    "vtkImagingMath",
+    "vtkIOImage",
 )
 
 
@@ -246,8 +259,16 @@ _BAR = {"position_x": 0.3, "position_y": 0.035, "height": 0.075, "width": 0.4}
 def _bar_args(title: str, style: Style) -> dict[str, Any]:
     # No VTK title: vtkScalarBarActor puts it on the side of the tick labels, where
     # it overlaps them. _add_bar_title writes it above the bar; the labels go below.
-    return {"title": "", "color": style.text_color, "vertical": False, **_BAR,
-            "fmt": "%.2f", "n_labels": 5, "label_font_size": 14, "title_font_size": 1}
+    return {
+        "title": "",
+        "color": style.text_color,
+        "vertical": False,
+        **_BAR,
+        "fmt": "%.2f",
+        "n_labels": 5,
+        "label_font_size": 14,
+        "title_font_size": 1,
+    }
 
 
 def _add_bar_title(pl: pv.Plotter, title: str, style: Style) -> None:
@@ -264,8 +285,9 @@ def _add_bar_title(pl: pv.Plotter, title: str, style: Style) -> None:
     prop.SetJustificationToCentered()
     prop.SetVerticalJustificationToBottom()
     text.GetPositionCoordinate().SetCoordinateSystemToNormalizedViewport()
-    text.SetPosition(_BAR["position_x"] + _BAR["width"] / 2,
-                     _BAR["position_y"] + _BAR["height"] + 0.005)
+    text.SetPosition(
+        _BAR["position_x"] + _BAR["width"] / 2, _BAR["position_y"] + _BAR["height"] + 0.005
+    )
     pl.add_actor(text, name="bar-title", reset_camera=False)
 
 
@@ -374,8 +396,9 @@ def add_orientation_marker(pl: pv.Plotter, viewport: Sequence[float] = LOWER_LEF
     It turns with the camera, so a reader sees how the view is oriented (the sweep's
     reference coordinates are the tracker's, not a patient's: hence x, y, z).
     """
-    pl.add_axes(viewport=tuple(viewport), line_width=2, color="black",
-                xlabel="x", ylabel="y", zlabel="z")
+    pl.add_axes(
+        viewport=tuple(viewport), line_width=2, color="black", xlabel="x", ylabel="y", zlabel="z"
+    )
 
 
 def _dot_size(n: int, largest: float) -> float:
@@ -450,8 +473,10 @@ def make_plotter(
             _add_bar_title(pl, "Distance (mm)", style)
     else:
         actors["surface"] = pl.add_mesh(mesh, color="#d9c8a9", smooth_shading=True)
-    for name, cloud, color in (("points", points, style.points_color),
-                               ("gold", gold, style.gold_color)):
+    for name, cloud, color in (
+        ("points", points, style.points_color),
+        ("gold", gold, style.gold_color),
+    ):
         c = as_pyvista(cloud) if cloud is not None else None
         if c is not None and c.n_points:
             actors[name] = pl.add_mesh(
@@ -488,9 +513,16 @@ def _toward_probe(sweep: Sweep | None) -> np.ndarray | None:
     return d / n if n > 1e-9 else None
 
 
-def set_camera(pl: pv.Plotter, points: np.ndarray, direction: np.ndarray, up: np.ndarray,
-               *, margin: float = 1.08, reserve_bottom: float = 0.2,
-               reserve_top: float = 0.0) -> None:
+def set_camera(
+    pl: pv.Plotter,
+    points: np.ndarray,
+    direction: np.ndarray,
+    up: np.ndarray,
+    *,
+    margin: float = 1.08,
+    reserve_bottom: float = 0.2,
+    reserve_top: float = 0.0,
+) -> None:
     """Look at ``points`` from ``direction`` (parallel projection), filling the window.
 
     Parameters
@@ -518,8 +550,11 @@ def set_camera(pl: pv.Plotter, points: np.ndarray, direction: np.ndarray, up: np
     x, y = p @ right, p @ up
     w, h = float(np.ptp(x)) or 1.0, float(np.ptp(y)) or 1.0
     centre = p.mean(axis=0)
-    centre = centre + right * ((x.max() + x.min()) / 2 - centre @ right) \
+    centre = (
+        centre
+        + right * ((x.max() + x.min()) / 2 - centre @ right)
         + up * ((y.max() + y.min()) / 2 - centre @ up)
+    )
     width, height = pl.window_size
     aspect = width / max(height, 1)
     usable = 1.0 - reserve_bottom - reserve_top
@@ -617,7 +652,9 @@ def render_views(
             if fit_height:
                 w = int(window_size[0])
                 span = np.ptp(fit @ np.cross(up, d)) or 1.0
-                need = w * np.ptp(fit @ up) / span * 1.08 / 0.8  # margin, colour bar with title and labels
+                need = (
+                    w * np.ptp(fit @ up) / span * 1.08 / 0.8
+                )  # margin, colour bar with title and labels
                 pl.window_size = [w, int(np.clip(need, 0.35 * w, window_size[1]))]
             set_camera(pl, fit, d, up)
             add_scale_bar(pl, style)
@@ -703,14 +740,20 @@ def render_error_map(
         actors = {
             "surface": pl.add_mesh(mesh, color="#c8c8c8", smooth_shading=True),
             "gold": pl.add_mesh(
-                g, scalars="gold distance", cmap="coolwarm", clim=(0.0, hi),
+                g,
+                scalars="gold distance",
+                cmap="coolwarm",
+                clim=(0.0, hi),
                 point_size=_dot_size(g.n_points, style.point_size + 2),
                 render_points_as_spheres=True,
                 scalar_bar_args=_bar_args("", style),
             ),
         }
-        _add_bar_title(pl, "gold point to surface (mm" + (f"; {hi:.2f} or more: dark red)"
-                                                          if top > hi else ")"), style)
+        _add_bar_title(
+            pl,
+            "gold point to surface (mm" + (f"; {hi:.2f} or more: dark red)" if top > hi else ")"),
+            style,
+        )
         add_orientation_marker(pl)
         pts = np.asarray(mesh.points, dtype=float)
         d, up = view_directions(pts, _toward_probe(sweep))[view]

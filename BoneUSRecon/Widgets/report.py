@@ -152,10 +152,21 @@ def software_versions() -> dict[str, str]:
     """Versions of Python, the platform and every library the result depends on."""
     from importlib import metadata
 
-    out = {"BoneUSRecon": __version__, "Python": sys.version.split()[0],
-           "platform": platform.platform()}
-    for dist in ("numpy", "scipy", "scikit-image", "SimpleITK", "vtk", "pyvista",
-                 "matplotlib", "pillow"):
+    out = {
+        "BoneUSRecon": __version__,
+        "Python": sys.version.split()[0],
+        "platform": platform.platform(),
+    }
+    for dist in (
+        "numpy",
+        "scipy",
+        "scikit-image",
+        "SimpleITK",
+        "vtk",
+        "pyvista",
+        "matplotlib",
+        "pillow",
+    ):
         try:
             out[dist] = metadata.version(dist)
         except metadata.PackageNotFoundError:
@@ -224,8 +235,13 @@ def table_figure(table: Sequence[tuple[int, float]], title: str = "") -> Any:
     ax = fig.add_subplot()
     ax.plot(counts, means, "o-", color="#4a78b5", label="this reconstruction")
     pc = sorted(PAPER_TABLE_I)
-    ax.plot(pc, [PAPER_TABLE_I[c] for c in pc], "s--", color="#888888",
-            label="paper, Table I (clavicle phantom)")
+    ax.plot(
+        pc,
+        [PAPER_TABLE_I[c] for c in pc],
+        "s--",
+        color="#888888",
+        label="paper, Table I (clavicle phantom)",
+    )
     ax.set_xlabel("control points along the bone (e)")
     ax.set_ylabel("mean distance (mm)")
     ax.set_ylim(bottom=0.0)
@@ -236,8 +252,13 @@ def table_figure(table: Sequence[tuple[int, float]], title: str = "") -> Any:
     return fig
 
 
-def sample_frames(segmentation: Any, n_accepted: int = 6, n_rejected: int = 4,
-                  fit_rejected: Sequence[int] = (), n_fit_rejected: int = 2) -> list[int]:
+def sample_frames(
+    segmentation: Any,
+    n_accepted: int = 6,
+    n_rejected: int = 4,
+    fit_rejected: Sequence[int] = (),
+    n_fit_rejected: int = 2,
+) -> list[int]:
     """Frames to show as overlays: accepted ones evenly spread, plus rejected ones.
 
     Parameters
@@ -267,8 +288,13 @@ def sample_frames(segmentation: Any, n_accepted: int = 6, n_rejected: int = 4,
     return sorted(set(pick))
 
 
-def _overlay_image(sweep: Any, contour: Any, truth_px: np.ndarray | None = None,
-                   min_width: int = 320, fit_rejected: bool = False) -> np.ndarray:
+def _overlay_image(
+    sweep: Any,
+    contour: Any,
+    truth_px: np.ndarray | None = None,
+    min_width: int = 320,
+    fit_rejected: bool = False,
+) -> np.ndarray:
     """One contour overlay (:func:`BoneUSRecon.Widgets.overlay.overlay_image`) as RGB."""
     from BoneUSRecon.Widgets.overlay import overlay_image
 
@@ -280,9 +306,14 @@ def _overlay_image(sweep: Any, contour: Any, truth_px: np.ndarray | None = None,
     else:
         label = f"frame {contour.frame}: accepted"
     scale = max(1, int(np.ceil(min_width / max(sweep.width, 1))))
-    img = overlay_image(sweep.frames[contour.frame], contour.points_px,
-                        accepted=bool(contour.accepted), label=label, truth_px=truth_px,
-                        scale=scale)
+    img = overlay_image(
+        sweep.frames[contour.frame],
+        contour.points_px,
+        accepted=bool(contour.accepted),
+        label=label,
+        truth_px=truth_px,
+        scale=scale,
+    )
     return np.asarray(img.convert("RGB"))
 
 
@@ -328,13 +359,17 @@ def _kv_table(rows: Sequence[tuple[str, str]], table_id: str) -> str:
 def _img(name: str, data: bytes, alt: str, caption: str, cls: str = "") -> str:
     b64 = base64.b64encode(data).decode("ascii")
     c = f' class="{cls}"' if cls else ""
-    return (f'<figure{c}><img id="img-{html.escape(name)}" alt="{html.escape(alt)}" '
-            f'src="data:image/png;base64,{b64}"><figcaption>{caption}</figcaption></figure>')
+    return (
+        f'<figure{c}><img id="img-{html.escape(name)}" alt="{html.escape(alt)}" '
+        f'src="data:image/png;base64,{b64}"><figcaption>{caption}</figcaption></figure>'
+    )
 
 
 def _range(s: dict[str, float], unit: str, digits: int = 2) -> str:
-    return (f"{_num(s['min'], digits)} to {_num(s['max'], digits)} {unit} "
-            f"(median {_num(s['median'], digits)})")
+    return (
+        f"{_num(s['min'], digits)} to {_num(s['max'], digits)} {unit} "
+        f"(median {_num(s['median'], digits)})"
+    )
 
 
 def _counts(d: dict[str, int]) -> str:
@@ -342,33 +377,47 @@ def _counts(d: dict[str, int]) -> str:
 
 
 def _sweep_rows(s: dict[str, Any]) -> list[tuple[str, str]]:
-    rows = [("source", html.escape(str(s.get("source") or "(in memory)"))),
-            ("frames in the sweep", str(s["frames"]))]
+    rows = [
+        ("source", html.escape(str(s.get("source") or "(in memory)"))),
+        ("frames in the sweep", str(s["frames"])),
+    ]
     inv = f"{s['invalid_frames']}"
     if s["invalid_reasons"]:
         inv += f" ({_counts(s['invalid_reasons'])})"
     rows.append(("frames without a usable pose or image", inv))
     if "frames_used" in s:
-        rows.append(("frames used (bone contour accepted)",
-                     f'<span id="frames-used">{s["frames_used"]}</span>'))
+        rows.append(
+            (
+                "frames used (bone contour accepted)",
+                f'<span id="frames-used">{s["frames_used"]}</span>',
+            )
+        )
         rej = f'<span id="frames-rejected">{s["frames_rejected"]}</span>'
         if s["rejected_reasons"]:
             rej += f" ({_counts(s['rejected_reasons'])})"
         rows.append(("frames rejected by the segmentation", rej))
     sx, sy = s["spacing_mm"]
     rows += [
-        ("image size", f"{s['width']} x {s['height']} px = "
-                       f"{_num(s['image_size_mm'][0], 1)} x {_num(s['image_size_mm'][1], 1)} mm"),
+        (
+            "image size",
+            f"{s['width']} x {s['height']} px = "
+            f"{_num(s['image_size_mm'][0], 1)} x {_num(s['image_size_mm'][1], 1)} mm",
+        ),
         ("pixel spacing", f"{sx:.4f} x {sy:.4f} mm (column x row)"),
-        ("sweep length", f'<span id="sweep-length">{_num(s["sweep_length_mm"], 1)}</span> mm '
-                         f"(path of the image centre), {_num(s['duration_s'], 1)} s"),
+        (
+            "sweep length",
+            f'<span id="sweep-length">{_num(s["sweep_length_mm"], 1)}</span> mm '
+            f"(path of the image centre), {_num(s['duration_s'], 1)} s",
+        ),
     ]
     if "slice_gap_mm" in s:
         rows += [
             ("distance between consecutive slices", _range(s["slice_gap_mm"], "mm")),
             ("tilt between consecutive slices", _range(s["slice_tilt_deg"], "deg")),
-            ("tilt range (largest angle to the mean image plane)",
-             f"{_num(s['tilt_range_deg'], 1)} deg"),
+            (
+                "tilt range (largest angle to the mean image plane)",
+                f"{_num(s['tilt_range_deg'], 1)} deg",
+            ),
         ]
     rows.append(("pose", html.escape(str(s.get("transform", "")))))
     return rows
@@ -380,10 +429,15 @@ def _accuracy_rows(ev: dict[str, Any]) -> str:
         if key not in ev:
             continue
         v = ev[key]
-        shown = _num(100.0 * float(v), 1) + " %" if unit == "%" else (
-            _num(v, 3) + (f" {unit}" if unit else ""))
-        rows.append(f'<tr><th>{label}</th><td class="num" data-key="{key}" '
-                    f'data-value="{float(v)!r}">{shown}</td></tr>')
+        shown = (
+            _num(100.0 * float(v), 1) + " %"
+            if unit == "%"
+            else (_num(v, 3) + (f" {unit}" if unit else ""))
+        )
+        rows.append(
+            f'<tr><th>{label}</th><td class="num" data-key="{key}" '
+            f'data-value="{float(v)!r}">{shown}</td></tr>'
+        )
     return f'<table id="accuracy">{"".join(rows)}</table>'
 
 
@@ -391,11 +445,15 @@ def _table_i(table: Sequence[tuple[int, float]]) -> str:
     rows = []
     for count, mean in table:
         paper = PAPER_TABLE_I.get(int(count))
-        rows.append(f'<tr><td class="num">{int(count)}</td><td class="num" data-count="{int(count)}"'
-                    f' data-value="{float(mean)!r}">{_num(mean, 3)}</td>'
-                    f'<td class="num">{"" if paper is None else _num(paper, 2)}</td></tr>')
-    return ('<table id="table-i"><tr><th>control points (e)</th><th>mean distance (mm)</th>'
-            f'<th>paper (mm)</th></tr>{"".join(rows)}</table>')
+        rows.append(
+            f'<tr><td class="num">{int(count)}</td><td class="num" data-count="{int(count)}"'
+            f' data-value="{float(mean)!r}">{_num(mean, 3)}</td>'
+            f'<td class="num">{"" if paper is None else _num(paper, 2)}</td></tr>'
+        )
+    return (
+        '<table id="table-i"><tr><th>control points (e)</th><th>mean distance (mm)</th>'
+        f"<th>paper (mm)</th></tr>{''.join(rows)}</table>"
+    )
 
 
 def _jsonable(obj: Any) -> Any:
@@ -577,8 +635,9 @@ def write_report(
     source = title or summary.get("source") or "in-memory sweep"
     sections = [_title_section(source)]
     if has_gold:
-        sections.append(_section("accuracy-section", "Accuracy against the gold points",
-                                 accuracy_html))
+        sections.append(
+            _section("accuracy-section", "Accuracy against the gold points", accuracy_html)
+        )
     sections.append(_section("surface-section", "Surface", surface_html))
     if table_html:
         sections.append(_section("table-section", "Table I: control points", table_html))
@@ -608,34 +667,59 @@ def _surface_section(
     from BoneUSRecon.Widgets.render import distance_array, render_views
 
     sweep = recon.sweep
-    views = render_views(recon.surface, points=getattr(recon, "points", None), sweep=sweep,
-                         window_size=(1000, 620), fit_height=True)
+    views = render_views(
+        recon.surface,
+        points=getattr(recon, "points", None),
+        sweep=sweep,
+        window_size=(1000, 620),
+        fit_height=True,
+    )
     # The sweep section's picture, rendered here with the surface's scene settings.
-    figures["sweep"] = _png(render_views(recon.surface, sweep=sweep, views=("oblique",),
-                                         window_size=(1000, 560), show_frames=True)["oblique"])
+    figures["sweep"] = _png(
+        render_views(
+            recon.surface,
+            sweep=sweep,
+            views=("oblique",),
+            window_size=(1000, 560),
+            show_frames=True,
+        )["oblique"]
+    )
     dist = distance_array(recon.surface)
-    surf_caption = ("Reconstructed surface coloured by <i>Distance</i>, the distance (mm) "
-                    "from each vertex to the nearest segmented point; red dots are the "
-                    "segmented contour points (the paper's Fig. 4).")
+    surf_caption = (
+        "Reconstructed surface coloured by <i>Distance</i>, the distance (mm) "
+        "from each vertex to the nearest segmented point; red dots are the "
+        "segmented contour points (the paper's Fig. 4)."
+    )
     if dist is not None and np.isfinite(dist).any():
-        numbers["surface_distance_mm"] = {"mean": float(np.nanmean(dist)),
-                                          "max": float(np.nanmax(dist))}
+        numbers["surface_distance_mm"] = {
+            "mean": float(np.nanmean(dist)),
+            "max": float(np.nanmax(dist)),
+        }
     else:
-        surf_caption = ("Reconstructed surface (it has no <i>Distance</i> array); red dots "
-                        "are the segmented contour points.")
+        surf_caption = (
+            "Reconstructed surface (it has no <i>Distance</i> array); red dots "
+            "are the segmented contour points."
+        )
     figs_html = []
     for name, image in views.items():
         figures[f"surface_{name}"] = _png(image)
-        what = ("seen from the probe's side" if name == "top"
-                else "oblique view showing the relief")
-        figs_html.append(_img(f"surface-{name}", figures[f"surface_{name}"],
-                              f"surface, {name} view", f"{surf_caption} {what.capitalize()}."))
+        what = "seen from the probe's side" if name == "top" else "oblique view showing the relief"
+        figs_html.append(
+            _img(
+                f"surface-{name}",
+                figures[f"surface_{name}"],
+                f"surface, {name} view",
+                f"{surf_caption} {what.capitalize()}.",
+            )
+        )
     surface_html = "".join(figs_html)
     n_vert = int(recon.surface.GetNumberOfPoints())
     n_pts = 0 if getattr(recon, "points", None) is None else int(recon.points.GetNumberOfPoints())
-    surface_html += (f"<p>{n_vert} surface vertices, {n_pts} segmented points. "
-                     "A scale bar (lower right) gives the size; the x, y, z triad (lower "
-                     "left) the orientation of the sweep's reference frame.</p>")
+    surface_html += (
+        f"<p>{n_vert} surface vertices, {n_pts} segmented points. "
+        "A scale bar (lower right) gives the size; the x, y, z triad (lower "
+        "left) the orientation of the sweep's reference frame.</p>"
+    )
     return surface_html + _holes_note(recon_summary)
 
 
@@ -643,15 +727,20 @@ def _holes_note(recon_summary: dict[str, Any]) -> str:
     """Why the surface has notches and holes (trimmed to the data), with the grid cover."""
     cover = recon_summary.get("grid_coverage")
     grid = recon_summary.get("grid_shape")
-    cover_text = (f" ({100 * float(cover):.0f} % of the {grid[0]} slices x {grid[1]} rays "
-                  "grid holds a contour point)" if cover is not None and grid else "")
+    cover_text = (
+        f" ({100 * float(cover):.0f} % of the {grid[0]} slices x {grid[1]} rays "
+        "grid holds a contour point)"
+        if cover is not None and grid
+        else ""
+    )
     return (
         '<p id="holes-note"><b>Notches and holes in the surface</b> are where no '
         f"segmented contour supports it{cover_text}: the surface is trimmed to the data "
         "rather than extrapolated. They appear where a ray around the bone met no contour "
         "(the bone's flanks, steep to the beam, often return no echo) and beyond the "
         "first and last slices with a contour; rejected frames leave gaps between "
-        "slices, which the fit bridges.</p>")
+        "slices, which the fit bridges.</p>"
+    )
 
 
 def _accuracy_section(
@@ -674,14 +763,15 @@ def _accuracy_section(
     if gold_pts is not None and len(gold_pts) == len(ev_dist):
         from BoneUSRecon.Widgets.render import render_error_map
 
-        figures["gold_errors"] = _png(render_error_map(recon.surface, gold_pts, ev_dist,
-                                                       sweep=recon.sweep))
+        figures["gold_errors"] = _png(
+            render_error_map(recon.surface, gold_pts, ev_dist, sweep=recon.sweep)
+        )
     caveat = (
         "This sweep is simulated: it has no tracking, calibration, registration or "
         "speed-of-sound error, which the paper's figure includes and which would "
         "add to this one on a real phantom, so the two are not like for like."
-        if simulated else
-        "The paper's figure includes its tracking, calibration and registration "
+        if simulated
+        else "The paper's figure includes its tracking, calibration and registration "
         "error; compare with it only for a like experiment."
     )
     return (
@@ -690,12 +780,23 @@ def _accuracy_section(
         f"(the paper reports 1.16 to 1.71 mm on its real clavicle phantom).</p>"
         f'<p id="headline-caveat" class="caveat">{caveat}</p>'
         + _accuracy_rows(ev)
-        + _img("histogram", figures["histogram"], "histogram of distances",
-               "Distances from each gold point to the nearest point of the surface.")
-        + (_img("gold-errors", figures["gold_errors"], "gold points by distance",
+        + _img(
+            "histogram",
+            figures["histogram"],
+            "histogram of distances",
+            "Distances from each gold point to the nearest point of the surface.",
+        )
+        + (
+            _img(
+                "gold-errors",
+                figures["gold_errors"],
+                "gold points by distance",
                 "Where the surface is off: the gold points coloured by their distance "
-                "to the (grey) surface, seen from the probe's side.")
-           if "gold_errors" in figures else "")
+                "to the (grey) surface, seen from the probe's side.",
+            )
+            if "gold_errors" in figures
+            else ""
+        )
     )
 
 
@@ -707,9 +808,12 @@ def _table_section(
     numbers["table_i"] = [{"control_points": c, "mean_mm": m} for c, m in table]
     figures["table_i"] = table_png(table)
     return _table_i(table) + _img(
-        "table-i", figures["table_i"], "Table I curve",
+        "table-i",
+        figures["table_i"],
+        "Table I curve",
         "Mean gold-to-surface distance when the surface is refitted with e control "
-        "points along the bone (the paper's Table I).")
+        "points along the bone (the paper's Table I).",
+    )
 
 
 def _overlay_section(
@@ -734,51 +838,73 @@ def _overlay_section(
         if not c.accepted:
             cap = f"frame {k}: REJECTED: {html.escape(c.reason or 'no reason given')}"
         elif outlier:
-            cap = (f"frame {k}: accepted by the segmentation (confidence {conf}), "
-                   "discarded as an outlier by the robust surface fit")
+            cap = (
+                f"frame {k}: accepted by the segmentation (confidence {conf}), "
+                "discarded as an outlier by the robust surface fit"
+            )
         else:
             cap = f"frame {k}: accepted, {len(c.points_px)} points, confidence {conf}"
         cls = "rejected" if not c.accepted else ("outlier" if outlier else "")
         tiles.append(_img(f"frame-{k:04d}", data, f"frame {k}", cap, cls))
     n_rej = summary.get("frames_rejected", 0)
-    return (f"<p>{len(tiles)} frames of {len(by_frame)} segmented "
-            f"({n_rej} rejected in all, {len(fit_rej)} more discarded by the robust fit; "
-            "rejected frames are outlined in red, fit outliers in orange, "
-            "accepted contours drawn in green"
-            + ("; the true contour in yellow" if truth_px is not None else "")
-            + ").</p>"
-            f'<div class="grid">{"".join(tiles)}</div>')
+    return (
+        f"<p>{len(tiles)} frames of {len(by_frame)} segmented "
+        f"({n_rej} rejected in all, {len(fit_rej)} more discarded by the robust fit; "
+        "rejected frames are outlined in red, fit outliers in orange, "
+        "accepted contours drawn in green"
+        + ("; the true contour in yellow" if truth_px is not None else "")
+        + ").</p>"
+        f'<div class="grid">{"".join(tiles)}</div>'
+    )
 
 
 def _title_section(source: Any) -> str:
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    return (f"<h1>Bone surface reconstruction</h1><p class='sub'>"
-            f"{html.escape(str(source))} &middot; BoneUSRecon {__version__} &middot; {now}</p>")
+    return (
+        f"<h1>Bone surface reconstruction</h1><p class='sub'>"
+        f"{html.escape(str(source))} &middot; BoneUSRecon {__version__} &middot; {now}</p>"
+    )
 
 
 def _sweep_section(summary: dict[str, Any], figures: dict[str, bytes]) -> str:
     """The sweep's numbers and its image planes around the surface."""
-    return _section("sweep-section", "Sweep", _kv_table(_sweep_rows(summary), "sweep")
-                    + _img("sweep", figures["sweep"], "the sweep's image planes",
-                           "The image planes of the sweep (grey; frames without a usable "
-                           "pose in orange) around the reconstructed surface."))
+    return _section(
+        "sweep-section",
+        "Sweep",
+        _kv_table(_sweep_rows(summary), "sweep")
+        + _img(
+            "sweep",
+            figures["sweep"],
+            "the sweep's image planes",
+            "The image planes of the sweep (grey; frames without a usable "
+            "pose in orange) around the reconstructed surface.",
+        ),
+    )
 
 
 def _reconstruction_section(recon_summary: dict[str, Any], timings: dict[str, Any]) -> str:
     """The reconstruction's summary and the time of each stage."""
-    rows = [(human_label(k), html.escape(human_value(k, v)))
-            for k, v in recon_summary.items() if v is not None and v != "" and k != "source"]
-    rows += [(f"time: {_TIME_LABELS.get(k, human_label(k))}", f"{_num(v, 2)} s")
-             for k, v in timings.items()]
+    rows = [
+        (human_label(k), html.escape(human_value(k, v)))
+        for k, v in recon_summary.items()
+        if v is not None and v != "" and k != "source"
+    ]
+    rows += [
+        (f"time: {_TIME_LABELS.get(k, human_label(k))}", f"{_num(v, 2)} s")
+        for k, v in timings.items()
+    ]
     return _section("recon-section", "Reconstruction", _kv_table(rows, "reconstruction"))
 
 
 def _parameters_section(parameters: Any) -> str:
     params_json = json.dumps(_jsonable(parameters), indent=2, default=str)
-    return _section("parameters-section", "Parameters",
-                    "<details><summary>every parameter of this run (JSON; also in "
-                    "report.json)</summary>"
-                    f'<pre id="parameters">{html.escape(params_json)}</pre></details>')
+    return _section(
+        "parameters-section",
+        "Parameters",
+        "<details><summary>every parameter of this run (JSON; also in "
+        "report.json)</summary>"
+        f'<pre id="parameters">{html.escape(params_json)}</pre></details>',
+    )
 
 
 def _versions_section(versions: dict[str, str]) -> str:
@@ -787,22 +913,23 @@ def _versions_section(versions: dict[str, str]) -> str:
 
 
 def _page(source: Any, sections: Sequence[str]) -> str:
-    return ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
-            "<meta name='viewport' content='width=device-width, initial-scale=1'>"
-            f"<title>BoneUSRecon report: {html.escape(Path(str(source)).name)}</title>"
-            f"<style>{_CSS}</style></head><body>\n" + "\n".join(sections) + "\n</body></html>\n")
+    return (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>BoneUSRecon report: {html.escape(Path(str(source)).name)}</title>"
+        f"<style>{_CSS}</style></head><body>\n" + "\n".join(sections) + "\n</body></html>\n"
+    )
 
 
-def _write_folder(
-    out: Path, figures: dict[str, bytes], numbers: dict[str, Any], page: str
-) -> None:
+def _write_folder(out: Path, figures: dict[str, bytes], numbers: dict[str, Any], page: str) -> None:
     """Write the page, its pictures and report.json, atomically (see :func:`_atomic_dir`)."""
     with _atomic_dir(out) as tmp:
         (tmp / "figures").mkdir()
         for name, data in figures.items():
             (tmp / "figures" / f"{name}.png").write_bytes(data)
         (tmp / "report.json").write_text(
-            json.dumps(json_ready(_jsonable(numbers)), indent=2, default=str))
+            json.dumps(json_ready(_jsonable(numbers)), indent=2, default=str)
+        )
         (tmp / "index.html").write_text(page, encoding="utf-8")
 
 
@@ -831,8 +958,13 @@ _RECON_LABELS = {
     "surface_triangles": "surface triangles",
     "surface_area_mm2": "surface area",
 }
-_TIME_LABELS = {"segment": "segmentation", "resample": "resampling", "fit": "surface fit",
-                "surface": "meshing", "total": "total"}
+_TIME_LABELS = {
+    "segment": "segmentation",
+    "resample": "resampling",
+    "fit": "surface fit",
+    "surface": "meshing",
+    "total": "total",
+}
 _UNITS = (("_mm2", "mm\u00b2"), ("_mm", "mm"), ("_deg", "deg"), ("_px", "px"), ("_s", "s"))
 
 

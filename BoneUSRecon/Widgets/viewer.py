@@ -57,8 +57,14 @@ def _legend(pl: Any, actors: dict[str, Any], style: render.Style) -> None:
     if "invalid_frames" in actors:
         entries.append(["invalid frames", style.invalid_outline_color])
     if entries:
-        pl.add_legend(entries, bcolor=style.background, border=False,
-                      size=(0.2, 0.032 * len(entries) + 0.01), loc="lower left", face="circle")
+        pl.add_legend(
+            entries,
+            bcolor=style.background,
+            border=False,
+            size=(0.2, 0.032 * len(entries) + 0.01),
+            loc="lower left",
+            face="circle",
+        )
 
 
 def show_surface(
@@ -147,8 +153,9 @@ def show_surface(
         pl.close()
 
 
-def _add_interaction(pl: Any, mesh: Any, actors: dict[str, Any], gold: Any,
-                     style: render.Style) -> dict[str, Any]:
+def _add_interaction(
+    pl: Any, mesh: Any, actors: dict[str, Any], gold: Any, style: render.Style
+) -> dict[str, Any]:
     """Check boxes for the optional layers, and picking that reports distances.
 
     Returns the callbacks (``"toggle:<layer>"`` and ``"pick"``), for tests.
@@ -169,8 +176,15 @@ def _add_interaction(pl: Any, mesh: Any, actors: dict[str, Any], gold: Any,
             actor.SetVisibility(bool(flag))
 
         # Each box is filled with its layer's colour, so the boxes are the legend.
-        pl.add_checkbox_button_widget(toggle, value=True, position=(10.0, y), size=28,
-                                      border_size=3, color_on=colour, color_off="white")
+        pl.add_checkbox_button_widget(
+            toggle,
+            value=True,
+            position=(10.0, y),
+            size=28,
+            border_size=3,
+            color_on=colour,
+            color_off="white",
+        )
         pl.add_text(label, position=(45, int(y) + 4), font_size=10, color=style.text_color)
         callbacks[f"toggle:{key}"] = toggle
         y += 36.0
@@ -190,12 +204,15 @@ def _add_interaction(pl: Any, mesh: Any, actors: dict[str, Any], gold: Any,
             text += f"\nDistance to nearest segmented point: {dist[k]:.2f} mm"
         if gold_tree is not None:
             text += f"\nnearest gold point: {gold_tree.query(p)[0]:.2f} mm"
-        pl.add_text(text, position="upper_right", font_size=10, color=style.text_color,
-                    name="pick")
+        pl.add_text(text, position="upper_right", font_size=10, color=style.text_color, name="pick")
         return text
 
-    pl.enable_point_picking(callback=on_pick, show_message=
-                            "P or right-click on the surface: show its distance",
-                            font_size=10, color=style.points_color, point_size=10)
+    pl.enable_point_picking(
+        callback=on_pick,
+        show_message="P or right-click on the surface: show its distance",
+        font_size=10,
+        color=style.points_color,
+        point_size=10,
+    )
     callbacks["pick"] = on_pick
     return callbacks

@@ -66,12 +66,8 @@ SWEEP_HELP = "PLUS sequence file (.mha or .mhd)"
 
 def add_common_options(parser: argparse.ArgumentParser) -> None:
     """``--quiet`` and ``--debug``, on every sub-command."""
-    parser.add_argument(
-        "-q", "--quiet", action="store_true", help="no progress bar on stderr"
-    )
-    parser.add_argument(
-        "--debug", action="store_true", help="show a traceback on internal errors"
-    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar on stderr")
+    parser.add_argument("--debug", action="store_true", help="show a traceback on internal errors")
 
 
 def add_calibration_option(parser: argparse.ArgumentParser) -> None:
@@ -377,11 +373,20 @@ def reconstruction_rows(summary: dict[str, Any]) -> list[tuple[str, Any]]:
     """Summary rows on frames and grid of a :attr:`Reconstruction.summary` (reconstruct, demo)."""
     s = summary
     return [
-        ("frames used", f"{s['segmented_frames']} of {s['valid_frames']} valid ({s['frames']} in file)"),
-        ("frames rejected", f"{s['rejected_frames']} by segmentation, "
-                            f"{len(s['fit_rejected_frames'])} by the robust fit"),
-        ("grid", f"{s['grid_shape'][0]} slices x {s['grid_shape'][1]} rays, "
-                 f"{100 * s['grid_coverage']:.1f}% covered"),
+        (
+            "frames used",
+            f"{s['segmented_frames']} of {s['valid_frames']} valid ({s['frames']} in file)",
+        ),
+        (
+            "frames rejected",
+            f"{s['rejected_frames']} by segmentation, "
+            f"{len(s['fit_rejected_frames'])} by the robust fit",
+        ),
+        (
+            "grid",
+            f"{s['grid_shape'][0]} slices x {s['grid_shape'][1]} rays, "
+            f"{100 * s['grid_coverage']:.1f}% covered",
+        ),
     ]
 
 
@@ -391,8 +396,10 @@ def evaluation_rows(ev: Any, paper_note: str = "") -> list[tuple[str, Any]]:
         ("gold points", ev.n),
         ("distance mean/RMS", f"{ev.mean:.3f} / {ev.rms:.3f} mm{paper_note}"),
         ("distance median/p95/max", f"{ev.median:.3f} / {ev.p95:.3f} / {ev.max:.3f} mm"),
-        ("within 0.5/1/2 mm", f"{100 * ev.within_0_5:.1f}% / {100 * ev.within_1:.1f}% / "
-                              f"{100 * ev.within_2:.1f}%"),
+        (
+            "within 0.5/1/2 mm",
+            f"{100 * ev.within_0_5:.1f}% / {100 * ev.within_1:.1f}% / {100 * ev.within_2:.1f}%",
+        ),
     ]
 
 

@@ -52,29 +52,62 @@ def register(subparsers: Any) -> None:
         "control points) and write the sweep, the surface, the points, the gold points "
         "and an HTML report into OUTDIR.",
     )
-    p.add_argument("outdir", metavar="OUTDIR", nargs="?", default=DEFAULT_OUTDIR,
-                   help=f"output folder, created if needed (default ./{DEFAULT_OUTDIR})")
-    p.add_argument("--bone", choices=BONES, default="clavicle", help="simulated bone (default clavicle)")
-    p.add_argument("--frames", type=int, default=150, metavar="N",
-                   help="frames in the sweep (default 150; the paper: 50 to 250)")
-    p.add_argument("--size", metavar="WxH", default="320x256",
-                   help="image size in pixels (default 320x256)")
-    p.add_argument("--spacing", type=float, default=None, metavar="MM",
-                   help="pixel spacing in mm (default: a 48 x 38 mm field of view)")
-    p.add_argument("--corrupted", "--corrupt", dest="corrupted", type=float, default=0.05, metavar="FRACTION",
-                   help="fraction of corrupted frames (default 0.05)")
+    p.add_argument(
+        "outdir",
+        metavar="OUTDIR",
+        nargs="?",
+        default=DEFAULT_OUTDIR,
+        help=f"output folder, created if needed (default ./{DEFAULT_OUTDIR})",
+    )
+    p.add_argument(
+        "--bone", choices=BONES, default="clavicle", help="simulated bone (default clavicle)"
+    )
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=150,
+        metavar="N",
+        help="frames in the sweep (default 150; the paper: 50 to 250)",
+    )
+    p.add_argument(
+        "--size", metavar="WxH", default="320x256", help="image size in pixels (default 320x256)"
+    )
+    p.add_argument(
+        "--spacing",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="pixel spacing in mm (default: a 48 x 38 mm field of view)",
+    )
+    p.add_argument(
+        "--corrupted",
+        "--corrupt",
+        dest="corrupted",
+        type=float,
+        default=0.05,
+        metavar="FRACTION",
+        help="fraction of corrupted frames (default 0.05)",
+    )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
-    p.add_argument("--report", metavar="DIR",
-                   help="report folder (default OUTDIR/report)")
+    p.add_argument("--report", metavar="DIR", help="report folder (default OUTDIR/report)")
     p.add_argument("--no-report", action="store_true", help="do not write the HTML report")
-    p.add_argument("--force", action="store_true",
-                   help="write into OUTDIR even if it holds files the demo did not write "
-                   "(files named like the demo's outputs are replaced)")
-    p.add_argument("--no-table", action="store_true",
-                   help="skip the Table I curve (refits with 5, 10, 15, 20 control points)")
-    p.add_argument("--live", action="store_true",
-                   help="instead: replay the sweep over OpenIGTLink on 127.0.0.1 at 30 frames/s "
-                   "(as 'serve') and reconstruct it live (as 'live'), then compare with offline")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write into OUTDIR even if it holds files the demo did not write "
+        "(files named like the demo's outputs are replaced)",
+    )
+    p.add_argument(
+        "--no-table",
+        action="store_true",
+        help="skip the Table I curve (refits with 5, 10, 15, 20 control points)",
+    )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="instead: replay the sweep over OpenIGTLink on 127.0.0.1 at 30 frames/s "
+        "(as 'serve') and reconstruct it live (as 'live'), then compare with offline",
+    )
     add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
@@ -113,9 +146,15 @@ def _params(args: argparse.Namespace) -> Any:
     spacing = args.spacing if args.spacing is not None else 0.15 * 320 / max(w, 1)
     if not 0.0 <= args.corrupted <= 0.5:
         raise BoneUSReconError(f"--corrupted must be between 0 and 0.5, got {args.corrupted}")
-    params = SimulationParams(bone=args.bone, n_frames=args.frames, width=w, height=h,
-                              spacing_mm=spacing, corrupted_fraction=args.corrupted,
-                              seed=args.seed)
+    params = SimulationParams(
+        bone=args.bone,
+        n_frames=args.frames,
+        width=w,
+        height=h,
+        spacing_mm=spacing,
+        corrupted_fraction=args.corrupted,
+        seed=args.seed,
+    )
     check_params(params)
     return params
 
@@ -168,21 +207,26 @@ def run(args: argparse.Namespace) -> int:
         files["surface"] = write_polydata(recon.surface, outdir / "surface.vtp")
         files["points"] = write_polydata(recon.points, outdir / "points.vtp")
         doc = {
-            "simulation": {"bone": sim_params.bone, "frames": sim_params.n_frames,
-                           "corrupted_frames": [int(k) for k in sim.corrupted],
-                           "seed": sim_params.seed},
+            "simulation": {
+                "bone": sim_params.bone,
+                "frames": sim_params.n_frames,
+                "corrupted_frames": [int(k) for k in sim.corrupted],
+                "seed": sim_params.seed,
+            },
             "summary": recon.summary,
             "evaluation": evaluation.as_dict(),
-            "table_i": None if table is None else [
-                {"control_points": int(c), "mean_mm": float(m)} for c, m in table],
+            "table_i": None
+            if table is None
+            else [{"control_points": int(c), "mean_mm": float(m)} for c, m in table],
             "timings_s": recon.timings,
         }
         with atomic_path(outdir / "evaluation.json") as tmp:
             tmp.write_text(json.dumps(json_ready(doc), indent=2, default=json_default))
         files["evaluation"] = outdir / "evaluation.json"
         if report_dir is not None:
-            files["report"] = _write_report(recon, report_dir, sim, gold, evaluation, table,
-                                            sim_params, params, bar)
+            files["report"] = _write_report(
+                recon, report_dir, sim, gold, evaluation, table, sim_params, params, bar
+            )
     elapsed = time.perf_counter() - t0
 
     s, e = recon.summary, evaluation
@@ -191,41 +235,68 @@ def run(args: argparse.Namespace) -> int:
         print_json({**doc, "files": paths, "elapsed_s": elapsed})
         return 0
     n_corrupt = len(sim.corrupted)
-    caught = len(set(int(k) for k in sim.corrupted)
-                 & (set(recon.segmentation.rejected) | set(s.get("fit_rejected_frames", []))))
+    caught = len(
+        set(int(k) for k in sim.corrupted)
+        & (set(recon.segmentation.rejected) | set(s.get("fit_rejected_frames", [])))
+    )
     rows: list[tuple[str, Any]] = [
-        ("sweep", f"{sim_params.n_frames} frames of {sim_params.width}x{sim_params.height} px, "
-                  f"{n_corrupt} corrupted ({caught} of them rejected)"),
-        *reconstruction_rows(s),
-        *evaluation_rows(
-            e, f" (paper: {PAPER_RANGE_MM[0]} to {PAPER_RANGE_MM[1]} mm mean)"
+        (
+            "sweep",
+            f"{sim_params.n_frames} frames of {sim_params.width}x{sim_params.height} px, "
+            f"{n_corrupt} corrupted ({caught} of them rejected)",
         ),
-        ("not like for like", "the paper's phantom was real: its figure includes tracking, "
-                              "calibration and registration error, which a simulation has not"),
+        *reconstruction_rows(s),
+        *evaluation_rows(e, f" (paper: {PAPER_RANGE_MM[0]} to {PAPER_RANGE_MM[1]} mm mean)"),
+        (
+            "not like for like",
+            "the paper's phantom was real: its figure includes tracking, "
+            "calibration and registration error, which a simulation has not",
+        ),
     ]
     if table is not None:
         rows.append(("Table I (e: mean mm)", ", ".join(f"{c}: {m:.3f}" for c, m in table)))
     rows.append(("time", f"{elapsed:.1f} s"))
-    labels = {"sweep": "sweep (PLUS .mha)", "truth": "true bone surface", "gold": "gold points",
-              "json": "simulation parameters", "surface": "reconstructed surface",
-              "points": "segmented points", "evaluation": "numbers (JSON)",
-              "report": "report (open in a browser)"}
+    labels = {
+        "sweep": "sweep (PLUS .mha)",
+        "truth": "true bone surface",
+        "gold": "gold points",
+        "json": "simulation parameters",
+        "surface": "reconstructed surface",
+        "points": "segmented points",
+        "evaluation": "numbers (JSON)",
+        "report": "report (open in a browser)",
+    }
     rows += [(labels.get(k, k), v) for k, v in paths.items()]
     print_summary(f"Demo: {sim_params.bone} phantom, reconstructed and evaluated", rows)
     return 0
 
 
-def _write_report(recon: Any, report_dir: Path, sim: Any, gold: Any, evaluation: Any,
-                  table: Any, sim_params: Any, params: Any, bar: Any) -> Path:
+def _write_report(
+    recon: Any,
+    report_dir: Path,
+    sim: Any,
+    gold: Any,
+    evaluation: Any,
+    table: Any,
+    sim_params: Any,
+    params: Any,
+    bar: Any,
+) -> Path:
     from dataclasses import asdict
 
     from BoneUSRecon.Widgets.report import write_report
 
-    parameters = {"simulation": asdict(sim_params),
-                  "reconstruction": asdict(params)}
-    return write_report(recon, report_dir, gold=gold, evaluation=evaluation, table=table,
-                        parameters=parameters, progress=bar, truth_px=sim.true_contours_px,
-                        simulated=True,
-                        title=f"simulated {sim_params.bone} phantom, {sim_params.n_frames} frames, "
-                              f"seed {sim_params.seed}")
-
+    parameters = {"simulation": asdict(sim_params), "reconstruction": asdict(params)}
+    return write_report(
+        recon,
+        report_dir,
+        gold=gold,
+        evaluation=evaluation,
+        table=table,
+        parameters=parameters,
+        progress=bar,
+        truth_px=sim.true_contours_px,
+        simulated=True,
+        title=f"simulated {sim_params.bone} phantom, {sim_params.n_frames} frames, "
+        f"seed {sim_params.seed}",
+    )

@@ -102,8 +102,6 @@ def run(args: argparse.Namespace) -> int:
     ]
     if invalid:
         first = next(iter(invalid.items()))
-        rows.append(
-            ("invalid frames", f"{len(invalid)} (e.g. frame {first[0]}: {first[1]})")
-        )
+        rows.append(("invalid frames", f"{len(invalid)} (e.g. frame {first[0]}: {first[1]})"))
     print_summary(str(sweep.source), rows)
     return 0

@@ -35,29 +35,38 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
         help="bone segmenter: 'shadowpath' (default, more accurate) or 'snake' (the paper's)",
     )
     p.add_argument(
-        "--degree", nargs=2, type=int, metavar=("P", "Q"),
+        "--degree",
+        nargs=2,
+        type=int,
+        metavar=("P", "Q"),
         help="B-spline degrees along and around the bone (default 2 2: quadratic)",
     )
     if control_points:
         # --along/--around, as in ``table``; --control-points E F still works (hidden).
-        p.add_argument("--along", type=int, metavar="E",
-                       help="control points along the bone (default 15)")
-        p.add_argument("--around", type=int, metavar="F",
-                       help="control points around the bone (default 5)")
-        p.add_argument("--control-points", nargs=2, type=int, metavar=("E", "F"),
-                       help=argparse.SUPPRESS)
+        p.add_argument(
+            "--along", type=int, metavar="E", help="control points along the bone (default 15)"
+        )
+        p.add_argument(
+            "--around", type=int, metavar="F", help="control points around the bone (default 5)"
+        )
+        p.add_argument(
+            "--control-points", nargs=2, type=int, metavar=("E", "F"), help=argparse.SUPPRESS
+        )
     p.add_argument("--rays", type=int, metavar="N", help="rays per slice (default 15)")
     p.add_argument(
-        "--fit-method", choices=("direct", "separable"),
+        "--fit-method",
+        choices=("direct", "separable"),
         help="surface least squares: 'direct' (exact weighted tensor-product, default) or "
         "'separable' (the paper's de Boor column-then-row fits)",
     )
     p.add_argument(
-        "--robust", choices=("tukey", "huber", "none"),
+        "--robust",
+        choices=("tukey", "huber", "none"),
         help="robust reweighting of the fit (default tukey; 'none' is the paper's plain least squares)",
     )
     p.add_argument(
-        "--axis", choices=("spline", "line"),
+        "--axis",
+        choices=("spline", "line"),
         help="central axis through the slice centres (default spline; 'line' is the paper's)",
     )
 
@@ -94,7 +103,8 @@ def register(subparsers: Any) -> None:
     add_calibration_option(p)
     add_reconstruction_options(p)
     p.add_argument(
-        "--points-out", metavar="POINTS",
+        "--points-out",
+        metavar="POINTS",
         help="also write the segmented points (.vtp .vtk .ply with Frame/Intensity/Confidence, or .csv)",
     )
     p.add_argument("--gold", metavar="GOLD", help=f"{GOLD_HELP}, to evaluate against")
@@ -162,8 +172,12 @@ def run(args: argparse.Namespace) -> int:
             from BoneUSRecon.Widgets.report import write_report
 
             report_index = write_report(
-                recon, report_dir, gold=gold, evaluation=evaluation,
-                parameters=asdict(params), progress=bar,
+                recon,
+                report_dir,
+                gold=gold,
+                evaluation=evaluation,
+                parameters=asdict(params),
+                progress=bar,
             )
 
     s = recon.summary
@@ -184,7 +198,10 @@ def run(args: argparse.Namespace) -> int:
     rows: list[tuple[str, Any]] = [
         *reconstruction_rows(s),
         ("resampling distance", f"{s['mean_resampling_distance_mm']:.3f} mm mean"),
-        ("fit residual", f"{s['fit_rms_mm']:.3f} mm RMS ({s['fit_outlier_points']} outlier points)"),
+        (
+            "fit residual",
+            f"{s['fit_rms_mm']:.3f} mm RMS ({s['fit_outlier_points']} outlier points)",
+        ),
         ("surface", f"{s['surface_triangles']} triangles, {s['surface_area_mm2']:.0f} mm^2"),
         ("time", f"{recon.timings['total']:.2f} s"),
     ]

@@ -28,7 +28,6 @@ from BoneUSRecon.Logic.segmentation import SEGMENTER_NAMES
 __all__ = ["register", "run", "SEGMENTER_NAMES"]
 
 
-
 def register(subparsers: Any) -> None:
     """Add the ``segment`` sub-command."""
     p = subparsers.add_parser(

@@ -25,8 +25,11 @@ def register(subparsers: Any) -> None:
     from BoneUSRecon.Logic import simulation as names
 
     d = argparse.Namespace(
-        n_frames=names.DEFAULT_FRAMES, width=names.DEFAULT_WIDTH, height=names.DEFAULT_HEIGHT,
-        spacing_mm=names.DEFAULT_SPACING_MM, seed=names.DEFAULT_SEED,
+        n_frames=names.DEFAULT_FRAMES,
+        width=names.DEFAULT_WIDTH,
+        height=names.DEFAULT_HEIGHT,
+        spacing_mm=names.DEFAULT_SPACING_MM,
+        seed=names.DEFAULT_SEED,
     )
     p = subparsers.add_parser(
         "simulate",
@@ -39,37 +42,70 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("bone", metavar="BONE", help=f"one of: {', '.join(names.BONES)}")
     p.add_argument("outdir", metavar="OUTDIR", help="output folder (created if missing)")
-    p.add_argument("--frames", type=int, default=d.n_frames, metavar="N", help=f"number of frames (default {d.n_frames})")
-    p.add_argument("--size", metavar="WxH", default=f"{d.width}x{d.height}",
-                   help=f"image size in pixels, as in demo and view (default {d.width}x{d.height})")
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=d.n_frames,
+        metavar="N",
+        help=f"number of frames (default {d.n_frames})",
+    )
+    p.add_argument(
+        "--size",
+        metavar="WxH",
+        default=f"{d.width}x{d.height}",
+        help=f"image size in pixels, as in demo and view (default {d.width}x{d.height})",
+    )
     # Earlier spellings, still accepted (not shown in --help): they override --size.
     p.add_argument("--width", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--height", type=int, default=None, help=argparse.SUPPRESS)
-    p.add_argument("--spacing", type=float, default=d.spacing_mm, metavar="MM", help=f"pixel spacing in mm (default {d.spacing_mm})")
     p.add_argument(
-        "--corrupted", "--corrupt", dest="corrupt", type=float, default=0.0, metavar="FRACTION",
+        "--spacing",
+        type=float,
+        default=d.spacing_mm,
+        metavar="MM",
+        help=f"pixel spacing in mm (default {d.spacing_mm})",
+    )
+    p.add_argument(
+        "--corrupted",
+        "--corrupt",
+        dest="corrupt",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
         help="fraction of corrupted frames: clutter in the shadow, false bone-like echo, "
         "loss of probe contact (default 0)",
     )
     p.add_argument(
-        "--invalid", type=float, default=0.0, metavar="FRACTION",
+        "--invalid",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
         help="fraction of frames flagged as untracked (TransformStatus INVALID; default 0)",
     )
-    p.add_argument("--seed", type=int, default=d.seed, metavar="S", help=f"random seed (default {d.seed})")
+    p.add_argument(
+        "--seed", type=int, default=d.seed, metavar="S", help=f"random seed (default {d.seed})"
+    )
     p.add_argument("--reverse", action="store_true", help="sweep from the far end back")
     p.add_argument(
-        "--realism", choices=names.REALISMS, default=names.REALISMS[0],
+        "--realism",
+        choices=names.REALISMS,
+        default=names.REALISMS[0],
         help="image realism: 'standard' (default) or 'hard', the levels of a real cadaver sweep: "
         "low-contrast bone echo, grey shadow with reverberation, crest-shaped bone, fascia off "
         "the bone, a no-contact skin edge, a vessel, depth 25 -> 5 mm",
     )
     p.add_argument(
-        "--hard-conditions", dest="hard_conditions", metavar="LIST", default=",".join(names.HARD_CONDITIONS),
+        "--hard-conditions",
+        dest="hard_conditions",
+        metavar="LIST",
+        default=",".join(names.HARD_CONDITIONS),
         help="with --realism hard: comma-separated conditions to apply, some of "
         f"{', '.join(names.HARD_CONDITIONS)} (default all)",
     )
     p.add_argument(
-        "--no-neighbour", dest="neighbour", action="store_false",
+        "--no-neighbour",
+        dest="neighbour",
+        action="store_false",
         help="forearm bones: do not show the other bone (radius/ulna) beside the target",
     )
     add_json_option(p)
@@ -93,7 +129,9 @@ def run(args: argparse.Namespace) -> int:
     conditions = tuple(c.strip() for c in str(args.hard_conditions).split(",") if c.strip())
     unknown = [c for c in conditions if c not in HARD_CONDITIONS]
     if unknown:
-        raise BoneUSReconError(f"unknown hard condition {unknown[0]!r}; use some of {', '.join(HARD_CONDITIONS)}")
+        raise BoneUSReconError(
+            f"unknown hard condition {unknown[0]!r}; use some of {', '.join(HARD_CONDITIONS)}"
+        )
     params = SimulationParams(
         realism=args.realism,
         hard_conditions=conditions,
@@ -140,9 +178,17 @@ def run(args: argparse.Namespace) -> int:
             ("image", f"{sweep.width} x {sweep.height} pixels"),
             ("spacing (mm)", info["spacing_mm"]),
             ("sweep length (mm)", info["sweep_length_mm"]),
-            ("corrupted frames", ", ".join(f"{k} ({v})" for k, v in sim.corruption_kinds.items()) or "none"),
+            (
+                "corrupted frames",
+                ", ".join(f"{k} ({v})" for k, v in sim.corruption_kinds.items()) or "none",
+            ),
             ("seed", params.seed),
-            ("realism", params.realism if params.realism == "standard" else f"hard ({', '.join(params.hard_conditions)})"),
+            (
+                "realism",
+                params.realism
+                if params.realism == "standard"
+                else f"hard ({', '.join(params.hard_conditions)})",
+            ),
             ("sweep", paths["sweep"]),
             ("true surface", paths["truth"]),
             ("gold points", f"{paths['gold']} ({info['gold_points']} points)"),

@@ -37,14 +37,26 @@ def register(subparsers: Any) -> None:
     add_reconstruction_options(p, control_points=False)
     # --along/--around, as in ``reconstruct``; --control-points E... still works (hidden).
     p.add_argument(
-        "--along", dest="counts", nargs="+", type=int,
-        metavar="E", default=[5, 10, 15, 20],
+        "--along",
+        dest="counts",
+        nargs="+",
+        type=int,
+        metavar="E",
+        default=[5, 10, 15, 20],
         help="numbers of control points along the bone to try (default 5 10 15 20)",
     )
-    p.add_argument("--control-points", dest="counts", nargs="+", type=int,
-                   default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     p.add_argument(
-        "--around", type=int, metavar="F",
+        "--control-points",
+        dest="counts",
+        nargs="+",
+        type=int,
+        default=argparse.SUPPRESS,
+        help=argparse.SUPPRESS,
+    )
+    p.add_argument(
+        "--around",
+        type=int,
+        metavar="F",
         help="control points around the bone, kept fixed (default 5)",
     )
     p.add_argument("--plot", metavar="PNG", help="also plot the table to this PNG file")

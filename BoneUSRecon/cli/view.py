@@ -37,19 +37,29 @@ def register(subparsers: Any) -> None:
         "exit.",
     )
     p.add_argument("surface", metavar="SURFACE", help=SURFACE_HELP)
-    p.add_argument("--points", metavar="POINTS",
-                   help="segmented points (.vtp/.vtk/.ply or CSV with x,y,z columns)")
+    p.add_argument(
+        "--points",
+        metavar="POINTS",
+        help="segmented points (.vtp/.vtk/.ply or CSV with x,y,z columns)",
+    )
     p.add_argument("--gold", metavar="GOLD", help=GOLD_HELP)
-    p.add_argument("--sweep", metavar="SWEEP",
-                   help=f"{SWEEP_HELP}: draw its frames as outlines")
+    p.add_argument("--sweep", metavar="SWEEP", help=f"{SWEEP_HELP}: draw its frames as outlines")
     add_calibration_option(p)
-    p.add_argument("--screenshot", metavar="PNG",
-                   help="render off-screen to this PNG and exit (no window)")
-    p.add_argument("--view", choices=("oblique", "top"), default="oblique",
-                   help="viewpoint: 'top' looks from the probe side, 'oblique' (default) "
-                   "shows the relief")
-    p.add_argument("--size", metavar="WxH", default="1100x700",
-                   help="window or image size in pixels (default 1100x700)")
+    p.add_argument(
+        "--screenshot", metavar="PNG", help="render off-screen to this PNG and exit (no window)"
+    )
+    p.add_argument(
+        "--view",
+        choices=("oblique", "top"),
+        default="oblique",
+        help="viewpoint: 'top' looks from the probe side, 'oblique' (default) shows the relief",
+    )
+    p.add_argument(
+        "--size",
+        metavar="WxH",
+        default="1100x700",
+        help="window or image size in pixels (default 1100x700)",
+    )
     add_common_options(p)
     p.set_defaults(func=run)
 
@@ -70,8 +80,13 @@ def run(args: argparse.Namespace) -> int:
 
     size = _size(args.size)
     check_distinct_paths(
-        inputs={"SURFACE": args.surface, "--points": args.points, "--gold": args.gold,
-                "--sweep": args.sweep, "--calibration": args.calibration},
+        inputs={
+            "SURFACE": args.surface,
+            "--points": args.points,
+            "--gold": args.gold,
+            "--sweep": args.sweep,
+            "--calibration": args.calibration,
+        },
         outputs={"--screenshot": args.screenshot},
     )
     if args.screenshot:
@@ -106,7 +121,9 @@ def run(args: argparse.Namespace) -> int:
         if gold is not None:
             rows.append(("gold points", len(gold)))
         if sweep is not None:
-            rows.append(("frames drawn", f"{sweep.n_frames} ({sweep.n_frames - sweep.n_valid} invalid)"))
+            rows.append(
+                ("frames drawn", f"{sweep.n_frames} ({sweep.n_frames - sweep.n_valid} invalid)")
+            )
         rows.append(("screenshot", str(out)))
         print_summary("view", rows)
     return 0

@@ -46,8 +46,14 @@ def stages(frames: int, outdir: Path) -> dict[str, float]:
     table = control_point_table(recon, gold)
     t["Table I (4 refits)"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    write_report(recon, outdir / "report", gold=gold, evaluation=ev, table=table,
-                 truth_px=sim.true_contours_px)
+    write_report(
+        recon,
+        outdir / "report",
+        gold=gold,
+        evaluation=ev,
+        table=table,
+        truth_px=sim.true_contours_px,
+    )
     t["report"] = time.perf_counter() - t0
     return t
 
@@ -67,21 +73,37 @@ def main() -> int:
             out = Path(args.keep) if args.keep and r == args.repeat - 1 else Path(tmp) / f"run{r}"
             t0 = time.perf_counter()
             proc = subprocess.run(
-                [sys.executable, "-m", "BoneUSRecon", "demo", str(out), "--frames",
-                 str(args.frames), "--json"],
-                capture_output=True, text=True, check=True,
+                [
+                    sys.executable,
+                    "-m",
+                    "BoneUSRecon",
+                    "demo",
+                    str(out),
+                    "--frames",
+                    str(args.frames),
+                    "--json",
+                ],
+                capture_output=True,
+                text=True,
+                check=True,
             )
             walls.append(time.perf_counter() - t0)
             doc = json.loads(proc.stdout)
-            print(f"  run {r + 1}: {walls[-1]:.1f} s wall (command's own timer "
-                  f"{doc['elapsed_s']:.1f} s)")
+            print(
+                f"  run {r + 1}: {walls[-1]:.1f} s wall (command's own timer "
+                f"{doc['elapsed_s']:.1f} s)"
+            )
         print(f"  best {min(walls):.1f} s, worst {max(walls):.1f} s (goal: < 30 s)")
         ev = doc["evaluation"]
-        print(f"  accuracy: mean {ev['mean_mm']:.3f} mm, RMS {ev['rms_mm']:.3f} mm, "
-              f"p95 {ev['p95_mm']:.3f} mm, within 1 mm {100 * ev['within_1mm']:.1f} % "
-              f"(paper: 1.16 to 1.71 mm mean)")
-        print("  Table I: " + ", ".join(f"e={r['control_points']}: {r['mean_mm']:.3f} mm"
-                                        for r in doc["table_i"]))
+        print(
+            f"  accuracy: mean {ev['mean_mm']:.3f} mm, RMS {ev['rms_mm']:.3f} mm, "
+            f"p95 {ev['p95_mm']:.3f} mm, within 1 mm {100 * ev['within_1mm']:.1f} % "
+            f"(paper: 1.16 to 1.71 mm mean)"
+        )
+        print(
+            "  Table I: "
+            + ", ".join(f"e={r['control_points']}: {r['mean_mm']:.3f} mm" for r in doc["table_i"])
+        )
         print("stages, in-process (after imports):")
         for name, sec in stages(args.frames, Path(tmp) / "stages").items():
             print(f"  {name:<20} {sec:6.2f} s")

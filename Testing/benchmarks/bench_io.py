@@ -103,7 +103,9 @@ def measure(mode: str, path: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--frames", type=int, default=2000)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
@@ -118,19 +120,27 @@ def main(argv: list[str] | None = None) -> int:
         t_write = make_sweep_file(path, n, h, w, args.compressed)
         size_mb = path.stat().st_size / 2**20
         data_mb = n * h * w / 2**20
-        print(f"sweep: {n} frames of {h}x{w} uint8, {data_mb:.0f} MB of pixels, file "
-              f"{size_mb:.0f} MB ({'zlib' if args.compressed else 'uncompressed'}); "
-              f"written in {t_write:.2f} s ({data_mb / t_write:.0f} MB/s)")
-        print(f"{'mode':<12} {'read s':>7} {'iterate s':>9} {'fps':>8} {'maxrss MB':>10} "
-              f"{'peak anon MB':>12} {'import MB':>9}  memmap")
+        print(
+            f"sweep: {n} frames of {h}x{w} uint8, {data_mb:.0f} MB of pixels, file "
+            f"{size_mb:.0f} MB ({'zlib' if args.compressed else 'uncompressed'}); "
+            f"written in {t_write:.2f} s ({data_mb / t_write:.0f} MB/s)"
+        )
+        print(
+            f"{'mode':<12} {'read s':>7} {'iterate s':>9} {'fps':>8} {'maxrss MB':>10} "
+            f"{'peak anon MB':>12} {'import MB':>9}  memmap"
+        )
         for mode in ("read", "index", "iter_frames"):
             r = measure(mode, path)
             fps = r["frames"] / r["iterate_s"] if mode != "read" else float("nan")
-            print(f"{mode:<12} {r['read_s']:7.3f} {r['iterate_s']:9.3f} {fps:8.0f} "
-                  f"{r['maxrss_mb']:10.0f} {r['peak_anon_mb']:12.0f} {r['base_rss_mb']:9.0f}  "
-                  f"{r['memmap']}")
-        print("maxrss counts touched pages of the memory map (reclaimable page cache); "
-              "peak anon is memory the process really holds.")
+            print(
+                f"{mode:<12} {r['read_s']:7.3f} {r['iterate_s']:9.3f} {fps:8.0f} "
+                f"{r['maxrss_mb']:10.0f} {r['peak_anon_mb']:12.0f} {r['base_rss_mb']:9.0f}  "
+                f"{r['memmap']}"
+            )
+        print(
+            "maxrss counts touched pages of the memory map (reclaimable page cache); "
+            "peak anon is memory the process really holds."
+        )
     return 0
 
 

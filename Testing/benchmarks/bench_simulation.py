@@ -33,16 +33,26 @@ def main() -> None:
     ap.add_argument("--corrupt", type=float, default=0.1)
     args = ap.parse_args()
 
-    print(f"{args.frames} frames of {args.height} x {args.width} at {args.spacing} mm, "
-          f"{args.corrupt:.0%} corrupted")
-    head = (f"{'bone':<9} {'time s':>7} {'frames/s':>9} {'cpu s':>6} {'width mm':>11} "
-            f"{'depth mm':>8} {'line':>5} {'shadow':>6} {'above':>5} {'swept mm':>8}")
+    print(
+        f"{args.frames} frames of {args.height} x {args.width} at {args.spacing} mm, "
+        f"{args.corrupt:.0%} corrupted"
+    )
+    head = (
+        f"{'bone':<9} {'time s':>7} {'frames/s':>9} {'cpu s':>6} {'width mm':>11} "
+        f"{'depth mm':>8} {'line':>5} {'shadow':>6} {'above':>5} {'swept mm':>8}"
+    )
     print(head)
     print("-" * len(head))
     last = None
     for bone in BONES:
-        p = SimulationParams(bone=bone, n_frames=args.frames, width=args.width, height=args.height,
-                             spacing_mm=args.spacing, corrupted_fraction=args.corrupt)
+        p = SimulationParams(
+            bone=bone,
+            n_frames=args.frames,
+            width=args.width,
+            height=args.height,
+            spacing_mm=args.spacing,
+            corrupted_fraction=args.corrupt,
+        )
         t0, c0 = time.perf_counter(), time.process_time()
         sim = simulate(p)
         dt, dc = time.perf_counter() - t0, time.process_time() - c0
@@ -50,13 +60,19 @@ def main() -> None:
         sp = args.spacing
         clean = [k for k in range(sim.sweep.n_frames) if k not in sim.corruption_kinds]
         line = np.mean([_band(sim.sweep.frames[k], sim.true_contours_px[k], 0) for k in clean])
-        shadow = np.mean([_band(sim.sweep.frames[k], sim.true_contours_px[k], 1.0 / sp) for k in clean])
-        above = np.mean([_band(sim.sweep.frames[k], sim.true_contours_px[k], -1.5 / sp) for k in clean])
+        shadow = np.mean(
+            [_band(sim.sweep.frames[k], sim.true_contours_px[k], 1.0 / sp) for k in clean]
+        )
+        above = np.mean(
+            [_band(sim.sweep.frames[k], sim.true_contours_px[k], -1.5 / sp) for k in clean]
+        )
         depth = np.median([sim.true_contours_px[k][:, 1].min() * sp for k in clean])
         swept = sim.swept_range_mm[1] - sim.swept_range_mm[0]
-        print(f"{bone:<9} {dt:7.2f} {args.frames / dt:9.1f} {dc:6.2f} "
-              f"{2 * a.min():5.1f}-{2 * a.max():4.1f} {depth:8.1f} {line:5.0f} {shadow:6.0f} "
-              f"{above:5.0f} {swept:8.1f}")
+        print(
+            f"{bone:<9} {dt:7.2f} {args.frames / dt:9.1f} {dc:6.2f} "
+            f"{2 * a.min():5.1f}-{2 * a.max():4.1f} {depth:8.1f} {line:5.0f} {shadow:6.0f} "
+            f"{above:5.0f} {swept:8.1f}"
+        )
         last = sim
 
     assert last is not None
@@ -76,10 +92,14 @@ def main() -> None:
     t0 = time.perf_counter()
     dist = last.distance_to_truth(q)
     dt = time.perf_counter() - t0
-    print(f"distance_to_truth: 10^5 points in {dt:.2f} s, max error {np.abs(dist - np.abs(d)).max():.1e} mm")
+    print(
+        f"distance_to_truth: 10^5 points in {dt:.2f} s, max error {np.abs(dist - np.abs(d)).max():.1e} mm"
+    )
     gd = last.distance_to_truth(last.gold)
-    print(f"gold: {len(last.gold)} points, distance to truth rms {np.sqrt(np.mean(gd**2)):.3f} mm, "
-          f"max {gd.max():.2f} mm")
+    print(
+        f"gold: {len(last.gold)} points, distance to truth rms {np.sqrt(np.mean(gd**2)):.3f} mm, "
+        f"max {gd.max():.2f} mm"
+    )
 
 
 if __name__ == "__main__":

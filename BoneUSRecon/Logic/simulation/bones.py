@@ -76,10 +76,14 @@ BONE_SPECS: dict[str, BoneSpec] = {
     # Tibia shaft: 25-30 mm wide, ~20-22 mm deep; under ~12 mm of soft tissue here.
     "tibia": BoneSpec("tibia", 150.0, (25.0, 30.0), (20.0, 22.0), 12.0, 2.0, 0.5, 2.0, 15.0, 0.04),
     # Humerus shaft: ~22 mm; under biceps/brachialis, ~20 mm deep.
-    "humerus": BoneSpec("humerus", 140.0, (21.0, 23.0), (19.0, 20.0), 20.0, 2.0, 0.5, 1.5, 15.0, 0.04),
+    "humerus": BoneSpec(
+        "humerus", 140.0, (21.0, 23.0), (19.0, 20.0), 20.0, 2.0, 0.5, 1.5, 15.0, 0.04
+    ),
     # Clavicle: S-shaped in the horizontal plane (one full period over ~130 mm, ~9 mm
     # amplitude), round medially (15 mm) and flat laterally (12 x 8 mm), subcutaneous.
-    "clavicle": BoneSpec("clavicle", 130.0, (15.0, 12.0), (12.0, 8.0), 5.0, 9.0, 1.0, 2.0, 35.0, 0.06),
+    "clavicle": BoneSpec(
+        "clavicle", 130.0, (15.0, 12.0), (12.0, 8.0), 5.0, 9.0, 1.0, 2.0, 35.0, 0.06
+    ),
 }
 
 
@@ -299,7 +303,6 @@ class BoneGeometry:
         Psph = (at(s + hs, 1) - at(s - hs, 1)) / (2 * hs)
         return P, Ps, Pp, Pss, Psph, at(s, 2)
 
-
     def derivatives(
         self, s: np.ndarray, phi: np.ndarray, second: bool = False
     ) -> tuple[np.ndarray, ...]:
@@ -322,7 +325,9 @@ class BoneGeometry:
         Ps = d1[0] + cph * d1[1] + sph * d1[2]
         if not second:
             return P, Ps, Pp
-        d2 = [(x1 - 2 * x0 + x2) / hs**2 for x1, x0, x2 in ((cp, c0, cm), (Up, U0, Um), (Vp, V0, Vm))]
+        d2 = [
+            (x1 - 2 * x0 + x2) / hs**2 for x1, x0, x2 in ((cp, c0, cm), (Up, U0, Um), (Vp, V0, Vm))
+        ]
         Pss = d2[0] + cph * d2[1] + sph * d2[2]
         Psph = -sph * d1[1] + cph * d1[2]
         Pphph = -(cph * U0 + sph * V0)

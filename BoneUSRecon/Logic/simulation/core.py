@@ -27,7 +27,15 @@ from BoneUSRecon.Logic.simulation.params import BONES, SimulationParams
 from BoneUSRecon.Logic.simulation.sections import BoneSections, bone_sections, visible_contours
 from BoneUSRecon.Logic.sweep import Sweep
 
-__all__ = ["Simulation", "simulate", "write_simulation", "check_params", "sample_gold", "check_output_dir", "simulation_info"]
+__all__ = [
+    "Simulation",
+    "simulate",
+    "write_simulation",
+    "check_params",
+    "sample_gold",
+    "check_output_dir",
+    "simulation_info",
+]
 
 #: Version of the simulation model, written to ``simulation.json``; bump when the
 #: images or geometry for a given seed change.
@@ -94,14 +102,18 @@ class Simulation:
         """The true bone surface as triangles with outward point ``Normals``."""
         pd = vtkPolyData()
         pts = vtkPoints()
-        pts.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(self.truth_vertices, float), deep=True))
+        pts.SetData(
+            numpy_support.numpy_to_vtk(np.ascontiguousarray(self.truth_vertices, float), deep=True)
+        )
         pd.SetPoints(pts)
         f = self.truth_faces
         offsets = np.arange(0, 3 * len(f) + 1, 3, dtype=np.int64)
         cells = vtkCellArray()
         cells.SetData(
             numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
-            numpy_support.numpy_to_vtkIdTypeArray(np.ascontiguousarray(f, np.int64).reshape(-1), deep=True),
+            numpy_support.numpy_to_vtkIdTypeArray(
+                np.ascontiguousarray(f, np.int64).reshape(-1), deep=True
+            ),
         )
         pd.SetPolys(cells)
         s, phi = self.geometry.mesh_params(*_MESH)
@@ -152,7 +164,11 @@ class Simulation:
         from BoneUSRecon.Logic.simulation.scoring import contour_slopes_deg
 
         j = self.sections.top_j[frame]
-        i = np.flatnonzero(np.isfinite(j) & (np.nan_to_num(j, nan=-1.0) >= 0) & (np.nan_to_num(j, nan=-1.0) <= self.sweep.height - 1))
+        i = np.flatnonzero(
+            np.isfinite(j)
+            & (np.nan_to_num(j, nan=-1.0) >= 0)
+            & (np.nan_to_num(j, nan=-1.0) <= self.sweep.height - 1)
+        )
         pts = np.column_stack([i.astype(float), j[i]]) if i.size else np.empty((0, 2))
         sx, sy = (float(v) for v in self.sweep.spacing_mm)
         visible = np.isin(i, self.true_contours_px[frame][:, 0].astype(int))
@@ -188,7 +204,9 @@ def check_params(params: SimulationParams) -> None:
     if int(p.n_frames) < 2:
         raise BoneUSReconError(f"need at least 2 frames, got {p.n_frames}")
     if int(p.width) < 16 or int(p.height) < 16:
-        raise BoneUSReconError(f"images must be at least 16 x 16 pixels, got {p.height} x {p.width}")
+        raise BoneUSReconError(
+            f"images must be at least 16 x 16 pixels, got {p.height} x {p.width}"
+        )
     if int(p.width) > MAX_IMAGE_SIDE or int(p.height) > MAX_IMAGE_SIDE:
         raise BoneUSReconError(
             f"images must be at most {MAX_IMAGE_SIDE} pixels per side, got {p.height} x {p.width}"
@@ -213,7 +231,9 @@ def check_params(params: SimulationParams) -> None:
         raise BoneUSReconError("gold points and gold noise must not be negative")
     spec = BONE_SPECS[p.bone]
     if 2 * p.sweep_margin_mm >= spec.length_mm:
-        raise BoneUSReconError(f"sweep margin {p.sweep_margin_mm} mm leaves nothing of the {spec.length_mm} mm {p.bone} to sweep")
+        raise BoneUSReconError(
+            f"sweep margin {p.sweep_margin_mm} mm leaves nothing of the {spec.length_mm} mm {p.bone} to sweep"
+        )
     depth = max(p.hard.depth_mm) if p.has("depth_ramp") else spec.depth_mm
     need = depth + 3 * p.depth_jitter_mm + 4.0
     have = p.height * p.spacing_mm
@@ -282,8 +302,14 @@ def _sample_gold(
     near = np.where(np.abs(path.s[lo] - s) <= np.abs(path.s[hi] - s), lo, hi)
     m = path.image_to_reference[near]  # (n_s, 4, 4)
     d = P - m[:, None, :3, 3]
-    i = np.einsum("smk,sk->sm", d, m[:, :3, 0]) / np.einsum("sk,sk->s", m[:, :3, 0], m[:, :3, 0])[:, None]
-    j = np.einsum("smk,sk->sm", d, m[:, :3, 1]) / np.einsum("sk,sk->s", m[:, :3, 1], m[:, :3, 1])[:, None]
+    i = (
+        np.einsum("smk,sk->sm", d, m[:, :3, 0])
+        / np.einsum("sk,sk->s", m[:, :3, 0], m[:, :3, 0])[:, None]
+    )
+    j = (
+        np.einsum("smk,sk->sm", d, m[:, :3, 1])
+        / np.einsum("sk,sk->s", m[:, :3, 1], m[:, :3, 1])[:, None]
+    )
     margin = int(params.black_margin_px)
     seen = (i >= margin) & (i <= params.width - 1 - margin) & (j >= 0) & (j <= params.height - 1)
     planes = _end_planes(path, contours) if params.gold_region == "imaged" else None
@@ -343,7 +369,9 @@ def _neighbour(geom: BoneGeometry, params: SimulationParams) -> BoneGeometry | N
     return BoneGeometry(spec2, offset=(0.0, dy, dz))
 
 
-def simulate(params: SimulationParams | None = None, progress: ProgressCallback | None = None) -> Simulation:
+def simulate(
+    params: SimulationParams | None = None, progress: ProgressCallback | None = None
+) -> Simulation:
     """Simulate a tracked freehand sweep over a bone, with its ground truth.
 
     Deterministic for a given ``params`` (including ``seed``): each random component
@@ -393,8 +421,12 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         top_j = np.where(use2, sec2.top_j, top_j)
         cos_inc = np.where(use2, sec2.cos_incidence, cos_inc)
     report(progress, "geometry", 1, 3)
-    kinds = choose_corrupted(int(params.n_frames), float(params.corrupted_fraction), np.random.default_rng([seed, 4]))
-    scene = hard_scene(params, geom, path, sections, np.random.default_rng([seed, 7])) if hard else None
+    kinds = choose_corrupted(
+        int(params.n_frames), float(params.corrupted_fraction), np.random.default_rng([seed, 4])
+    )
+    scene = (
+        hard_scene(params, geom, path, sections, np.random.default_rng([seed, 7])) if hard else None
+    )
     if scene is not None and other is not None:
         # The neighbouring bone's echo keeps the standard angle law.
         ip = params.imaging
@@ -402,10 +434,19 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         both = np.where(use2, c2**ip.specular_exponent + ip.diffuse_fraction * c2, scene.strength)
         scene = replace(scene, strength=both)
     frames = render_frames(
-        path.image_to_reference, top_j, cos_inc, params, kinds, progress, tissue_top_j=sections.top_j, scene=scene
+        path.image_to_reference,
+        top_j,
+        cos_inc,
+        params,
+        kinds,
+        progress,
+        tissue_top_j=sections.top_j,
+        scene=scene,
     )
     hidden = {k for k, v in kinds.items() if v == "contact_loss"}
-    strength = None if scene is None else hard_echo_strength(params, geom, path.s, sections.cos_incidence)
+    strength = (
+        None if scene is None else hard_echo_strength(params, geom, path.s, sections.cos_incidence)
+    )
     contours = visible_contours(
         sections,
         int(params.height),
@@ -436,7 +477,9 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
     if n_bad:
         bad = np.random.default_rng([seed, 6]).choice(n, size=n_bad, replace=False)
         valid[bad] = False
-        reasons = {int(k): "ImageToReference status INVALID (simulated tracking loss)" for k in sorted(bad)}
+        reasons = {
+            int(k): "ImageToReference status INVALID (simulated tracking loss)" for k in sorted(bad)
+        }
     sweep = Sweep(
         frames=frames,
         image_to_reference=path.image_to_reference,
@@ -445,7 +488,12 @@ def simulate(params: SimulationParams | None = None, progress: ProgressCallback 
         source=None,
         transform_name="ImageToReference",
         invalid_reasons=reasons,
-        metadata={"simulated": True, "bone": params.bone, "seed": seed, "UltrasoundImageOrientation": "MF"},
+        metadata={
+            "simulated": True,
+            "bone": params.bone,
+            "seed": seed,
+            "UltrasoundImageOrientation": "MF",
+        },
     )
     report(progress, "geometry", 3, 3)
     return Simulation(
@@ -488,7 +536,10 @@ def simulation_info(sim: Simulation) -> dict[str, Any]:
         "invalid_frames": [int(k) for k in np.flatnonzero(~sim.sweep.valid)],
         "neighbour": None
         if sim.neighbour is None
-        else {"bone": sim.neighbour.spec.name, "offset_mm": [float(v) for v in sim.neighbour.offset]},
+        else {
+            "bone": sim.neighbour.spec.name,
+            "offset_mm": [float(v) for v in sim.neighbour.offset],
+        },
         "frames_with_visible_bone": int(sum(c.shape[0] > 0 for c in sim.true_contours_px)),
         "gold_points": int(sim.gold.shape[0]),
         "reference_frame": "x along the bone, y lateral, z up (towards the skin); mm",
@@ -514,7 +565,9 @@ def check_output_dir(outdir: str | os.PathLike[str]) -> Path:
         while not probe.exists():
             probe = probe.parent
         if not probe.is_dir():
-            raise BoneUSReconError(f"cannot create the output folder: {str(probe)!r} is not a folder", out)
+            raise BoneUSReconError(
+                f"cannot create the output folder: {str(probe)!r} is not a folder", out
+            )
     if not can_create_file_in(probe):
         raise BoneUSReconError(f"cannot write in {str(probe)!r}", out)
     return out
@@ -546,7 +599,9 @@ def write_simulation(
     except FileExistsError:
         raise BoneUSReconError("output path exists and is not a folder", out) from None
     except OSError as exc:
-        raise BoneUSReconError(f"cannot create the output folder ({exc.strerror or exc})", out) from None
+        raise BoneUSReconError(
+            f"cannot create the output folder ({exc.strerror or exc})", out
+        ) from None
     paths = {
         "sweep": out / "sweep.mha",
         "truth": out / "truth.vtp",

@@ -89,7 +89,9 @@ def shadow_clutter(
         jc = np.interp(ic, cols, top_j[cols]) + rng.uniform(1.5, 8.0) / spacing
         si = rng.uniform(1.0, 3.0) / spacing
         sj = rng.uniform(0.4, 1.5) / spacing
-        clutter += rng.uniform(2.0, 5.0) * np.exp(-0.5 * (((i - ic) / si) ** 2 + ((rows - jc) / sj) ** 2))
+        clutter += rng.uniform(2.0, 5.0) * np.exp(
+            -0.5 * (((i - ic) / si) ** 2 + ((rows - jc) / sj) ** 2)
+        )
     out = field + speckle * clutter * below
     # Reverberation: a fainter copy of the bone echo 2-5 mm deeper.
     shift = int(round(rng.uniform(2.0, 5.0) / spacing))
@@ -143,7 +145,9 @@ def false_echo(
     phase = np.exp(1j * rng.uniform(0, 2 * np.pi))
     line = (amp[None, :] * np.exp(-0.5 * (d / line_sigma_px) ** 2) * phase).astype(np.complex64)
     dim = rng.uniform(0.7, 0.9)
-    shadow = 1.0 - dim * taper[None, :] * np.clip((d - 2 * line_sigma_px) / max(line_sigma_px, 1.0) + 0.5, 0.0, 1.0)
+    shadow = 1.0 - dim * taper[None, :] * np.clip(
+        (d - 2 * line_sigma_px) / max(line_sigma_px, 1.0) + 0.5, 0.0, 1.0
+    )
     return field * shadow.astype(np.float32) + line
 
 

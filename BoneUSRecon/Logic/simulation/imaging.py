@@ -122,10 +122,18 @@ def tissue_layers(
     x, y = xy[..., 0], xy[..., 1]
     top_mm = np.pad(top_j * sp, ((0, 0), (pad, pad)), constant_values=np.nan)
     bone_depth = float(params.height) * sp
-    top_min = np.where(np.isfinite(top_j).any(1), np.nanmin(np.where(np.isfinite(top_j), top_j, np.inf), 1) * sp, bone_depth)[:, None]
+    top_min = np.where(
+        np.isfinite(top_j).any(1),
+        np.nanmin(np.where(np.isfinite(top_j), top_j, np.inf), 1) * sp,
+        bone_depth,
+    )[:, None]
 
     skin = 1.2 + SmoothField(rng, 0.2)(x, y)
-    fascia1 = np.clip(0.4 * top_min + SmoothField(rng, 0.8, (20, 80))(x, y), skin + 0.6, np.maximum(top_min - 1.2, skin + 0.6))
+    fascia1 = np.clip(
+        0.4 * top_min + SmoothField(rng, 0.8, (20, 80))(x, y),
+        skin + 0.6,
+        np.maximum(top_min - 1.2, skin + 0.6),
+    )
     room = top_min - fascia1
     fascia2 = fascia1 + 0.55 * room + SmoothField(rng, 1.2, (20, 80))(x, y)
     fascia2 = np.where(np.isfinite(top_mm), np.minimum(fascia2, top_mm - 2.0), fascia2)
@@ -147,7 +155,9 @@ def tissue_layers(
     )
 
 
-def _psf_transfer(shape: tuple[int, int], sig_ax: float, sig_lat: float) -> tuple[np.ndarray, float]:
+def _psf_transfer(
+    shape: tuple[int, int], sig_ax: float, sig_lat: float
+) -> tuple[np.ndarray, float]:
     fy = sfft.fftfreq(shape[0])[:, None]
     fx = sfft.fftfreq(shape[1])[None, :]
     h = np.exp(-2 * np.pi**2 * (sig_ax**2 * fy**2 + sig_lat**2 * fx**2)).astype(np.float32)
@@ -226,8 +236,11 @@ def render_frames(
     transfer, norm = _psf_transfer((hp, wp), sig_ax, sig_lat)
 
     layers = tissue_layers(
-        image_to_reference, top_j if tissue_top_j is None else tissue_top_j, params,
-        np.random.default_rng([seed, 2]), pad,
+        image_to_reference,
+        top_j if tissue_top_j is None else tissue_top_j,
+        params,
+        np.random.default_rng([seed, 2]),
+        pad,
     )
     z_pad = ((np.arange(hp) - pad) * sp).astype(np.float32)[None, :, None]
     rows = np.arange(h, dtype=np.float32)[None, :, None]
@@ -291,7 +304,9 @@ def render_frames(
             floor[a].real = r.standard_normal((h, w), np.float32)
             floor[a].imag = r.standard_normal((h, w), np.float32)
             # Slowly varying phases of the specular lines and roughness of the bone.
-            phases[a] = np.exp(1j * (r.uniform(0, 2 * np.pi, (4, 1)) + np.cumsum(r.normal(0, 0.15, (4, w)), 1)))
+            phases[a] = np.exp(
+                1j * (r.uniform(0, 2 * np.pi, (4, 1)) + np.cumsum(r.normal(0, 0.15, (4, w)), 1))
+            )
             rough[a] = gaussian_filter1d(r.standard_normal(w), 3 * sig_lat)
             frame_rngs.append(r)
         dropout = np.ones((nc, w), np.float32)
@@ -301,7 +316,9 @@ def render_frames(
             r = frame_rngs[a]
             n_drop = r.poisson(ip.dropouts_per_cm * w * sp / 10.0)
             for ic in r.uniform(0, w, n_drop):
-                dropout[a] *= 1.0 - 0.7 * np.exp(-0.5 * ((cols - ic) / sig_drop) ** 2).astype(np.float32)
+                dropout[a] *= 1.0 - 0.7 * np.exp(-0.5 * ((cols - ic) / sig_drop) ** 2).astype(
+                    np.float32
+                )
         noise *= np.float32(np.sqrt(0.5))
         rough = 1 + 0.25 * rough / np.maximum(rough.std(1, keepdims=True), 1e-6)
 
@@ -314,7 +331,12 @@ def render_frames(
             np.where(z_pad < f1, np.float32(ip.fat_amplitude), np.float32(1.0)),
         )
         echo[:, :pad, :] = 0.0  # coupling gel above the skin
-        tex = sfft.irfft2(sfft.rfft2(tex, axes=(1, 2), workers=-1) * tex_transfer, s=(hp, wp), axes=(1, 2), workers=-1)
+        tex = sfft.irfft2(
+            sfft.rfft2(tex, axes=(1, 2), workers=-1) * tex_transfer,
+            s=(hp, wp),
+            axes=(1, 2),
+            workers=-1,
+        )
         tex *= np.float32(tex_norm)
         muscle = z_pad >= f1
         echo *= np.exp(np.where(muscle, np.float32(0.35), np.float32(0.15)) * tex)
@@ -339,10 +361,16 @@ def render_frames(
             return lambda d: np.exp(-0.5 * (d / sigma) ** 2)
 
         for idx, (depth, strength) in enumerate(
-            ((layers.fascia1, layers.strength1), (layers.fascia2, layers.strength2), (layers.deep, layers.strength_deep))
+            (
+                (layers.fascia1, layers.strength1),
+                (layers.fascia2, layers.strength2),
+                (layers.deep, layers.strength_deep),
+            )
         ):
             amp = strength[ks][:, sl] * ip.fascia_amplitude * phases[:, idx]
-            _add_band(field, depth[ks][:, sl] / sp, amp, gauss(sig_fascia), 4 * sig_fascia, 4 * sig_fascia)
+            _add_band(
+                field, depth[ks][:, sl] / sp, amp, gauss(sig_fascia), 4 * sig_fascia, 4 * sig_fascia
+            )
 
         # 4. shadow under the bone (a linear ramp just below the bone line), then the
         # bone echo itself: a Gaussian core on the true surface row and a cortical tail.
@@ -360,15 +388,33 @@ def render_frames(
 
         bone = np.zeros_like(field)
         amp_k = bone_amp[ks] * rough * dropout
-        _add_band(bone, top_j[ks], amp_k * phases[:, 3], bone_profile, 4 * sig_line, 4 * sig_line + 6 * tail_tau)
+        _add_band(
+            bone,
+            top_j[ks],
+            amp_k * phases[:, 3],
+            bone_profile,
+            4 * sig_line,
+            4 * sig_line + 6 * tail_tau,
+        )
         field += bone
         # Reverberations inside the shadow: blurred, weaker copies of the bone echo
         # further down (sound bouncing between the bone and the layers above it).
         if ip.reverb_amplitude > 0:
             sig_rev = 2.0 * sig_line
             for m in range(1, ip.reverb_copies + 1):
-                amp_r = (ip.reverb_amplitude * ip.reverb_decay ** (m - 1)) * amp_k * np.conj(phases[:, 3])
-                _add_band(field, top_j[ks] + m * reverb_px, amp_r, gauss(sig_rev), 4 * sig_rev, 4 * sig_rev)
+                amp_r = (
+                    (ip.reverb_amplitude * ip.reverb_decay ** (m - 1))
+                    * amp_k
+                    * np.conj(phases[:, 3])
+                )
+                _add_band(
+                    field,
+                    top_j[ks] + m * reverb_px,
+                    amp_r,
+                    gauss(sig_rev),
+                    4 * sig_rev,
+                    4 * sig_rev,
+                )
         if scene is not None:
             _scene_lines(field, scene, ks, amp_k, phases, sig_line, sig_fascia, sp, params)
 
@@ -382,7 +428,9 @@ def render_frames(
                 field[a] = corr.shadow_clutter(field[a], speckle[a], top_j[k], bone[a], sp, r)
             elif kind == "false_echo":
                 skin_px = float(np.mean(layers.skin[k])) / sp
-                field[a] = corr.false_echo(field[a], top_j[k], skin_px, ip.bone_amplitude, sig_line, sp, r)
+                field[a] = corr.false_echo(
+                    field[a], top_j[k], skin_px, ip.bone_amplitude, sig_line, sp, r
+                )
             elif kind == "contact_loss":
                 field[a] = corr.contact_loss((h, w), speckle[a], sp, r)
             else:  # pragma: no cover - kinds come from CORRUPTION_KINDS
@@ -393,7 +441,9 @@ def render_frames(
         field += np.float32(ip.noise_floor * np.sqrt(0.5)) * floor
         env = np.abs(field)
         db = 20 * np.log10(np.maximum(env, 1e-6))
-        out[ks] = np.clip(np.rint((db - floor_db) * (255.0 / ip.dynamic_range_db)), 0, 255).astype(np.uint8)
+        out[ks] = np.clip(np.rint((db - floor_db) * (255.0 / ip.dynamic_range_db)), 0, 255).astype(
+            np.uint8
+        )
         report(progress, "imaging", int(ks[-1]) + 1, n)
     return out
 

@@ -71,7 +71,9 @@ def probe_path(geom: BoneGeometry, params: SimulationParams, rng: np.random.Gene
     corr = max(1.0, n / 8.0)
 
     def jitter(std: float, tremor: float = 0.15) -> np.ndarray:
-        return std * (np.sqrt(1 - tremor**2) * smooth_noise(rng, n, corr) + tremor * rng.standard_normal(n))
+        return std * (
+            np.sqrt(1 - tremor**2) * smooth_noise(rng, n, corr) + tremor * rng.standard_normal(n)
+        )
 
     # Uneven speed: positive speed profile, integrated to positions along the bone.
     speed = np.clip(1.0 + params.speed_variation * smooth_noise(rng, n, corr), 0.25, None)

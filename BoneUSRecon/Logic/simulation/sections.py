@@ -105,7 +105,12 @@ def bone_sections(
             il, jl = il[srt], jl[srt]
             inside = (cols >= il[0]) & (cols <= il[-1])
             bottom[k, inside] = np.interp(cols[inside], il, jl)
-    return BoneSections(top_j=top, cos_incidence=cosw, s_range=np.column_stack([s.min(1), s.max(1)]), bottom_j=bottom)
+    return BoneSections(
+        top_j=top,
+        cos_incidence=cosw,
+        s_range=np.column_stack([s.min(1), s.max(1)]),
+        bottom_j=bottom,
+    )
 
 
 def visible_contours(
