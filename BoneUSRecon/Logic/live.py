@@ -109,17 +109,12 @@ class LiveParams:
     reconnect_s: float = 3.0
 
     def __post_init__(self) -> None:
-        check_fields(self)
-        if not self.update_every_s > 0:
-            raise BoneUSReconError(f"update_every_s must be > 0 s, got {self.update_every_s}")
-        if self.queue_frames < 1:
-            raise BoneUSReconError(f"queue_frames must be >= 1, got {self.queue_frames}")
-        if self.max_frames < 10:
-            raise BoneUSReconError(f"max_frames must be >= 10, got {self.max_frames}")
-        if not self.pose_tolerance_s >= 0:
-            raise BoneUSReconError(f"pose_tolerance_s must be >= 0 s, got {self.pose_tolerance_s}")
-        if not self.reconnect_s >= 0:
-            raise BoneUSReconError(f"reconnect_s must be >= 0 s, got {self.reconnect_s}")
+        check_fields(
+            self,
+            positive=("update_every_s", "queue_frames"),
+            non_negative=("pose_tolerance_s", "reconnect_s"),
+            within={"max_frames": "[10, inf)"},
+        )
 
 
 # ------------------------------------------------------------------------------------

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.params_check import check_fields
 
@@ -118,63 +116,35 @@ class RegistrationParams:
     coarse_points: int = 300
 
     def __post_init__(self) -> None:
-        check_fields(self)
-        if self.init not in INIT_METHODS:
-            raise BoneUSReconError(
-                f"RegistrationParams.init must be one of {', '.join(INIT_METHODS)}, got {self.init!r}"
-            )
-        if self.robust not in ("tukey", "huber", "none"):
-            raise BoneUSReconError(
-                f"RegistrationParams.robust must be tukey, huber or none, got {self.robust!r}"
-            )
-        for name in (
-            "max_distance_mm",
-            "min_distance_mm",
-            "noise_floor_mm",
-            "tolerance_mm",
-            "max_rms_mm",
-            "max_sliding_mm",
-            "search_offsets_mm",
-            "max_normal_angle_deg",
-            "patch_normal_angle_deg",
-        ):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
-                raise BoneUSReconError(
-                    f"RegistrationParams.{name} must be a positive number, got {v!r}"
-                )
+        # The float fields' coercion already refuses inf and NaN.
+        check_fields(
+            self,
+            choices={"init": INIT_METHODS, "robust": ("tukey", "huber", "none")},
+            positive=(
+                "max_distance_mm",
+                "min_distance_mm",
+                "noise_floor_mm",
+                "tolerance_mm",
+                "max_rms_mm",
+                "max_sliding_mm",
+                "search_offsets_mm",
+                "max_normal_angle_deg",
+                "patch_normal_angle_deg",
+                "start_rolls_deg",
+                "start_shifts_mm",
+            ),
+            within={
+                "min_overlap": "[0, 1]",
+                "min_inlier_share": "[0, 1]",
+                "max_iterations": "[1, inf)",
+                "search_rolls": "[1, inf)",
+                "coarse_iterations": "[1, inf)",
+                "max_source_points": "[50, inf)",
+                "coarse_points": "[50, inf)",
+                "damping": "[0, 1)",
+            },
+        )
         if self.min_distance_mm > self.max_distance_mm:
             raise BoneUSReconError(
                 f"RegistrationParams.min_distance_mm ({self.min_distance_mm}) exceeds max_distance_mm ({self.max_distance_mm})"
-            )
-        for name in ("min_overlap", "min_inlier_share"):
-            v = getattr(self, name)
-            if not (0.0 <= v <= 1.0):
-                raise BoneUSReconError(
-                    f"RegistrationParams.{name} must be between 0 and 1, got {v!r}"
-                )
-        for name, lo in (
-            ("max_iterations", 1),
-            ("max_source_points", 50),
-            ("search_rolls", 1),
-            ("coarse_points", 50),
-            ("coarse_iterations", 1),
-        ):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, np.integer)) and v >= lo):
-                raise BoneUSReconError(
-                    f"RegistrationParams.{name} must be an integer >= {lo}, got {v!r}"
-                )
-        for name in ("start_rolls_deg", "start_shifts_mm"):
-            v = getattr(self, name)
-            if not (
-                isinstance(v, tuple)
-                and all(isinstance(x, (int, float)) and np.isfinite(x) and x > 0 for x in v)
-            ):
-                raise BoneUSReconError(
-                    f"RegistrationParams.{name} must be a tuple of positive numbers, got {v!r}"
-                )
-        if not (0.0 <= self.damping < 1.0):
-            raise BoneUSReconError(
-                f"RegistrationParams.damping must be in [0, 1), got {self.damping!r}"
             )
