@@ -1,7 +1,8 @@
 """The fast code paths of the segmenter give exactly what the plain ones give.
 
-The speed-ups of branch ``segspeed`` (optimal path column loop, window means on row
-slices, median of three) must not change a single candidate: each is compared here,
+The speed-ups of branches ``segspeed`` (optimal path column loop, window means on row
+slices, median of three) and ``speed`` (cached window plans, one-partition medians of
+large even counts) must not change a single candidate: each is compared here,
 value for value, with the straightforward computation it replaces, on inputs built
 to hit its edge cases (ties, clipped windows, long no-bone stretches).
 """
@@ -14,7 +15,7 @@ from scipy.ndimage import median_filter
 
 from BoneUSRecon.Logic.segmentation.candidates import _optimal_path
 from BoneUSRecon.Logic.segmentation.evidence import _window_mean
-from BoneUSRecon.Logic.segmentation.features import column_window_mean
+from BoneUSRecon.Logic.segmentation.features import _ONE_KTH_FROM, column_window_mean, median1d
 
 
 def _plain_optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np.ndarray:
@@ -75,9 +76,11 @@ def test_optimal_path_matches_plain_loop() -> None:
 
 def test_window_mean_matches_gathered_rows() -> None:
     rng = np.random.default_rng(4)
-    for h in (1, 4, 23):
-        x = rng.random((h, 5)).astype(np.float32)
-        csum = np.zeros((h + 1, 5), np.float32)
+    # Two images per size and widths 5 and 1 (the per-row references): the cached index
+    # plan of a size and offsets is reused on new data.
+    for h, width in ((1, 5), (4, 5), (23, 5), (23, 1), (4, 5), (23, 5)):
+        x = rng.random((h, width)).astype(np.float32)
+        csum = np.zeros((h + 1, width), np.float32)
         np.cumsum(x, axis=0, out=csum[1:])
         j = np.arange(h)
         for a in range(-h - 2, h + 3):
@@ -85,6 +88,20 @@ def test_window_mean_matches_gathered_rows() -> None:
                 assert np.array_equal(
                     _window_mean(csum, a, b), column_window_mean(csum, j + a, j + b)
                 ), (h, a, b)
+
+
+def test_median1d_matches_numpy_median() -> None:
+    # Both paths of median1d (two-kth partition below _ONE_KTH_FROM values, one
+    # partition and a maximum from there on), even and odd counts, ties, dtypes.
+    rng = np.random.default_rng(6)
+    sizes = [1, 2, 3, 10, 41, _ONE_KTH_FROM - 2, _ONE_KTH_FROM, _ONE_KTH_FROM + 1, 5000]
+    for n in sizes:
+        for dtype in (np.float32, np.float64, np.int64):
+            for values in (rng.normal(size=n), np.round(rng.normal(size=n) * 2)):
+                a = values.astype(dtype)
+                got = median1d(a)
+                assert got == float(np.median(a)), (n, dtype)
+                assert np.array_equal(a, values.astype(dtype))  # input left as it was
 
 
 def test_median_of_three_is_median_filter() -> None:

@@ -50,13 +50,14 @@ Features tried, kept and dropped, with the figures: see the package docstring.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 
-from BoneUSRecon.Logic.segmentation.features import column_window_mean, median1d, mm_to_px
+from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["EvidenceMaps", "working_image", "field_of_view", "tissue_level", "bone_evidence"]
@@ -202,28 +203,51 @@ def phase_symmetry_depth(
     return num / den
 
 
+@functools.lru_cache(maxsize=64)
+def _window_plan(
+    h: int, a_off: int, b_off: int, dtype: str
+) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What :func:`_window_mean` needs besides the data, for ``h`` rows and these offsets.
+
+    Every frame of a sweep has the same size and window offsets, so the clipped index
+    arrays and the divisor are built once (they cost more than the window sums at
+    working-image sizes). Returns ``(lo, hi, edge, a_edge, b_edge, divisor)``: rows
+    ``lo:hi`` are plain slices, rows ``edge`` are gathered at their clipped ends, and
+    ``divisor`` (h, 1) holds the window lengths (at least 1) in ``dtype``. Read-only.
+    """
+    j = np.arange(h)
+    a = np.clip(j + a_off, 0, h)
+    b = np.clip(j + b_off, 0, h)
+    lo = max(0, -a_off, -b_off)
+    hi = min(h, h - a_off + 1, h - b_off + 1)
+    if hi > lo:
+        edge = np.r_[0:lo, hi:h]
+    else:
+        lo = hi = 0
+        edge = j
+    div = np.maximum(b - a, 1).astype(dtype)[:, None]
+    out = (lo, hi, edge, a[edge], b[edge], div)
+    for arr in out[2:]:
+        arr.flags.writeable = False  # shared between calls
+    return out
+
+
 def _window_mean(csum: np.ndarray, a_off: int, b_off: int) -> np.ndarray:
     """``column_window_mean(csum, j + a_off, j + b_off)`` for rows ``j = 0 .. H-1``.
 
     The same values, computed on row slices where neither end is clipped (no gathered
-    copies of the cumulative sum: the windows of bone_evidence are fixed offsets).
+    copies of the cumulative sum: the windows of bone_evidence are fixed offsets), with
+    the index arrays of the clipped rows cached per size and offsets (:func:`_window_plan`).
     """
     h = csum.shape[0] - 1
-    j = np.arange(h)
-    a = np.clip(j + a_off, 0, h)
-    b = np.clip(j + b_off, 0, h)
+    lo, hi, edge, a_edge, b_edge, div = _window_plan(h, a_off, b_off, csum.dtype.str)
     out = np.empty((h, csum.shape[1]), csum.dtype)
     # Rows whose window ends both lie in 0..h: plain slices.
-    lo = max(0, -a_off, -b_off)
-    hi = min(h, h - a_off + 1, h - b_off + 1)
     if hi > lo:
         np.subtract(csum[lo + b_off : hi + b_off], csum[lo + a_off : hi + a_off], out=out[lo:hi])
-        edge = np.r_[0:lo, hi:h]
-    else:
-        edge = j
     if edge.size:
-        out[edge] = csum[b[edge]] - csum[a[edge]]
-    out /= np.maximum(b - a, 1).astype(csum.dtype)[:, None]
+        out[edge] = csum[b_edge] - csum[a_edge]
+    out /= div
     return out
 
 
@@ -302,8 +326,10 @@ def bone_evidence(
     m_far = _window_mean(csum, b0 + gap, b0 + far)
     cov_top = top - cov_b
     m_cov = _window_mean(csum, t0 - cov_b, t0 - cov_a)
-    t_far = column_window_mean(tsum, bot + gap, bot + far)
-    t_cov = column_window_mean(esum, cov_top, top - cov_a)
+    # The references' windows are fixed offsets from each row too: _window_mean gives
+    # column_window_mean's values (Testing/test_segmentation_speed_paths.py).
+    t_far = _window_mean(tsum, b0 + gap, b0 + far)
+    t_cov = _window_mean(esum, t0 - cov_b, t0 - cov_a)
     t_mid = t_echo[:, None]
 
     # In place where an operand is not needed again (the same operations in the same
@@ -323,7 +349,7 @@ def bone_evidence(
         # The shadow starts right under the surface: the near window localises it (a
         # line mm above the bone has tissue, then the shadow, beneath it).
         m_sh = _window_mean(csum, b0 + gap, b0 + near)
-        t_sh = column_window_mean(tsum, bot + gap, bot + near)
+        t_sh = _window_mean(tsum, b0 + gap, b0 + near)
         m_sh += _EPS
         np.divide(t_sh + _EPS, m_sh, out=m_sh)
         np.minimum(log_s, np.log(m_sh, out=m_sh), out=log_s)

@@ -22,6 +22,12 @@ __all__ = [
 ]
 
 
+#: From this many values on, :func:`median1d` of an even count partitions once and takes
+#: a maximum (faster than a two-kth partition above about a thousand values; below, the
+#: extra calls cost more).
+_ONE_KTH_FROM = 1024
+
+
 def median1d(values: np.ndarray) -> float:
     """``float(np.median(values))`` of a small finite 1-D array, by one partition.
 
@@ -36,6 +42,12 @@ def median1d(values: np.ndarray) -> float:
     k = n // 2
     if n % 2:
         return float(np.partition(a, k)[k])
+    if n >= _ONE_KTH_FROM:
+        # Partitioning at two kth costs ~6x one on thousands of values (numpy selects
+        # twice over the whole array); after one partition at k, the (k-1)-th order
+        # statistic is the largest of the k values before it: the same element.
+        part = np.partition(a, k)
+        return float((part[:k].max() + part[k]) / 2)
     part = np.partition(a, (k - 1, k))
     return float((part[k - 1] + part[k]) / 2)
 
