@@ -2,9 +2,10 @@
 
 The speed-ups of branches ``segspeed`` (optimal path column loop, window means on row
 slices, median of three) and ``speed`` (cached window plans, one-partition medians of
-large even counts) must not change a single candidate: each is compared here,
-value for value, with the straightforward computation it replaces, on inputs built
-to hit its edge cases (ties, clipped windows, long no-bone stretches).
+large even counts, the track's pair tests from its boxes) must not change a single
+candidate: each is compared here, value for value, with the straightforward
+computation it replaces, on inputs built to hit its edge cases (ties, clipped windows,
+long no-bone stretches).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from scipy.ndimage import median_filter
 from BoneUSRecon.Logic.segmentation.candidates import _optimal_path
 from BoneUSRecon.Logic.segmentation.evidence import _window_mean
 from BoneUSRecon.Logic.segmentation.features import _ONE_KTH_FROM, column_window_mean, median1d
+from BoneUSRecon.Logic.segmentation.track import _in_plane_deviation, _stepped
 
 
 def _plain_optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np.ndarray:
@@ -113,3 +115,43 @@ def test_median_of_three_is_median_filter() -> None:
         a, b, c = pj[:-2], pj[1:-1], pj[2:]
         m = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
         assert np.array_equal(m, median_filter(j, size=3, mode="nearest"))
+
+
+def _plain_stepped(a: np.ndarray, b_mm: np.ndarray, max_step_mm: float) -> bool:
+    """track._stepped as it was before branch ``speed`` (shares by ``mean``)."""
+    lo, hi = a[:, 0].min(), a[:, 0].max()
+    bi = b_mm[(b_mm[:, 0] >= lo) & (b_mm[:, 0] <= hi)]
+    if bi.shape[0] == 0:
+        return False
+    o = np.argsort(a[:, 0])
+    step = bi[:, 1] - np.interp(bi[:, 0], a[o, 0], a[o, 1])
+    return bool(
+        abs(np.median(step)) > max_step_mm and max((step > 0).mean(), (step < 0).mean()) >= 0.9
+    )
+
+
+def test_track_pair_shortcuts_match_plain() -> None:
+    # _links hands the pair tests its boxes' extents and a's lateral order; the
+    # results must be those computed from the contours alone (and _stepped's shares
+    # by counting those of the plain means), on contours that overlap partly, lie
+    # a step under one another, or have repeated lateral positions.
+    rng = np.random.default_rng(7)
+    hits = 0
+    for trial in range(400):
+        ka, kb = int(rng.integers(2, 60)), int(rng.integers(1, 60))
+        ax = np.sort(rng.uniform(0, 20, ka)) if trial % 3 else np.round(rng.uniform(0, 20, ka))
+        a = np.column_stack([ax, rng.normal(10, 0.5, ka), rng.uniform(0, 3, ka)])
+        bx = rng.uniform(-5, 25, kb)
+        b = np.column_stack([bx, rng.normal(10 + rng.choice([0.0, 2.0, 5.0]), 0.5, kb)])
+        a_x = (float(a[:, 0].min()), float(a[:, 0].max()))
+        b_x = (float(b[:, 0].min()), float(b[:, 0].max()))
+        plain = _in_plane_deviation(a, b)
+        fast = _in_plane_deviation(a, b, a_x=a_x, b_x=b_x)
+        assert np.array_equal(np.array(plain), np.array(fast)), trial
+        o = np.argsort(a[:, 0])
+        for step in (0.5, 1.5, 3.0):
+            want = _plain_stepped(a, b, step)
+            assert _stepped(a, b, step) == want, trial
+            assert _stepped(a, b, step, a_x=a_x, a_sorted=(a[o, 0], a[o, 1])) == want, trial
+            hits += want
+    assert hits >= 50  # the trials exercise stepped pairs too
