@@ -2,10 +2,10 @@
 
 The speed-ups of branches ``segspeed`` (optimal path column loop, window means on row
 slices, median of three) and ``speed`` (cached window plans, one-partition medians of
-large even counts, the track's pair tests from its boxes) must not change a single
-candidate: each is compared here, value for value, with the straightforward
-computation it replaces, on inputs built to hit its edge cases (ties, clipped windows,
-long no-bone stretches).
+large even counts, percentiles and medians of sorted rows, the track's pair tests from
+its boxes) must not change a single candidate: each is compared here, value for value,
+with the straightforward computation it replaces, on inputs built to hit its edge cases
+(ties, clipped windows, long no-bone stretches).
 """
 
 from __future__ import annotations
@@ -16,7 +16,13 @@ from scipy.ndimage import median_filter
 
 from BoneUSRecon.Logic.segmentation.candidates import _optimal_path
 from BoneUSRecon.Logic.segmentation.evidence import _window_mean
-from BoneUSRecon.Logic.segmentation.features import _ONE_KTH_FROM, column_window_mean, median1d
+from BoneUSRecon.Logic.segmentation.features import (
+    _ONE_KTH_FROM,
+    column_window_mean,
+    median1d,
+    sorted_row_medians,
+    sorted_row_percentiles,
+)
 from BoneUSRecon.Logic.segmentation.track import _in_plane_deviation, _stepped
 
 
@@ -155,3 +161,23 @@ def test_track_pair_shortcuts_match_plain() -> None:
             assert _stepped(a, b, step, a_x=a_x, a_sorted=(a[o, 0], a[o, 1])) == want, trial
             hits += want
     assert hits >= 50  # the trials exercise stepped pairs too
+
+
+def test_sorted_row_statistics_match_numpy() -> None:
+    # The tissue level's percentiles and the baseline's row medians, read from rows
+    # sorted once, against numpy on the same sorted rows (both dtypes, ties, the ends).
+    rng = np.random.default_rng(8)
+    qs = [(60.0, 80.0), (50.0,), (0.0, 100.0), (33.3, 97.5), (12.5, 87.5, 99.9)]
+    for trial in range(600):
+        h, n = int(rng.integers(1, 30)), int(rng.integers(1, 130))
+        x = rng.gamma(2.0, 0.2, (h, n)).astype(np.float32 if trial % 2 else np.float64)
+        if trial % 3 == 0:
+            x = np.round(x * 4) / 4
+        s = np.sort(x, axis=1)
+        q = qs[trial % len(qs)]
+        want = np.percentile(s.copy(), q, axis=1)
+        got = sorted_row_percentiles(s, q)
+        assert got.dtype == want.dtype and np.array_equal(got, want), (trial, q)
+        med = np.median(s, axis=1)
+        got_med = sorted_row_medians(s)
+        assert got_med.dtype == med.dtype and np.array_equal(got_med, med), trial

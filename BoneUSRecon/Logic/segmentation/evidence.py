@@ -57,7 +57,12 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 
-from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
+from BoneUSRecon.Logic.segmentation.features import (
+    median1d,
+    mm_to_px,
+    sorted_row_medians,
+    sorted_row_percentiles,
+)
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["EvidenceMaps", "working_image", "field_of_view", "tissue_level", "bone_evidence"]
@@ -165,7 +170,11 @@ def tissue_level(
     sel = sel[:, ::2] if sel.shape[1] >= 40 else sel  # half the columns suffice for a percentile
     # Sorting the rows first: the same order statistics, so the same percentiles, and a
     # row-wise sort is several times faster than numpy's per-row selection at these sizes.
-    t = np.percentile(np.sort(sel, axis=1), percentile, axis=1, overwrite_input=True)
+    srt = np.sort(sel, axis=1)
+    if isinstance(percentile, tuple):
+        t = sorted_row_percentiles(srt, percentile)  # np.percentile's values, no re-partition
+    else:
+        t = np.percentile(srt, percentile, axis=1, overwrite_input=True)
     t = t.astype(np.float32)
     t = gaussian_filter1d(t, max(0.5, 1.0 / dy), axis=-1, mode="nearest")
     # Relative floor (a fraction of the frame's own typical tissue level): deep rows of
@@ -387,7 +396,7 @@ def bone_evidence(
     base -= np.log(t_shadow[nf::2, None] + _EPS)
     if base.size:  # rows sorted first: the same medians, faster (see tissue_level)
         base.sort(axis=1)
-        base = float(np.percentile(np.median(base, axis=1, overwrite_input=True), 75))
+        base = float(np.percentile(sorted_row_medians(base), 75))
     else:
         base = 0.0
     return EvidenceMaps(
