@@ -1,11 +1,12 @@
 """The fast code paths of the segmenter give exactly what the plain ones give.
 
 The speed-ups of branches ``segspeed`` (optimal path column loop, window means on row
-slices, median of three) and ``speed`` (cached window plans, one-partition medians of
-large even counts, percentiles and medians of sorted rows, the track's pair tests from
-its boxes) must not change a single candidate: each is compared here, value for value,
-with the straightforward computation it replaces, on inputs built to hit its edge cases
-(ties, clipped windows, long no-bone stretches).
+slices, median of three) and ``speed`` (optimal paths of several frames in one column
+loop, cached window plans, one-partition medians of large even counts, percentiles and
+medians of sorted rows, the track's pair tests from its boxes) must not change a single
+candidate: each is compared here, value for value, with the straightforward computation
+it replaces, on inputs built to hit its edge cases (ties, clipped windows, long no-bone
+stretches).
 """
 
 from __future__ import annotations
@@ -14,7 +15,12 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import median_filter
 
-from BoneUSRecon.Logic.segmentation.candidates import _optimal_path
+from BoneUSRecon.Logic.segmentation.candidates import (
+    _optimal_path,
+    _optimal_paths,
+    frame_candidates,
+    frame_candidates_many,
+)
 from BoneUSRecon.Logic.segmentation.evidence import _window_mean
 from BoneUSRecon.Logic.segmentation.features import (
     _ONE_KTH_FROM,
@@ -24,6 +30,8 @@ from BoneUSRecon.Logic.segmentation.features import (
     sorted_row_percentiles,
 )
 from BoneUSRecon.Logic.segmentation.track import _in_plane_deviation, _stepped
+from BoneUSRecon.Logic.simulation import SimulationParams, simulate
+from BoneUSRecon.Logic.sweep import pixel_spacing
 
 
 def _plain_optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np.ndarray:
@@ -80,6 +88,47 @@ def test_optimal_path_matches_plain_loop() -> None:
         assert np.array_equal(fast, plain), trial
         with_bone += bool((fast >= 0).any() and (fast < 0).any())
     assert with_bone >= 100  # the trials exercise paths that enter and leave bone
+
+
+def test_optimal_paths_batch_matches_plain_loop() -> None:
+    # Several gains of different sizes solved together: each path as if alone.
+    rng = np.random.default_rng(9)
+    steps = np.arange(-3, 4)
+    with_bone = 0
+    for trial in range(60):
+        cost = 0.05 * (steps * rng.uniform(0.5, 2.0)) ** 2 * 0.3
+        switch = float(rng.choice([0.5, 1.0, 2.0]))
+        gains = []
+        for _ in range(int(rng.integers(2, 7))):
+            h, w = int(rng.integers(1, 40)), int(rng.integers(1, 60))
+            gain = np.round(rng.normal(-0.4, 1.0, (h, w)) * 4) / 4
+            gain[:, rng.random(w) < 0.4] = -1.0
+            gains.append(gain.astype(np.float32))
+        batch = _optimal_paths([g.copy() for g in gains], cost, switch)
+        for g, path in zip(gains, batch, strict=True):
+            assert np.array_equal(path, _plain_optimal_path(g.copy(), cost, switch)), trial
+            with_bone += bool((path >= 0).any() and (path < 0).any())
+    assert with_bone >= 60
+
+
+def test_frame_candidates_many_matches_one_by_one() -> None:
+    # Frames with bone, an empty frame and one too small: the same candidates as alone.
+    sim = simulate(SimulationParams(n_frames=5, width=160, height=128, seed=3))
+    images = [sim.sweep.frames[k] for k in range(5)]
+    images += [np.zeros((128, 160), np.uint8), np.zeros((4, 4), np.uint8)]
+    sp = pixel_spacing(sim.sweep.image_to_reference)
+    spacings = [(float(sp[0, 0]), float(sp[0, 1]))] * len(images)
+    many = frame_candidates_many(images, spacings)
+    assert sum(len(fc.candidates) for fc in many) >= 5
+    for img, s, got in zip(images, spacings, many, strict=True):
+        want = frame_candidates(img, s)
+        assert (got.reason, got.spacing, got.extras) == (want.reason, want.spacing, want.extras)
+        assert len(got.candidates) == len(want.candidates)
+        for a, b in zip(got.candidates, want.candidates, strict=True):
+            assert np.array_equal(a.points_px, b.points_px)
+            assert np.array_equal(a.intensity, b.intensity)
+            assert (a.strength, a.echo_z, a.shadow_z) == (b.strength, b.echo_z, b.shadow_z)
+            assert (a.reverberation, a.echo_beneath) == (b.reverberation, b.echo_beneath)
 
 
 def test_window_mean_matches_gathered_rows() -> None:

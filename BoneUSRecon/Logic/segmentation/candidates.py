@@ -51,6 +51,7 @@ its own evidence and the strongest kept.
 
 from __future__ import annotations
 
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,7 +63,13 @@ from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
-__all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
+__all__ = [
+    "BoneCandidate",
+    "FrameCandidates",
+    "frame_candidates",
+    "frame_candidates_many",
+    "candidates_from_points",
+]
 
 _EPS = 1e-3  # grey/255: guards log(0) in black regions
 
@@ -181,6 +188,85 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
         else:
             state = back[c]
     return path
+
+
+def _optimal_paths(
+    gains: Sequence[np.ndarray], shift_cost: np.ndarray, switch: float
+) -> list[np.ndarray]:
+    """:func:`_optimal_path` of several gains at once (the same paths), one column loop for all.
+
+    The column loop of one ~150-row gain is bound by its ~6 numpy calls per column, not
+    by the arithmetic; stacking the gains of several frames makes each call do the work
+    of all of them (16 frames: about half the time per gain). Each gain keeps its own
+    size: rows past its height are ``-inf`` (as the window padding of one gain), columns
+    past its width are never read back, and each gain's no-bone score is the one after
+    its own last column. The column shortcut of :func:`_optimal_path` is not taken: it
+    gives exactly what the full step gives (every shift scores below leaving no-bone,
+    so the maximum is the no-bone score, and the no-bone score does not rise).
+    """
+    m = len(gains)
+    n = shift_cost.size
+    d = n // 2
+    hs = [g.shape[0] for g in gains]
+    ws = [g.shape[1] for g in gains]
+    hmax, wmax = max(hs), max(ws)
+    # score[c, i, d + j]: best path of gain i ending at row j of column c.
+    score = np.full((wmax, m, hmax + 2 * d), -np.inf)
+    for i, g in enumerate(gains):
+        score[: ws[i], i, d : d + hs[i]] = g.T
+    win = sliding_window_view(score, n, axis=2).transpose(0, 1, 3, 2)  # (w, m, shift, row)
+    inner = score[:, :, d : d + hmax]
+    cand = np.empty((m, n + 1, hmax))
+    shifts = cand[:, :n]
+    from_null = cand[:, n]
+    cost = np.empty((m, n, hmax))  # same-shape operands: see _optimal_path
+    cost[...] = np.asarray(shift_cost, dtype=float)[None, :, None]
+    best = np.empty((m, hmax))
+    top = np.empty(m)
+    null = np.zeros(m)
+    null_before = np.zeros((wmax + 1, m))  # row c: each no-bone score before column c
+    rose = np.zeros((wmax, m), dtype=bool)  # the no-bone score rose at column c
+    from_null.fill(-switch)
+    subtract, reduce_max = np.subtract, np.maximum.reduce
+    for c in range(1, wmax):
+        null_before[c] = null
+        prev = inner[c - 1]
+        reduce_max(prev, axis=1, out=top)
+        shifts[...] = win[c - 1]
+        subtract(shifts, cost, out=shifts)
+        reduce_max(cand, axis=1, out=best)
+        inner[c] += best
+        up = top - switch > null
+        if up.any():
+            np.copyto(null, top - switch, where=up)
+            rose[c] = up
+            from_null[...] = (null - switch)[:, None]
+    null_before[wmax] = null
+    # Backtrack each gain as _optimal_path does (the same comparisons on the same doubles).
+    paths = []
+    v = np.empty(n)
+    for i in range(m):
+        w, h = ws[i], hs[i]
+        sc = score[:, i]
+        nb = null_before[:, i].tolist()
+        ro = rose[:, i].tolist()
+        path = np.full(w, -1, dtype=np.intp)
+        last = sc[w - 1, d : d + h]
+        jb = int(last.argmax())
+        state = jb if last[jb] > nb[w] else -1
+        for c in range(w - 1, -1, -1):
+            path[c] = state
+            if c == 0:
+                break
+            if state >= 0:
+                np.subtract(sc[c - 1, state : state + n], shift_cost, out=v)
+                k = int(v.argmax())
+                state = -1 if nb[c] - switch > v.item(k) else state + k - d
+            else:
+                # Left no-bone here only if its score rose here: from the previous best row.
+                state = int(sc[c - 1, d : d + h].argmax()) if ro[c] else -1
+        paths.append(path)
+    return paths
 
 
 def _groups(path: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> list[np.ndarray]:
@@ -719,6 +805,67 @@ def frame_candidates(
     -------
     FrameCandidates
     """
+    gen = _frame_candidates_steps(image, spacing, params)
+    try:
+        request = next(gen)
+        while True:
+            request = gen.send(_optimal_path(*request))
+    except StopIteration as done:
+        return done.value
+
+
+def frame_candidates_many(
+    images: Sequence[np.ndarray],
+    spacings: Sequence[tuple[float, float]],
+    params: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+) -> list[FrameCandidates]:
+    """:func:`frame_candidates` of several frames (the same results), their paths solved together.
+
+    The frames advance pass by pass in step; the optimal paths asked at each step are
+    solved by one column loop (:func:`_optimal_paths`), which costs about half as much
+    per frame for 16 frames. Memory: the frames' evidence maps are held at once (~1 MB
+    per 480x640 frame).
+    """
+    gens = [
+        _frame_candidates_steps(img, sp, params) for img, sp in zip(images, spacings, strict=True)
+    ]
+    out: list[FrameCandidates | None] = [None] * len(gens)
+    pending: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+
+    def advance(i: int, path: np.ndarray | None) -> None:
+        try:
+            pending[i] = next(gens[i]) if path is None else gens[i].send(path)
+        except StopIteration as done:
+            out[i] = done.value
+
+    for i in range(len(gens)):
+        advance(i, None)
+    while pending:
+        asked, pending = pending, {}
+        # Paths are solved together when their costs agree (the same spacing).
+        groups: dict[tuple[bytes, float], list[int]] = {}
+        for i, (_, cost, switch) in asked.items():
+            groups.setdefault((cost.tobytes(), switch), []).append(i)
+        for idx in groups.values():
+            cost, switch = asked[idx[0]][1], asked[idx[0]][2]
+            gains = [asked[i][0] for i in idx]
+            if len(idx) == 1:
+                paths = [_optimal_path(gains[0], cost, switch)]
+            else:
+                paths = _optimal_paths(gains, cost, switch)
+            for i, path in zip(idx, paths, strict=True):
+                advance(i, path)
+    assert all(fc is not None for fc in out)  # every frame's steps ran to their end
+    return out  # type: ignore[return-value]
+
+
+def _frame_candidates_steps(
+    image: np.ndarray,
+    spacing: tuple[float, float],
+    params: ShadowPathParams,
+) -> Generator[tuple[np.ndarray, np.ndarray, float], np.ndarray, FrameCandidates]:
+    """:func:`frame_candidates` as a generator: yields each optimal path it needs as
+    ``(gain, shift_cost, switch)``, is sent the path, returns the FrameCandidates."""
     p = params
     sp = (float(spacing[0]), float(spacing[1]))
     img = np.asarray(image)
@@ -747,7 +894,9 @@ def frame_candidates(
         r0, r1 = max(0, rr[0] - 2 * n_shift), min(h, rr[-1] + 1 + 2 * n_shift)
         c0, c1 = cc[0], cc[-1] + 1
         path = np.full(w, -1, dtype=np.intp)
-        sub = _optimal_path(gain[r0:r1, c0:c1], shift_cost, p.switch_cost)
+        # The optimal path is asked of the caller (frame_candidates_many solves the
+        # paths of several frames at once).
+        sub = yield gain[r0:r1, c0:c1], shift_cost, p.switch_cost
         path[c0:c1] = np.where(sub >= 0, sub + r0, -1)
         groups = _groups(path, ev, p)
         if not groups:
