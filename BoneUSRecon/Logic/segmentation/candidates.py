@@ -214,13 +214,16 @@ def _optimal_paths(
     score = np.full((wmax, m, hmax + 2 * d), -np.inf)
     for i, g in enumerate(gains):
         score[: ws[i], i, d : d + hs[i]] = g.T
-    win = sliding_window_view(score, n, axis=2).transpose(0, 1, 3, 2)  # (w, m, shift, row)
+    # Shift-major layout (shift, gain, row): the reduction over shifts runs over whole
+    # contiguous (gain, row) planes, and at this size a subtract straight from the
+    # window view beats a copy then a subtract (unlike one gain's, see _optimal_path).
+    win = sliding_window_view(score, n, axis=2).transpose(0, 3, 1, 2)  # (w, shift, m, row)
     inner = score[:, :, d : d + hmax]
-    cand = np.empty((m, n + 1, hmax))
-    shifts = cand[:, :n]
-    from_null = cand[:, n]
-    cost = np.empty((m, n, hmax))  # same-shape operands: see _optimal_path
-    cost[...] = np.asarray(shift_cost, dtype=float)[None, :, None]
+    cand = np.empty((n + 1, m, hmax))
+    shifts = cand[:n]
+    from_null = cand[n]
+    cost = np.empty((n, m, hmax))
+    cost[...] = np.asarray(shift_cost, dtype=float)[:, None, None]
     best = np.empty((m, hmax))
     top = np.empty(m)
     null = np.zeros(m)
@@ -232,9 +235,8 @@ def _optimal_paths(
         null_before[c] = null
         prev = inner[c - 1]
         reduce_max(prev, axis=1, out=top)
-        shifts[...] = win[c - 1]
-        subtract(shifts, cost, out=shifts)
-        reduce_max(cand, axis=1, out=best)
+        subtract(win[c - 1], cost, out=shifts)
+        reduce_max(cand, axis=0, out=best)
         inner[c] += best
         up = top - switch > null
         if up.any():
