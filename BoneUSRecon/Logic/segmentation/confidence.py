@@ -25,9 +25,35 @@ The Dirichlet problem ``L_UU x = -L_US x_S`` is solved with a banded Cholesky fa
 than SciPy's sparse LU (SuperLU, COLAMD or minimum degree), measured on the grids of
 480 x 640 frames. The grid is coarse because the solve costs ``n w^2``.
 
-Measured (issue 10, item 5; figures in ``Testing/benchmarks/README.md``, section
-"Features measured: confidence maps, phase symmetry"): see :func:`confidence_drop_z`
-for its use as shadow evidence and the outcome.
+Measured (issue 10, item 5, 2026-11-29; tables in ``Testing/benchmarks/README.md``,
+section "Features measured: confidence maps, phase symmetry"):
+
+* **Behaviour** (``Testing/test_segmentation_features.py``): down a uniform medium the
+  confidence falls monotonically; across a bright reflector with a shadow under it the
+  log confidence falls by ~9 (orders of magnitude), across a thin fascia line with
+  tissue beneath by ~1.3, through plain tissue over the same depths by ~0.8.
+* **Cost**: 7-10 ms per 480 x 640 frame for the map (a 120 x 64 grid at 0.15 mm/px),
+  9-12 ms with the drop (:func:`confidence_drop`); switched on, ``segment_sweep`` went
+  from 23 / 32 to 52 / 52 ms per frame (clavicle standard / tibia hard, CPU, one core:
+  the changed evidence also yields more candidates). The budget is 33 ms.
+* **As shadow evidence** (``ShadowPathParams.confidence_weight``, the shadow z-score
+  becomes ``(1 - k) shadow_z + k z(drop)``): mean frame recall over 30 simulated
+  sweeps 0.84 -> 0.79 (k = 0.25) / 0.72 (k = 0.5), wrong share 0.01 -> 0.03 / 0.07;
+  the real L14 recording 1.00 -> 0.57 and its cadaver augmentation 0.95 -> 0.00 (0.57
+  wrong). As the gate's larger term (``max(shadow_z, z(drop))``): 0.84 -> 0.60. As a
+  candidate-level factor on the strength (``1 + 0.25 z``, clipped to 0.5-1.5; not kept
+  in the code): 0.84 -> 0.83, ulna grey shadow seed 7 0.55 -> 0.17 (0.47 wrong).
+
+Why it does not help here: the map is a function of the same grey-level gradients the
+shadow z-score already measures, integrated along the way to the transducer. Under a
+grey shadow (0.65 of the tissue beside it) the walk crosses the faint near cortex
+easily and the confidence collapses only under the bright far cortex or a
+reverberation band, so it favours exactly the look-alikes the first-reflector rules
+of :mod:`.candidates` are there to refuse (radius / clavicle grey shadow: confidence
+drop 0.03-0.07 under the bone, 3.1-3.5 under the other candidates, medians in log);
+on the real L14 the bone's interior is barely darker than the tissue beside it, so
+its drop is no larger than a fascia's. Its cost alone exceeds the frame budget's
+headroom. Kept selectable (``confidence_weight`` > 0), off by default.
 """
 
 from __future__ import annotations

@@ -45,7 +45,11 @@ Columns outside the imaged field of view (black margins of scan-converted images
 columns without probe contact (dark from the near field down, as an uncoupled probe
 edge is) score 0.
 
-Features tried, kept and dropped, with the figures: see the package docstring.
+Optional terms, off by default (measured and not kept; the figures in their modules and
+in ``Testing/benchmarks/README.md``): Karamalis' confidence drop mixed into the shadow
+z-score (``confidence_weight``, :mod:`.confidence`) and phase symmetry along depth as a
+factor on the score (``phase_weight``, :mod:`.phase`). Features tried, kept and dropped:
+``Testing/benchmarks/README.md``.
 """
 
 from __future__ import annotations

@@ -145,7 +145,7 @@ class ShadowPathParams:
     work_mm: float = 0.25
     """Target pixel size of the down-sampled working image, mm (ours: the sub-pixel step restores full resolution; sets the speed)."""
     phase_symmetry: bool = False
-    """Echo evidence from 1-D log-Gabor phase symmetry along depth instead of the band/above log-ratio (see evidence.phase_symmetry_depth)."""
+    """Echo evidence from 1-D log-Gabor phase symmetry along depth instead of the band/above log-ratio (:func:`.phase.phase_symmetry_depth`; measured and dropped, see :mod:`.phase`)."""
     phase_wavelengths_mm: tuple[float, ...] = (0.6, 1.2, 2.4)
     """Log-Gabor wavelengths of the phase symmetry, mm."""
     phase_weight: float = 0.0
