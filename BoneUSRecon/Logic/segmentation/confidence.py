@@ -11,19 +11,22 @@ reflector's steep edges: the confidence collapses under bone, while a walk from 
 tissue under a thin fascia reaches the top around or through a line as short and as
 faint as a fascia is.
 
-The graph (as in the paper and its reference code): intensities ``c = I exp(-alpha l)``
-(``l`` the depth over the image depth: Beer-Lambert attenuation, so differences deep in
-the image weigh less), edge weight ``exp(-beta (|c_i - c_j| / s + g))`` with ``s`` a
-high percentile of ``|c_i - c_j|`` over the frame's edges (the reference code takes the
-maximum; a percentile is not set by one saturated spot; either is a level of the frame
-itself, so the map does not depend on gain or grey scale), ``g = 0`` for vertical
-edges, ``gamma`` for horizontal and ``sqrt(2) gamma`` for diagonal ones (the beam runs
-along depth: a walk sideways is penalised), plus ``1e-6`` so the graph stays connected.
-The Dirichlet problem ``L_UU x = -L_US x_S`` is solved with a banded Cholesky factor
-(LAPACK ``pbsv``; nodes numbered across the image first, so the band is the image width
-+ 1): on the coarse grid used here (0.5 mm axial x 1.5 mm lateral) this is 3-5x faster
-than SciPy's sparse LU (SuperLU, COLAMD or minimum degree), measured on the grids of
-480 x 640 frames. The grid is coarse because the solve costs ``n w^2``.
+The graph (the paper's form): intensities ``c = I exp(-alpha l)`` (``l`` the depth over
+the image depth: Beer-Lambert attenuation, so differences deep in the image weigh
+less), edge weight ``exp(-beta (|c_i - c_j| / s + g))`` with ``s`` the 99th percentile
+of ``|c_i - c_j|`` over the frame's edges (ratios above 1 clipped), ``g = 0`` for
+vertical edges, ``gamma`` for horizontal and ``sqrt(2) gamma`` for diagonal ones (the
+beam runs along depth: a walk sideways is penalised), plus ``1e-6`` so the graph stays
+connected. The authors' reference code differs in details: it weights the image by
+``1 - exp(-alpha l)``, normalises the differences by their range (min to max) and
+again after adding ``gamma`` (to diagonals too); a percentile is not set by one
+saturated spot, and either way the scale is a level of the frame itself, so the map
+does not depend on gain or grey scale. The Dirichlet problem ``L_UU x = -L_US x_S`` is
+solved with a banded Cholesky factor (LAPACK ``pbsv``; nodes numbered across the image
+first, so the band is the image width + 1): on the coarse grid used here (0.5 mm axial
+x 1.5 mm lateral) it is 3-8x faster than SciPy's sparse LU (SuperLU, COLAMD or minimum
+degree ordering), measured on the grids of 480 x 640 frames. The grid is coarse
+because the solve costs ``n w^2``.
 
 Measured (issue 10, item 5, 2026-11-29; tables in ``Testing/benchmarks/README.md``,
 section "Features measured: confidence maps, phase symmetry"):
