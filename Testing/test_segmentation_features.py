@@ -140,3 +140,20 @@ def test_confidence_term_keeps_bone_shadow_and_opens_no_fascia() -> None:
         j = np.clip(((tc[:, 1] + 0.5) / ev.fy - 0.5).round().astype(int), 0, ev.work.shape[0] - 1)
         bone_z.append(np.median(ev.shadow_z[j, i]))
     assert bone_z and np.median(bone_z) > 1.0  # the confidence collapses under the bone
+
+
+@pytest.mark.parametrize("switch", [{"confidence_weight": 0.5}, {"phase_weight": 0.25}])
+def test_switched_on_terms_still_segment_a_standard_sweep(switch: dict) -> None:
+    """Each optional term, switched on, keeps the standard tibia on the bone (figures in
+    Testing/benchmarks/README.md: 1.00 recall there with either)."""
+    from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
+    from BoneUSRecon.Logic.simulation import SimulationParams, simulate
+    from BoneUSRecon.Logic.simulation.scoring import score_simulation
+
+    sim = simulate(
+        SimulationParams(bone="tibia", n_frames=12, width=160, height=128, spacing_mm=0.3, seed=5)
+    )
+    res = segment_sweep(sim.sweep, SegmentationParams(shadowpath=ShadowPathParams(**switch)))
+    s = score_simulation(res, sim).summary()
+    assert s["recall"] >= 0.9 and s["wrong_share"] == 0.0
+    assert s["median_mm"] <= 0.1
