@@ -15,7 +15,8 @@ kept, frame recall (share of frames showing bone whose kept points lie on it, me
 < 1 mm), wrong-structure share (kept with a median > 3 mm, or kept where no bone is
 shown), point accuracy (median, p95, share > 2 mm), flank coverage (share of the true
 contour's width covered) and the median steepest slope reached on the bone (beside the
-true contour's). Cases: every bone at standard realism; every bone at ``realism="hard"``;
+true contour's). Cases: every bone at standard realism; every bone at ``realism="hard"``,
+at the bench's 160 x 128 pixels of 0.3 mm and at the cadaver sweep's 475 x 405 of 0.108 mm;
 each hard condition alone on the tibia; the two shared real recordings and their hard
 augmentations (``augment.HARD_AUGMENTATIONS``, and "cadaver": ``augment.harden`` with the
 reference contours, the cadaver's levels exactly), scored against the reference contours
@@ -101,6 +102,11 @@ def frame_table(n_frames: int = 40, real: bool = True) -> None:
         (f"{b} standard", SimulationParams(bone=b, **small)) for b in BONES
     ]
     cases += [(f"{b} hard", SimulationParams(bone=b, realism="hard", **small)) for b in BONES]
+    # The cadaver sweep's image geometry (issue 10: 475 x 405 pixels at 0.108 mm): at a
+    # finer pixel the speckle, the echo line and the shadow windows span other pixel
+    # counts than at 0.3 mm, and the bone's top echo stands out less from the speckle.
+    cadaver = dict(n_frames=n_frames, width=475, height=405, spacing_mm=0.108, seed=5)
+    cases += [(f"{b} hard 0.108mm", SimulationParams(bone=b, realism="hard", **cadaver)) for b in BONES]
     cases += [
         (
             f"tibia hard:{c}",

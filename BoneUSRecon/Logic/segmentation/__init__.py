@@ -24,8 +24,12 @@ arrive and the second on the frames so far:
   its posterior choice of points (:mod:`.snake`, :mod:`.posterior`); its contour is the
   frame's one candidate, scored on the same evidence and chosen by the same track.
 
-Measured figures (frame recall, wrong frames, distances on simulated and real sweeps)
-and the features tried and dropped are in ``Testing/benchmarks/README.md``.
+Features from the field measured and left off by default (selectable in
+:class:`ShadowPathParams`): ultrasound confidence maps (:mod:`.confidence`, Karamalis'
+random walk) and local phase symmetry (:mod:`.phase`, Hacihaliloglu); each module's
+docstring says what was measured and why it is off. Measured figures (frame recall,
+wrong frames, distances on simulated and real sweeps) and the features tried and
+dropped are in ``Testing/benchmarks/README.md``.
 """
 
 from __future__ import annotations

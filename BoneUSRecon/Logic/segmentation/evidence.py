@@ -45,7 +45,11 @@ Columns outside the imaged field of view (black margins of scan-converted images
 columns without probe contact (dark from the near field down, as an uncoupled probe
 edge is) score 0.
 
-Features tried, kept and dropped, with the figures: see the package docstring.
+Optional terms, off by default (measured and not kept; the figures in their modules and
+in ``Testing/benchmarks/README.md``): Karamalis' confidence drop mixed into the shadow
+z-score (``confidence_weight``, :mod:`.confidence`) and phase symmetry along depth as a
+factor on the score (``phase_weight``, :mod:`.phase`). Features tried, kept and dropped:
+``Testing/benchmarks/README.md``.
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 
+from BoneUSRecon.Logic.segmentation.confidence import confidence_drop
 from BoneUSRecon.Logic.segmentation.features import (
     median1d,
     mm_to_px,
@@ -64,6 +69,7 @@ from BoneUSRecon.Logic.segmentation.features import (
     sorted_row_percentiles,
 )
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+from BoneUSRecon.Logic.segmentation.phase import phase_factor, phase_symmetry_depth
 
 __all__ = ["EvidenceMaps", "working_image", "field_of_view", "tissue_level", "bone_evidence"]
 
@@ -181,35 +187,6 @@ def tissue_level(
     # a dark image must not turn a ratio into a division by ~0.
     med = np.maximum(np.median(t, axis=-1, keepdims=True), _EPS)
     return np.maximum(t, np.float32(0.05) * med.astype(np.float32))
-
-
-def phase_symmetry_depth(
-    work: np.ndarray, dy: float, wavelengths_mm: tuple[float, ...], sigma_onf: float = 0.55
-) -> np.ndarray:
-    """Bright-line phase symmetry along depth (Kovesi's measure, 1-D log-Gabor filters).
-
-    Per column, for each wavelength the analytic signal ``e + i o`` of a log-Gabor band
-    pass along depth; the symmetry ``sum max(e - |o|, 0) / sum sqrt(e^2 + o^2)`` is 1 on
-    the centre of a bright line and near 0 elsewhere, whatever the line's contrast
-    (Hacihaliloglu et al. 2009 use the 2-D form for bone; 1-D along the beam is ~20x
-    cheaper than ``phasepack.phasesym`` on the working image, and bone echoes face the
-    beam).
-    """
-    h = work.shape[0]
-    spec = np.fft.fft(work - work.mean(axis=0, keepdims=True), axis=0)
-    f = np.fft.fftfreq(h, d=dy)
-    pos = f > 0
-    num = np.zeros(work.shape, np.float32)
-    den = np.full(work.shape, 1e-6, np.float32)
-    lg = np.log(sigma_onf)
-    for wl in wavelengths_mm:
-        g = np.zeros(h)
-        g[pos] = 2.0 * np.exp(-(np.log(f[pos] * wl) ** 2) / (2 * lg * lg))
-        a = np.fft.ifft(spec * g[:, None], axis=0)
-        e, o = a.real.astype(np.float32), a.imag.astype(np.float32)
-        num += np.maximum(e - np.abs(o), 0)
-        den += np.sqrt(e * e + o * o)
-    return num / den
 
 
 @functools.lru_cache(maxsize=64)
@@ -371,6 +348,13 @@ def bone_evidence(
     valid = rows_ok[:, None] & usable[None, :]
     echo_z = _robust_z(log_e, valid)
     shadow_z = _robust_z(log_s, valid)
+    if p.confidence_weight > 0:
+        # Optional (off by default; measured in .confidence): Karamalis' confidence
+        # drop across the band, combined with the shadow z-score.
+        drop = confidence_drop(work, dx, dy, usable, (t0 - up, t0), (b0 + gap, b0 + near), p)
+        k = np.float32(p.confidence_weight)
+        shadow_z *= np.float32(1.0) - k
+        shadow_z += k * _robust_z(drop, valid)
     # Soft tissue above (see module docstring): the cover is judged against the tissue
     # at its own depth, over the part of its window inside the image; only where less
     # than ``cover_min_mm`` of it is (a line right under the image top) is there no
@@ -386,6 +370,11 @@ def bone_evidence(
     np.clip(gate, 0, 1, out=gate)
     score = np.maximum(echo_z, 0)
     score *= gate
+    if p.phase_weight > 0:
+        # Optional (off by default; measured in .phase): phase symmetry along depth as
+        # an additional echo term.
+        ps = phase_symmetry_depth(work, dy, p.phase_wavelengths_mm)
+        score *= phase_factor(ps, valid, p.phase_weight)
     score *= valid & covered
     np.minimum(score, np.float32(p.max_z), out=score)
     sub = work[nf::2][:, usable][:, ::2]

@@ -145,9 +145,21 @@ class ShadowPathParams:
     work_mm: float = 0.25
     """Target pixel size of the down-sampled working image, mm (ours: the sub-pixel step restores full resolution; sets the speed)."""
     phase_symmetry: bool = False
-    """Echo evidence from 1-D log-Gabor phase symmetry along depth instead of the band/above log-ratio (see evidence.phase_symmetry_depth)."""
+    """Echo evidence from 1-D log-Gabor phase symmetry along depth instead of the band/above log-ratio (:func:`.phase.phase_symmetry_depth`; measured and dropped, see :mod:`.phase`)."""
     phase_wavelengths_mm: tuple[float, ...] = (0.6, 1.2, 2.4)
     """Log-Gabor wavelengths of the phase symmetry, mm."""
+    phase_weight: float = 0.0
+    """Phase symmetry as an additional echo term: the score is multiplied by ``1 - k + k min(1, PS / PS_90)`` with ``k`` this weight and ``PS_90`` the frame's 90th percentile of the symmetry (0: off; measured and left off, see :mod:`.phase`)."""
+    confidence_weight: float = 0.0
+    """Weight of the confidence-map drop (Karamalis random walk, :mod:`.confidence`) in the shadow z-score, ``(1 - k) shadow_z + k confidence_z`` (0: off, the map is not computed; measured and left off, see :mod:`.confidence`)."""
+    confidence_grid_mm: tuple[float, float] = (1.5, 0.5)
+    """Lateral and axial pixel size of the grid the confidence map is solved on, mm (its cost grows as n w^2)."""
+    confidence_alpha: float = 2.0
+    """Attenuation coefficient of the confidence map over the normalised depth (Karamalis et al. 2012: 2)."""
+    confidence_beta: float = 90.0
+    """Weight of the normalised intensity difference in the confidence map's edge weights (Karamalis et al. 2012: 90)."""
+    confidence_gamma: float = 0.05
+    """Horizontal penalty of the confidence map, in units of the normalised difference (Karamalis et al. 2012: 0.05)."""
     mid_mm: float = 0.4
     """Height of the bright band, mm (ours: a thin real cortical echo; a thicker band dilutes a low-contrast echo of 1.3x the tissue above it)."""
     up_mm: float = 1.5
@@ -239,6 +251,8 @@ class ShadowPathParams:
             positive=(
                 "work_mm",
                 "phase_wavelengths_mm",
+                "confidence_grid_mm",
+                "confidence_beta",
                 "mid_mm",
                 "up_mm",
                 "shadow_mm",
@@ -274,11 +288,15 @@ class ShadowPathParams:
                 "refine_sigma_mm",
                 "cover_min_mm",
                 "fov_margin_mm",
+                "confidence_alpha",
+                "confidence_gamma",
             ),
             within={
                 "tissue_percentile": "(0, 100)",
                 "shadow_percentile": "(0, 100)",
                 "contact_dark_fraction": "[0, 1]",
+                "phase_weight": "[0, 1]",
+                "confidence_weight": "[0, 1]",
                 "fov_grey": "[0, 255]",
                 "fov_fraction": "[0, 1)",
             },
