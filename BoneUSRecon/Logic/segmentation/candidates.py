@@ -825,8 +825,8 @@ def frame_candidates_many(
 
     The frames advance pass by pass in step; the optimal paths asked at each step are
     solved by one column loop (:func:`_optimal_paths`), which costs about half as much
-    per frame for 16 frames. Memory: the frames' evidence maps are held at once (~1 MB
-    per 480x640 frame).
+    per frame for 16 frames or more. Memory: the frames' evidence maps are held at once
+    (~1 MB per 480x640 frame).
     """
     gens = [
         _frame_candidates_steps(img, sp, params) for img, sp in zip(images, spacings, strict=True)
