@@ -106,7 +106,9 @@ def frame_table(n_frames: int = 40, real: bool = True) -> None:
     # finer pixel the speckle, the echo line and the shadow windows span other pixel
     # counts than at 0.3 mm, and the bone's top echo stands out less from the speckle.
     cadaver = dict(n_frames=n_frames, width=475, height=405, spacing_mm=0.108, seed=5)
-    cases += [(f"{b} hard 0.108mm", SimulationParams(bone=b, realism="hard", **cadaver)) for b in BONES]
+    cases += [
+        (f"{b} hard 0.108mm", SimulationParams(bone=b, realism="hard", **cadaver)) for b in BONES
+    ]
     cases += [
         (
             f"tibia hard:{c}",
