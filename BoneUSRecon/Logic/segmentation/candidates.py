@@ -626,12 +626,12 @@ def _mark_series(
         if confirmed(c):
             c["series_top"] = True
             continue
-        # The series seen loosely along c's shape, else along its mirror image (the far
-        # cortex of a convex bone curves the other way from the near one and its
-        # copies). Its top: the shallowest member confirmed from its own profile (the
-        # loose chain may reach up into speckle peaks of the tissue above the bone).
+        # The series seen loosely along c's shape; a bowl (the far cortex of a convex
+        # bone, curving the other way from the near one and its copies) first along its
+        # mirror image. Its top: the shallowest member confirmed from its own profile
+        # (the loose chain may reach up into speckle peaks of the tissue over the bone).
         found_top = None
-        for shape in (c, None) if _curves_down(c["rows"]) else (c,):
+        for shape in (None, c) if _curves_down(c["rows"]) else (c,):
             if shape is None:
                 shape = _mirrored(c)
                 shape["prof"] = _underside_profile(lr, shape, reach)
@@ -715,8 +715,12 @@ def _mark_echo_beneath(
             if off <= 0:
                 continue  # b is not below c
             # What lies in a shadow comes back dimmer than what cast it, and within the
-            # columns of what cast it (a shadow is as wide as its reflector).
-            if b["grey"] < c["grey"] and common.size >= 0.8 * b["cols"].size:
+            # columns of what cast it (a shadow is as wide as its reflector); under a
+            # series' top, whose troughs are shadow, whatever its grey (the far cortex
+            # may come back brighter than a faint near cortex).
+            if (b["grey"] < c["grey"] or c.get("series_top")) and common.size >= 0.8 * b[
+                "cols"
+            ].size:
                 if c.get("series_top"):
                     shadowed = True
                 elif off >= 2 * gap + 1:
