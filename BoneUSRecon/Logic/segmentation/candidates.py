@@ -433,6 +433,8 @@ def _series(
         lid = float(np.median(cover))
         if float(np.mean(troughs)) >= lid + dark or max(troughs) >= lid:
             return False
+        if troughs[0] >= dark:
+            return False
         # Only shadow between copies: no line between two members brighter than the
         # upper one (a brighter layer between them is tissue, not a gap in a shadow).
         for a, b in zip(members[:-1], members[1:], strict=True):
@@ -623,7 +625,9 @@ def _mark_series(
             continue
         if "prof" not in c:
             c["prof"] = _underside_profile(lr, c, reach)
-        if confirmed(c):
+        bowl = _curves_down(c["rows"])
+        top_itself = confirmed(c)
+        if top_itself and not bowl:
             c["series_top"] = True
             continue
         # The series seen loosely along c's shape; a bowl (the far cortex of a convex
@@ -631,7 +635,7 @@ def _mark_series(
         # mirror image. Its top: the shallowest member confirmed from its own profile
         # (the loose chain may reach up into speckle peaks of the tissue over the bone).
         found_top = None
-        for shape in (None, c) if _curves_down(c["rows"]) else (c,):
+        for shape in (None, c) if bowl else (c,):
             if shape is None:
                 shape = _mirrored(c)
                 shape["prof"] = _underside_profile(lr, shape, reach)
@@ -650,6 +654,9 @@ def _mark_series(
             if found_top is not None:
                 break
         if found_top is None:
+            # A bowl with copies of its own and no series over it: a top after all.
+            if top_itself:
+                c["series_top"] = True
             continue
         best, new = found_top
         if new:
