@@ -384,8 +384,10 @@ def _series(
     deepest member is exempt, the far cortex may lie where it falls), and the top is
     the brightest. Without, the profile may follow another line's shape (a far cortex,
     whose shape the copies do not share, lying anywhere under them), so the series is
-    sought among the lines above offset 0, which may or may not be a member, and
-    brightness is not judged.
+    sought among the lines above offset 0, which may or may not be a member,
+    brightness is not judged, and the troughs need only be darker than half of
+    ``dark`` on average (a profile along another line's shape blurs them; a top found
+    so is confirmed strictly from its own profile).
 
     Returns the members' offsets, shallowest first, or ``[0]`` when there is no series.
     """
@@ -420,7 +422,7 @@ def _series(
             return False
         m = np.asarray(members) + reach
         troughs = [float(v[a + 1 : b].min()) for a, b in zip(m[:-1], m[1:], strict=True)]
-        if float(np.mean(troughs)) >= dark:
+        if float(np.mean(troughs)) >= (dark if strict else 0.5 * dark):
             return False
         if not strict:
             return True
@@ -556,7 +558,9 @@ def _mark_series(
     confirmed top (a speckle peak of the tissue over the bone, with tissue under it)
     the next one down is tried, never past a member with shadow under it. The top must be
     a first interface: below the near field (gel, skin, lens echoes), with tissue, not
-    shadow, above it. The copies are flagged ``reverb`` (never chosen) and the top
+    shadow, right above it (the 1.5-3 mm over it, where a far cortex has a copy or a
+    trough; higher, a layer of darker tissue under the skin over a shallow bone reads
+    as dark too), and shadow right under it (its first trough). The copies are flagged ``reverb`` (never chosen) and the top
     gets the strongest member's strength (the whole stack is its evidence). Returns
     the candidates with such tops added.
     """
@@ -578,7 +582,7 @@ def _mark_series(
             t["peaks"] = _profile_peaks(prof, reach)
         if len(_series(t["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
             return False
-        above = prof[reach // 2 : reach - gap]
+        above = prof[reach - 2 * gap : reach - gap]
         above = above[np.isfinite(above)]
         return float(np.median(t["rows"])) >= nf and not (
             above.size >= gap and median1d(above) < float(np.log(p.under_ratio))
