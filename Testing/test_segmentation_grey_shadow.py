@@ -165,19 +165,91 @@ def test_small_bone_series_top_and_no_step_onto_the_far_cortex(sim_factory):
     piece, not its shortest; and the track does not step 7 mm down onto the far cortex
     over a 4-frame skip link (18 mm), which the out-of-plane tolerance (1 + 0.4 x 18 mm)
     alone allowed (``max_step_mm`` + ``step_per_mm`` x 18 = 5.8 mm; without it: recall 0.47, 30 % of frames on the far cortex;
-    with it 0.62, none; before both 0.57, none)."""
-    from dataclasses import replace
-
-    from BoneUSRecon.Logic.segmentation import SegmentationParams
-
+    with it 0.62, none; before both 0.57, none). Since seg5's series tops (traced
+    along the echo, read along the far cortex's mirror image) the near cortex carries
+    the track here with or without the step rule (0.88, none): the ablation no longer
+    fails, so only the outcome is asserted, tighter."""
     sim = sim_factory(
         bone="clavicle", seed=5, n_frames=40, realism="hard", hard_conditions=("grey_shadow",)
     )
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["wrong_share"] <= 0.02
-    assert s["recall"] >= 0.6
+    assert s["recall"] >= 0.85
     assert s["median_mm"] <= 0.3
-    p = SegmentationParams()
-    loose = replace(p, rejection=replace(p.rejection, max_step_mm=1e6))  # the rule off
-    s = score_simulation(segment_sweep(sim.sweep, loose), sim).summary()
-    assert s["wrong_share"] >= 0.2  # the rule is what keeps it off the far cortex
+
+
+def _offered(sim) -> int:
+    """Frames with a usable candidate lying on the true contour (median < 1 mm), not
+    marked as no first interface: what the track can choose from."""
+    from BoneUSRecon.Logic.simulation.scoring import polyline_distance
+    from BoneUSRecon.Logic.sweep import pixel_spacing
+
+    sw = sim.sweep
+    sp = pixel_spacing(sw.image_to_reference)
+    n = 0
+    for k in range(sw.n_frames):
+        tc = sim.true_contours_px[k]
+        if not len(tc):
+            continue
+        for c in frame_candidates(np.asarray(sw.frames[k]), tuple(sp[k])).usable:
+            d = polyline_distance(c.points_px * sp[k], tc * sp[k])
+            if c.strength > 0 and not c.echo_beneath and np.median(d) < 1.0:
+                n += 1
+                break
+    return n
+
+
+def test_far_cortex_read_along_its_mirror_image_offers_the_near_cortex(sim_factory, monkeypatch):
+    """The ulna under the grey shadow (seed 5): in many frames the passes find only the
+    far cortex, a bowl, while the near cortex and its copies are domes. Read along the
+    far cortex's own shape the copies blur; along its mirror image they are parallel
+    lines and the series' top (the near cortex) is found: offered in 38 frames, 32
+    without the mirror."""
+    from BoneUSRecon.Logic.segmentation import candidates
+
+    sim = sim_factory(bone="ulna", seed=5, realism="hard", hard_conditions=("grey_shadow",))
+    assert _offered(sim) >= 36
+    monkeypatch.setattr(candidates, "_curves_down", lambda rows: False)  # the rule off
+    assert _offered(sim) <= 33
+
+
+def test_series_top_traced_along_its_echo(sim_factory, monkeypatch):
+    """The clavicle under the grey shadow (seed 5): the series' top built from another
+    line's shape moved up, with per-column maxima in the band, hops onto a layer over
+    the bone or the first copy at the flanks and is cut to a short piece off the bone;
+    traced as a path along the echo with shadow under it, it lies on the bone in 36
+    frames (32 with per-column maxima)."""
+    from BoneUSRecon.Logic.segmentation import candidates
+
+    sim = sim_factory(bone="clavicle", seed=5, realism="hard", hard_conditions=("grey_shadow",))
+    assert _offered(sim) >= 35
+
+    def per_column_max(ev, cols, base, rw, shift_cost, lr, half, dark):
+        win = np.clip(base[None, :] + np.arange(-rw, rw + 1)[:, None], 0, ev.echo_z.shape[0] - 1)
+        return win[ev.echo_z[win, cols[None, :]].argmax(axis=0), np.arange(cols.size)]
+
+    monkeypatch.setattr(candidates, "_trace_band", per_column_max)  # the rule off
+    assert _offered(sim) <= 33
+
+
+@pytest.mark.parametrize(
+    ("bone", "seed", "least"),
+    [
+        ("ulna", 5, 0.9),
+        ("radius", 7, 0.9),
+        ("clavicle", 5, 0.85),
+        ("ulna", 13, 0.9),
+        ("clavicle", 13, 0.85),
+    ],
+)
+def test_small_bones_under_the_grey_shadow_keep_the_near_cortex(sim_factory, bone, seed, least):
+    """Frame recall on the small bones under the grey shadow alone (issue 10, seg5):
+    ulna seed 5 0.60 -> 0.95, radius seed 7 0.75 -> 0.93, clavicle seed 5 0.62 -> 0.88,
+    ulna seed 13 0.65 -> 0.97, clavicle seed 13 0.60 / 5 % wrong -> 0.88 / none (a fascia
+    over the shallow bone, equally spaced with the bone and its copies, was taken as the
+    series' top until its first trough had to be shadow), kept points on the bone."""
+    sim = sim_factory(bone=bone, seed=seed, realism="hard", hard_conditions=("grey_shadow",))
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["recall"] >= least
+    assert s["wrong_share"] <= 0.02
+    assert s["median_mm"] <= 0.1

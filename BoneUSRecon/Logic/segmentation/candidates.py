@@ -472,8 +472,10 @@ def _series(
     deepest member is exempt, the far cortex may lie where it falls), and the top is
     the brightest. Without, the profile may follow another line's shape (a far cortex,
     whose shape the copies do not share, lying anywhere under them), so the series is
-    sought among the lines above offset 0, which may or may not be a member, and
-    brightness is not judged.
+    sought among the lines above offset 0, which may or may not be a member,
+    brightness is not judged, and the troughs need only be darker than half of
+    ``dark`` on average (a profile along another line's shape blurs them; a top found
+    so is confirmed strictly from its own profile).
 
     Returns the members' offsets, shallowest first, or ``[0]`` when there is no series.
     """
@@ -508,7 +510,7 @@ def _series(
             return False
         m = np.asarray(members) + reach
         troughs = [float(v[a + 1 : b].min()) for a, b in zip(m[:-1], m[1:], strict=True)]
-        if float(np.mean(troughs)) >= dark:
+        if float(np.mean(troughs)) >= (dark if strict else 0.5 * dark):
             return False
         if not strict:
             return True
@@ -520,6 +522,8 @@ def _series(
             return False
         lid = float(np.median(cover))
         if float(np.mean(troughs)) >= lid + dark or max(troughs) >= lid:
+            return False
+        if troughs[0] >= dark:
             return False
         # Only shadow between copies: no line between two members brighter than the
         # upper one (a brighter layer between them is tissue, not a gap in a shadow).
@@ -560,6 +564,76 @@ def _series(
     return best
 
 
+def _trace_band(
+    ev: EvidenceMaps,
+    cols: np.ndarray,
+    base: np.ndarray,
+    rw: int,
+    shift_cost: np.ndarray,
+    lr: np.ndarray,
+    half: int,
+    dark: float,
+) -> np.ndarray:
+    """Rows of a reverberation series' top within ``rw`` rows of ``base`` over ``cols``.
+
+    An optimal path (the passes' slope costs) through the echo z-score (positive part)
+    in that band, so the line is followed continuously: a per-column maximum hops
+    between the reflector, a layer over it and a copy under it wherever the band holds
+    more than one (the band comes from another line's shape, which fits the reflector
+    at its middle, not at its flanks). Rows whose trough half a spacing (``half`` rows)
+    under them is not darker than ``dark`` (log ratio ``lr`` to the tissue beside, over
+    three rows) count a fifth: the reflector of a series has its copies' shadow right
+    under it (the series' own definition, :func:`_series`), a layer over it has tissue
+    or the reflector there. Both levels are the series' own, measured in the frame.
+    """
+    h = ev.echo_z.shape[0]
+    r0, r1 = max(0, int(base.min()) - rw), min(h, int(base.max()) + rw + 1)
+    gain = np.maximum(ev.echo_z[r0:r1, cols], 0).astype(float) * ev.dx + 1e-3
+    rr = np.arange(r0, r1)[:, None]
+    t = np.clip(rr + half, 1, h - 2)
+    trough = (lr[t - 1, cols] + lr[t, cols] + lr[t + 1, cols]) / 3.0
+    gain *= np.where(trough < dark, 1.0, 0.2)
+    gain[np.abs(rr - base[None, :]) > rw] = -1e3  # outside the band
+    n = cols.size
+    if n >= 8:
+        # Every other column (the better row of each pair, slope costs doubled; rows
+        # in between interpolated): half the path's work (speed), and a reflector's
+        # shape barely changes over two columns.
+        m = n // 2
+        pair = np.maximum(gain[:, 0 : 2 * m : 2], gain[:, 1 : 2 * m : 2])
+        path = _optimal_path(pair, shift_cost * 2.0, 1e6)
+        x = np.arange(m) * 2 + 0.5
+        ok = path >= 0
+        if ok.sum() >= 2:
+            rows = np.rint(np.interp(np.arange(n), x[ok], path[ok] + r0)).astype(np.intp)
+            inb = np.abs(rows - base) <= rw
+            return np.where(inb, rows, np.clip(base, 0, h - 1))
+    # A switch cost no path pays: the top runs over all of the columns.
+    path = _optimal_path(gain, shift_cost, 1e6)
+    return np.where(path >= 0, path + r0, np.clip(base, 0, h - 1))
+
+
+def _curves_down(rows: np.ndarray) -> bool:
+    """Whether a contour (rows per column) is deeper in its middle third than at its
+    ends (a bowl seen from the probe: the back wall of a convex bone, not its front)."""
+    n = rows.size
+    e = max(1, n // 6)
+    return n >= 6 and median1d(rows[n // 3 : n - n // 3]) > median1d(np.r_[rows[:e], rows[-e:]])
+
+
+def _mirrored(c: dict) -> dict:
+    """``c``'s columns with its shape mirrored in depth (same top and bottom rows).
+
+    The shape hypothesis for the near cortex when ``c`` is the far one: a convex
+    cross-section's back wall curves the other way from its front. Only a hypothesis:
+    a top made along it must still be confirmed from its own profile.
+    """
+    rows = c["rows"].min() + c["rows"].max() - c["rows"]
+    dense = np.full(c["dense"].size, np.nan)
+    dense[c["cols"]] = rows
+    return {"cols": c["cols"], "rows": rows, "dense": dense}
+
+
 def _mark_series(
     cands: list[dict], ev: EvidenceMaps, lr: np.ndarray, p: ShadowPathParams
 ) -> list[dict]:
@@ -578,9 +652,17 @@ def _mark_series(
     own profile (parallel copies, fading, the top brightest). The top is an existing
     candidate at the series' offset, or one made by moving the candidate's shape up to
     the strongest echo within half a spacing per column (a pass may have taken only
-    the copies, whose shadow beneath is darker than the reflector's). The top must be
+    the copies, whose shadow beneath is darker than the reflector's). A candidate that
+    curves down (a bowl: the far cortex, the back wall of a convex bone) is also read
+    along its mirror image, the shape of the bone's front and so of the copies
+    (:func:`_mirrored`); the top is traced along the echo in its band
+    (:func:`_trace_band`), and when the shallowest member of a loose series is no
+    confirmed top (a speckle peak of the tissue over the bone, with tissue under it)
+    the next one down is tried, never past a member with shadow under it. The top must be
     a first interface: below the near field (gel, skin, lens echoes), with tissue, not
-    shadow, above it. The copies are flagged ``reverb`` (never chosen) and the top
+    shadow, right above it (the 1.5-3 mm over it, where a far cortex has a copy or a
+    trough; higher, a layer of darker tissue under the skin over a shallow bone reads
+    as dark too), and shadow right under it (its first trough). The copies are flagged ``reverb`` (never chosen) and the top
     gets the strongest member's strength (the whole stack is its evidence). Returns
     the candidates with such tops added.
     """
@@ -590,7 +672,8 @@ def _mark_series(
     h = ev.work.shape[0]
     nf = mm_to_px(p.near_field_mm, ev.dy, minimum=0)
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
-    size = max(1, int(round(1.0 / ev.dx)) | 1)
+    n_shift = max(1, int(np.ceil(p.max_slope * ev.dx / ev.dy)))
+    shift_cost = p.slope_penalty * (np.arange(-n_shift, n_shift + 1) * ev.dy / ev.dx) ** 2 * ev.dx
     added: list[dict] = []
 
     def confirmed(t: dict) -> bool:
@@ -601,27 +684,16 @@ def _mark_series(
             t["peaks"] = _profile_peaks(prof, reach)
         if len(_series(t["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
             return False
-        above = prof[reach // 2 : reach - gap]
+        above = prof[reach - 2 * gap : reach - gap]
         above = above[np.isfinite(above)]
         return float(np.median(t["rows"])) >= nf and not (
             above.size >= gap and median1d(above) < float(np.log(p.under_ratio))
         )
 
-    for c in list(cands):
-        if c.get("reverb"):
-            continue
-        if "prof" not in c:
-            c["prof"] = _underside_profile(lr, c, reach)
-        if confirmed(c):
-            c["series_top"] = True
-            continue
-        members = _series(c["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=False)
-        if len(members) < 3:
-            continue
-        top = members[0]
-        # The top: an existing candidate over the same columns at that offset, or one
-        # made from c's shape moved up to the strongest echo near it.
-        d = float(members[1] - members[0])
+    def top_at(c: dict, shape: dict, top: int, d: float) -> tuple[dict, bool] | None:
+        """The series' top ``top`` rows from ``shape`` over c's columns, if confirmed:
+        an existing candidate there, or one made from the shape moved up to the
+        strongest echo near it; and whether it is new."""
         rw = max(1, int(0.45 * d))
         best = None
         for t in cands + added:
@@ -629,17 +701,16 @@ def _mark_series(
                 continue
             cm = _common(t, c)
             if cm.size >= 0.5 * c["cols"].size:
-                if abs(median1d(t["dense"][cm] - c["dense"][cm]) - top) <= rw:
+                if abs(median1d(t["dense"][cm] - shape["dense"][cm]) - top) <= rw:
                     best = t
                     break
         new = best is None
         if new:
-            base = np.clip(c["rows"] + top, 0, h - 1)
-            win = np.clip(base[None, :] + np.arange(-rw, rw + 1)[:, None], 0, h - 1)
-            pick = ev.echo_z[win, c["cols"][None, :]].argmax(axis=0)
-            rows = win[pick, np.arange(c["cols"].size)]
-            if size > 1 and rows.size >= size:
-                rows = median_filter(rows, size=size, mode="nearest")
+            base = shape["rows"] + top
+            if median1d(base) < nf:
+                return None  # in the near field: no first interface (as confirmed() rules)
+            base = np.clip(base, 0, h - 1)
+            rows = _trace_band(ev, c["cols"], base, rw, shift_cost, lr, int(round(d / 2)), dark)
             sc = ev.score[rows, c["cols"]]
             dense = np.full(c["dense"].size, np.nan)
             dense[c["cols"]] = rows
@@ -655,7 +726,48 @@ def _mark_series(
         # A copy returns less than its reflector; over the shadow it may stand out
         # more, but a line with much more echo contrast than the top was not made by it.
         if c["echo"] > p.copy_echo_ratio * max(best["echo"], 0.0) or not confirmed(best):
+            return None
+        return best, new
+
+    for c in list(cands):
+        if c.get("reverb"):
             continue
+        if "prof" not in c:
+            c["prof"] = _underside_profile(lr, c, reach)
+        bowl = _curves_down(c["rows"])
+        top_itself = confirmed(c)
+        if top_itself and not bowl:
+            c["series_top"] = True
+            continue
+        # The series seen loosely along c's shape; a bowl (the far cortex of a convex
+        # bone, curving the other way from the near one and its copies) first along its
+        # mirror image. Its top: the shallowest member confirmed from its own profile
+        # (the loose chain may reach up into speckle peaks of the tissue over the bone).
+        found_top = None
+        for shape in (None, c) if bowl else (c,):
+            if shape is None:
+                shape = _mirrored(c)
+                shape["prof"] = _underside_profile(lr, shape, reach)
+                shape["peaks"] = _profile_peaks(shape["prof"], reach)
+            members = _series(shape["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=False)
+            v = shape["peaks"][0]
+            for i in range(len(members) - 2):
+                found_top = top_at(c, shape, members[i], members[i + 1] - members[i])
+                if found_top is not None:
+                    members = members[i:]
+                    break
+                # A member with shadow under it is in the series: no deeper top.
+                a, b = members[i] + reach, members[i + 1] + reach
+                if float(v[a + 1 : b].min()) < dark:
+                    break
+            if found_top is not None:
+                break
+        if found_top is None:
+            # A bowl with copies of its own and no series over it: a top after all.
+            if top_itself:
+                c["series_top"] = True
+            continue
+        best, new = found_top
         if new:
             added.append(best)
         # On the series: a copy; under it: in the reflector's shadow (a far cortex).
@@ -719,8 +831,12 @@ def _mark_echo_beneath(
             if off <= 0:
                 continue  # b is not below c
             # What lies in a shadow comes back dimmer than what cast it, and within the
-            # columns of what cast it (a shadow is as wide as its reflector).
-            if b["grey"] < c["grey"] and common.size >= 0.8 * b["cols"].size:
+            # columns of what cast it (a shadow is as wide as its reflector); under a
+            # series' top, whose troughs are shadow, whatever its grey (the far cortex
+            # may come back brighter than a faint near cortex).
+            if (b["grey"] < c["grey"] or c.get("series_top")) and common.size >= 0.8 * b[
+                "cols"
+            ].size:
                 if c.get("series_top"):
                     shadowed = True
                 elif off >= 2 * gap + 1:
