@@ -60,6 +60,7 @@ from scipy.ndimage import gaussian_filter1d, median_filter
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
+from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = ["BoneCandidate", "FrameCandidates", "frame_candidates", "candidates_from_points"]
@@ -805,6 +806,8 @@ def frame_candidates(
                 bool(c.get("beneath", False)),
             )
         )
+    # Past the path's reach: each candidate followed down the bone's flanks (:mod:`.flanks`).
+    out = extend_candidates(img, ev, out, sp, p.flanks)
     out.sort(key=lambda b: -b.strength)
     return FrameCandidates(tuple(out[: p.max_candidates]), sp, "", {"work_px": (ev.fx, ev.fy)})
 
