@@ -54,18 +54,17 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.ndimage import uniform_filter1d
 
-from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
-from BoneUSRecon.Logic.segmentation.features import mm_to_px
+from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import FlankParams
 
 __all__ = ["extend_flanks", "extend_candidates"]
 
 _EPS = 1e-3  # grey/255: guards log(0) in black regions (no decision rests on it)
 _DEBUG = None
-_BAD = -10.0  # ridge evidence of a step outside the usable image: always under the stop level
+_BAD = -1e3  # evidence of a sample outside the usable image: any window holding one is
+# under every level (the evidence itself is a log ratio of a few units at most)
 
 
 def _median3(a: np.ndarray) -> np.ndarray:
@@ -77,42 +76,57 @@ def _median3(a: np.ndarray) -> np.ndarray:
     return np.concatenate([a[..., :1], mid, a[..., -1:]], axis=-1)
 
 
-def _ends(
-    contours_mm: Sequence[np.ndarray], p: FlankParams
-) -> tuple[list[tuple[int, int, float]], np.ndarray]:
-    """The extendable ends: ``[(contour, side, start arc length)]`` and ``(T, 5)`` geometry.
+def _ends(contours_mm: Sequence[np.ndarray], p: FlankParams) -> tuple[np.ndarray, np.ndarray]:
+    """The extendable ends: ``(T, 3)`` contour, side, start arc length and ``(T, 5)`` geometry.
 
     Geometry per end: start point ``x, z`` (mm), outward direction ``phi`` (radians below
     the lateral axis, outward), curvature ``kappa`` (1/mm, >= 0), ``side`` (-1: the
-    first point's end, towards smaller columns; +1: the last point's end).
+    first point's end, towards smaller columns; +1: the last point's end). All contours
+    at once: their arc lengths are laid end to end (1 mm apart) and interpolated together.
     """
-    h = 0.5 * p.fit_mm
-    lo, hi = np.radians(p.min_start_deg), np.radians(p.max_deg)
-    ends, geo = [], []
-    for ci, x in enumerate(contours_mm):
-        if x.shape[0] < 4:
-            continue
-        s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(x, axis=0).T))))
-        length = float(s[-1])
-        if length < 2.0 * (p.retreat_mm + p.fit_mm):
-            continue  # too short to give a direction at both ends
-        sa = p.retreat_mm
-        q = np.array([sa, sa + h, sa + 2 * h, length - sa, length - sa - h, length - sa - 2 * h])
-        qx, qz = np.interp(q, s, x[:, 0]), np.interp(q, s, x[:, 1])
-        for side, k in ((-1, 0), (1, 3)):
-            a = np.array([qx[k], qz[k]])
-            b = np.array([qx[k + 1], qz[k + 1]])
-            c = np.array([qx[k + 2], qz[k + 2]])
-            t = 3 * a - 4 * b + c  # outward tangent at a (second order), unnormalised
-            phi = np.arctan2(t[1], side * t[0])
-            u1, u2 = b - c, a - b
-            bend = np.arctan2(u2[1], side * u2[0]) - np.arctan2(u1[1], side * u1[0])
-            if not (lo <= phi < hi):
-                continue
-            kappa = float(np.clip(bend / h, 0.0, p.max_curvature))
-            ends.append((ci, side, float(sa if side < 0 else length - sa)))
-            geo.append((a[0], a[1], phi, kappa, side))
-    return ends, np.array(geo, float).reshape(-1, 5)
+    use = [n for n, x in enumerate(contours_mm) if x.shape[0] >= 4]
+    if not use:
+        return np.empty((0, 3)), np.empty((0, 5)), {}
+    xs = [contours_mm[n] for n in use]
+    sizes = np.array([x.shape[0] for x in xs])
+    pts = np.concatenate(xs)
+    seg = np.hypot(*np.diff(pts, axis=0).T)
+    first = np.cumsum(sizes)[:-1]  # index of each later contour's first point
+    seg[first - 1] = 1.0  # the jump between contours: 1 mm of arc, never queried
+    s = np.concatenate(([0.0], np.cumsum(seg)))
+    s0 = s[np.r_[0, first]]
+    length = s[np.cumsum(sizes) - 1] - s0
+    h, r = 0.5 * p.fit_mm, p.retreat_mm
+    # Per contour: the start of each end and two points inward of it, h apart.
+    rel = np.stack(
+        [
+            r + np.zeros_like(length),
+            r + h + 0 * length,
+            r + 2 * h + 0 * length,
+            length - r,
+            length - r - h,
+            length - r - 2 * h,
+        ],
+        axis=1,
+    )
+    q = (s0[:, None] + rel).ravel()
+    qx = np.interp(q, s, pts[:, 0]).reshape(-1, 2, 3)  # (contour, end, point)
+    qz = np.interp(q, s, pts[:, 1]).reshape(-1, 2, 3)
+    side = np.array([-1.0, 1.0])
+    tx = side * (3 * qx[..., 0] - 4 * qx[..., 1] + qx[..., 2])  # outward tangent, 2nd order
+    tz = 3 * qz[..., 0] - 4 * qz[..., 1] + qz[..., 2]
+    phi = np.arctan2(tz, tx)
+    inner = np.arctan2(qz[..., 1] - qz[..., 2], side * (qx[..., 1] - qx[..., 2]))
+    outer = np.arctan2(qz[..., 0] - qz[..., 1], side * (qx[..., 0] - qx[..., 1]))
+    kappa = np.clip((outer - inner) / h, 0.0, p.max_curvature)
+    ok = (phi >= np.radians(p.min_start_deg)) & (phi < np.radians(p.max_deg))
+    ok &= (length >= 2.0 * (r + p.fit_mm))[:, None]  # a direction at both ends
+    c, e = np.nonzero(ok)
+    ends = np.column_stack([np.asarray(use)[c], side[e], rel[c, 3 * e]])
+    geo = np.column_stack([qx[c, e, 0], qz[c, e, 0], phi[c, e], kappa[c, e], side[e]])
+    bounds = np.r_[0, np.cumsum(sizes)]
+    arc = {use[n]: s[bounds[n] : bounds[n + 1]] - s0[n] for n in set(c.tolist())}
+    return ends, geo, arc
 
 
 def extend_flanks(
@@ -149,39 +163,44 @@ def extend_flanks(
     sx, sy = float(spacing[0]), float(spacing[1])
     scale = np.array([sx, sy])
     mm = [np.asarray(c, float) * scale for c in out]
-    ends, geo = _ends(mm, p)
-    if not ends:
+    ends, geo, arc = _ends(mm, p)
+    if not ends.shape[0]:
         return out
-    x0, z0, phi0, kappa, side = geo.T
+    x0, z0, phi0, kappa, side = (c[:, None] for c in geo.T)
     ds = p.step_mm
     n_step = max(2, int(np.ceil(p.max_mm / ds)))
     phi_max = np.radians(p.max_deg)
-    k = np.arange(1, n_step + 1)
     # Centre line of the extrapolated arc (mid-point rule) and its outward normal.
-    phi_mid = np.minimum(phi0[:, None] + kappa[:, None] * (k - 0.5) * ds, phi_max)
-    cx = x0[:, None] + ds * np.cumsum(side[:, None] * np.cos(phi_mid), axis=1)
-    cz = z0[:, None] + ds * np.cumsum(np.sin(phi_mid), axis=1)
-    phi = np.minimum(phi0[:, None] + kappa[:, None] * k * ds, phi_max)
-    nx, nz = side[:, None] * np.sin(phi), -np.cos(phi)  # outward: away from the bone
+    k = ds * np.arange(0.5, n_step + 1)  # arc length at the mid-steps, then one more
+    phi = np.minimum(phi0 + kappa * k, phi_max)
+    cos, sin = np.cos(phi), np.sin(phi)
+    cx = np.cumsum(cos[:, :-1], axis=1)
+    cx *= side * ds
+    cx += x0
+    cz = np.cumsum(sin[:, :-1], axis=1)
+    cz *= ds
+    cz += z0
+    # Normals at the steps (between the mid-steps' directions: their mean, renormalised
+    # implicitly by the small turn per step).
+    nx = side * 0.5 * (sin[:, :-1] + sin[:, 1:])  # outward: away from the bone
+    nz = -0.5 * (cos[:, :-1] + cos[:, 1:])
     # Offsets across the arc: the band, then outward far enough for the null band and
-    # the outside windows of every sample of both.
+    # the outside windows of every sample of both; inward for the shadow window.
     do = p.offset_mm
     m = mm_to_px(p.band_mm, do)
     oa, ob = mm_to_px(p.outside_mm[0], do), mm_to_px(p.outside_mm[1], do)
     nc = mm_to_px(p.null_mm, do)
     ia, ib = mm_to_px(p.inside_mm[0], do), mm_to_px(p.inside_mm[1], do)
     off = do * np.arange(-m - ib, nc + m + ob + 1)
-    px = (cx[..., None] + off * nx[..., None]) / sx
-    pz = (cz[..., None] + off * nz[..., None]) / sy
-    # Working-image coordinates; samples outside it or in columns without contact are
-    # invalid.
-    wi = (px + 0.5) / ev.fx - 0.5
-    wj = (pz + 0.5) / ev.fy - 0.5
+    # Working-image coordinates ((mm / spacing + 0.5) / block - 0.5); samples outside
+    # the image or in columns without contact are invalid.
+    fx, fy = sx * ev.fx, sy * ev.fy
+    wi = (cx[..., None] + off * nx[..., None]) / fx + (0.5 / ev.fx - 0.5)
+    wj = (cz[..., None] + off * nz[..., None]) / fy + (0.5 / ev.fy - 0.5)
     hw, ww = ev.work.shape
     valid = (wi >= 0) & (wi <= ww - 1) & (wj >= 0) & (wj <= hw - 1)
-    valid &= ev.usable[np.clip(np.rint(wi), 0, ww - 1).astype(np.intp)]
-    v = sample_bilinear(ev.work, np.column_stack([wi.ravel(), wj.ravel()])).reshape(wi.shape)
-    v[~valid] = np.nan
+    v = _bilinear(ev.work, wi, wj)
+    valid &= ev.usable[np.rint(np.clip(wi, 0, ww - 1)).astype(np.intp)]
     # Across the flank, for each sample q (offset index ib + j, j = 0 ..): the echo, its
     # log ratio to the mean of the samples oa..ob outward (tissue), and the shadow, the
     # log ratio of that tissue to the mean of the samples ia..ib inward. The shadow
@@ -189,105 +208,169 @@ def extend_flanks(
     # the bone stops the sound, shadow inward; a shadow's edge with no echo (under the
     # bone's widest point) counts nothing, and with no shadow (the L14 forearm) the
     # echo alone carries the trace.
-    cs = np.concatenate([np.zeros(v.shape[:-1] + (1,)), np.cumsum(v, axis=-1)], axis=-1)
-    n_e = v.shape[-1] - ob - ib
-    q = ib + np.arange(n_e)
-    outside = (cs[..., q + ob + 1] - cs[..., q + oa]) / (ob - oa + 1)
-    inside = (cs[..., q - ia + 1] - cs[..., q - ib]) / (ib - ia + 1)
-    log_out = np.log(outside + _EPS)
-    echo = np.log(v[..., q] + _EPS) - log_out
-    e = echo + np.clip(log_out - np.log(inside + _EPS), 0.0, np.maximum(echo, 0.0))
-    # Averaged along the trace first (a ridge parallel to the arc adds up, speckle does
-    # not), then the best offset of each band: the ridge, and the null in the tissue.
-    size = max(1, int(round(p.run_mm / ds)))
-    ok = ~np.isnan(e)
-    e = uniform_filter1d(np.where(ok, e, _BAD), size, axis=1, mode="nearest")
-    ok = uniform_filter1d(ok.astype(float), size, axis=1, mode="nearest") > 1 - 1e-9
-    e = np.where(ok, e, _BAD)
+    n_t, n_o = v.shape[0], v.shape[-1]
+    cs = np.zeros((n_t, n_step, n_o + 1))
+    np.cumsum(v, axis=-1, out=cs[..., 1:])
+    n_e = n_o - ob - ib
+    lv = np.log(v + _EPS)
+    log_out = np.log(
+        (cs[..., ib + ob + 1 : ib + ob + 1 + n_e] - cs[..., ib + oa : ib + oa + n_e])
+        * (1.0 / (ob - oa + 1))
+        + _EPS
+    )
+    log_in = np.log(
+        (cs[..., ib - ia + 1 : ib - ia + 1 + n_e] - cs[..., :n_e]) * (1.0 / (ib - ia + 1)) + _EPS
+    )
+    echo = lv[..., ib : ib + n_e] - log_out
+    e = np.minimum(log_out - log_in, np.maximum(echo, 0.0))
+    np.maximum(e, 0.0, out=e)
+    e += echo
+    # A sample whose windows reach an invalid one is invalid; averaged along the trace
+    # over ``run`` steps (a ridge parallel to the arc adds up, speckle does not), a
+    # window holding an invalid sample stays far under every level.
+    nbad = np.zeros((n_t, n_step, n_o + 1), np.int32)
+    np.cumsum(~valid, axis=-1, out=nbad[..., 1:])
+    e[nbad[..., ib + ob + 1 :] != nbad[..., :n_e]] = _BAD
+    e = _moving_mean(e, max(1, int(round(p.run_mm / ds))))
     # The ridge: the best continuous path through the band (one offset step per step at
     # most); the null: the same path search through the null band.
-    bands = np.stack([e[..., : 2 * m + 1], e[..., nc : nc + 2 * m + 1]], axis=1)
-    paths, vals = _continuous_paths(bands, m)
-    pick = paths[:, 0]
-    ridge_s, null_s = vals[:, 0], vals[:, 1]
-    null_full = null_s > _BAD
-    pool = null_s[null_full]
+    paths, vals = _continuous_paths(
+        np.concatenate([e[..., : 2 * m + 1], e[..., nc : nc + 2 * m + 1]]), m
+    )
+    pick, ridge, null = paths[:n_t], vals[:n_t], vals[n_t:]
+    pool = null[null > 0.5 * _BAD]
     if pool.size < 10:
         return out  # no tissue beside the flanks to measure speckle on: no extension
-    med = float(np.median(pool))
-    spread = 1.4826 * float(np.median(np.abs(pool - med)))
-    good = ridge_s >= med + p.stop_z * max(spread, 1e-6)
+    med = median1d(pool)
+    spread = 1.4826 * median1d(np.abs(pool - med))
+    good = ridge >= med + p.stop_z * max(spread, 1e-6)
     # The trace ends at its last good step before ``gap`` bad steps in a row.
     gap = max(1, int(round(p.gap_mm / ds)))
-    bad = np.concatenate([~good, np.ones((good.shape[0], gap), bool)], axis=1)
-    run = np.lib.stride_tricks.sliding_window_view(bad, gap, axis=1)[:, : n_step + 1].all(axis=-1)
-    first = run.argmax(axis=1)  # first step opening a bad stretch (n_step if none)
+    cb = np.zeros((n_t, n_step + gap + 1), np.intp)
+    np.cumsum(~good, axis=1, out=cb[:, 1 : n_step + 1])
+    cb[:, n_step + 1 :] = cb[:, n_step : n_step + 1] + np.arange(1, gap + 1)
+    first = (cb[:, gap:] - cb[:, :-gap] == gap).argmax(axis=1)  # a bad stretch opens
     idx = np.arange(n_step)
-    last = np.where(good & (idx[None, :] < first[:, None]), idx[None, :], -1).max(axis=1)
-    reach = (last + 1) * ds
-    use = np.ones(len(ends), bool)
+    last = np.where(good & (idx < first[:, None]), idx, -1).max(axis=1)
     if _DEBUG is not None:
         _DEBUG.update(locals())
-    if not use.any():
-        return out
     # Ridge points (offset smoothed along the trace), refined on the full image.
-    o = off[ib + _median3(pick)]
-    rx = cx + o * nx
-    rz = cz + o * nz
-    rx, rz = _refine_across(image, rx, rz, nx, nz, scale, p.refine_mm)
+    t_i, k_i = np.nonzero(idx <= last[:, None])
+    o = off[ib + _median3(pick)][t_i, k_i]
+    nxk, nzk = nx[t_i, k_i], nz[t_i, k_i]
+    rx, rz = _refine_across(
+        image, cx[t_i, k_i] + o * nxk, cz[t_i, k_i] + o * nzk, nxk, nzk, sx, sy, p.refine_mm
+    )
     if _DEBUG is not None:
-        _DEBUG.update(rx=rx, rz=rz)
-    # Assemble: the trace (outermost first on the left) replaces the contour beyond its start.
-    traced: dict[tuple[int, int], np.ndarray] = {}
-    for t, (ci, sd, _) in enumerate(ends):
-        if use[t]:
-            pts = np.column_stack([rx[t, : last[t] + 1], rz[t, : last[t] + 1]]) / scale
-            traced[(ci, sd)] = pts
-    starts = {(ci, sd): s0 for ci, sd, s0 in ends}
-    for ci in {c for c, _ in traced}:
-        x = mm[ci]
-        s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(x, axis=0).T))))
-        keep = np.ones(s.size, bool)
-        parts = []
-        if (ci, -1) in traced:
-            keep &= s > starts[(ci, -1)]
-            parts.append(traced[(ci, -1)][::-1])
-        if (ci, 1) in traced:
-            keep &= s < starts[(ci, 1)]
-        parts.append(np.asarray(out[ci], float)[keep])
-        if (ci, 1) in traced:
-            parts.append(traced[(ci, 1)])
-        out[ci] = np.concatenate(parts, axis=0)
+        _DEBUG.update(rx=rx, rz=rz, t_i=t_i)
+    # Assemble: the trace (outermost first on the left) replaces the contour beyond its
+    # start, whether it reached farther or not (what it did not confirm is dropped).
+    pts = np.stack([rx / sx, rz / sy], axis=1)
+    cut = np.searchsorted(t_i, np.arange(n_t + 1))
+    by: dict[int, list] = {}
+    for t, (ci, sd, s0) in enumerate(ends.tolist()):
+        by.setdefault(int(ci), [None, None, 0.0, np.inf])
+        slot = by[int(ci)]
+        piece = pts[cut[t] : cut[t + 1]]
+        if sd < 0:
+            slot[0], slot[2] = piece[::-1], s0
+        else:
+            slot[1], slot[3] = piece, s0
+    for ci, (left, right, s_lo, s_hi) in by.items():
+        s = arc[ci]
+        parts = [np.asarray(out[ci], float)[(s > s_lo) & (s < s_hi)]]
+        if left is not None:
+            parts.insert(0, left)
+        if right is not None:
+            parts.append(right)
+        out[ci] = np.concatenate(parts)
+    return out
+
+
+def _bilinear(a: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear sample of ``a`` (h, w) at column ``x``, row ``y`` (any shape), clamped.
+
+    The flat-index form of :func:`.detection.sample_bilinear` for arrays of points (a
+    third of its numpy calls; the same values inside the image).
+    """
+    h, w = a.shape
+    x = np.clip(x, 0, w - 1.000001)
+    y = np.clip(y, 0, h - 1.000001)
+    x0 = x.astype(np.intp)
+    y0 = y.astype(np.intp)
+    x -= x0
+    y -= y0
+    i = y0 * w
+    i += x0
+    flat = a.ravel()
+    v00, v01, v10, v11 = flat[i], flat[i + 1], flat[i + w], flat[i + w + 1]
+    if flat.dtype.kind != "f":  # grey values: differences must not wrap
+        v00, v01, v10, v11 = (c.astype(np.float32) for c in (v00, v01, v10, v11))
+    top = v01 - v00
+    top *= x
+    top += v00
+    bot = v11 - v10
+    bot *= x
+    bot += v10
+    bot -= top
+    bot *= y
+    bot += top
+    return bot
+
+
+def _moving_mean(a: np.ndarray, n: int) -> np.ndarray:
+    """Mean over ``n`` consecutive steps (axis 1) around each, the ends repeated beyond."""
+    if n <= 1:
+        return a
+    lo = (n - 1) // 2
+    k = a.shape[1]
+    pad = np.empty((a.shape[0], k + n) + a.shape[2:])
+    pad[:, 0] = 0.0
+    pad[:, 1 : lo + 1] = a[:, :1]
+    pad[:, lo + 1 : lo + 1 + k] = a
+    pad[:, lo + 1 + k :] = a[:, -1:]
+    np.cumsum(pad, axis=1, out=pad)
+    out = pad[:, n:] - pad[:, :-n]
+    out *= 1.0 / n
     return out
 
 
 def _continuous_paths(bands: np.ndarray, centre: int) -> tuple[np.ndarray, np.ndarray]:
-    """Best paths through ``bands`` (..., K, B) moving at most one offset per step.
+    """Best paths through ``bands`` (N, K, B) moving at most one offset per step.
 
-    Viterbi over the K steps, vectorised over the leading axes; each path starts within
-    one offset of ``centre``. Returns the offsets ``(..., K)`` and the values along them.
-    A ridge is a line: following it needs no jump across the band, and a path confined
-    so finds far fewer chance alignments of speckle than a free maximum per step.
+    Viterbi over the K steps, vectorised over the N bands; each path starts within one
+    offset of ``centre``. Returns the offsets ``(N, K)`` and the values along them. A
+    ridge is a line: following it needs no jump across the band, and a path confined so
+    finds far fewer chance alignments of speckle than a free maximum per step. The
+    forward pass keeps only the scores (three ufunc calls per step); the backtrack
+    recomputes each step's choice from them, as in :func:`.candidates._optimal_path`.
     """
-    lead, (n_k, n_b) = bands.shape[:-2], bands.shape[-2:]
-    acc = np.full(lead + (n_b,), -np.inf)
+    n, n_k, n_b = bands.shape
+    acc = np.full((n_k, n, n_b + 2), -np.inf)  # padded by -inf on both sides
     lo, hi = max(0, centre - 1), min(n_b, centre + 2)
-    acc[..., lo:hi] = bands[..., 0, lo:hi]
-    pad = np.full(lead + (n_b + 2,), -np.inf)
-    choice = np.empty((n_k,) + lead + (n_b,), np.intp)
+    acc[0, :, lo + 1 : hi + 1] = bands[:, 0, lo:hi]
     for k in range(1, n_k):
-        pad[..., 1:-1] = acc
-        three = np.stack([pad[..., :-2], pad[..., 1:-1], pad[..., 2:]])
-        ch = three.argmax(axis=0)
-        choice[k] = ch
-        acc = np.take_along_axis(three, ch[None], axis=0)[0] + bands[..., k, :]
-    path = np.empty(lead + (n_k,), np.intp)
-    b = acc.argmax(axis=-1)
-    path[..., -1] = b
-    for k in range(n_k - 1, 0, -1):
-        b = b + np.take_along_axis(choice[k], b[..., None], axis=-1)[..., 0] - 1
-        path[..., k - 1] = b
-    vals = np.take_along_axis(bands, path[..., None], axis=-1)[..., 0]
+        prev, cur = acc[k - 1], acc[k, :, 1:-1]
+        np.maximum(prev[:, :-2], prev[:, 2:], out=cur)
+        np.maximum(cur, prev[:, 1:-1], out=cur)
+        cur += bands[:, k]
+    # Backtrack on Python floats: a few paths of a few tens of steps, where a numpy
+    # call per step costs more than the arithmetic.
+    path = np.empty((n, n_k), np.intp)
+    path[:, -1] = acc[-1, :, 1:-1].argmax(axis=1)
+    scores = acc.tolist()
+    for r, b in enumerate(path[:, -1].tolist()):
+        for k in range(n_k - 1, 0, -1):
+            a, c, d = scores[k - 1][r][b : b + 3]  # predecessors b - 1, b, b + 1 (padded)
+            if c > a and c >= d:
+                pass
+            elif d > a and d > c:
+                b += 1
+            else:
+                b -= 1
+            path[r, k - 1] = b
+    rows = np.arange(n)
+    vals = bands[rows[:, None], np.arange(n_k), path]
     return path, vals
 
 
@@ -297,33 +380,34 @@ def _refine_across(
     rz: np.ndarray,
     nx: np.ndarray,
     nz: np.ndarray,
-    scale: np.ndarray,
+    sx: float,
+    sy: float,
     half_mm: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Ridge points ``(T, K)`` mm moved to the echo's peak along the normal at full resolution.
+    """Ridge points ``(N,)`` mm moved to the echo's peak along their normals, full resolution.
 
     The profile across the flank (+-``half_mm``, half-pixel steps) is the mean of three
     parallel lines half a pixel apart along the flank (speckle averages, the echo does
-    not), smoothed over three samples; the peak is fitted by a parabola.
+    not), smoothed over three samples; the peak is fitted by a parabola. Offsets along a
+    trace are smoothed by a median of three (one speckle grain does not bend it).
     """
-    step = 0.5 * float(scale.min())
+    if rx.size == 0:
+        return rx, rz
+    step = 0.5 * min(sx, sy)
     n = max(1, int(round(half_mm / step)))
     u = step * np.arange(-n - 1, n + 2)  # one extra each side for the parabola
-    tx, tz = -nz, nx  # along the flank (sign irrelevant: symmetric lines)
-    lines = np.array([-step, 0.0, step])
-    qx = rx[..., None, None] + u[:, None] * nx[..., None, None] + lines * tx[..., None, None]
-    qz = rz[..., None, None] + u[:, None] * nz[..., None, None] + lines * tz[..., None, None]
-    ij = np.column_stack([(qx / scale[0]).ravel(), (qz / scale[1]).ravel()])
-    prof = sample_bilinear(np.asarray(image), ij).reshape(qx.shape).mean(axis=-1)
-    prof[..., 1:-1] = (prof[..., :-2] + prof[..., 1:-1] + prof[..., 2:]) / 3.0
-    core = prof[..., 1:-1]
-    kk = core.argmax(axis=-1) + 1
-    y0 = np.take_along_axis(prof, (kk - 1)[..., None], axis=-1)[..., 0]
-    y1 = np.take_along_axis(prof, kk[..., None], axis=-1)[..., 0]
-    y2 = np.take_along_axis(prof, (kk + 1)[..., None], axis=-1)[..., 0]
+    along = step * np.array([-1.0, 0.0, 1.0])
+    # (N, len(u), 3): across by u, along the flank (-nz, nx) by ``along``.
+    qx = (rx[:, None, None] + u[:, None] * nx[:, None, None] - along * nz[:, None, None]) / sx
+    qz = (rz[:, None, None] + u[:, None] * nz[:, None, None] + along * nx[:, None, None]) / sy
+    prof = _bilinear(np.asarray(image), qx, qz).sum(axis=-1)
+    sm = prof[:, :-2] + prof[:, 1:-1] + prof[:, 2:]  # index i: centred on u[i + 1]
+    kk = sm[:, 1:-1].argmax(axis=1) + 1  # the peak, with a neighbour on each side
+    r = np.arange(kk.size)
+    y0, y1, y2 = sm[r, kk - 1], sm[r, kk], sm[r, kk + 1]
     den = y0 - 2 * y1 + y2
     frac = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
-    d = step * (kk - n - 1 + np.clip(frac, -0.5, 0.5))
+    d = u[kk + 1] + step * np.clip(frac, -0.5, 0.5)
     d = _median3(d)
     return rx + d * nx, rz + d * nz
 
@@ -345,9 +429,13 @@ def extend_candidates(
     if not params.enabled or not which:
         return cands
     new = extend_flanks(image, ev, [cands[n].points_px for n in which], spacing, params)
-    for n, pts in zip(which, new, strict=True):
-        if pts is not cands[n].points_px:
+    changed = [(n, pts) for n, pts in zip(which, new, strict=True) if pts is not cands[n].points_px]
+    if changed:
+        allp = np.concatenate([pts for _, pts in changed])
+        grey = _bilinear(np.asarray(image), allp[:, 0], allp[:, 1]).astype(np.float64)
+        cut = np.cumsum([0] + [pts.shape[0] for _, pts in changed])
+        for q, (n, pts) in enumerate(changed):
             cands[n] = dataclasses.replace(
-                cands[n], points_px=pts, intensity=sample_bilinear(np.asarray(image), pts)
+                cands[n], points_px=pts, intensity=grey[cut[q] : cut[q + 1]]
             )
     return cands

@@ -148,14 +148,14 @@ class FlankParams:
     """The trace starts this far (arc length) inside the contour's end and replaces its last part when it reaches farther (ours: the path's last columns on a steep flank are its least certain, and a tail that slid onto a layer is re-traced on the bone)."""
     fit_mm: float = 2.0
     """Length of contour inside the start from which the outward direction and the curvature are taken, mm (ours: ~8 working pixels; long enough to average the per-column jitter, short against a bone's radius of curvature)."""
-    step_mm: float = 0.3
-    """Arc-length step of the trace, mm (about one working pixel)."""
+    step_mm: float = 0.4
+    """Arc-length step of the trace, mm (a little over one working pixel of 0.25-0.3 mm)."""
     max_mm: float = 6.0
     """Longest trace, mm of arc (issue 10's cadaver crest: ~6 mm of flank steeper than 45 degrees)."""
     band_mm: float = 0.9
     """Half-width of the search band across the extrapolated arc, mm (a curvature misjudged by 0.1 /mm departs 0.8 mm from it over 4 mm)."""
-    offset_mm: float = 0.15
-    """Spacing of the samples across the band, mm (half a working pixel; the full-resolution refinement does the rest)."""
+    offset_mm: float = 0.2
+    """Spacing of the samples across the band, mm (under a working pixel; the full-resolution refinement does the rest). With ``step_mm`` it bounds the ridge's turn per step against the arc: atan(0.2 / 0.4), 27 degrees."""
     outside_mm: tuple[float, float] = (0.75, 1.75)
     """Window outward of a sample (on the tissue side of the flank) that its echo is compared with, mm from the sample (past the echo's lateral blur, ~0.3 mm sigma)."""
     inside_mm: tuple[float, float] = (1.0, 2.5)
