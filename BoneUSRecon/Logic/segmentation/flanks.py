@@ -76,13 +76,19 @@ def _median3(a: np.ndarray) -> np.ndarray:
     return np.concatenate([a[..., :1], mid, a[..., -1:]], axis=-1)
 
 
-def _ends(contours_mm: Sequence[np.ndarray], p: FlankParams) -> tuple[np.ndarray, np.ndarray]:
-    """The extendable ends: ``(T, 3)`` contour, side, start arc length and ``(T, 5)`` geometry.
+def _ends(
+    contours_mm: Sequence[np.ndarray], p: FlankParams
+) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray]]:
+    """The extendable ends: ``(T, 3)`` contour, side, start arc length; ``(T, 5)`` geometry;
+    the arc length (mm) at each point of every contour that has an end.
 
     Geometry per end: start point ``x, z`` (mm), outward direction ``phi`` (radians below
     the lateral axis, outward), curvature ``kappa`` (1/mm, >= 0), ``side`` (-1: the
-    first point's end, towards smaller columns; +1: the last point's end). All contours
-    at once: their arc lengths are laid end to end (1 mm apart) and interpolated together.
+    first point's end, towards smaller columns; +1: the last point's end). The start is
+    ``retreat_mm`` inside the end, or farther back in steps of ``fit_mm / 2`` (up to
+    ``restart_mm``) while the contour there is still steeper than ``restart_deg``: where
+    one depth per column samples a flank poorly the trace takes over. All contours at
+    once: their arc lengths are laid end to end (1 mm apart) and interpolated together.
     """
     use = [n for n, x in enumerate(contours_mm) if x.shape[0] >= 4]
     if not use:
@@ -96,36 +102,44 @@ def _ends(contours_mm: Sequence[np.ndarray], p: FlankParams) -> tuple[np.ndarray
     s = np.concatenate(([0.0], np.cumsum(seg)))
     s0 = s[np.r_[0, first]]
     length = s[np.cumsum(sizes) - 1] - s0
-    h, r = 0.5 * p.fit_mm, p.retreat_mm
-    # Per contour: the start of each end and two points inward of it, h apart.
-    rel = np.stack(
-        [
-            r + np.zeros_like(length),
-            r + h + 0 * length,
-            r + 2 * h + 0 * length,
-            length - r,
-            length - r - h,
-            length - r - 2 * h,
-        ],
-        axis=1,
+    h = 0.5 * p.fit_mm
+    n_j = int(round(p.restart_mm / h)) + 1  # candidate starts
+    dist = p.retreat_mm + h * np.arange(n_j + 2)  # from the end: starts and 2 points inward
+    rel = np.concatenate(
+        [np.broadcast_to(dist, (length.size, dist.size)), length[:, None] - dist], axis=1
     )
-    q = (s0[:, None] + rel).ravel()
-    qx = np.interp(q, s, pts[:, 0]).reshape(-1, 2, 3)  # (contour, end, point)
-    qz = np.interp(q, s, pts[:, 1]).reshape(-1, 2, 3)
-    side = np.array([-1.0, 1.0])
-    tx = side * (3 * qx[..., 0] - 4 * qx[..., 1] + qx[..., 2])  # outward tangent, 2nd order
-    tz = 3 * qz[..., 0] - 4 * qz[..., 1] + qz[..., 2]
-    phi = np.arctan2(tz, tx)
-    inner = np.arctan2(qz[..., 1] - qz[..., 2], side * (qx[..., 1] - qx[..., 2]))
-    outer = np.arctan2(qz[..., 0] - qz[..., 1], side * (qx[..., 0] - qx[..., 1]))
-    kappa = np.clip((outer - inner) / h, 0.0, p.max_curvature)
-    ok = (phi >= np.radians(p.min_start_deg)) & (phi < np.radians(p.max_deg))
-    ok &= (length >= 2.0 * (r + p.fit_mm))[:, None]  # a direction at both ends
-    c, e = np.nonzero(ok)
-    ends = np.column_stack([np.asarray(use)[c], side[e], rel[c, 3 * e]])
-    geo = np.column_stack([qx[c, e, 0], qz[c, e, 0], phi[c, e], kappa[c, e], side[e]])
+    q = (s0[:, None] + np.clip(rel, 0.0, length[:, None])).ravel()
+    qx = np.interp(q, s, pts[:, 0]).reshape(-1, 2, n_j + 2)  # (contour, end, point)
+    qz = np.interp(q, s, pts[:, 1]).reshape(-1, 2, n_j + 2)
+    side = np.array([-1.0, 1.0])[:, None]
+    a, b, c = slice(0, n_j), slice(1, n_j + 1), slice(2, n_j + 2)
+    tx = side * (3 * qx[..., a] - 4 * qx[..., b] + qx[..., c])  # outward tangent, 2nd order
+    tz = 3 * qz[..., a] - 4 * qz[..., b] + qz[..., c]
+    phi = np.arctan2(tz, tx)  # (contour, end, start)
+    inner = np.arctan2(qz[..., b] - qz[..., c], side * (qx[..., b] - qx[..., c]))
+    outer = np.arctan2(qz[..., a] - qz[..., b], side * (qx[..., a] - qx[..., b]))
+    # The start: the first candidate (from the end) not steeper than restart_deg, within
+    # the contour's own half (both ends' points apart).
+    fits = (dist[2:] <= 0.5 * length[:, None])[:, None, :]
+    calm = (phi < np.radians(p.restart_deg)) | ~fits
+    j = np.where(calm.any(axis=-1), calm.argmax(axis=-1), n_j - 1)
+    j = np.maximum(j - (~fits[:, 0, :].any(axis=-1))[:, None] * n_j, -1)  # none fits: -1
+    jj = np.maximum(j, 0)[..., None]
+    phi = np.take_along_axis(phi, jj, axis=-1)[..., 0]
+    bend = np.take_along_axis(outer - inner, jj, axis=-1)[..., 0]
+    kappa = np.clip(bend / h, 0.0, p.max_curvature)
+    ok = (j >= 0) & (phi >= np.radians(p.min_start_deg)) & (phi < np.radians(p.max_deg))
+    ok &= np.take_along_axis(fits[:, 0, :].repeat(2, axis=0).reshape(-1, 2, n_j), jj, axis=-1)[
+        ..., 0
+    ]
+    cc, e = np.nonzero(ok)
+    jc = j[cc, e]
+    start = np.where(e == 0, dist[jc], length[cc] - dist[jc])
+    sides = side[e, 0]
+    ends = np.column_stack([np.asarray(use)[cc], sides, start])
+    geo = np.column_stack([qx[cc, e, jc], qz[cc, e, jc], phi[cc, e], kappa[cc, e], sides])
     bounds = np.r_[0, np.cumsum(sizes)]
-    arc = {use[n]: s[bounds[n] : bounds[n + 1]] - s0[n] for n in set(c.tolist())}
+    arc = {use[n]: s[bounds[n] : bounds[n + 1]] - s0[n] for n in set(cc.tolist())}
     return ends, geo, arc
 
 
@@ -190,8 +204,7 @@ def extend_flanks(
     m = mm_to_px(p.band_mm, do)
     oa, ob = mm_to_px(p.outside_mm[0], do), mm_to_px(p.outside_mm[1], do)
     nc = mm_to_px(p.null_mm, do)
-    ia, ib = mm_to_px(p.inside_mm[0], do), mm_to_px(p.inside_mm[1], do)
-    off = do * np.arange(-m - ib, nc + m + ob + 1)
+    off = do * np.arange(-m, nc + m + ob + 1)
     # Working-image coordinates ((mm / spacing + 0.5) / block - 0.5); samples outside
     # the image or in columns without contact are invalid.
     fx, fy = sx * ev.fx, sy * ev.fy
@@ -201,36 +214,33 @@ def extend_flanks(
     valid = (wi >= 0) & (wi <= ww - 1) & (wj >= 0) & (wj <= hw - 1)
     v = _bilinear(ev.work, wi, wj)
     valid &= ev.usable[np.rint(np.clip(wi, 0, ww - 1)).astype(np.intp)]
-    # Across the flank, for each sample q (offset index ib + j, j = 0 ..): the echo, its
-    # log ratio to the mean of the samples oa..ob outward (tissue), and the shadow, the
-    # log ratio of that tissue to the mean of the samples ia..ib inward. The shadow
-    # counts up to as much as the echo: a bone's flank has tissue outward and, where
-    # the bone stops the sound, shadow inward; a shadow's edge with no echo (under the
-    # bone's widest point) counts nothing, and with no shadow (the L14 forearm) the
-    # echo alone carries the trace.
+    # For each sample q: the echo across the flank, the log ratio of the sample to the
+    # mean of the samples oa..ob outward of it (the tissue beside the flank), whatever
+    # the flank's slope; counted up to twice as the bone's shadow lies under the sample
+    # along the beam (``evidence`` shadow z-score, vertical windows: under a flank lies
+    # the bone, under the tissue beside the shadow's edge lies tissue, so the edge of
+    # the shadow under the bone's widest point gains nothing; with no shadow, as on the
+    # L14 forearm, the echo alone carries the trace).
     n_t, n_o = v.shape[0], v.shape[-1]
+    n_e = n_o - ob
     cs = np.zeros((n_t, n_step, n_o + 1))
     np.cumsum(v, axis=-1, out=cs[..., 1:])
-    n_e = n_o - ob - ib
-    lv = np.log(v + _EPS)
-    log_out = np.log(
-        (cs[..., ib + ob + 1 : ib + ob + 1 + n_e] - cs[..., ib + oa : ib + oa + n_e])
-        * (1.0 / (ob - oa + 1))
-        + _EPS
-    )
-    log_in = np.log(
-        (cs[..., ib - ia + 1 : ib - ia + 1 + n_e] - cs[..., :n_e]) * (1.0 / (ib - ia + 1)) + _EPS
-    )
-    echo = lv[..., ib : ib + n_e] - log_out
-    e = np.minimum(log_out - log_in, np.maximum(echo, 0.0))
-    np.maximum(e, 0.0, out=e)
-    e += echo
+    outside = cs[..., ob + 1 :] - cs[..., oa : oa + n_e]
+    outside *= 1.0 / (ob - oa + 1)
+    outside += _EPS
+    e = np.log(v[..., :n_e] + _EPS)
+    e -= np.log(outside)
+    g = _bilinear(ev.shadow_z, wi[..., :n_e], wj[..., :n_e])
+    g *= 1.0 / p.shadow_z
+    np.clip(g, 0.0, 1.0, out=g)
+    g *= np.maximum(e, 0.0)
+    e += g
     # A sample whose windows reach an invalid one is invalid; averaged along the trace
     # over ``run`` steps (a ridge parallel to the arc adds up, speckle does not), a
     # window holding an invalid sample stays far under every level.
     nbad = np.zeros((n_t, n_step, n_o + 1), np.int32)
     np.cumsum(~valid, axis=-1, out=nbad[..., 1:])
-    e[nbad[..., ib + ob + 1 :] != nbad[..., :n_e]] = _BAD
+    e[nbad[..., ob + 1 :] != nbad[..., :n_e]] = _BAD
     e = _moving_mean(e, max(1, int(round(p.run_mm / ds))))
     # The ridge: the best continuous path through the band (one offset step per step at
     # most); the null: the same path search through the null band.
@@ -256,7 +266,7 @@ def extend_flanks(
         _DEBUG.update(locals())
     # Ridge points (offset smoothed along the trace), refined on the full image.
     t_i, k_i = np.nonzero(idx <= last[:, None])
-    o = off[ib + _median3(pick)][t_i, k_i]
+    o = off[_median3(pick)][t_i, k_i]
     nxk, nzk = nx[t_i, k_i], nz[t_i, k_i]
     rx, rz = _refine_across(
         image, cx[t_i, k_i] + o * nxk, cz[t_i, k_i] + o * nzk, nxk, nzk, sx, sy, p.refine_mm

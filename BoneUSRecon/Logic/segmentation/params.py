@@ -146,6 +146,10 @@ class FlankParams:
     """An end is extended only when the contour already descends outward at least this steeply there, degrees (ours: a flat end is the path's own decision, and a layer running off the bone at its level is flat; a convex bone's flank only steepens outward)."""
     retreat_mm: float = 1.0
     """The trace starts this far (arc length) inside the contour's end and replaces its last part when it reaches farther (ours: the path's last columns on a steep flank are its least certain, and a tail that slid onto a layer is re-traced on the bone)."""
+    restart_deg: float = 45.0
+    """Where the contour's end is steeper than this, the trace starts farther back (up to ``restart_mm`` more), at the first point not so steep, degrees (ours: 97 % of the gold points the surface missed lay on flanks steeper than 45 degrees, where one depth per column samples a flank ever more sparsely and the path's last columns drift off it)."""
+    restart_mm: float = 3.0
+    """How much farther back than ``retreat_mm`` a trace may start, mm of arc."""
     fit_mm: float = 2.0
     """Length of contour inside the start from which the outward direction and the curvature are taken, mm (ours: ~8 working pixels; long enough to average the per-column jitter, short against a bone's radius of curvature)."""
     step_mm: float = 0.4
@@ -158,8 +162,8 @@ class FlankParams:
     """Spacing of the samples across the band, mm (under a working pixel; the full-resolution refinement does the rest). With ``step_mm`` it bounds the ridge's turn per step against the arc: atan(0.2 / 0.4), 27 degrees."""
     outside_mm: tuple[float, float] = (0.75, 1.75)
     """Window outward of a sample (on the tissue side of the flank) that its echo is compared with, mm from the sample (past the echo's lateral blur, ~0.3 mm sigma)."""
-    inside_mm: tuple[float, float] = (1.0, 2.5)
-    """Window inward of a sample (the bone's side) whose darkness, against the outside window, is the shadow across the flank, mm from the sample (past the echo's tail, ~0.4 mm)."""
+    shadow_z: float = 1.0
+    """Shadow z-score under a sample along the beam (:mod:`.evidence`) at which its echo counts double, robust z units (ours: ``ShadowPathParams.shadow_z_full``, one spread darker than the tissue beside it; no shadow, no bonus)."""
     null_mm: float = 2.75
     """Centre of the null band: the same search, the same width, this far outward of the arc in the tissue beside the flank, mm (clear of the band and the echo's blur)."""
     run_mm: float = 1.5
@@ -185,20 +189,18 @@ class FlankParams:
                 "band_mm",
                 "offset_mm",
                 "outside_mm",
-                "inside_mm",
+                "shadow_z",
                 "null_mm",
                 "run_mm",
                 "refine_mm",
             ),
-            non_negative=("retreat_mm", "gap_mm", "stop_z", "max_curvature"),
-            within={"min_start_deg": "[0, 90)", "max_deg": "(0, 90]"},
+            non_negative=("retreat_mm", "restart_mm", "gap_mm", "stop_z", "max_curvature"),
+            within={"min_start_deg": "[0, 90)", "restart_deg": "(0, 90]", "max_deg": "(0, 90]"},
         )
-        for name in ("outside_mm", "inside_mm"):
-            a, b = getattr(self, name)
-            if not b > a:
-                raise BoneUSReconError(
-                    f"FlankParams.{name} must be increasing, got {getattr(self, name)!r}"
-                )
+        if not self.outside_mm[1] > self.outside_mm[0]:
+            raise BoneUSReconError(
+                f"FlankParams.outside_mm must be increasing, got {self.outside_mm!r}"
+            )
         if not self.null_mm > 2 * self.band_mm:
             raise BoneUSReconError(
                 f"FlankParams.null_mm must be > 2 band_mm (the null band clear of the search band), got {self.null_mm!r}"
