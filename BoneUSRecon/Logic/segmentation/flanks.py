@@ -62,7 +62,6 @@ from BoneUSRecon.Logic.segmentation.params import FlankParams
 __all__ = ["extend_flanks", "extend_candidates"]
 
 _EPS = 1e-3  # grey/255: guards log(0) in black regions (no decision rests on it)
-_DEBUG = None
 _BAD = -1e3  # evidence of a sample outside the usable image: any window holding one is
 # under every level (the evidence itself is a log ratio of a few units at most)
 
@@ -118,20 +117,17 @@ def _ends(
     phi = np.arctan2(tz, tx)  # (contour, end, start)
     inner = np.arctan2(qz[..., b] - qz[..., c], side * (qx[..., b] - qx[..., c]))
     outer = np.arctan2(qz[..., a] - qz[..., b], side * (qx[..., a] - qx[..., b]))
-    # The start: the first candidate (from the end) not steeper than restart_deg, within
-    # the contour's own half (both ends' points apart).
-    fits = (dist[2:] <= 0.5 * length[:, None])[:, None, :]
-    calm = (phi < np.radians(p.restart_deg)) | ~fits
+    # The start: the first candidate (from the end) not steeper than restart_deg, and
+    # within the contour's own half (the two ends' points apart); -1 if none is.
+    n_fit = (dist[2:] <= 0.5 * length[:, None]).sum(axis=1)
+    calm = phi < np.radians(p.restart_deg)
     j = np.where(calm.any(axis=-1), calm.argmax(axis=-1), n_j - 1)
-    j = np.maximum(j - (~fits[:, 0, :].any(axis=-1))[:, None] * n_j, -1)  # none fits: -1
+    j = np.minimum(j, (n_fit - 1)[:, None])
     jj = np.maximum(j, 0)[..., None]
     phi = np.take_along_axis(phi, jj, axis=-1)[..., 0]
     bend = np.take_along_axis(outer - inner, jj, axis=-1)[..., 0]
     kappa = np.clip(bend / h, 0.0, p.max_curvature)
     ok = (j >= 0) & (phi >= np.radians(p.min_start_deg)) & (phi < np.radians(p.max_deg))
-    ok &= np.take_along_axis(fits[:, 0, :].repeat(2, axis=0).reshape(-1, 2, n_j), jj, axis=-1)[
-        ..., 0
-    ]
     cc, e = np.nonzero(ok)
     jc = j[cc, e]
     start = np.where(e == 0, dist[jc], length[cc] - dist[jc])
@@ -262,8 +258,6 @@ def extend_flanks(
     first = (cb[:, gap:] - cb[:, :-gap] == gap).argmax(axis=1)  # a bad stretch opens
     idx = np.arange(n_step)
     last = np.where(good & (idx < first[:, None]), idx, -1).max(axis=1)
-    if _DEBUG is not None:
-        _DEBUG.update(locals())
     # Ridge points (offset smoothed along the trace), refined on the full image.
     t_i, k_i = np.nonzero(idx <= last[:, None])
     o = off[_median3(pick)][t_i, k_i]
@@ -271,14 +265,15 @@ def extend_flanks(
     rx, rz = _refine_across(
         image, cx[t_i, k_i] + o * nxk, cz[t_i, k_i] + o * nzk, nxk, nzk, sx, sy, p.refine_mm
     )
-    if _DEBUG is not None:
-        _DEBUG.update(rx=rx, rz=rz, t_i=t_i)
     # Assemble: the trace (outermost first on the left) replaces the contour beyond its
-    # start, whether it reached farther or not (what it did not confirm is dropped).
+    # start where it reached at least as far (arc length) as the contour did.
     pts = np.stack([rx / sx, rz / sy], axis=1)
     cut = np.searchsorted(t_i, np.arange(n_t + 1))
     by: dict[int, list] = {}
     for t, (ci, sd, s0) in enumerate(ends.tolist()):
+        tail = s0 if sd < 0 else arc[int(ci)][-1] - s0
+        if (last[t] + 1) * ds < tail:
+            continue  # the trace stopped short of where the contour went: keep the contour
         by.setdefault(int(ci), [None, None, 0.0, np.inf])
         slot = by[int(ci)]
         piece = pts[cut[t] : cut[t + 1]]
