@@ -9,43 +9,54 @@ for a turn end the contour early: on unseen simulated sweeps 97 % of the gold po
 surface missed lay on flanks steeper than 45 degrees, with no contour point near them.
 
 Here each end of a candidate that already descends outward (``min_start_deg``) is
-continued along the bone, step by step in arc length, not column by column:
+followed along the bone, step by step in arc length (``step_mm``), not column by column:
 
-1. **Direction.** From ``retreat_mm`` inside the end (the path's last columns are its
-   least certain), the outward direction and the curvature of the contour are taken
-   over ``fit_mm`` of it (three points, second order). A bone's cross-section is convex
-   seen from the probe, so the extrapolated arc turns only downward (curvature >= 0,
-   at most ``max_curvature``) and never past ``max_deg`` (a beam from above cannot see
-   under the bone): the trace cannot turn onto a layer running off the bone, which is
-   flatter than the flank it leaves.
-2. **Ridge.** Across the arc, a band of +-``band_mm`` is sampled on the working image
-   (block-averaged, speckle reduced); at each sample the echo evidence is the log ratio
-   of the sample to the mean of the tissue just outward of it (``outside_mm``, on the
-   side of the flank away from the bone), i.e. the echo measured *across the flank*
-   whatever its slope. Per step the ridge is the best sample of the band.
+1. **Start and direction.** The trace starts ``retreat_mm`` inside the end, or farther
+   back (by up to ``restart_mm``) while the contour there is still steeper than
+   ``restart_deg``: where one depth per column samples the flank poorly (and the path's
+   last columns drift off it) the trace takes over. The outward direction and the
+   curvature come from ``fit_mm`` of contour inside the start (three points, second
+   order). A bone's cross-section is convex seen from the probe, so the extrapolated arc
+   turns only downward (curvature >= 0, at most ``max_curvature``) and never past
+   ``max_deg`` (a beam from above cannot see under the bone).
+2. **Ridge across the flank.** Across the arc a band of +-``band_mm`` is sampled on the
+   working image (block-averaged, speckle reduced). A sample's echo is its log ratio to
+   the mean of the tissue just outward of it (``outside_mm``, on the side of the flank
+   away from the bone): the echo measured *across* the flank whatever its slope. It
+   counts up to double as the bone's shadow lies under the sample along the beam
+   (:mod:`.evidence`'s shadow z-score over ``shadow_z``: under a flank lies the bone;
+   beside the shadow's edge under the bone's widest point lies tissue, which gains
+   nothing; with no shadow, as on the L14 forearm, the echo alone carries the trace).
+   Averaged along the trace over ``run_mm``, the ridge is the best path through the band
+   moving at most one sample across per step (a Viterbi: a line needs no jump, and a
+   confined path finds far fewer chance alignments of speckle than a free maximum).
 3. **Stop rule from this frame's own speckle.** The same search (same band width, same
-   maximum over it, same averaging over ``run_mm`` along the trace) is run on a null
-   band ``null_mm`` outward, in the tissue beside the flank; over all traces of the frame
-   its median and robust spread (1.4826 MAD) say what speckle alone produces with this
-   probe, gain and depth. The trace continues while its averaged ridge evidence
-   exceeds that median by ``stop_z`` spreads, and ends at its last such step before a
-   stretch of ``gap_mm`` under it. Both sides of the comparison are ratios of grey
-   levels of the same frame at the same places, so the rule holds on any recording
-   (a bright L14 echo 2.7x its tissue and the cadaver's 1.35x alike); a maximum over
-   the band is compared with a maximum over a band of the same size, so the search
-   itself does not make speckle look like a ridge.
+   averaging, same confined path) runs through a null band ``null_mm`` outward, in the
+   tissue beside the flank; pooled over the frame's traces, its median and robust
+   spread (1.4826 MAD) say what speckle alone produces with this probe, gain and depth.
+   The trace continues while its ridge exceeds that median by ``stop_z`` spreads and
+   ends at its last such step before ``gap_mm`` under it (a short dropout is bridged).
+   Both sides of the comparison are ratios of grey levels of the same frame at nearby
+   places, searched the same way, so the rule holds on any recording (a bright L14 echo
+   2.7x its tissue and the cadaver's 1.35x alike) and the search itself cannot make
+   speckle look like a ridge: no grey level, no level fitted to one data source.
 4. **Points.** Each step's ridge is refined on the full-resolution image along the
-   normal (parabolic peak of a profile averaged over three parallel lines). The trace
-   replaces the contour beyond its start only when it reaches beyond the contour's end.
+   normal (parabolic peak of a profile averaged over three parallel lines, median of
+   three along the trace). The trace replaces the contour beyond its start where it
+   reaches at least as far (arc length) as the contour did; otherwise the contour stays.
 
 What is never extended: reverberation copies (never chosen); ends that are flat or
-rise outward (a fascia, a layer at the bone's level, the far cortex seen from inside
-the shadow is concave); a trace whose evidence is speckle-level from its start. The
-candidates' strengths are unchanged, so the sweep-level choice weighs the same evidence.
+rise outward (a fascia or a layer at the bone's level is flat; the far cortex seen
+from inside the shadow is concave); a trace whose ridge is speckle-level from its
+start. The candidates' strengths are unchanged, so the sweep-level choice weighs the
+same evidence; applied per frame in :func:`.candidates.frame_candidates`, a live
+reconstruction gets the same contours as an offline one.
 
-Vectorised: every trace of a frame is sampled in one call, the ridge and null are
-reductions over (trace, step, offset) arrays; only the set-up of each end (a few
-scalars per candidate) is a Python loop.
+Vectorised: all traces of a frame are sampled together, the evidence, the null and the
+stop rule are operations on (trace, step, offset) arrays; Python loops only over the
+steps of the path search (a few ufunc calls each) and its backtrack (on floats), and
+over the few candidates when their points are put back together. Figures (coverage,
+accuracy, speed) are in ``Testing/benchmarks/README.md`` ("Flanks").
 """
 
 from __future__ import annotations
