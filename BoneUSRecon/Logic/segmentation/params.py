@@ -145,7 +145,7 @@ class FlankParams:
     min_start_deg: float = 20.0
     """An end is extended only when the contour already descends outward at least this steeply there, degrees (ours: a flat end is the path's own decision, and a layer running off the bone at its level is flat; a convex bone's flank only steepens outward)."""
     retreat_mm: float = 1.0
-    """The trace starts this far (arc length) inside the contour's end and replaces its last part when it reaches farther (ours: the path's last columns on a steep flank are its least certain, and a tail that slid onto a layer is re-traced on the bone)."""
+    """The trace starts this far (arc length) inside the contour's end and replaces its last part where it reaches at least as far (ours: the path's last columns on a steep flank are its least certain, and a tail that slid onto a layer is re-traced on the bone)."""
     restart_deg: float = 45.0
     """Where the contour's end is steeper than this, the trace starts farther back (up to ``restart_mm`` more), at the first point not so steep, degrees (ours: 97 % of the gold points the surface missed lay on flanks steeper than 45 degrees, where one depth per column samples a flank ever more sparsely and the path's last columns drift off it)."""
     restart_mm: float = 3.0
@@ -159,7 +159,7 @@ class FlankParams:
     band_mm: float = 0.9
     """Half-width of the search band across the extrapolated arc, mm (a curvature misjudged by 0.1 /mm departs 0.8 mm from it over 4 mm)."""
     offset_mm: float = 0.2
-    """Spacing of the samples across the band, mm (under a working pixel; the full-resolution refinement does the rest). With ``step_mm`` it bounds the ridge's turn per step against the arc: atan(0.2 / 0.4), 27 degrees."""
+    """Spacing of the samples across the band, mm (under a working pixel; the full-resolution refinement does the rest). With ``step_mm`` it bounds the ridge's turn per step down from the arc: atan(0.2 / 0.4), 27 degrees (never up: a convex flank only steepens)."""
     outside_mm: tuple[float, float] = (0.75, 1.75)
     """Window outward of a sample (on the tissue side of the flank) that its echo is compared with, mm from the sample (past the echo's lateral blur, ~0.3 mm sigma)."""
     shadow_z: float = 1.0
@@ -167,7 +167,7 @@ class FlankParams:
     null_mm: float = 2.75
     """Centre of the null band: the same search, the same width, this far outward of the arc in the tissue beside the flank, mm (clear of the band and the echo's blur)."""
     run_mm: float = 1.5
-    """Length over which the ridge and null evidence are averaged along the trace before the stop rule, mm (about three working pixels: one pixel of speckle does not stop or carry a trace)."""
+    """Length over which the ridge and null evidence are averaged along the trace before the stop rule, mm (ours: four steps, five or six working pixels: one grain of speckle does not stop or carry a trace; on humerus 17, 60 frames, kept points beyond 0.5 mm of the bone: 1.7 % at 0.9 mm, 1.5 % at 1.5 mm, with ``stop_z`` 2)."""
     gap_mm: float = 0.9
     """The trace stops where its evidence stays under the stop level for this long, mm (a short dropout of the echo, as on real cortex, is bridged)."""
     stop_z: float = 4.0
