@@ -42,8 +42,9 @@ Look-alikes handled per frame (each with a simulated test in
 Flanks: the path may change depth by up to ``max_slope`` (tan 72 degrees) per lateral
 mm with a small quadratic penalty, and the shadow windows hang below each column (the
 inside of a convex bone lies below every point of its upper surface, so the shadow
-holds on the flanks), so the contour follows a round or crest-shaped bone down past
-70 degrees. Nothing trims the ends of a contour afterwards but the convexity cut
+holds on the flanks); past the path's reach each candidate is followed down the
+flanks in arc length by :mod:`.flanks` (one depth per column samples a 70-degree flank
+poorly, and its echo fades there). Nothing trims the ends of a contour afterwards but the convexity cut
 (:func:`convex_part`: a layer meeting the bone); when a layer climbs above the bone's
 top the cut is made around the layer, so each convex piece of a contour is weighed on
 its own evidence and the strongest kept.
@@ -61,6 +62,7 @@ from scipy.ndimage import gaussian_filter1d, median_filter
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
+from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 __all__ = [
@@ -1072,6 +1074,8 @@ def _frame_candidates_steps(
                 bool(c.get("beneath", False)),
             )
         )
+    # Past the path's reach: each candidate followed down the bone's flanks (:mod:`.flanks`).
+    out = extend_candidates(img, ev, out, sp, p.flanks)
     out.sort(key=lambda b: -b.strength)
     return FrameCandidates(tuple(out[: p.max_candidates]), sp, "", {"work_px": (ev.fx, ev.fy)})
 

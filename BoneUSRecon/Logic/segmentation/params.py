@@ -25,6 +25,7 @@ __all__ = [
     "SEGMENTER_NAMES",
     "SnakeParams",
     "PosteriorParams",
+    "FlankParams",
     "ShadowPathParams",
     "RejectionParams",
     "SegmentationParams",
@@ -132,6 +133,81 @@ class PosteriorParams:
 
 
 @dataclass(frozen=True)
+class FlankParams:
+    """Following a contour down the bone's flanks (:mod:`.flanks`), past where the path stops.
+
+    Lengths in mm; every level is relative to this frame's own speckle (see
+    :func:`~BoneUSRecon.Logic.segmentation.flanks.extend_flanks`): no grey level enters.
+    """
+
+    enabled: bool = True
+    """Extend the candidates' flanks (off: the contours of the optimal path alone)."""
+    min_start_deg: float = 20.0
+    """An end is extended only when the contour already descends outward at least this steeply there, degrees (ours: a flat end is the path's own decision, and a layer running off the bone at its level is flat; a convex bone's flank only steepens outward)."""
+    retreat_mm: float = 1.0
+    """The trace starts this far (arc length) inside the contour's end and replaces its last part where it reaches at least as far (ours: the path's last columns on a steep flank are its least certain, and a tail that slid onto a layer is re-traced on the bone)."""
+    restart_deg: float = 45.0
+    """Where the contour's end is steeper than this, the trace starts farther back (up to ``restart_mm`` more), at the first point not so steep, degrees (ours: 97 % of the gold points the surface missed lay on flanks steeper than 45 degrees, where one depth per column samples a flank ever more sparsely and the path's last columns drift off it)."""
+    restart_mm: float = 3.0
+    """How much farther back than ``retreat_mm`` a trace may start, mm of arc."""
+    fit_mm: float = 2.0
+    """Length of contour inside the start from which the outward direction and the curvature are taken, mm (ours: ~8 working pixels; long enough to average the per-column jitter, short against a bone's radius of curvature)."""
+    step_mm: float = 0.4
+    """Arc-length step of the trace, mm (a little over one working pixel of 0.25-0.3 mm)."""
+    max_mm: float = 6.0
+    """Longest trace, mm of arc (issue 10's cadaver crest: ~6 mm of flank steeper than 45 degrees)."""
+    band_mm: float = 0.9
+    """Half-width of the search band across the extrapolated arc, mm (a curvature misjudged by 0.1 /mm departs 0.8 mm from it over 4 mm)."""
+    offset_mm: float = 0.2
+    """Spacing of the samples across the band, mm (under a working pixel; the full-resolution refinement does the rest). With ``step_mm`` it bounds the ridge's turn per step down from the arc: atan(0.2 / 0.4), 27 degrees (never up: a convex flank only steepens)."""
+    outside_mm: tuple[float, float] = (0.75, 1.75)
+    """Window outward of a sample (on the tissue side of the flank) that its echo is compared with, mm from the sample (past the echo's lateral blur, ~0.3 mm sigma)."""
+    shadow_z: float = 1.0
+    """Shadow z-score under a sample along the beam (:mod:`.evidence`) at which its echo counts double, robust z units (ours: ``ShadowPathParams.shadow_z_full``, one spread darker than the tissue beside it; no shadow, no bonus)."""
+    null_mm: float = 2.75
+    """Centre of the null band: the same search, the same width, this far outward of the arc in the tissue beside the flank, mm (clear of the band and the echo's blur)."""
+    run_mm: float = 1.5
+    """Length over which the ridge and null evidence are averaged along the trace before the stop rule, mm (ours: four steps, five or six working pixels: one grain of speckle does not stop or carry a trace; on humerus 17, 60 frames, kept points beyond 0.5 mm of the bone: 1.7 % at 0.9 mm, 1.5 % at 1.5 mm, with ``stop_z`` 2)."""
+    gap_mm: float = 0.9
+    """The trace stops where its evidence stays under the stop level for this long, mm (a short dropout of the echo, as on real cortex, is bridged)."""
+    stop_z: float = 4.0
+    """The trace continues while its averaged ridge evidence exceeds the null band's median by this many of the null's robust spreads (robust z units, as :mod:`.evidence`; ours: at 3 the traces added a few points off the bone where a fascia crosses the flank or under a grey shadow, on the hard simulated tibia 6 of 70 and 10 of 116 added points farther than 0.5 mm; at 4, 2 of 55 and 5 of 63)."""
+    max_deg: float = 88.0
+    """Steepest direction the trace may take, degrees below the lateral axis (a beam from above cannot see under the bone)."""
+    max_curvature: float = 0.5
+    """Largest curvature the extrapolated arc takes from the contour, 1/mm (a radius of 2 mm: the tightest bone edge expected; more is the jitter of the contour)."""
+    refine_mm: float = 0.3
+    """Half-length of the full-resolution profile across the trace on which each point's echo peak is fitted, mm."""
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            positive=(
+                "fit_mm",
+                "step_mm",
+                "max_mm",
+                "band_mm",
+                "offset_mm",
+                "outside_mm",
+                "shadow_z",
+                "null_mm",
+                "run_mm",
+                "refine_mm",
+            ),
+            non_negative=("retreat_mm", "restart_mm", "gap_mm", "stop_z", "max_curvature"),
+            within={"min_start_deg": "[0, 90)", "restart_deg": "(0, 90]", "max_deg": "(0, 90]"},
+        )
+        if not self.outside_mm[1] > self.outside_mm[0]:
+            raise BoneUSReconError(
+                f"FlankParams.outside_mm must be increasing, got {self.outside_mm!r}"
+            )
+        if not self.null_mm > 2 * self.band_mm:
+            raise BoneUSReconError(
+                f"FlankParams.null_mm must be > 2 band_mm (the null band clear of the search band), got {self.null_mm!r}"
+            )
+
+
+@dataclass(frozen=True)
 class ShadowPathParams:
     """The default segmenter: contrast-adaptive bone evidence and optimal paths across columns.
 
@@ -195,7 +271,9 @@ class ShadowPathParams:
     slope_penalty: float = 0.05
     """Cost per (mm of depth change per lateral mm)^2 between neighbouring columns, in score units (ours: small, so steep flanks are kept)."""
     max_slope: float = 3.0
-    """Largest depth change per lateral mm of the path (tan 72 degrees: flanks are followed past 70 degrees)."""
+    """Largest depth change per lateral mm of the path (tan 72 degrees; past the path's reach a flank is followed by ``flanks``)."""
+    flanks: FlankParams = field(default_factory=FlankParams)
+    """Following each candidate down the bone's flanks, past where one depth per column holds (:mod:`.flanks`)."""
     near_field_mm: float = 2.0
     """Rows shallower than this are never bone, mm (gel, skin line and lens reverberation)."""
     contact_mm: float = 4.0
