@@ -1074,10 +1074,12 @@ def _frame_candidates_steps(
                 bool(c.get("beneath", False)),
             )
         )
-    # Past the path's reach: each candidate followed down the bone's flanks (:mod:`.flanks`).
-    out = extend_candidates(img, ev, out, sp, p.flanks)
     out.sort(key=lambda b: -b.strength)
-    return FrameCandidates(tuple(out[: p.max_candidates]), sp, "", {"work_px": (ev.fx, ev.fy)})
+    # Past the path's reach: each candidate kept followed down the bone's flanks
+    # (:mod:`.flanks`; strengths unchanged, so the same candidates are kept, in the same
+    # order, and those cut off are not traced).
+    out = extend_candidates(img, ev, out[: p.max_candidates], sp, p.flanks)
+    return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
 
 
 def _convex_pieces(
