@@ -333,6 +333,8 @@ class RejectionParams:
     """Contours of two frames are not linked when one lies wholly under the other (nine in ten of their common columns) by a median of more than this plus ``step_per_mm`` per mm between them along the sweep, mm (ours; issue 10: real bone moves <= 1.5 mm at a column between frames). The growth of the tolerance along the sweep is for a surface inclined to the sweep; a contour of the same extent a step under the track is the far cortex or a reverberation band in the bone's shadow (or the bone over those): on the small bones under a grey shadow, a skip link 4 frames (18 mm) long let the track drop 7.2 mm onto the far cortex at a cost of 0.75 (clavicle seed 5, wrong 0.30 -> 0.00)."""
     step_per_mm: float = 0.15
     """Growth of ``max_step_mm`` per mm between the frames along the sweep: the whole contour's depth drift along a bone (issue 10's cadaver: 0.23 mm median per 1.4 mm frame; a sparse sweep of 4 frames 30-80 mm apart over a clavicle steps 3.8-6.4 mm between them)."""
+    partial_deviation: float = 1.0
+    """Contours overlapping laterally by less than ``min_overlap_share`` are linked only when, over their common part, they lie within this many tolerances of each other (ours)."""
     min_track_frames: int = 3
     """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
     miss_cost: float = 0.3
@@ -352,6 +354,7 @@ class RejectionParams:
             positive=("tolerance_mm", "max_deviation", "max_step_mm", "min_track_frames"),
             non_negative=(
                 "tolerance_per_mm",
+                "partial_deviation",
                 "step_per_mm",
                 "max_skip",
                 "miss_cost",

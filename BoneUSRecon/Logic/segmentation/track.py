@@ -169,9 +169,23 @@ def _is_node(cand: BoneCandidate) -> bool:
     return not cand.reverberation and cand.strength > 0
 
 
-def _typical_strength(frames: Sequence[FrameCandidates]) -> float:
-    """The sweep's typical strength: the median over frames of each one's strongest."""
-    best = [max((c.strength for c in fc.usable), default=np.nan) for fc in frames]
+def _typical_strength(frames: Sequence[FrameCandidates], p: RejectionParams) -> float:
+    """The sweep's typical strength: the median over frames of each one's strongest, as
+    a node's value counts it (a candidate with an echo beneath at ``beneath_factor``).
+
+    The typical strength is the unit of a node's value against ``miss_cost``, so it is
+    taken from the strengths nodes can actually bring to a path: a bright far cortex or
+    fascia marked ``echo_beneath`` in most frames (the cadaver geometry's hard sweeps)
+    otherwise sets the unit while being worth a tenth of it, and the bone's own nodes
+    come out at 0.2-0.7 of a missed frame's cost.
+    """
+    best = [
+        max(
+            (c.strength * (p.beneath_factor if c.echo_beneath else 1.0) for c in fc.usable),
+            default=np.nan,
+        )
+        for fc in frames
+    ]
     best_arr = np.asarray(best, dtype=float)
     pos = best_arr[np.isfinite(best_arr) & (best_arr > 0)]
     return float(np.median(pos)) if pos.size else 1.0
@@ -222,12 +236,17 @@ def _links(
         ):
             continue
         d, share, z = _in_plane_deviation(a, b)
-        if share < p.min_overlap_share or not np.isfinite(d):
+        if not np.isfinite(d):
             continue
         if _stepped(a, b, p.max_step_mm + p.step_per_mm * z):
             continue
         tol = p.tolerance_mm + p.tolerance_per_mm * z
+        # Pieces sharing little of their extent (partial pieces of the bone, each on
+        # its part of the contour) are judged on their common part, within a tighter
+        # bound: a small common part is weaker evidence of one surface.
         if d > p.max_deviation * tol:
+            continue
+        if share < p.min_overlap_share and d > p.partial_deviation * p.tolerance_mm:
             continue
         out.append((i, d / tol))
     return out
@@ -271,7 +290,7 @@ def select_bone_track(
         return TrackChoice(chosen, conf, reason, detail)
 
     m = len(nodes)
-    typical = _typical_strength(frames)
+    typical = _typical_strength(frames, p)
     value = np.array([_node_value(frames[f].candidates[c], typical, p) for f, c in nodes])
     geometry = [
         _node_points(frames[f].candidates[c], frames[f].spacing, poses[f]) for f, c in nodes
