@@ -5,9 +5,9 @@ contours form one continuous surface in 3D, by a longest path through a directed
 acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
 
 * a node is a candidate; its value is its strength relative to the sweep's own typical
-  strength (the median over frames of each frame's strongest candidate), capped at
-  ``strength_cap``: sweep-level normalisation, so a faint recording and a bright one
-  are judged alike;
+  strength (the median over frames of each frame's strongest node value, a candidate
+  with an echo beneath counted at ``beneath_factor``), capped at ``strength_cap``:
+  sweep-level normalisation, so a faint recording and a bright one are judged alike;
 * an edge links a candidate of frame ``f`` to one of frame ``g`` (``f < g <= f +
   max_skip + 1``); its cost is ``(d / tol)^2`` where ``d`` is the median in-plane
   distance (mm) from the points of ``g``'s candidate to ``f``'s contour projected into
@@ -16,6 +16,9 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   along the sweep (out of plane). It is a distance to a contour, not a depth at a
   column, so a steep flank that slides sideways between frames is no jump. Contours
   farther apart than ``max_deviation`` tolerances, or not overlapping, are not linked;
+  pieces overlapping by less than ``min_overlap_share`` (partial pieces of the bone,
+  meeting end to end) only within ``partial_deviation`` x ``tolerance_mm`` on their
+  common part;
   nor is a contour lying wholly a step (``max_step_mm + step_per_mm * z``) under or
   over the other: the tolerance's growth along the sweep is for a surface inclined to
   it (its flanks sliding sideways), while a whole contour a step under the bone's is
@@ -238,15 +241,16 @@ def _links(
         d, share, z = _in_plane_deviation(a, b)
         if not np.isfinite(d):
             continue
+        # Pieces sharing little of their extent (partial pieces of the bone, each on its
+        # part of the contour, meeting end to end) are judged on their common part, d,
+        # within a bound that does not grow along the sweep: a small common part is
+        # weaker evidence of one surface.
+        if share < p.min_overlap_share and d > p.partial_deviation * p.tolerance_mm:
+            continue
         if _stepped(a, b, p.max_step_mm + p.step_per_mm * z):
             continue
         tol = p.tolerance_mm + p.tolerance_per_mm * z
-        # Pieces sharing little of their extent (partial pieces of the bone, each on
-        # its part of the contour) are judged on their common part, within a tighter
-        # bound: a small common part is weaker evidence of one surface.
         if d > p.max_deviation * tol:
-            continue
-        if share < p.min_overlap_share and d > p.partial_deviation * p.tolerance_mm:
             continue
         out.append((i, d / tol))
     return out
