@@ -17,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import REAL_MHA, REAL_XML  # Resources/SampleData, in the repository
-from scipy.spatial import cKDTree
 
 from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.simulation import augment
@@ -69,20 +68,7 @@ def test_augmented_recording_gives_the_same_bone(real, name):
     # As much of it: most of the original contour is found again, and little found
     # beyond its ends (a little further down a flank: 0-15 % of a frame's points).
     assert np.median(cover) >= 0.9
-    assert np.median(beyond) <= 0.1
-    # A frame whose contour lies mostly beyond the original's is another piece of the
-    # bone (the crop copy, one frame: a piece the track's partial links now keep), on
-    # the recording's reference contour.
-    from pathlib import Path
-
-    from BoneUSRecon.Logic.simulation.scoring import read_reference_csv
-
-    reference = read_reference_csv(Path(__file__).parent / "data" / "L14_reference.csv")
-    frames = [c.frame for c in r2.accepted if r.contours[c.frame].accepted]
-    for f in np.asarray(frames)[beyond > 0.5]:
-        true_mm = sw.to_reference(f, np.asarray(reference[f], dtype=float))
-        d_true = cKDTree(true_mm).query(aug.to_reference(f, r2.contours[f].points_px))[0]
-        assert np.median(d_true) <= 0.3
+    assert np.median(beyond) <= 0.1 and beyond.max() <= 0.5
 
 
 def test_flip_maps_pixels_to_the_same_millimetres(real):

@@ -333,8 +333,6 @@ class RejectionParams:
     """Contours of two frames are not linked when one lies wholly under the other (nine in ten of their common columns) by a median of more than this plus ``step_per_mm`` per mm between them along the sweep, mm (ours; issue 10: real bone moves <= 1.5 mm at a column between frames). The growth of the tolerance along the sweep is for a surface inclined to the sweep; a contour of the same extent a step under the track is the far cortex or a reverberation band in the bone's shadow (or the bone over those): on the small bones under a grey shadow, a skip link 4 frames (18 mm) long let the track drop 7.2 mm onto the far cortex at a cost of 0.75 (clavicle seed 5, wrong 0.30 -> 0.00)."""
     step_per_mm: float = 0.15
     """Growth of ``max_step_mm`` per mm between the frames along the sweep: the whole contour's depth drift along a bone (issue 10's cadaver: 0.23 mm median per 1.4 mm frame; a sparse sweep of 4 frames 30-80 mm apart over a clavicle steps 3.8-6.4 mm between them)."""
-    partial_deviation: float = 1.0
-    """Contours overlapping laterally by less than ``min_overlap_share`` (pieces meeting end to end) are still linked when, over their common part (a's extent widened by 1 mm), b lies within this many ``tolerance_mm`` of a, mm-for-mm at zero distance along the sweep (ours). At the cadaver's 0.108 mm pixels the candidates on the bone are often partial pieces, a different part of the contour from one frame to the next (humerus seed 5: frames 3-4 0.46 mm apart, share 0.21), which the share alone never linked. The bound does not grow with the distance along the sweep, as the full tolerance does: a small common part cannot vouch for an inclined surface, and a chain of end-to-end links with a grown tolerance walked the track sideways onto another structure on the 0.3 mm ulna (seed 7, wrong 0.00 -> 0.12 with ``partial_deviation`` x the grown tolerance; 0.00 with this bound)."""
     min_track_frames: int = 3
     """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
     miss_cost: float = 0.3
@@ -354,7 +352,6 @@ class RejectionParams:
             positive=("tolerance_mm", "max_deviation", "max_step_mm", "min_track_frames"),
             non_negative=(
                 "tolerance_per_mm",
-                "partial_deviation",
                 "step_per_mm",
                 "max_skip",
                 "miss_cost",

@@ -5,9 +5,9 @@ contours form one continuous surface in 3D, by a longest path through a directed
 acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
 
 * a node is a candidate; its value is its strength relative to the sweep's own typical
-  strength (the median over frames of each frame's strongest node value, a candidate
-  with an echo beneath counted at ``beneath_factor``), capped at ``strength_cap``:
-  sweep-level normalisation, so a faint recording and a bright one are judged alike;
+  strength (the median over frames of each frame's strongest candidate), capped at
+  ``strength_cap``: sweep-level normalisation, so a faint recording and a bright one
+  are judged alike;
 * an edge links a candidate of frame ``f`` to one of frame ``g`` (``f < g <= f +
   max_skip + 1``); its cost is ``(d / tol)^2`` where ``d`` is the median in-plane
   distance (mm) from the points of ``g``'s candidate to ``f``'s contour projected into
@@ -16,9 +16,6 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   along the sweep (out of plane). It is a distance to a contour, not a depth at a
   column, so a steep flank that slides sideways between frames is no jump. Contours
   farther apart than ``max_deviation`` tolerances, or not overlapping, are not linked;
-  pieces overlapping by less than ``min_overlap_share`` (partial pieces of the bone,
-  meeting end to end) only within ``partial_deviation`` x ``tolerance_mm`` on their
-  common part;
   nor is a contour lying wholly a step (``max_step_mm + step_per_mm * z``) under or
   over the other: the tolerance's growth along the sweep is for a surface inclined to
   it (its flanks sliding sideways), while a whole contour a step under the bone's is
@@ -172,23 +169,9 @@ def _is_node(cand: BoneCandidate) -> bool:
     return not cand.reverberation and cand.strength > 0
 
 
-def _typical_strength(frames: Sequence[FrameCandidates], p: RejectionParams) -> float:
-    """The sweep's typical strength: the median over frames of each one's strongest, as
-    a node's value counts it (a candidate with an echo beneath at ``beneath_factor``).
-
-    The typical strength is the unit of a node's value against ``miss_cost``, so it is
-    taken from the strengths nodes can actually bring to a path: a bright far cortex or
-    fascia marked ``echo_beneath`` in most frames (the cadaver geometry's hard sweeps)
-    otherwise sets the unit while being worth a tenth of it, and the bone's own nodes
-    come out at 0.2-0.7 of a missed frame's cost.
-    """
-    best = [
-        max(
-            (c.strength * (p.beneath_factor if c.echo_beneath else 1.0) for c in fc.usable),
-            default=np.nan,
-        )
-        for fc in frames
-    ]
+def _typical_strength(frames: Sequence[FrameCandidates]) -> float:
+    """The sweep's typical strength: the median over frames of each one's strongest."""
+    best = [max((c.strength for c in fc.usable), default=np.nan) for fc in frames]
     best_arr = np.asarray(best, dtype=float)
     pos = best_arr[np.isfinite(best_arr) & (best_arr > 0)]
     return float(np.median(pos)) if pos.size else 1.0
@@ -239,13 +222,7 @@ def _links(
         ):
             continue
         d, share, z = _in_plane_deviation(a, b)
-        if not np.isfinite(d):
-            continue
-        # Pieces sharing little of their extent (partial pieces of the bone, each on its
-        # part of the contour, meeting end to end) are judged on their common part, d,
-        # within a bound that does not grow along the sweep: a small common part is
-        # weaker evidence of one surface.
-        if share < p.min_overlap_share and d > p.partial_deviation * p.tolerance_mm:
+        if share < p.min_overlap_share or not np.isfinite(d):
             continue
         if _stepped(a, b, p.max_step_mm + p.step_per_mm * z):
             continue
@@ -294,7 +271,7 @@ def select_bone_track(
         return TrackChoice(chosen, conf, reason, detail)
 
     m = len(nodes)
-    typical = _typical_strength(frames, p)
+    typical = _typical_strength(frames)
     value = np.array([_node_value(frames[f].candidates[c], typical, p) for f, c in nodes])
     geometry = [
         _node_points(frames[f].candidates[c], frames[f].spacing, poses[f]) for f, c in nodes

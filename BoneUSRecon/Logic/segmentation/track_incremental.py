@@ -196,7 +196,7 @@ class IncrementalTrack:
         if len(self._details) > 8 * n:
             self._details.clear()  # choices that changed long ago
         fcs = [fr.candidates for fr in frames]
-        typical = _typical_strength(fcs, p)
+        typical = _typical_strength(fcs)
         value_arr = np.array([_node_value(fcs[f].candidates[c], typical, p) for f, c in nodes])
         # The forward pass on Python floats (the same IEEE arithmetic as the batch
         # version's numpy scalars, ~10x faster per edge); edges in the batch order.
