@@ -436,3 +436,47 @@ def test_parameters_are_checked_at_the_door(cls, field, value):
 
     with pytest.raises(BoneUSReconError, match=field):
         getattr(params, cls)(**{field: value})
+
+
+def _dome_with_climbing_layer(jitter_px: float = 0.0) -> np.ndarray:
+    """A contour as the path draws it over clavicle seed 31, frame 60 (0.15 mm pixels):
+    a fascia descending onto the bone's left flank (columns 58-146, rows 35 -> 47), then
+    the bone's dome (top at row 39, column 174; row 61 at column 218)."""
+    i = np.arange(58.0, 219.0, 2.0)
+    j = np.where(
+        i <= 146,
+        35.0 + (i - 58.0) * 12.0 / 88.0,
+        39.0
+        + 22.0
+        * ((i - 174.0) / 44.0) ** 2
+        * np.where(i < 174, 8.0 / 22.0 * (44.0 / 28.0) ** 2, 1.0),
+    )
+    j = j + np.random.default_rng(0).normal(0.0, jitter_px, i.size)
+    return np.column_stack([i, j])
+
+
+def test_contour_split_where_a_layer_meets_the_bone_in_a_valley():
+    """A layer meeting the bone's flank and climbing away from it forms a valley with the
+    dome: two structures. The old convexity cut alone kept both as one piece (the flank
+    there is too shallow for its kink rule)."""
+    from BoneUSRecon.Logic.segmentation.candidates import _convex_pieces
+    from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+
+    pts = _dome_with_climbing_layer()
+    pieces = _convex_pieces(pts, (0.15, 0.15), ShadowPathParams(), 5)
+    x = pts[:, 0]
+    # No piece spans both structures; one is the dome, from the valley to the end.
+    assert not any(m[x < 120].any() and m[x > 170].any() for m in pieces)
+    dome = [m for m in pieces if m[x > 170].any()]
+    assert len(dome) == 1 and x[dome[0]].min() >= 140 and x[dome[0]].max() == x.max()
+
+
+def test_a_dome_with_speckle_jitter_is_not_split():
+    """The split needs a dip deeper than ``valley_mm`` on both sides: the refined
+    contour's jitter (0.1 px here, 0.3 px at worst) never makes one."""
+    from BoneUSRecon.Logic.segmentation.candidates import _valley_runs
+
+    i = np.arange(0.0, 160.0, 2.0)
+    for sd in (0.1, 0.3):
+        j = 40.0 + 0.004 * (i - 80.0) ** 2 + np.random.default_rng(1).normal(0.0, sd, i.size)
+        assert len(_valley_runs(np.column_stack([i, j]), (0.15, 0.15), 0.5)) == 1

@@ -1082,28 +1082,59 @@ def _frame_candidates_steps(
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
 
 
+def _valley_runs(
+    pts: np.ndarray, spacing: tuple[float, float], valley_mm: float
+) -> list[np.ndarray]:
+    """Index runs of a contour split at its valleys (each valley point in both runs).
+
+    A long bone's top seen from the probe is one dome: its depth has a single minimum
+    along the contour. A dip deeper than ``valley_mm`` below the shallowest point on
+    *each* side of it is where two structures meet (a fascia crossing the bone's flank
+    and climbing away from it, or two bones side by side): the contour is cut at the
+    dip's deepest point. The depth is in mm, so the rule holds at any pixel size.
+    """
+    n = pts.shape[0]
+    z = pts[:, 1] * float(spacing[1])
+    left = np.minimum.accumulate(z)
+    right = np.minimum.accumulate(z[::-1])[::-1]
+    dip = np.minimum(z - left, z - right)
+    deep = np.flatnonzero(dip >= valley_mm)
+    if deep.size == 0:
+        return [np.arange(n)]
+    regions = np.split(deep, np.flatnonzero(np.diff(deep) > 1) + 1)
+    cuts = [int(r[np.argmax(dip[r])]) for r in regions]
+    bounds = [0, *cuts, n - 1]
+    return [np.arange(a, b + 1) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
 def _convex_pieces(
     pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams, min_cols: int
 ) -> list[np.ndarray]:
-    """Masks of the convex pieces of a contour: the part around its apex, then each run cut off.
+    """Masks of the convex pieces of a contour: the part around each apex, then each run cut off.
 
     A path that runs from the bone onto a layer meeting it (a fascia climbing off the
-    crest) is two structures; when the layer climbs above the bone's top, the apex lies
-    on the layer and :func:`convex_part` keeps the layer. Every run cut off (at least
-    ``min_cols`` points) is offered too, as its own candidate with its own evidence, so
-    the sweep-level choice sees the bone whichever piece holds the apex.
+    crest) is two structures. The contour is first split at its valleys
+    (:func:`_valley_runs`: a layer crossing the flank and climbing away); in each part,
+    when the layer climbs above the bone's top, the apex lies on the layer and
+    :func:`convex_part` keeps the layer. Every run cut off (at least ``min_cols``
+    points) is offered too, as its own candidate with its own evidence, so the
+    sweep-level choice sees the bone whichever piece holds the apex.
     """
-    keep = convex_part(pts, spacing, p)
-    pieces = [keep]
-    rest = np.flatnonzero(~keep)
-    if rest.size >= min_cols:
-        for run in np.split(rest, np.flatnonzero(np.diff(rest) > 1) + 1):
-            if run.size >= min_cols:
-                sub = run[convex_part(pts[run], spacing, p)]
-                if sub.size >= min_cols:
-                    m = np.zeros(keep.size, bool)
-                    m[sub] = True
-                    pieces.append(m)
+    pieces: list[np.ndarray] = []
+    runs = [r for r in _valley_runs(pts, spacing, p.valley_mm) if r.size >= min_cols]
+    for part in runs or [np.arange(pts.shape[0])]:
+        keep = np.zeros(pts.shape[0], bool)
+        keep[part[convex_part(pts[part], spacing, p)]] = True
+        pieces.append(keep)
+        rest = part[~keep[part]]
+        if rest.size >= min_cols:
+            for run in np.split(rest, np.flatnonzero(np.diff(rest) > 1) + 1):
+                if run.size >= min_cols:
+                    sub = run[convex_part(pts[run], spacing, p)]
+                    if sub.size >= min_cols:
+                        m = np.zeros(pts.shape[0], bool)
+                        m[sub] = True
+                        pieces.append(m)
     return pieces
 
 

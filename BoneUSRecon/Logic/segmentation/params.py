@@ -304,6 +304,8 @@ class ShadowPathParams:
     """Outward descent (depth mm per lateral mm, ~31 degrees) from which a turn to less than a third of it ends the bone (convexity, see candidates.convex_part)."""
     kink_mm: float = 1.5
     """Lateral window over which those slopes are measured, mm."""
+    valley_mm: float = 0.5
+    """A contour is split where it dips deeper than this below the shallowest point on each side of the dip, mm (ours: a long bone's top is convex, one dome seen from the probe; a dip between two shallower parts is where a layer meets it, e.g. a fascia crossing the bone's flank; 0.5 mm is five times the refined contour's jitter)."""
     beneath_ratio: float = 0.8
     """A candidate with an echo at least this fraction of its own grey level under it let the sound through: not bone (a ratio; bone returns far less from beneath it)."""
     reverb_tolerance: float = 0.12
@@ -344,6 +346,7 @@ class ShadowPathParams:
                 "max_candidates",
                 "suppress_mm",
                 "kink_mm",
+                "valley_mm",
                 "refine_mm",
                 "kink_slope",
                 "series_min_mm",
