@@ -463,8 +463,10 @@ def test_contour_split_where_a_layer_meets_the_bone_in_a_valley():
     from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
     pts = _dome_with_climbing_layer()
-    pieces = _convex_pieces(pts, (0.15, 0.15), ShadowPathParams(), 5)
     x = pts[:, 0]
+    # The bone's shadow under the dome, tissue under the layer (shadow z-scores).
+    shadow = np.where(x > 146, 2.5, 0.3)
+    pieces = _convex_pieces(pts, (0.15, 0.15), ShadowPathParams(), 5, shadow)
     # No piece spans both structures; one is the dome, from the valley to the end.
     assert not any(m[x < 120].any() and m[x > 170].any() for m in pieces)
     dome = [m for m in pieces if m[x > 170].any()]
@@ -479,4 +481,17 @@ def test_a_dome_with_speckle_jitter_is_not_split():
     i = np.arange(0.0, 160.0, 2.0)
     for sd in (0.1, 0.3):
         j = 40.0 + 0.004 * (i - 80.0) ** 2 + np.random.default_rng(1).normal(0.0, sd, i.size)
-        assert len(_valley_runs(np.column_stack([i, j]), (0.15, 0.15), 0.5)) == 1
+        pts = np.column_stack([i, j])
+        assert len(_valley_runs(pts, (0.15, 0.15), 0.5, np.full(i.size, 2.0))) == 1
+
+
+def test_a_groove_in_the_bone_is_not_split():
+    """A groove in the bone (two crests, the bone's shadow under both): one contour."""
+    from BoneUSRecon.Logic.segmentation.candidates import _valley_runs
+
+    i = np.arange(0.0, 160.0, 2.0)
+    j = 40.0 + 6.0 * np.exp(-0.5 * ((i - 80.0) / 12.0) ** 2) + 0.002 * (i - 80.0) ** 2
+    pts = np.column_stack([i, j])
+    assert len(_valley_runs(pts, (0.15, 0.15), 0.5, np.full(i.size, 2.0))) == 1
+    # The same shape with tissue, not shadow, under one side: a layer meets the bone.
+    assert len(_valley_runs(pts, (0.15, 0.15), 0.5, np.where(i < 80, 0.2, 2.0))) == 2

@@ -1051,7 +1051,7 @@ def _frame_candidates_steps(
         pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
         # Of the contour's convex pieces, the one with the most evidence is the candidate.
         pieces = []
-        for m in _convex_pieces(pts, sp, p, min_cols):
+        for m in _convex_pieces(pts, sp, p, min_cols, ev.shadow_z[c["rows"], c["cols"]]):
             cols, rows = c["cols"][m], c["rows"][m]
             pieces.append((float((ev.score[rows, cols] - p.null_z).sum() * ev.dx), m, cols, rows))
         best = max(pieces, key=lambda q: q[0])  # the piece around the apex is always offered
@@ -1083,15 +1083,22 @@ def _frame_candidates_steps(
 
 
 def _valley_runs(
-    pts: np.ndarray, spacing: tuple[float, float], valley_mm: float
+    pts: np.ndarray, spacing: tuple[float, float], valley_mm: float, shadow: np.ndarray
 ) -> list[np.ndarray]:
-    """Index runs of a contour split at its valleys (each valley point in both runs).
+    """Index runs of a contour split where a layer meets the bone in a valley.
 
-    A long bone's top seen from the probe is one dome: its depth has a single minimum
-    along the contour. A dip deeper than ``valley_mm`` below the shallowest point on
-    *each* side of it is where two structures meet (a fascia crossing the bone's flank
-    and climbing away from it, or two bones side by side): the contour is cut at the
-    dip's deepest point. The depth is in mm, so the rule holds at any pixel size.
+    A long bone's top seen from the probe is mostly one dome. A dip deeper than
+    ``valley_mm`` below the shallowest point on *each* side of it is either where a
+    layer meets the bone (a fascia crossing its flank and climbing away from it) or a
+    groove in the bone itself (the bicipital groove, the grooves beside Lister's
+    tubercle). The bone casts its shadow on both sides of a groove; a layer has tissue
+    beneath it. So the contour is cut at the dip's deepest point only when one side has
+    less than a third of the other side's shadow (median shadow z-score: units of this
+    frame's own spread, so the rule holds at any gain or contrast; measured: a fascia
+    meeting the clavicle 0.06-0.19 of the bone's side, a concave bone surface spanning
+    the image whose deep side's shadow windows reach the image bottom 0.43-0.46); a
+    groove stays whole. Depths are in mm, so the rule holds at any pixel size. Each cut point is in
+    both runs.
     """
     n = pts.shape[0]
     z = pts[:, 1] * float(spacing[1])
@@ -1101,29 +1108,40 @@ def _valley_runs(
     deep = np.flatnonzero(dip >= valley_mm)
     if deep.size == 0:
         return [np.arange(n)]
-    regions = np.split(deep, np.flatnonzero(np.diff(deep) > 1) + 1)
-    cuts = [int(r[np.argmax(dip[r])]) for r in regions]
+    cuts = []
+    for r in np.split(deep, np.flatnonzero(np.diff(deep) > 1) + 1):
+        k = int(r[np.argmax(dip[r])])
+        a, b = median1d(shadow[: k + 1]), median1d(shadow[k:])
+        if min(a, b) < max(a, b) / 3.0:
+            cuts.append(k)
     bounds = [0, *cuts, n - 1]
     return [np.arange(a, b + 1) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
 def _convex_pieces(
-    pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams, min_cols: int
+    pts: np.ndarray,
+    spacing: tuple[float, float],
+    p: ShadowPathParams,
+    min_cols: int,
+    shadow: np.ndarray | None = None,
 ) -> list[np.ndarray]:
     """Masks of the convex pieces of a contour: the part around each apex, then each run cut off.
 
     A path that runs from the bone onto a layer meeting it (a fascia climbing off the
-    crest) is two structures. The contour is first split at its valleys
-    (:func:`_valley_runs`: a layer crossing the flank and climbing away); in each part,
-    when the layer climbs above the bone's top, the apex lies on the layer and
-    :func:`convex_part` keeps the layer. Every run cut off (at least ``min_cols``
-    points) is offered too, as its own candidate with its own evidence, so the
-    sweep-level choice sees the bone whichever piece holds the apex.
+    crest) is two structures. With ``shadow`` (the shadow z-score at each point) the
+    contour is first split where a layer meets the bone in a valley
+    (:func:`_valley_runs`); in each part, when the layer climbs above the bone's top,
+    the apex lies on the layer and :func:`convex_part` keeps the layer. Every run cut
+    off (at least ``min_cols`` points) is offered too, as its own candidate with its own
+    evidence, so the sweep-level choice sees the bone whichever piece holds the apex.
     """
     pieces: list[np.ndarray] = []
-    runs = [r for r in _valley_runs(pts, spacing, p.valley_mm) if r.size >= min_cols]
-    for part in runs or [np.arange(pts.shape[0])]:
-        keep = np.zeros(pts.shape[0], bool)
+    n = pts.shape[0]
+    runs = [np.arange(n)]
+    if shadow is not None:
+        runs = [r for r in _valley_runs(pts, spacing, p.valley_mm, shadow) if r.size >= min_cols]
+    for part in runs or [np.arange(n)]:
+        keep = np.zeros(n, bool)
         keep[part[convex_part(pts[part], spacing, p)]] = True
         pieces.append(keep)
         rest = part[~keep[part]]
@@ -1132,7 +1150,7 @@ def _convex_pieces(
                 if run.size >= min_cols:
                     sub = run[convex_part(pts[run], spacing, p)]
                     if sub.size >= min_cols:
-                        m = np.zeros(pts.shape[0], bool)
+                        m = np.zeros(n, bool)
                         m[sub] = True
                         pieces.append(m)
     return pieces

@@ -305,7 +305,7 @@ class ShadowPathParams:
     kink_mm: float = 1.5
     """Lateral window over which those slopes are measured, mm."""
     valley_mm: float = 0.5
-    """A contour is split where it dips deeper than this below the shallowest point on each side of the dip, mm (ours: a long bone's top is convex, one dome seen from the probe; a dip between two shallower parts is where a layer meets it, e.g. a fascia crossing the bone's flank; 0.5 mm is five times the refined contour's jitter)."""
+    """A contour is split where it dips deeper than this below its shallowest point on each side of the dip, with less than a third of the shadow on one side than on the other, mm (ours: a layer meeting the bone's flank and climbing away, tissue beneath it; a groove in the bone has the shadow on both sides and stays whole; 0.5 mm is five times the refined contour's jitter)."""
     beneath_ratio: float = 0.8
     """A candidate with an echo at least this fraction of its own grey level under it let the sound through: not bone (a ratio; bone returns far less from beneath it)."""
     reverb_tolerance: float = 0.12
