@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from conftest import small_simulation
 from scipy.sparse.linalg import spsolve
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
@@ -113,20 +114,10 @@ def test_optional_terms_validated_and_off_by_default() -> None:
 
 def test_confidence_term_keeps_bone_shadow_and_opens_no_fascia() -> None:
     """Switched on, the confidence drop adds to the bone's shadow evidence, not a fascia's."""
-    from BoneUSRecon.Logic.simulation import SimulationParams, simulate
     from BoneUSRecon.Logic.sweep import pixel_spacing
 
-    sim = simulate(
-        SimulationParams(
-            bone="tibia",
-            n_frames=6,
-            width=160,
-            height=128,
-            spacing_mm=0.3,
-            seed=5,
-            realism="hard",
-            hard_conditions=("fascia",),
-        )
+    sim = small_simulation(
+        bone="tibia", n_frames=6, seed=5, realism="hard", hard_conditions=("fascia",)
     )
     spacing = pixel_spacing(sim.sweep.image_to_reference)
     on = ShadowPathParams(confidence_weight=1.0)
@@ -147,12 +138,9 @@ def test_switched_on_terms_still_segment_a_standard_sweep(switch: dict) -> None:
     """Each optional term, switched on, keeps the standard tibia on the bone (figures in
     Testing/benchmarks/README.md: 1.00 recall there with either)."""
     from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
-    from BoneUSRecon.Logic.simulation import SimulationParams, simulate
     from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
-    sim = simulate(
-        SimulationParams(bone="tibia", n_frames=12, width=160, height=128, spacing_mm=0.3, seed=5)
-    )
+    sim = small_simulation(bone="tibia", n_frames=12, seed=5)
     res = segment_sweep(sim.sweep, SegmentationParams(shadowpath=ShadowPathParams(**switch)))
     s = score_simulation(res, sim).summary()
     assert s["recall"] >= 0.9 and s["wrong_share"] == 0.0

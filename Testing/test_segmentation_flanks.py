@@ -13,13 +13,13 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import small_simulation
 from scipy.ndimage import gaussian_filter
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import frame_candidates
 from BoneUSRecon.Logic.segmentation.params import FlankParams, ShadowPathParams
-from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 
 SPACING = 0.1  # mm per pixel
 RADIUS, DEPTH = 7.0, 12.0  # the bone: a circle of 7 mm radius, centre 12 mm deep
@@ -113,17 +113,8 @@ def test_flank_stays_on_the_bone_over_far_cortex_and_reverberation(seed: int) ->
 def test_flanks_add_no_point_off_the_bone_where_a_fascia_runs_off_it() -> None:
     """Simulated hard sweep with a fascia running off the bone at its level (as bright as
     the bone, tissue beneath): the points the flank following adds lie on the true bone."""
-    sim = simulate(
-        SimulationParams(
-            bone="tibia",
-            n_frames=20,
-            width=160,
-            height=128,
-            spacing_mm=0.3,
-            seed=5,
-            realism="hard",
-            hard_conditions=("fascia",),
-        )
+    sim = small_simulation(
+        bone="tibia", n_frames=20, seed=5, realism="hard", hard_conditions=("fascia",)
     )
     base = SegmentationParams()
     off = dataclasses.replace(
