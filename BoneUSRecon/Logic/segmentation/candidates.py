@@ -925,13 +925,7 @@ def frame_candidates(
     -------
     FrameCandidates
     """
-    gen = _frame_candidates_steps(image, spacing, params)
-    try:
-        request = next(gen)
-        while True:
-            request = gen.send(_optimal_path(*request))
-    except StopIteration as done:
-        return done.value
+    return frame_candidates_many([image], [spacing], params)[0]
 
 
 def frame_candidates_many(

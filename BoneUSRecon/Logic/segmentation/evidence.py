@@ -176,12 +176,10 @@ def tissue_level(
     sel = sel[:, ::2] if sel.shape[1] >= 40 else sel  # half the columns suffice for a percentile
     # Sorting the rows first: the same order statistics, so the same percentiles, and a
     # row-wise sort is several times faster than numpy's per-row selection at these sizes.
+    # np.percentile's values read from the sorted rows (no re-partition).
     srt = np.sort(sel, axis=1)
-    if isinstance(percentile, tuple):
-        t = sorted_row_percentiles(srt, percentile)  # np.percentile's values, no re-partition
-    else:
-        t = np.percentile(srt, percentile, axis=1, overwrite_input=True)
-    t = t.astype(np.float32)
+    t = sorted_row_percentiles(srt, percentile if isinstance(percentile, tuple) else (percentile,))
+    t = (t if isinstance(percentile, tuple) else t[0]).astype(np.float32)
     t = gaussian_filter1d(t, max(0.5, 1.0 / dy), axis=-1, mode="nearest")
     # Relative floor (a fraction of the frame's own typical tissue level): deep rows of
     # a dark image must not turn a ratio into a division by ~0.

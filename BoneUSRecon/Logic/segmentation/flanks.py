@@ -67,6 +67,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import FlankParams
@@ -450,7 +451,8 @@ def extend_candidates(
     changed = [(n, pts) for n, pts in zip(which, new, strict=True) if pts is not cands[n].points_px]
     if changed:
         allp = np.concatenate([pts for _, pts in changed])
-        grey = _bilinear(np.asarray(image), allp[:, 0], allp[:, 1]).astype(np.float64)
+        # Grey values as every candidate's (candidates.frame_candidates).
+        grey = sample_bilinear(np.asarray(image), allp)
         cut = np.cumsum([0] + [pts.shape[0] for _, pts in changed])
         for q, (n, pts) in enumerate(changed):
             cands[n] = dataclasses.replace(
