@@ -96,6 +96,9 @@ class BoneCandidate:
         An echo at least ``beneath_ratio`` as bright lies under it and it casts no
         shadow (sound went through: soft tissue, not bone), or it lies in the shadow of a
         shallower candidate (far cortex); the track values it less.
+    guided : bool
+        Found by the search guided by the bone track (:mod:`.recovery`), not by the
+        frame's own passes.
     """
 
     points_px: np.ndarray
@@ -105,6 +108,7 @@ class BoneCandidate:
     shadow_z: float
     reverberation: bool = False
     echo_beneath: bool = False
+    guided: bool = False
 
 
 @dataclass(frozen=True, eq=False)

@@ -7,6 +7,9 @@ Two public steps, usable separately (e.g. live, as frames arrive):
 * :func:`select_bone_track` (sweep level, :mod:`.track`): one candidate or none per
   frame, chosen jointly over the frames so far.
 
+Between the two, offline, frames off the track are searched again inside the band the
+track allows (:mod:`.recovery`; shadowpath only), and the track is chosen once more.
+
 :func:`segment_sweep` runs both over a sweep and packs the result.
 """
 
@@ -27,6 +30,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
+from BoneUSRecon.Logic.segmentation.recovery import recover_frames
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice, select_bone_track
@@ -136,6 +140,8 @@ def contours_from_track(
         extras = dict(fc.extras)
         if cand is not None:
             extras.update(strength=cand.strength, echo_z=cand.echo_z, shadow_z=cand.shadow_z)
+            if cand.guided:
+                extras["recovered"] = True
         extras["candidates"] = len(fc.candidates)
         out.append(
             FrameContour(
@@ -204,7 +210,22 @@ def segment_sweep(
             frames.append(fc)
             prior = fc.usable[0].points_px if fc.usable else None
             report(progress, "segment", n + 1, int(idx.size))
-    choice = select_bone_track(frames, sweep.image_to_reference[idx], params.rejection)
+    poses = sweep.image_to_reference[idx]
+    choice = select_bone_track(frames, poses, params.rejection)
+    if params.method == "shadowpath" and params.recovery.enabled:
+        # Frames off the track searched again inside the band the track allows, then
+        # one track over all frames again (:mod:`.recovery`).
+        frames, searched = recover_frames(
+            frames,
+            choice,
+            poses,
+            lambda n: np.asarray(sweep.frames[int(idx[n])]),
+            params.shadowpath,
+            params.rejection,
+            params.recovery,
+        )
+        if searched:
+            choice = select_bone_track(frames, poses, params.rejection)
     contours = contours_from_track(idx, frames, choice, params)
     t_seg = time.perf_counter() - t0
     result = SegmentationResult(

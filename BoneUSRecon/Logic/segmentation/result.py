@@ -118,6 +118,8 @@ class SegmentationResult:
             "method": self.method,
             "frames": len(self.contours),
             "accepted": len(self.accepted),
+            # Accepted frames whose contour the track-guided search found (.recovery).
+            "recovered": sum(bool(c.extras.get("recovered")) for c in self.accepted),
             "rejected": len(self.contours) - len(self.accepted),
             "points": self.n_points,
             "rejection_reasons": reasons,
