@@ -18,6 +18,7 @@ from BoneUSRecon.Logic.registration import RegistrationParams
 from BoneUSRecon.Logic.resampling import ResamplingParams
 from BoneUSRecon.Logic.segmentation import (
     PosteriorParams,
+    RecoveryParams,
     RejectionParams,
     SegmentationParams,
     ShadowPathParams,
@@ -42,6 +43,9 @@ BAD = [
     (RejectionParams, "max_skip", -1, "must be >= 0, got -1"),
     (RejectionParams, "min_track_frames", 1.5, "must be an integer"),
     (RejectionParams, "min_overlap_share", 1.5, r"must lie in \[0, 1\]"),
+    (RecoveryParams, "min_share", 1.5, r"must lie in \[0, 1\]"),
+    (RecoveryParams, "max_offset", 0.0, "must be > 0"),
+    (RecoveryParams, "enabled", 1, "must be True or False"),
     (SegmentationParams, "snake", ShadowPathParams(), "must be a SnakeParams"),
     (FitParams, "degree", (2.7, 2), r"must be an integer, got 2.7"),
     (FitParams, "degree", (2, 2, 2), r"must have 2 values"),
@@ -123,6 +127,7 @@ def test_good_values_coerced_to_declared_types(cls, changes, expected) -> None:
         SnakeParams,
         PosteriorParams,
         RejectionParams,
+        RecoveryParams,
         SegmentationParams,
         FitParams,
         ResamplingParams,

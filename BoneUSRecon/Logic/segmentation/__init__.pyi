@@ -15,12 +15,14 @@ from .evidence import bone_evidence
 from .params import (
     REFERENCE_PIXEL_MM,
     PosteriorParams,
+    RecoveryParams,
     RejectionParams,
     SegmentationParams,
     ShadowPathParams,
     SnakeParams,
 )
 from .polydata import points_polydata
+from .recovery import recover_frames
 from .result import FrameContour, SegmentationPoints, SegmentationResult
 from .track import TrackChoice, select_bone_track
 
@@ -35,6 +37,7 @@ __all__ = [
     "PosteriorParams",
     "ShadowPathParams",
     "RejectionParams",
+    "RecoveryParams",
     "FrameContour",
     "SegmentationResult",
     "SegmentationPoints",
@@ -47,6 +50,7 @@ __all__ = [
     "FrameCandidates",
     "BoneCandidate",
     "select_bone_track",
+    "recover_frames",
     "TrackChoice",
     "bone_evidence",
     "points_polydata",

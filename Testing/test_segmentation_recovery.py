@@ -1,0 +1,120 @@
+"""Track-guided recovery (issue 10): frames off the bone track searched again inside the
+band the track allows.
+
+Ground truth from the simulator (true contours per frame) on the hard preset, where the
+per-frame step misses the faint top or offers the bone only in pieces.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import small_simulation
+
+from BoneUSRecon.Logic.segmentation import (
+    RecoveryParams,
+    SegmentationParams,
+    recover_frames,
+    segment_sweep,
+    select_bone_track,
+)
+from BoneUSRecon.Logic.segmentation.candidates import frame_candidates_many
+from BoneUSRecon.Logic.segmentation.recovery import guided_candidate, track_prior
+from BoneUSRecon.Logic.simulation.scoring import score_simulation
+
+OFF = SegmentationParams(recovery=RecoveryParams(enabled=False))
+
+
+def _hard(bone: str):
+    return small_simulation(bone=bone, realism="hard", seed=7)
+
+
+@pytest.mark.parametrize("bone", ["ulna", "tibia"])
+def test_recovery_raises_recall_on_the_bone(bone):
+    """Hard sweeps: frames the per-frame step missed come back, every one on the bone."""
+    sim = _hard(bone)
+    before = segment_sweep(sim.sweep, OFF)
+    after = segment_sweep(sim.sweep)
+    s0, s1 = score_simulation(before, sim), score_simulation(after, sim)
+    # Measured: ulna 0.85 -> 1.00, tibia 0.85 -> 1.00 (6 frames recovered each).
+    assert s1.recall >= s0.recall + 0.1
+    assert s1.recall >= 0.95
+    assert s1.wrong_share == 0.0
+    recovered = [c for c in after.accepted if c.extras.get("recovered")]
+    assert after.summary()["recovered"] == len(recovered) >= 3
+    medians = [np.median(sim.distance_to_truth(c.points_mm(sim.sweep))) for c in recovered]
+    # Each on the bone (the recall criterion, mm); most within a few tenths (a frame
+    # next to a track frame that is itself partly off inherits some of its error:
+    # ulna frame 36, 0.76 mm, beside frame 37's 0.71 mm).
+    assert max(medians) < 1.0
+    assert np.median(medians) < 0.3
+    # Frames on the first track keep their contours: recovery only adds.
+    kept_before = {c.frame for c in before.accepted}
+    assert kept_before <= {c.frame for c in after.accepted}
+
+
+def test_recovery_off_is_the_plain_track():
+    sim = _hard("ulna")
+    r = segment_sweep(sim.sweep, OFF)
+    assert r.summary()["recovered"] == 0
+    assert not any(c.extras.get("recovered") for c in r.contours)
+
+
+def _first_track(sim):
+    sw = sim.sweep
+    frames = frame_candidates_many(list(sw.frames), [sw.spacing_mm] * sw.n_frames)
+    return frames, select_bone_track(frames, sw.image_to_reference)
+
+
+def test_guided_candidate_follows_the_prior_onto_the_bone_only():
+    """Inside the band around the track's neighbouring contours the bone is found to a
+    fraction of a mm; the same prior moved 4 mm up into the soft tissue finds nothing
+    (speckle holds no run of evidence over half the band), nor does a prior lying in
+    the shadow under the bone."""
+    sim = _hard("tibia")
+    sw = sim.sweep
+    frames, choice = _first_track(sim)
+    on = np.flatnonzero(choice.chosen >= 0)
+    # A frame on the track with track frames on both sides: its own choice left out.
+    f = int(next(k for k in on[1:-1] if k - 1 in on and k + 1 in on))
+    hidden = choice.chosen.copy()
+    hidden[f] = -1
+    masked = type(choice)(hidden, choice.confidence, choice.reason, choice.detail)
+    prior = track_prior(frames, masked, sw.image_to_reference, f, 9)
+    assert prior is not None and len(prior) == 2
+    image = sw.frames[f]
+    cand = guided_candidate(image, sw.spacing_mm, prior)
+    assert cand is not None and cand.guided
+    d = sim.distance_to_truth(sw.to_reference(f, cand.points_px))
+    assert np.median(d) < 0.3  # mm
+    for shift in (-4.0, 6.0):  # into the tissue above, into the shadow below (mm)
+        moved = [(lat, depth + shift, z) for lat, depth, z in prior]
+        assert guided_candidate(image, sw.spacing_mm, moved) is None, shift
+
+
+def test_recover_frames_searches_only_between_track_frames():
+    """Frames off the track are searched only with a track frame on each side (the ends
+    of the track have one side to vouch for them); nothing is searched with recovery off."""
+    sim = _hard("ulna")
+    sw = sim.sweep
+    frames, choice = _first_track(sim)
+    on = np.flatnonzero(choice.chosen >= 0)
+    calls: list[int] = []
+
+    def image_of(n: int) -> np.ndarray:
+        calls.append(n)
+        return sw.frames[n]
+
+    new, changed = recover_frames(frames, choice, sw.image_to_reference, image_of)
+    assert changed and set(changed) <= set(calls)
+    assert all(on[0] < n < on[-1] and choice.chosen[n] < 0 for n in calls)
+    for n in changed:
+        assert len(new[n].candidates) == len(frames[n].candidates) + 1
+        assert new[n].candidates[-1].guided
+    for n in set(range(len(frames))) - set(changed):
+        assert new[n] is frames[n]
+    calls.clear()
+    same, none = recover_frames(
+        frames, choice, sw.image_to_reference, image_of, params=RecoveryParams(enabled=False)
+    )
+    assert none == [] and calls == [] and all(a is b for a, b in zip(same, frames, strict=True))
