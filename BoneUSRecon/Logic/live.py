@@ -50,8 +50,9 @@ from BoneUSRecon.Logic.segmentation import (
     SegmentationParams,
     SegmentationResult,
 )
-from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
+from BoneUSRecon.Logic.segmentation.recovery import prior_frames, recover_frame, with_candidate
 from BoneUSRecon.Logic.segmentation.result import FrameContour
 from BoneUSRecon.Logic.segmentation.track import TrackChoice
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
@@ -130,23 +131,101 @@ def _segment_one(
     return frame_candidates_for(image, spacing, params, prior_px)
 
 
+def _recovers(params: SegmentationParams) -> bool:
+    """Whether the sweep-level step searches frames off the track again (:mod:`~BoneUSRecon.Logic.segmentation.recovery`)."""
+    return params.method == "shadowpath" and params.recovery.enabled
+
+
+def _guided(
+    frames: list[_Frame],
+    choice: TrackChoice,
+    params: SegmentationParams,
+    counts: dict[str, int],
+) -> dict[int, BoneCandidate]:
+    """The guided candidates of the frames off the track, as offline recovery finds them
+    (:func:`~BoneUSRecon.Logic.segmentation.recovery.recover_frame`).
+
+    A frame's guided candidate depends on its pixels and on its prior: the nearest
+    track frames on either side and their chosen candidates. It is cached per frame
+    with that prior's identity and searched again only when the prior changed. A frame
+    whose pixels were dropped (it was on the track at an earlier refit) and whose prior
+    changed cannot be searched: the one way a live refit may differ from offline,
+    counted in ``counts["no_pixels"]``.
+    """
+    out: dict[int, BoneCandidate] = {}
+    rec = params.recovery
+    reach = params.rejection.max_skip + 1
+    fcs = [fr.candidates for fr in frames]
+    poses = [fr.pose for fr in frames]
+    for f in np.flatnonzero(choice.chosen < 0).tolist():
+        near = prior_frames(choice.chosen, f, reach, rec.both_sides)
+        if near is None:
+            continue
+        fr = frames[f]
+        key = tuple((frames[g].uid, int(choice.chosen[g])) for g in near)
+        if fr.guided is not None and fr.guided[0] == key:
+            cand = fr.guided[1]
+            counts["reused"] += 1
+        elif fr.image is None:
+            counts["no_pixels"] += 1
+            continue
+        else:
+            cand = recover_frame(
+                fcs,
+                choice,
+                poses,
+                f,
+                lambda _, im=fr.image: im,  # type: ignore[misc]
+                params.shadowpath,
+                params.rejection,
+                rec,
+            )
+            fr.guided = (key, cand)
+            counts["searched"] += 1
+        if cand is not None:
+            out[f] = cand
+    return out
+
+
 def _select(
     frames: list[_Frame],
     track: IncrementalTrack,
     params: SegmentationParams,
     t_seg: float,
+    counts: dict[str, int],
 ) -> SegmentationResult:
     """Sweep-level step at each refit: one bone track over all frames so far, exactly
     as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline
-    (``track`` holds the same frames, linked as they arrived).
+    (``track`` holds the same frames, linked as they arrived): the track, the frames
+    off it searched again inside the band it allows (:func:`_guided`), and the track
+    again with the guided candidates (only their links are made, once per candidate).
+    Frames on the first track give up their pixels: recovery never searches them.
 
-    A frame's contour record depends only on the frame, its position and the track's
-    verdict on it: records whose verdict did not change since the last refit are
-    reused (most of them), the others made again.
+    A frame's contour record depends only on the frame, its guided candidate, its
+    position and the track's verdict on it: records whose verdict did not change
+    since the last refit are reused (most of them), the others made again.
     """
     choice = track.solve()
+    extra: dict[int, BoneCandidate] = {}
+    if _recovers(params):
+        extra = _guided(frames, choice, params, counts)
+        for n in np.flatnonzero(choice.chosen >= 0).tolist():
+            frames[n].image = None
+        if extra:
+            choice = track.solve(extra=extra)
+    fcs = [
+        with_candidate(fr.candidates, extra[n]) if n in extra else fr.candidates
+        for n, fr in enumerate(frames)
+    ]
     verdicts = [
-        (n, int(choice.chosen[n]), choice.reason[n], choice.detail[n], float(choice.confidence[n]))
+        (
+            n,
+            int(choice.chosen[n]),
+            choice.reason[n],
+            choice.detail[n],
+            float(choice.confidence[n]),
+            frames[n].guided[0] if n in extra and frames[n].guided is not None else None,
+        )
         for n in range(len(frames))
     ]
     todo = [n for n, fr in enumerate(frames) if fr.contour is None or fr.contour[0] != verdicts[n]]
@@ -157,9 +236,7 @@ def _select(
             [choice.reason[n] for n in todo],
             [choice.detail[n] for n in todo],
         )
-        made = contours_from_track(
-            np.array(todo), [frames[n].candidates for n in todo], sub, params
-        )
+        made = contours_from_track(np.array(todo), [fcs[n] for n in todo], sub, params)
         for n, c in zip(todo, made, strict=True):
             frames[n].contour = (verdicts[n], c)
     contours = tuple(fr.contour[1] for fr in frames)  # type: ignore[index]
@@ -176,11 +253,16 @@ def _select(
 # ------------------------------------------------------------------------------------
 @dataclass
 class _Frame:
+    uid: int  # unique within the session (the cache keys name frames by it)
     pose: np.ndarray
     timestamp: float
     candidates: FrameCandidates
+    #: The pixels, while recovery may search the frame (see :class:`LiveReconstructor`).
+    image: np.ndarray | None = None
+    #: The prior of the frame's last search (:func:`_guided`) and what it found.
+    guided: tuple[tuple[tuple[int, int], ...], BoneCandidate | None] | None = None
     #: The track's verdict at the last refit and the contour record made from it.
-    contour: tuple[tuple[int, int, str, str, float], FrameContour] | None = None
+    contour: tuple[tuple[Any, ...], FrameContour] | None = None
 
     @property
     def reason(self) -> str:
@@ -245,6 +327,11 @@ class LiveReconstructor:
         #: Frames given to :meth:`add_frame`, frames not processed because of
         #: ``max_frames`` thinning, frames refused for a different image size.
         self.counts = {"added": 0, "thinned": 0, "wrong_size": 0}
+        #: Over all refits, frames off the track with a prior: searched, their cached
+        #: guided candidate reused, not searched for want of pixels (see
+        #: :func:`_guided`: the only difference from offline).
+        self.recovery_counts = {"searched": 0, "reused": 0, "no_pixels": 0}
+        self._keep_pixels = _recovers(params.segmentation)
 
     @property
     def n_frames(self) -> int:
@@ -305,7 +392,9 @@ class LiveReconstructor:
         fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
         self._track.add(fc, m)  # links to its predecessors, once
         self._segment_s += time.perf_counter() - t0
-        frame = _Frame(m, float(timestamp), fc)
+        # Pixels kept until the frame is on the track (recovery may search it).
+        kept = np.array(img, copy=True) if self._keep_pixels else None
+        frame = _Frame(self._processed - 1, m, float(timestamp), fc, kept)
         reason = frame.reason
         if not reason:
             self._prior = fc.usable[0].points_px  # as segment_sweep seeds the next frame
@@ -402,6 +491,7 @@ class LiveReconstructor:
             self._track,
             self.params.segmentation,
             self._segment_s,
+            self.recovery_counts,
         )
         if not seg.accepted:
             raise BoneUSReconError("no bone contour found yet")
@@ -410,12 +500,19 @@ class LiveReconstructor:
             sweep, seg, self.params, segment_s=t_seg, with_points=with_points
         )
 
+    @property
+    def pixels_kept(self) -> int:
+        """Frames whose pixels are kept (off the track at the last refit, or newer)."""
+        return sum(f.image is not None for f in self._frames)
+
     def memory_bytes(self) -> int:
-        """Approximate bytes held for the kept frames (contours, poses, track links)."""
+        """Approximate bytes held for the kept frames (contours, poses, track links,
+        the pixels of frames off the track)."""
         return int(
             sum(
                 sum(c.points_px.nbytes + c.intensity.nbytes + 200 for c in f.candidates.candidates)
                 + 200
+                + (f.image.nbytes if f.image is not None else 0)
                 for f in self._frames
             )
             + self._track.memory_bytes()
