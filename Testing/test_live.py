@@ -127,14 +127,9 @@ def test_live_recovery_equals_offline_on_hard_sweep(sim_factory):
     np.testing.assert_array_equal(_points(live.refit(final=True).surface), _points(plain.surface))
 
 
-def test_live_recovery_after_thinning_equals_offline(sim_factory):
-    """Thinned past max_frames, the live refit is the offline segmentation of the frames
-    kept (guided candidates linked to the frames that became neighbours), as long as
-    no frame off the track had to be searched after its pixels were dropped (the one
-    divergence; not on this sweep)."""
-    sim = sim_factory(bone="tibia", realism="hard", seed=2)
-    sweep = sim.sweep
-    live = LiveReconstructor(live=LiveParams(max_frames=24))
+def _thinned(sweep, live: LiveReconstructor):
+    """Feed with final refits every 4 frames; the final refit and the offline
+    segmentation of the frames kept."""
     for n, (k, image) in enumerate(sweep.iter_frames()):
         live.add_frame(image, sweep.image_to_reference[k], sweep.timestamps[k])
         if n % 4 == 0:
@@ -149,12 +144,37 @@ def test_live_recovery_after_thinning_equals_offline(sim_factory):
         sweep.timestamps[kept],
         np.ones(kept.size, bool),
     )
-    batch = segment_sweep(sub)
+    return r, segment_sweep(sub)
+
+
+def _same_contours(r, batch) -> bool:
+    assert len(r.segmentation.contours) == len(batch.contours)
+    return all(
+        (a.reason, a.detail, a.confidence) == (b.reason, b.detail, b.confidence)
+        and np.array_equal(a.points_px, b.points_px)
+        for a, b in zip(r.segmentation.contours, batch.contours, strict=True)
+    )
+
+
+def test_live_recovery_after_thinning_equals_offline(sim_factory):
+    """Thinned past max_frames, the live refit is the offline segmentation of the frames
+    kept (guided candidates linked to the frames that became neighbours), as long as
+    no frame off the track had to be searched after its pixels were dropped (the one
+    divergence, counted). Where one had (max_frames 30), keeping all pixels makes the
+    refit the offline one again."""
+    sweep = sim_factory(bone="tibia", realism="hard", seed=2).sweep
+    live = LiveReconstructor(live=LiveParams(max_frames=24))
+    r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0
-    assert len(_recovered(r)) >= 2 and len(r.segmentation.contours) == len(batch.contours)
-    for a, b in zip(r.segmentation.contours, batch.contours, strict=True):
-        assert (a.reason, a.detail, a.confidence) == (b.reason, b.detail, b.confidence)
-        np.testing.assert_array_equal(a.points_px, b.points_px)
+    assert len(_recovered(r)) >= 2 and _same_contours(r, batch)
+    # A frame on the track at an earlier refit fell off it after the thinning.
+    live = LiveReconstructor(live=LiveParams(max_frames=30))
+    r, batch = _thinned(sweep, live)
+    assert live.recovery_counts["no_pixels"] > 0 and not _same_contours(r, batch)
+    live = LiveReconstructor(live=LiveParams(max_frames=30, keep_all_pixels=True))
+    r, batch = _thinned(sweep, live)
+    assert live.recovery_counts["no_pixels"] == 0 and live.pixels_kept == live.n_frames
+    assert len(_recovered(r)) >= 2 and _same_contours(r, batch)
 
 
 def test_live_not_enough_yet(sim_small):
@@ -234,6 +254,7 @@ def test_live_wrong_frame_size(sim_small):
         ("max_frames", 3),
         ("pose_tolerance_s", -1),
         ("reconnect_s", -1),
+        ("keep_all_pixels", "yes"),
     ],
 )
 def test_live_params_refused(field, value):

@@ -6,16 +6,25 @@ per-frame work once, as each frame arrives: the frame's candidate bone contours,
 their links to the candidates of the frames before it
 (:class:`~BoneUSRecon.Logic.segmentation.track_incremental.IncrementalTrack`: the
 projections and distances that are nearly all of the bone track's cost). At each
-refit it does the sweep-level work over all frames so far: the track's dynamic
-programme over the stored links (one bone track chosen jointly over the frames, the
-same as offline, bit for bit), then resampling, fit and mesh. Every refit therefore
-equals an offline :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far.
-At 480x640, one core: ~12 ms per frame, ~0.11 s per refit of 300-400 frames
-(``Testing/benchmarks/bench_live.py``).
+refit it does the sweep-level work over all frames so far, as
+:func:`~BoneUSRecon.Logic.segmentation.segment_sweep` does it offline: the track's
+dynamic programme over the stored links (one bone track chosen jointly over the
+frames, the same as offline, bit for bit); the frames off the track searched again
+inside the band the track allows (:mod:`~BoneUSRecon.Logic.segmentation.recovery`,
+from the pixels kept for them; a frame's result is cached while its neighbouring
+track frames and their choices stay the same); the track again with the guided
+candidates (only their links are made, once per candidate); then resampling, fit and
+mesh. Every refit therefore equals an offline
+:func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far, except where a
+frame that had been on the track (its pixels dropped) falls off it with a new prior
+and cannot be searched again (counted in ``LiveReconstructor.recovery_counts``; none
+on the tests' sweeps and ``bench_live.py``'s). At 480x640, one core: ~12 ms per
+frame, ~0.13 s per refit of 300-400 frames (``Testing/benchmarks/bench_live.py``).
 
-The two calls into the segmentation stage are isolated in :func:`_segment_one` and
-:func:`_select`; the rest is :func:`~BoneUSRecon.Logic.pipeline.reconstruction_from_segmentation`,
-as in :func:`~BoneUSRecon.Logic.pipeline.reconstruct`.
+The calls into the segmentation stage are isolated in :func:`_segment_one`,
+:func:`_guided` and :func:`_select`; the rest is
+:func:`~BoneUSRecon.Logic.pipeline.reconstruction_from_segmentation`, as in
+:func:`~BoneUSRecon.Logic.pipeline.reconstruct`.
 
 :class:`PoseAssembler` turns a stream of IMAGE and TRANSFORM messages into posed
 frames (the image's own matrix, a named transform, or the PLUS chain with a
@@ -86,7 +95,8 @@ class LiveParams:
     max_frames : int
         Frames kept for the surface (default 400: 13 s at 30 frames/s, more than the
         paper's longest sweep of 250 and ~25 slices per control point along the
-        bone; ~2 MB of contours and track links; a live refit plus writing the
+        bone; ~2 MB of contours and track links, plus the pixels of the frames off the
+        bone track, ~6 MB at 480x640 on ``bench_live.py``; a live refit plus writing the
         surface then takes ~0.11 s of one core at 480x640, within the 0.2 s a refit
         may lag). When reached, every other kept frame is dropped and from then on
         only every second arriving frame is processed (then every fourth, ...): the
@@ -101,6 +111,16 @@ class LiveParams:
     reconnect_s : float
         After the server closes the connection, how long to try reconnecting before
         the session ends (default 3 s: a restarted PlusServer is back within that).
+    keep_all_pixels : bool
+        Keep the pixels of every kept frame, not only of those off the bone track
+        (default False). Recovery (:mod:`~BoneUSRecon.Logic.segmentation.recovery`)
+        searches frames off the track; a frame dropped its pixels when a refit found it
+        on the track, and should it fall off later with new neighbours it is not
+        searched: the one difference from offline. True makes every refit equal the
+        offline reconstruction at the cost of ``max_frames`` frames of pixels (123 MB at
+        480x640 and 400 frames; off the track only: 6 MB at most on
+        ``bench_live.py``'s sweep, 37 MB on its hard one, where 3 of 150 frames then
+        differ from offline; ``Testing/benchmarks/README.md``).
     """
 
     update_every_s: float = 1.0
@@ -108,6 +128,7 @@ class LiveParams:
     max_frames: int = 400
     pose_tolerance_s: float = 0.02
     reconnect_s: float = 3.0
+    keep_all_pixels: bool = False
 
     def __post_init__(self) -> None:
         check_fields(
@@ -187,19 +208,26 @@ def _guided(
     return out
 
 
+def _prior_key(frame: _Frame) -> tuple[tuple[int, int], ...] | None:
+    """The prior of the frame's guided candidate (it names the candidate)."""
+    return frame.guided[0] if frame.guided is not None else None
+
+
 def _select(
     frames: list[_Frame],
     track: IncrementalTrack,
     params: SegmentationParams,
     t_seg: float,
     counts: dict[str, int],
+    keep_pixels: bool = False,
 ) -> SegmentationResult:
     """Sweep-level step at each refit: one bone track over all frames so far, exactly
     as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline
     (``track`` holds the same frames, linked as they arrived): the track, the frames
     off it searched again inside the band it allows (:func:`_guided`), and the track
     again with the guided candidates (only their links are made, once per candidate).
-    Frames on the first track give up their pixels: recovery never searches them.
+    Frames on the first track give up their pixels (recovery never searches them)
+    unless ``keep_pixels`` (``LiveParams.keep_all_pixels``).
 
     A frame's contour record depends only on the frame, its guided candidate, its
     position and the track's verdict on it: records whose verdict did not change
@@ -209,8 +237,9 @@ def _select(
     extra: dict[int, BoneCandidate] = {}
     if _recovers(params):
         extra = _guided(frames, choice, params, counts)
-        for n in np.flatnonzero(choice.chosen >= 0).tolist():
-            frames[n].image = None
+        if not keep_pixels:
+            for n in np.flatnonzero(choice.chosen >= 0).tolist():
+                frames[n].image = None
         if extra:
             choice = track.solve(extra=extra)
     fcs = [
@@ -224,7 +253,7 @@ def _select(
             choice.reason[n],
             choice.detail[n],
             float(choice.confidence[n]),
-            frames[n].guided[0] if n in extra and frames[n].guided is not None else None,
+            _prior_key(frames[n]) if n in extra else None,
         )
         for n in range(len(frames))
     ]
@@ -293,9 +322,17 @@ class LiveReconstructor:
     -----
     Frames must arrive in acquisition order: each frame's segmenter is seeded by the
     last frame that passed its per-frame checks, exactly as in
-    :func:`~BoneUSRecon.Logic.segmentation.segment_sweep`. Only the contours and poses
-    are kept, never the pixels; the :attr:`Reconstruction.sweep` of a refit carries
-    blank frames (a zero-stride array) with the real poses.
+    :func:`~BoneUSRecon.Logic.segmentation.segment_sweep`. The contours and poses are
+    kept, and the pixels (uint8) of a frame only while recovery may search it: from
+    its arrival until a refit finds it on the (first) track, when they are dropped
+    for good (recovery searches only frames off that track). On ``bench_live.py``
+    (480x640) that is 11 frames at a median refit, 19 at most (5.8 MB); with
+    recovery off (``params.segmentation.recovery.enabled`` False, or the snake) no
+    pixels are kept. Should a frame whose pixels were dropped fall off the track later
+    with neighbours it was not searched between, it is not searched (the one
+    difference from offline, counted in :attr:`recovery_counts`). The
+    :attr:`Reconstruction.sweep` of a refit carries blank frames (a zero-stride
+    array) with the real poses.
 
     Examples
     --------
@@ -392,7 +429,8 @@ class LiveReconstructor:
         fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
         self._track.add(fc, m)  # links to its predecessors, once
         self._segment_s += time.perf_counter() - t0
-        # Pixels kept until the frame is on the track (recovery may search it).
+        # Pixels kept until the frame is on the track (recovery may search it), or
+        # always (``keep_all_pixels``).
         kept = np.array(img, copy=True) if self._keep_pixels else None
         frame = _Frame(self._processed - 1, m, float(timestamp), fc, kept)
         reason = frame.reason
@@ -463,7 +501,9 @@ class LiveReconstructor:
             control point along the bone. Either way the bone track is chosen over all
             kept frames, as :func:`~BoneUSRecon.Logic.pipeline.reconstruct` does (only
             the dynamic programme runs here, over the links made as frames arrived,
-            ~10 ms for 400 frames; ``max_frames`` bounds the frames kept).
+            ~10 ms for 400 frames, then the search of the frames off the track whose
+            neighbours changed and the programme again with what it found;
+            ``max_frames`` bounds the frames kept).
         with_points : bool
             Build :attr:`Reconstruction.points` (the segmented points as polydata);
             False leaves it empty, which saves a fifth of a live refit that only
@@ -492,6 +532,7 @@ class LiveReconstructor:
             self.params.segmentation,
             self._segment_s,
             self.recovery_counts,
+            self.live.keep_all_pixels,
         )
         if not seg.accepted:
             raise BoneUSReconError("no bone contour found yet")

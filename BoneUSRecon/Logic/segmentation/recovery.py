@@ -93,7 +93,7 @@ def prior_frames(
 def track_prior(
     frames: Sequence[FrameCandidates],
     choice: TrackChoice,
-    poses: np.ndarray,
+    poses: np.ndarray | Sequence[np.ndarray],
     f: int,
     reach: int,
     both_sides: bool = True,

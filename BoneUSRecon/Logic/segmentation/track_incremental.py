@@ -397,7 +397,9 @@ class IncrementalTrack:
             total += sum(r.nbytes for r in fr.ref) + sum(b.nbytes + 64 for b, _ in fr.b_nodes)
             total += sum(48 * len(v) + 64 for v in fr.links.values()) + 400
         for e in self._extra.values():
-            total += e.ref.nbytes + e.b_node[0].nbytes if e.ref is not None and e.b_node else 0
-            links = (*e.into.values(), *e.out.values(), *(v for _, v in e.pair.values()))
-            total += sum(40 * len(v) + 64 for v in links) + 400
+            if e.ref is not None and e.b_node is not None:
+                total += e.ref.nbytes + e.b_node[0].nbytes
+            n_links = sum(len(v) for v in (*e.into.values(), *e.out.values()))
+            n_links += sum(len(v) for _, v in e.pair.values())
+            total += 40 * n_links + 64 * (len(e.into) + len(e.out) + len(e.pair)) + 400
         return total
