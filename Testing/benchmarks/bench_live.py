@@ -97,12 +97,13 @@ def session(
     record: Path | None,
     on_refit=None,
     params=None,
+    keep_all: bool = False,
 ):
     from BoneUSRecon.cli.igtl import FrameReceiver
     from BoneUSRecon.cli.live import run_session
     from BoneUSRecon.Logic.live import LiveParams, LiveReconstructor, PoseAssembler, SweepRecorder
 
-    live = LiveParams(update_every_s=update_every, reconnect_s=0.5)
+    live = LiveParams(update_every_s=update_every, reconnect_s=0.5, keep_all_pixels=keep_all)
     receiver = FrameReceiver("127.0.0.1", port, PoseAssembler(), live).start()
     # Instrumented: when the receiving thread queues each frame, how many wait when
     # the session takes one.
@@ -147,11 +148,11 @@ def session(
     return res
 
 
-def cpu_budget(sweep, n_frames: int, every: int = 30, params=None) -> None:
+def cpu_budget(sweep, n_frames: int, every: int = 30, params=None, keep_all: bool = False) -> None:
     """Section 3: thread CPU of add_frame and of refit + fast write, no network."""
     import tempfile as _tf
 
-    from BoneUSRecon.Logic.live import LiveReconstructor
+    from BoneUSRecon.Logic.live import LiveParams, LiveReconstructor
     from BoneUSRecon.Logic.pipeline import ReconstructionParams
     from BoneUSRecon.Logic.segmentation import segment_sweep
     from BoneUSRecon.Logic.sweep import Sweep
@@ -160,7 +161,7 @@ def cpu_budget(sweep, n_frames: int, every: int = 30, params=None) -> None:
     params = params if params is not None else ReconstructionParams()
     idx = sweep.valid_indices
     frames = [np.array(sweep.frames[k]) for k in idx]
-    live = LiveReconstructor(params)
+    live = LiveReconstructor(params, LiveParams(keep_all_pixels=keep_all))
     add_cpu, kept_at, refit_cpu = [], [], []
     processed = []
     source: dict[float, int] = {}  # timestamp -> index into frames
@@ -269,6 +270,11 @@ def main() -> None:
         action="store_true",
         help="recovery off, live and offline (the live path before it ran recovery)",
     )
+    ap.add_argument(
+        "--keep-all-pixels",
+        action="store_true",
+        help="LiveParams.keep_all_pixels (every kept frame's pixels; refits equal offline)",
+    )
     args = ap.parse_args()
 
     from vtkmodules.util.numpy_support import vtk_to_numpy
@@ -309,7 +315,16 @@ def main() -> None:
         # 1. accuracy: one pass
         port = free_port()
         server = start_server(sweep_path, port, args.fps, False, serve_cores)
-        res = session(port, d / "live.vtp", args.update_every, None, d / "rec.mha", None, params)
+        res = session(
+            port,
+            d / "live.vtp",
+            args.update_every,
+            None,
+            d / "rec.mha",
+            None,
+            params,
+            args.keep_all_pixels,
+        )
         server.wait(timeout=30)
         offline = reconstruct(sim.sweep, params)
         rec_offline = reconstruct(read_sweep(res.record), params)
@@ -372,7 +387,14 @@ def main() -> None:
         )
         try:
             res = session(
-                port, d / "live2.vtp", args.update_every, args.seconds, None, on_refit, params
+                port,
+                d / "live2.vtp",
+                args.update_every,
+                args.seconds,
+                None,
+                on_refit,
+                params,
+                args.keep_all_pixels,
             )
         finally:
             server.kill()
@@ -414,7 +436,7 @@ def main() -> None:
             f"{res.bench['max_waiting_at_s']:.0f} s"
         )
 
-        cpu_budget(sim.sweep, args.cpu_frames, params=params)
+        cpu_budget(sim.sweep, args.cpu_frames, params=params, keep_all=args.keep_all_pixels)
 
 
 def receiver_dropped(r) -> int:
