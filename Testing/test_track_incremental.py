@@ -118,6 +118,10 @@ def test_incremental_track_with_extra_candidates(sim_factory, params):
     for fc, m in zip(frames, poses, strict=True):
         track.add(fc, m)
     plain = track.solve()
+    bare = track.solve(explain=False)  # the choice without the rejection details
+    np.testing.assert_array_equal(bare.chosen, plain.chosen)
+    np.testing.assert_array_equal(bare.confidence, plain.confidence)
+    assert bare.reason == plain.reason and set(bare.detail) == {""} != set(plain.detail)
     with_extra = track.solve(extra=guided)
     _assert_same(with_extra, select_bone_track(_appended(frames, guided), poses))
     # The guided candidates change the track (else the test proves little).

@@ -233,15 +233,17 @@ def _select(
     position and the track's verdict on it: records whose verdict did not change
     since the last refit are reused (most of them), the others made again.
     """
-    choice = track.solve()
     extra: dict[int, BoneCandidate] = {}
     if _recovers(params):
-        extra = _guided(frames, choice, params, counts)
+        # The first track's choice only (its rejection details would be replaced).
+        first = track.solve(explain=False)
+        extra = _guided(frames, first, params, counts)
         if not keep_pixels:
-            for n in np.flatnonzero(choice.chosen >= 0).tolist():
+            for n in np.flatnonzero(first.chosen >= 0).tolist():
                 frames[n].image = None
-        if extra:
-            choice = track.solve(extra=extra)
+        choice = track.solve(extra=extra)
+    else:
+        choice = track.solve()
     fcs = [
         with_candidate(fr.candidates, extra[n]) if n in extra else fr.candidates
         for n, fr in enumerate(frames)

@@ -288,7 +288,9 @@ class IncrementalTrack:
                 both = kept[1]
         return into, out, both
 
-    def solve(self, extra: Mapping[int, BoneCandidate] | None = None) -> TrackChoice:
+    def solve(
+        self, extra: Mapping[int, BoneCandidate] | None = None, explain: bool = True
+    ) -> TrackChoice:
         """The track over the frames kept, as :func:`~.track.select_bone_track` chooses it.
 
         Parameters
@@ -300,6 +302,10 @@ class IncrementalTrack:
             equal to a frame's number of candidates names its extra candidate. The
             frames kept are not changed: a later solve without ``extra`` is the plain
             track again.
+        explain : bool
+            False: the choice only, without the rejection details (the distance from
+            each frame off the track to it, the slow part of a solve on a sweep with
+            many such frames); live recovery needs only the choice of its first solve.
 
         Returns
         -------
@@ -388,6 +394,7 @@ class IncrementalTrack:
             p,
             keys=[fr.uid if e is None else e.key for fr, e in zip(frames, ext, strict=True)],
             details=self._details,
+            explain=explain,
         )
 
     def memory_bytes(self) -> int:
