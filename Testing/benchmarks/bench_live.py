@@ -18,14 +18,22 @@ tuned on: seed 11) and writes it to a temporary folder, then, on 127.0.0.1:
    forth through a :class:`LiveReconstructor` for ``--cpu-frames`` frames (default
    900: past ``max_frames`` and a thinning), a refit + fast write every 30 frames (once
    a second at 30 frames/s): thread CPU per frame and per refit, by frames kept, and
-   the CPU one second of a 30 frames/s stream needs.
+   the CPU one second of a 30 frames/s stream needs; then recovery's share (frames
+   whose pixels are kept, frames searched, searches missed for want of pixels) and
+   how many frames of the final refit differ from the offline segmentation of the
+   frames kept.
+
+``--realism hard`` simulates the hard preset (recovery has more to do);
+``--no-recovery`` turns recovery off live and offline (the live path before it ran
+recovery); ``--keep-all-pixels`` sets ``LiveParams.keep_all_pixels``.
 
 The server runs in its own process, so the live process pays only for receiving. The
 machine may be shared: CPU seconds per frame are printed beside wall times; a refit's
 CPU time is its latency on a free core. Run::
 
     python Testing/benchmarks/bench_live.py [--seconds 180] [--frames 150] [--fps 30]
-        [--update-every 1] [--every 30] [--cpu-frames 900]
+        [--update-every 1] [--every 30] [--cpu-frames 900] [--realism hard]
+        [--no-recovery] [--keep-all-pixels]
 """
 
 from __future__ import annotations
