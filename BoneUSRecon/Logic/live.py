@@ -85,8 +85,9 @@ class LiveParams:
     ----------
     update_every_s : float
         Seconds between refits (default 1.0). A refit chooses the bone track over all
-        kept frames and refits the surface: 0.06-0.13 s of one core for 100-400
-        frames of 480x640 (``Testing/benchmarks/bench_live.py``). A session spaces
+        kept frames (with recovery) and refits the surface: 0.07-0.13 s of one core
+        for 100-400 frames of 480x640, ~0.2 s on the hard preset
+        (``Testing/benchmarks/bench_live.py``). A session spaces
         refits that take longer than this by their own duration, so that frames
         keep at least half of the time.
     queue_frames : int
@@ -96,9 +97,9 @@ class LiveParams:
         Frames kept for the surface (default 400: 13 s at 30 frames/s, more than the
         paper's longest sweep of 250 and ~25 slices per control point along the
         bone; ~2 MB of contours and track links, plus the pixels of the frames off the
-        bone track, ~6 MB at 480x640 on ``bench_live.py``; a live refit plus writing the
-        surface then takes ~0.11 s of one core at 480x640, within the 0.2 s a refit
-        may lag). When reached, every other kept frame is dropped and from then on
+        bone track, 6 MB at 480x640 on ``bench_live.py``, 37 MB on its hard preset; a
+        live refit plus writing the surface then takes ~0.12 s of one core at 480x640,
+        within the 0.2 s a refit may lag). When reached, every other kept frame is dropped and from then on
         only every second arriving frame is processed (then every fourth, ...): the
         whole scanned extent stays covered at a halved density, and memory and refit
         time stay bounded. Frames that become neighbours are linked in the time the
