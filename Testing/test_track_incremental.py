@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from BoneUSRecon.Logic.segmentation import frame_candidates_for
+from BoneUSRecon.Logic.segmentation.recovery import recover_frames, with_candidate
 from BoneUSRecon.Logic.segmentation.track import TrackChoice, select_bone_track
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sweep import pixel_spacing
@@ -91,3 +92,66 @@ def test_incremental_track_empty_and_refused(sim_small):
     track.add(frames[0], poses[0])
     with pytest.raises(IndexError):
         track.keep([0, 3])
+
+
+def _guided(sim):
+    """The frames, poses and guided candidates that offline recovery finds."""
+    frames, poses = _candidates(sim)
+    sw = sim.sweep
+    idx = sw.valid_indices
+    choice = select_bone_track(frames, poses)
+    out, searched = recover_frames(frames, choice, poses, lambda n: sw.frames[idx[n]])
+    return frames, poses, {f: out[f].candidates[-1] for f in searched}
+
+
+def _appended(frames, extra):
+    return [with_candidate(fc, extra[f]) if f in extra else fc for f, fc in enumerate(frames)]
+
+
+@pytest.mark.parametrize("params", CASES[1:], ids=["tibia-hard", "humerus-hard"])
+def test_incremental_track_with_extra_candidates(sim_factory, params):
+    """solve(extra=...) is the batch track over the frames with those candidates
+    appended (offline recovery's second pass), and leaves the plain track as it was."""
+    frames, poses, guided = _guided(sim_factory(**params))
+    assert len(guided) >= 2  # recovery found something to add
+    track = IncrementalTrack()
+    for fc, m in zip(frames, poses, strict=True):
+        track.add(fc, m)
+    plain = track.solve()
+    bare = track.solve(explain=False)  # the choice without the rejection details
+    np.testing.assert_array_equal(bare.chosen, plain.chosen)
+    np.testing.assert_array_equal(bare.confidence, plain.confidence)
+    assert bare.reason == plain.reason and set(bare.detail) == {""} != set(plain.detail)
+    with_extra = track.solve(extra=guided)
+    _assert_same(with_extra, select_bone_track(_appended(frames, guided), poses))
+    # The guided candidates change the track (else the test proves little).
+    assert any(with_extra.chosen[f] == len(frames[f].candidates) for f in guided)
+    _assert_same(track.solve(), plain)  # the stored state is unchanged
+    _assert_same(track.solve(extra=guided), with_extra)  # cached links: same again
+    # Extra candidates on neighbouring frames (extra-to-extra links), any candidate:
+    # each frame's strongest usable candidate again, as a copy.
+    copies = {f: fc.usable[0] for f, fc in enumerate(frames) if fc.usable and f % 3}
+    copies.update(guided)
+    _assert_same(track.solve(extra=copies), select_bone_track(_appended(frames, copies), poses))
+
+
+def test_incremental_track_with_extra_after_dropping_frames(sim_factory):
+    """After thinning, extra candidates link to the frames that became neighbours."""
+    frames, poses, guided = _guided(sim_factory(**CASES[2]))
+    track = IncrementalTrack()
+    for fc, m in zip(frames, poses, strict=True):
+        track.add(fc, m)
+    track.solve(extra=guided)  # links made before the drop, some now stale
+    keep = list(range(0, len(frames), 2))
+    track.keep(range(0, len(track), 2))
+    extra = {k: guided[i] for k, i in enumerate(keep) if i in guided}
+    near = {
+        k: frames[i + 1].usable for k, i in enumerate(keep) if k % 4 == 1 and i + 1 < len(frames)
+    }
+    extra.update({k: u[0] for k, u in near.items() if u})
+    assert extra
+    kept = [frames[i] for i in keep]
+    _assert_same(track.solve(extra=extra), select_bone_track(_appended(kept, extra), poses[keep]))
+    _assert_same(track.solve(), select_bone_track(kept, poses[keep]))
+    with pytest.raises(IndexError):
+        track.solve(extra={len(track): guided[next(iter(guided))]})

@@ -6,16 +6,25 @@ per-frame work once, as each frame arrives: the frame's candidate bone contours,
 their links to the candidates of the frames before it
 (:class:`~BoneUSRecon.Logic.segmentation.track_incremental.IncrementalTrack`: the
 projections and distances that are nearly all of the bone track's cost). At each
-refit it does the sweep-level work over all frames so far: the track's dynamic
-programme over the stored links (one bone track chosen jointly over the frames, the
-same as offline, bit for bit), then resampling, fit and mesh. Every refit therefore
-equals an offline :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far.
-At 480x640, one core: ~12 ms per frame, ~0.11 s per refit of 300-400 frames
-(``Testing/benchmarks/bench_live.py``).
+refit it does the sweep-level work over all frames so far, as
+:func:`~BoneUSRecon.Logic.segmentation.segment_sweep` does it offline: the track's
+dynamic programme over the stored links (one bone track chosen jointly over the
+frames, the same as offline, bit for bit); the frames off the track searched again
+inside the band the track allows (:mod:`~BoneUSRecon.Logic.segmentation.recovery`,
+from the pixels kept for them; a frame's result is cached while its neighbouring
+track frames and their choices stay the same); the track again with the guided
+candidates (only their links are made, once per candidate); then resampling, fit and
+mesh. Every refit therefore equals an offline
+:func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far, except where a
+frame that had been on the track (its pixels dropped) falls off it with a new prior
+and cannot be searched again (counted in ``LiveReconstructor.recovery_counts``; none
+on the tests' sweeps and ``bench_live.py``'s). At 480x640, one core: ~12 ms per
+frame, ~0.13 s per refit of 300-400 frames (``Testing/benchmarks/bench_live.py``).
 
-The two calls into the segmentation stage are isolated in :func:`_segment_one` and
-:func:`_select`; the rest is :func:`~BoneUSRecon.Logic.pipeline.reconstruction_from_segmentation`,
-as in :func:`~BoneUSRecon.Logic.pipeline.reconstruct`.
+The calls into the segmentation stage are isolated in :func:`_segment_one`,
+:func:`_guided` and :func:`_select`; the rest is
+:func:`~BoneUSRecon.Logic.pipeline.reconstruction_from_segmentation`, as in
+:func:`~BoneUSRecon.Logic.pipeline.reconstruct`.
 
 :class:`PoseAssembler` turns a stream of IMAGE and TRANSFORM messages into posed
 frames (the image's own matrix, a named transform, or the PLUS chain with a
@@ -50,8 +59,9 @@ from BoneUSRecon.Logic.segmentation import (
     SegmentationParams,
     SegmentationResult,
 )
-from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
+from BoneUSRecon.Logic.segmentation.recovery import prior_frames, recover_frame, with_candidate
 from BoneUSRecon.Logic.segmentation.result import FrameContour
 from BoneUSRecon.Logic.segmentation.track import TrackChoice
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
@@ -75,8 +85,9 @@ class LiveParams:
     ----------
     update_every_s : float
         Seconds between refits (default 1.0). A refit chooses the bone track over all
-        kept frames and refits the surface: 0.06-0.13 s of one core for 100-400
-        frames of 480x640 (``Testing/benchmarks/bench_live.py``). A session spaces
+        kept frames (with recovery) and refits the surface: 0.07-0.13 s of one core
+        for 100-400 frames of 480x640, ~0.2 s on the hard preset
+        (``Testing/benchmarks/bench_live.py``). A session spaces
         refits that take longer than this by their own duration, so that frames
         keep at least half of the time.
     queue_frames : int
@@ -85,9 +96,10 @@ class LiveParams:
     max_frames : int
         Frames kept for the surface (default 400: 13 s at 30 frames/s, more than the
         paper's longest sweep of 250 and ~25 slices per control point along the
-        bone; ~2 MB of contours and track links; a live refit plus writing the
-        surface then takes ~0.11 s of one core at 480x640, within the 0.2 s a refit
-        may lag). When reached, every other kept frame is dropped and from then on
+        bone; ~2 MB of contours and track links, plus the pixels of the frames off the
+        bone track, 6 MB at 480x640 on ``bench_live.py``, 37 MB on its hard preset; a
+        live refit plus writing the surface then takes ~0.12 s of one core at 480x640,
+        within the 0.2 s a refit may lag). When reached, every other kept frame is dropped and from then on
         only every second arriving frame is processed (then every fourth, ...): the
         whole scanned extent stays covered at a halved density, and memory and refit
         time stay bounded. Frames that become neighbours are linked in the time the
@@ -100,6 +112,16 @@ class LiveParams:
     reconnect_s : float
         After the server closes the connection, how long to try reconnecting before
         the session ends (default 3 s: a restarted PlusServer is back within that).
+    keep_all_pixels : bool
+        Keep the pixels of every kept frame, not only of those off the bone track
+        (default False). Recovery (:mod:`~BoneUSRecon.Logic.segmentation.recovery`)
+        searches frames off the track; a frame dropped its pixels when a refit found it
+        on the track, and should it fall off later with new neighbours it is not
+        searched: the one difference from offline. True makes every refit equal the
+        offline reconstruction at the cost of ``max_frames`` frames of pixels (123 MB at
+        480x640 and 400 frames; off the track only: 6 MB at most on
+        ``bench_live.py``'s sweep, 37 MB on its hard one, where 3 of 150 frames then
+        differ from offline; ``Testing/benchmarks/README.md``).
     """
 
     update_every_s: float = 1.0
@@ -107,6 +129,7 @@ class LiveParams:
     max_frames: int = 400
     pose_tolerance_s: float = 0.02
     reconnect_s: float = 3.0
+    keep_all_pixels: bool = False
 
     def __post_init__(self) -> None:
         check_fields(
@@ -130,23 +153,111 @@ def _segment_one(
     return frame_candidates_for(image, spacing, params, prior_px)
 
 
+def _recovers(params: SegmentationParams) -> bool:
+    """Whether the sweep-level step searches frames off the track again (:mod:`~BoneUSRecon.Logic.segmentation.recovery`)."""
+    return params.method == "shadowpath" and params.recovery.enabled
+
+
+def _guided(
+    frames: list[_Frame],
+    choice: TrackChoice,
+    params: SegmentationParams,
+    counts: dict[str, int],
+) -> dict[int, BoneCandidate]:
+    """The guided candidates of the frames off the track, as offline recovery finds them
+    (:func:`~BoneUSRecon.Logic.segmentation.recovery.recover_frame`).
+
+    A frame's guided candidate depends on its pixels and on its prior: the nearest
+    track frames on either side and their chosen candidates. It is cached per frame
+    with that prior's identity and searched again only when the prior changed. A frame
+    whose pixels were dropped (it was on the track at an earlier refit) and whose prior
+    changed cannot be searched: the one way a live refit may differ from offline,
+    counted in ``counts["no_pixels"]``.
+    """
+    out: dict[int, BoneCandidate] = {}
+    rec = params.recovery
+    reach = params.rejection.max_skip + 1
+    fcs = [fr.candidates for fr in frames]
+    poses = [fr.pose for fr in frames]
+    for f in np.flatnonzero(choice.chosen < 0).tolist():
+        near = prior_frames(choice.chosen, f, reach, rec.both_sides)
+        if near is None:
+            continue
+        fr = frames[f]
+        key = tuple((frames[g].uid, int(choice.chosen[g])) for g in near)
+        if fr.guided is not None and fr.guided[0] == key:
+            cand = fr.guided[1]
+            counts["reused"] += 1
+        elif fr.image is None:
+            counts["no_pixels"] += 1
+            continue
+        else:
+            cand = recover_frame(
+                fcs,
+                choice,
+                poses,
+                f,
+                lambda _, im=fr.image: im,  # type: ignore[misc]
+                params.shadowpath,
+                params.rejection,
+                rec,
+            )
+            fr.guided = (key, cand)
+            counts["searched"] += 1
+        if cand is not None:
+            out[f] = cand
+    return out
+
+
+def _prior_key(frame: _Frame) -> tuple[tuple[int, int], ...] | None:
+    """The prior of the frame's guided candidate (it names the candidate)."""
+    return frame.guided[0] if frame.guided is not None else None
+
+
 def _select(
     frames: list[_Frame],
     track: IncrementalTrack,
     params: SegmentationParams,
     t_seg: float,
+    counts: dict[str, int],
+    keep_pixels: bool = False,
 ) -> SegmentationResult:
     """Sweep-level step at each refit: one bone track over all frames so far, exactly
     as :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` chooses it offline
-    (``track`` holds the same frames, linked as they arrived).
+    (``track`` holds the same frames, linked as they arrived): the track, the frames
+    off it searched again inside the band it allows (:func:`_guided`), and the track
+    again with the guided candidates (only their links are made, once per candidate).
+    Frames on the first track give up their pixels (recovery never searches them)
+    unless ``keep_pixels`` (``LiveParams.keep_all_pixels``).
 
-    A frame's contour record depends only on the frame, its position and the track's
-    verdict on it: records whose verdict did not change since the last refit are
-    reused (most of them), the others made again.
+    A frame's contour record depends only on the frame, its guided candidate, its
+    position and the track's verdict on it: records whose verdict did not change
+    since the last refit are reused (most of them), the others made again.
     """
-    choice = track.solve()
+    extra: dict[int, BoneCandidate] = {}
+    if _recovers(params):
+        # The first track's choice only (its rejection details would be replaced).
+        first = track.solve(explain=False)
+        extra = _guided(frames, first, params, counts)
+        if not keep_pixels:
+            for n in np.flatnonzero(first.chosen >= 0).tolist():
+                frames[n].image = None
+        choice = track.solve(extra=extra)
+    else:
+        choice = track.solve()
+    fcs = [
+        with_candidate(fr.candidates, extra[n]) if n in extra else fr.candidates
+        for n, fr in enumerate(frames)
+    ]
     verdicts = [
-        (n, int(choice.chosen[n]), choice.reason[n], choice.detail[n], float(choice.confidence[n]))
+        (
+            n,
+            int(choice.chosen[n]),
+            choice.reason[n],
+            choice.detail[n],
+            float(choice.confidence[n]),
+            _prior_key(frames[n]) if n in extra else None,
+        )
         for n in range(len(frames))
     ]
     todo = [n for n, fr in enumerate(frames) if fr.contour is None or fr.contour[0] != verdicts[n]]
@@ -157,9 +268,7 @@ def _select(
             [choice.reason[n] for n in todo],
             [choice.detail[n] for n in todo],
         )
-        made = contours_from_track(
-            np.array(todo), [frames[n].candidates for n in todo], sub, params
-        )
+        made = contours_from_track(np.array(todo), [fcs[n] for n in todo], sub, params)
         for n, c in zip(todo, made, strict=True):
             frames[n].contour = (verdicts[n], c)
     contours = tuple(fr.contour[1] for fr in frames)  # type: ignore[index]
@@ -176,11 +285,16 @@ def _select(
 # ------------------------------------------------------------------------------------
 @dataclass
 class _Frame:
+    uid: int  # unique within the session (the cache keys name frames by it)
     pose: np.ndarray
     timestamp: float
     candidates: FrameCandidates
+    #: The pixels, while recovery may search the frame (see :class:`LiveReconstructor`).
+    image: np.ndarray | None = None
+    #: The prior of the frame's last search (:func:`_guided`) and what it found.
+    guided: tuple[tuple[tuple[int, int], ...], BoneCandidate | None] | None = None
     #: The track's verdict at the last refit and the contour record made from it.
-    contour: tuple[tuple[int, int, str, str, float], FrameContour] | None = None
+    contour: tuple[tuple[Any, ...], FrameContour] | None = None
 
     @property
     def reason(self) -> str:
@@ -211,9 +325,17 @@ class LiveReconstructor:
     -----
     Frames must arrive in acquisition order: each frame's segmenter is seeded by the
     last frame that passed its per-frame checks, exactly as in
-    :func:`~BoneUSRecon.Logic.segmentation.segment_sweep`. Only the contours and poses
-    are kept, never the pixels; the :attr:`Reconstruction.sweep` of a refit carries
-    blank frames (a zero-stride array) with the real poses.
+    :func:`~BoneUSRecon.Logic.segmentation.segment_sweep`. The contours and poses are
+    kept, and the pixels (uint8) of a frame only while recovery may search it: from
+    its arrival until a refit finds it on the (first) track, when they are dropped
+    for good (recovery searches only frames off that track). On ``bench_live.py``
+    (480x640) that is 11 frames at a median refit, 19 at most (5.8 MB); with
+    recovery off (``params.segmentation.recovery.enabled`` False, or the snake) no
+    pixels are kept. Should a frame whose pixels were dropped fall off the track later
+    with neighbours it was not searched between, it is not searched (the one
+    difference from offline, counted in :attr:`recovery_counts`). The
+    :attr:`Reconstruction.sweep` of a refit carries blank frames (a zero-stride
+    array) with the real poses.
 
     Examples
     --------
@@ -245,6 +367,11 @@ class LiveReconstructor:
         #: Frames given to :meth:`add_frame`, frames not processed because of
         #: ``max_frames`` thinning, frames refused for a different image size.
         self.counts = {"added": 0, "thinned": 0, "wrong_size": 0}
+        #: Over all refits, frames off the track with a prior: searched, their cached
+        #: guided candidate reused, not searched for want of pixels (see
+        #: :func:`_guided`: the only difference from offline).
+        self.recovery_counts = {"searched": 0, "reused": 0, "no_pixels": 0}
+        self._keep_pixels = _recovers(params.segmentation)
 
     @property
     def n_frames(self) -> int:
@@ -305,7 +432,10 @@ class LiveReconstructor:
         fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
         self._track.add(fc, m)  # links to its predecessors, once
         self._segment_s += time.perf_counter() - t0
-        frame = _Frame(m, float(timestamp), fc)
+        # Pixels kept until the frame is on the track (recovery may search it), or
+        # always (``keep_all_pixels``).
+        kept = np.array(img, copy=True) if self._keep_pixels else None
+        frame = _Frame(self._processed - 1, m, float(timestamp), fc, kept)
         reason = frame.reason
         if not reason:
             self._prior = fc.usable[0].points_px  # as segment_sweep seeds the next frame
@@ -374,7 +504,9 @@ class LiveReconstructor:
             control point along the bone. Either way the bone track is chosen over all
             kept frames, as :func:`~BoneUSRecon.Logic.pipeline.reconstruct` does (only
             the dynamic programme runs here, over the links made as frames arrived,
-            ~10 ms for 400 frames; ``max_frames`` bounds the frames kept).
+            ~10 ms for 400 frames, then the search of the frames off the track whose
+            neighbours changed and the programme again with what it found;
+            ``max_frames`` bounds the frames kept).
         with_points : bool
             Build :attr:`Reconstruction.points` (the segmented points as polydata);
             False leaves it empty, which saves a fifth of a live refit that only
@@ -402,6 +534,8 @@ class LiveReconstructor:
             self._track,
             self.params.segmentation,
             self._segment_s,
+            self.recovery_counts,
+            self.live.keep_all_pixels,
         )
         if not seg.accepted:
             raise BoneUSReconError("no bone contour found yet")
@@ -410,12 +544,19 @@ class LiveReconstructor:
             sweep, seg, self.params, segment_s=t_seg, with_points=with_points
         )
 
+    @property
+    def pixels_kept(self) -> int:
+        """Frames whose pixels are kept (off the track at the last refit, or newer)."""
+        return sum(f.image is not None for f in self._frames)
+
     def memory_bytes(self) -> int:
-        """Approximate bytes held for the kept frames (contours, poses, track links)."""
+        """Approximate bytes held for the kept frames (contours, poses, track links,
+        the pixels of frames off the track)."""
         return int(
             sum(
                 sum(c.points_px.nbytes + c.intensity.nbytes + 200 for c in f.candidates.candidates)
                 + 200
+                + (f.image.nbytes if f.image is not None else 0)
                 for f in self._frames
             )
             + self._track.memory_bytes()

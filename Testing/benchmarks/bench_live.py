@@ -18,14 +18,22 @@ tuned on: seed 11) and writes it to a temporary folder, then, on 127.0.0.1:
    forth through a :class:`LiveReconstructor` for ``--cpu-frames`` frames (default
    900: past ``max_frames`` and a thinning), a refit + fast write every 30 frames (once
    a second at 30 frames/s): thread CPU per frame and per refit, by frames kept, and
-   the CPU one second of a 30 frames/s stream needs.
+   the CPU one second of a 30 frames/s stream needs; then recovery's share (frames
+   whose pixels are kept, frames searched, searches missed for want of pixels) and
+   how many frames of the final refit differ from the offline segmentation of the
+   frames kept.
+
+``--realism hard`` simulates the hard preset (recovery has more to do);
+``--no-recovery`` turns recovery off live and offline (the live path before it ran
+recovery); ``--keep-all-pixels`` sets ``LiveParams.keep_all_pixels``.
 
 The server runs in its own process, so the live process pays only for receiving. The
 machine may be shared: CPU seconds per frame are printed beside wall times; a refit's
 CPU time is its latency on a free core. Run::
 
     python Testing/benchmarks/bench_live.py [--seconds 180] [--frames 150] [--fps 30]
-        [--update-every 1] [--every 30] [--cpu-frames 900]
+        [--update-every 1] [--every 30] [--cpu-frames 900] [--realism hard]
+        [--no-recovery] [--keep-all-pixels]
 """
 
 from __future__ import annotations
@@ -96,12 +104,14 @@ def session(
     duration: float | None,
     record: Path | None,
     on_refit=None,
+    params=None,
+    keep_all: bool = False,
 ):
     from BoneUSRecon.cli.igtl import FrameReceiver
     from BoneUSRecon.cli.live import run_session
     from BoneUSRecon.Logic.live import LiveParams, LiveReconstructor, PoseAssembler, SweepRecorder
 
-    live = LiveParams(update_every_s=update_every, reconnect_s=0.5)
+    live = LiveParams(update_every_s=update_every, reconnect_s=0.5, keep_all_pixels=keep_all)
     receiver = FrameReceiver("127.0.0.1", port, PoseAssembler(), live).start()
     # Instrumented: when the receiving thread queues each frame, how many wait when
     # the session takes one.
@@ -127,7 +137,9 @@ def session(
     c0 = time.thread_time()
     res = run_session(
         receiver,
-        LiveReconstructor(live=live),
+        LiveReconstructor(params, live=live)
+        if params is not None
+        else LiveReconstructor(live=live),
         out,
         update_every_s=update_every,
         recorder=recorder,
@@ -144,18 +156,24 @@ def session(
     return res
 
 
-def cpu_budget(sweep, n_frames: int, every: int = 30) -> None:
+def cpu_budget(sweep, n_frames: int, every: int = 30, params=None, keep_all: bool = False) -> None:
     """Section 3: thread CPU of add_frame and of refit + fast write, no network."""
     import tempfile as _tf
 
-    from BoneUSRecon.Logic.live import LiveReconstructor
+    from BoneUSRecon.Logic.live import LiveParams, LiveReconstructor
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams
+    from BoneUSRecon.Logic.segmentation import segment_sweep
+    from BoneUSRecon.Logic.sweep import Sweep
     from BoneUSRecon.Logic.vtkio import write_polydata
 
+    params = params if params is not None else ReconstructionParams()
     idx = sweep.valid_indices
     frames = [np.array(sweep.frames[k]) for k in idx]
-    live = LiveReconstructor()
+    live = LiveReconstructor(params, LiveParams(keep_all_pixels=keep_all))
     add_cpu, kept_at, refit_cpu = [], [], []
     processed = []
+    source: dict[float, int] = {}  # timestamp -> index into frames
+    pixels_kept: list[int] = []
     with _tf.TemporaryDirectory() as d:
         out = Path(d) / "s.vtp"
         for i in range(n_frames):
@@ -165,6 +183,7 @@ def cpu_budget(sweep, n_frames: int, every: int = 30) -> None:
             c = time.thread_time()
             r = live.add_frame(frames[j], sweep.image_to_reference[idx[j]], i / 30)
             add_cpu.append(time.thread_time() - c)
+            source[i / 30] = j
             processed.append(r is not None)
             if (i + 1) % every == 0:
                 c = time.thread_time()
@@ -174,6 +193,7 @@ def cpu_budget(sweep, n_frames: int, every: int = 30) -> None:
                     continue
                 refit_cpu.append(time.thread_time() - c)
                 kept_at.append(live.n_frames)
+                pixels_kept.append(live.pixels_kept)
     add = np.array(add_cpu) * 1000
     proc = np.array(processed)
     ref = np.array(refit_cpu) * 1000
@@ -202,6 +222,35 @@ def cpu_budget(sweep, n_frames: int, every: int = 30) -> None:
         f"  one second at 30 frames/s, before thinning  : {per_s:.0f} ms of CPU "
         f"({per_s / 30:.1f} ms per frame, refit at 300-400 frames kept)"
     )
+    # Recovery (frames off the track searched again): pixels held, searches, and the
+    # one divergence from offline (a frame to search whose pixels were dropped),
+    # checked against the offline segmentation of the frames kept.
+    rc = live.recovery_counts
+    h, w = frames[0].shape
+    print(
+        f"  recovery: frames with pixels kept at a refit : median {np.median(pixels_kept):.0f}, "
+        f"max {max(pixels_kept)} ({max(pixels_kept) * h * w / 1e6:.1f} MB); searched "
+        f"{rc['searched']}, reused {rc['reused']}, not searched for want of pixels "
+        f"{rc['no_pixels']} (over {len(ref)} refits)"
+    )
+    final = live.refit(final=True, with_points=False).segmentation.contours
+    kept_j = [source[f.timestamp] for f in live._frames]
+    sub = Sweep(
+        np.stack([frames[j] for j in kept_j]),
+        np.stack([sweep.image_to_reference[idx[j]] for j in kept_j]),
+        np.array([f.timestamp for f in live._frames]),
+        np.ones(len(kept_j), bool),
+    )
+    batch = segment_sweep(sub, params.segmentation).contours
+    differ = sum(
+        a.accepted != b.accepted or not np.array_equal(a.points_px, b.points_px)
+        for a, b in zip(final, batch, strict=True)
+    )
+    print(
+        f"  final refit vs offline over the {len(kept_j)} frames kept: {differ} frames differ "
+        f"(recovered live {sum(bool(c.extras.get('recovered')) and c.accepted for c in final)}, "
+        f"offline {sum(bool(c.extras.get('recovered')) and c.accepted for c in batch)})"
+    )
 
 
 def main() -> None:
@@ -221,15 +270,33 @@ def main() -> None:
     ap.add_argument(
         "--cpu-frames", type=int, default=900, help="frames of the CPU budget (default 900)"
     )
+    ap.add_argument(
+        "--realism", default="standard", help="simulation realism (default standard; hard)"
+    )
+    ap.add_argument(
+        "--no-recovery",
+        action="store_true",
+        help="recovery off, live and offline (the live path before it ran recovery)",
+    )
+    ap.add_argument(
+        "--keep-all-pixels",
+        action="store_true",
+        help="LiveParams.keep_all_pixels (every kept frame's pixels; refits equal offline)",
+    )
     args = ap.parse_args()
 
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
     from BoneUSRecon.Logic.evaluation import evaluate_surface
-    from BoneUSRecon.Logic.pipeline import reconstruct
+    from BoneUSRecon.Logic.pipeline import ReconstructionParams, reconstruct
+    from BoneUSRecon.Logic.segmentation import SegmentationParams
+    from BoneUSRecon.Logic.segmentation.params import RecoveryParams
     from BoneUSRecon.Logic.sequence_io import read_sweep, write_sweep
     from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 
+    params = ReconstructionParams(
+        segmentation=SegmentationParams(recovery=RecoveryParams(enabled=not args.no_recovery))
+    )
     cores = sorted(os.sched_getaffinity(0))
     live_core, serve_cores = {cores[0]}, set(cores[1:] or cores)
     with tempfile.TemporaryDirectory(prefix="bench_live_") as tmp:
@@ -244,6 +311,7 @@ def main() -> None:
                 spacing_mm=0.075,
                 seed=args.seed,
                 corrupted_fraction=0.05,
+                realism=args.realism,
             )
         )
         sweep_path = write_sweep(sim.sweep, d / "sweep.mha")
@@ -255,10 +323,19 @@ def main() -> None:
         # 1. accuracy: one pass
         port = free_port()
         server = start_server(sweep_path, port, args.fps, False, serve_cores)
-        res = session(port, d / "live.vtp", args.update_every, None, d / "rec.mha")
+        res = session(
+            port,
+            d / "live.vtp",
+            args.update_every,
+            None,
+            d / "rec.mha",
+            None,
+            params,
+            args.keep_all_pixels,
+        )
         server.wait(timeout=30)
-        offline = reconstruct(sim.sweep)
-        rec_offline = reconstruct(read_sweep(res.record))
+        offline = reconstruct(sim.sweep, params)
+        rec_offline = reconstruct(read_sweep(res.record), params)
         same = np.array_equal(
             vtk_to_numpy(res.final.surface.GetPoints().GetData()),
             vtk_to_numpy(rec_offline.surface.GetPoints().GetData()),
@@ -317,7 +394,16 @@ def main() -> None:
             "       time  frames  skip  drops  fr/s  lat med  max  f2s mean  max  RSS MB  anon MB"
         )
         try:
-            res = session(port, d / "live2.vtp", args.update_every, args.seconds, None, on_refit)
+            res = session(
+                port,
+                d / "live2.vtp",
+                args.update_every,
+                args.seconds,
+                None,
+                on_refit,
+                params,
+                args.keep_all_pixels,
+            )
         finally:
             server.kill()
             server.wait()
@@ -358,7 +444,7 @@ def main() -> None:
             f"{res.bench['max_waiting_at_s']:.0f} s"
         )
 
-        cpu_budget(sim.sweep, args.cpu_frames)
+        cpu_budget(sim.sweep, args.cpu_frames, params=params, keep_all=args.keep_all_pixels)
 
 
 def receiver_dropped(r) -> int:

@@ -56,17 +56,44 @@ from BoneUSRecon.Logic.segmentation.params import (
 from BoneUSRecon.Logic.segmentation.track import TrackChoice, _project, _sampled
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
-__all__ = ["track_prior", "guided_candidate", "recover_frames"]
+__all__ = [
+    "prior_frames",
+    "track_prior",
+    "guided_candidate",
+    "recover_frame",
+    "recover_frames",
+    "with_candidate",
+]
 
 #: A prior: per neighbouring track contour, its (lateral mm, depth mm) in the frame's
 #: plane ordered by lateral position, and its median distance along the sweep (mm).
 Prior = list[tuple[np.ndarray, np.ndarray, float]]
 
 
+def prior_frames(
+    chosen: np.ndarray, f: int, reach: int, both_sides: bool = True
+) -> list[int] | None:
+    """The track frames a prior for frame ``f`` is made of (:func:`track_prior`).
+
+    The nearest track frame before ``f`` and the nearest after it, each at most
+    ``reach`` frames away; ``None`` when there is none, or only one and ``both_sides``.
+    With the frames' candidates and poses, these and their chosen candidates are all
+    a prior depends on (a live session caches guided candidates by them).
+    """
+    on = np.flatnonzero(np.asarray(chosen) >= 0)
+    before = on[(on < f) & (on >= f - reach)]
+    after = on[(on > f) & (on <= f + reach)]
+    near = [int(before[-1])] if before.size else []
+    near += [int(after[0])] if after.size else []
+    if not near or (both_sides and len(near) < 2):
+        return None
+    return near
+
+
 def track_prior(
     frames: Sequence[FrameCandidates],
     choice: TrackChoice,
-    poses: np.ndarray,
+    poses: np.ndarray | Sequence[np.ndarray],
     f: int,
     reach: int,
     both_sides: bool = True,
@@ -78,7 +105,7 @@ def track_prior(
     frames : sequence of FrameCandidates
     choice : TrackChoice
         The track over ``frames``.
-    poses : ndarray, shape (N, 4, 4)
+    poses : ndarray, shape (N, 4, 4), or sequence of (4, 4)
         ``ImageToReference`` of each frame.
     f : int
         The frame to search.
@@ -92,12 +119,8 @@ def track_prior(
     list of (lateral, depth, z) or None
         ``lateral`` ascending, mm; ``depth`` mm; ``z`` the median out-of-plane distance.
     """
-    on = np.flatnonzero(np.asarray(choice.chosen) >= 0)
-    before = on[(on < f) & (on >= f - reach)]
-    after = on[(on > f) & (on <= f + reach)]
-    near = [int(before[-1])] if before.size else []
-    near += [int(after[0])] if after.size else []
-    if not near or (both_sides and len(near) < 2):
+    near = prior_frames(choice.chosen, f, reach, both_sides)
+    if near is None:
         return None
     origin, axes, normal = frame_planes(np.asarray(poses[f], dtype=float)[None])
     prior: Prior = []
@@ -230,21 +253,43 @@ def recover_frames(
         return out, changed
     poses = np.asarray(poses, dtype=float)
     for f in np.flatnonzero(np.asarray(choice.chosen) < 0).tolist():
-        prior = track_prior(frames, choice, poses, f, rejection.max_skip + 1, params.both_sides)
-        if prior is None:
-            continue
-        cand = guided_candidate(
-            image_of(f),
-            frames[f].spacing,
-            prior,
-            shadowpath,
-            rejection,
-            params.min_share,
-            params.max_offset,
-        )
+        cand = recover_frame(frames, choice, poses, f, image_of, shadowpath, rejection, params)
         if cand is None:
             continue
-        fc = frames[f]
-        out[f] = replace(fc, candidates=(*fc.candidates, cand), reason="")
+        out[f] = with_candidate(frames[f], cand)
         changed.append(f)
     return out, changed
+
+
+def recover_frame(
+    frames: Sequence[FrameCandidates],
+    choice: TrackChoice,
+    poses: np.ndarray | Sequence[np.ndarray],
+    f: int,
+    image_of: Callable[[int], np.ndarray],
+    shadowpath: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+    rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+    params: RecoveryParams = RecoveryParams(),  # noqa: B008 (frozen dataclass)
+) -> BoneCandidate | None:
+    """The guided candidate of one frame off the track (None: not searched, or nothing
+    found); :func:`recover_frames` for each such frame, and a live session for the
+    frames whose prior (:func:`prior_frames`) changed. ``image_of(f)`` is called only
+    when the frame is searched.
+    """
+    prior = track_prior(frames, choice, poses, f, rejection.max_skip + 1, params.both_sides)
+    if prior is None:
+        return None
+    return guided_candidate(
+        image_of(f),
+        frames[f].spacing,
+        prior,
+        shadowpath,
+        rejection,
+        params.min_share,
+        params.max_offset,
+    )
+
+
+def with_candidate(fc: FrameCandidates, cand: BoneCandidate) -> FrameCandidates:
+    """``fc`` with a guided candidate appended (the last candidate; the frame then has one)."""
+    return replace(fc, candidates=(*fc.candidates, cand), reason="")

@@ -346,6 +346,7 @@ def _finish(
     p: RejectionParams,
     keys: Sequence[int] | None = None,
     details: dict[tuple[int, int, int, int], str] | None = None,
+    explain: bool = True,
 ) -> TrackChoice:
     """The track from the dynamic programme's scores and back-pointers (``nodes`` in
     frame order), and why each frame off it is off it.
@@ -353,7 +354,8 @@ def _finish(
     ``keys`` (one per frame, stable while the frames are kept) and ``details`` let a
     caller that solves again and again (live) keep the rejection details between
     solves: a detail depends only on the frame, its nearest frame on the track, that
-    frame's choice and position.
+    frame's choice and position. ``explain`` False leaves the details empty (a caller
+    that only needs the choice).
     """
     n, m = len(frames), len(nodes)
     chosen = np.full(n, -1, dtype=np.intp)
@@ -395,7 +397,7 @@ def _finish(
         if chosen[f] >= 0 or reason[f]:
             continue
         reason[f] = REASONS["jump"]
-        if track_frames.size:
+        if track_frames.size and explain:
             g = int(track_frames[np.argmin(np.abs(track_frames - f))])
             key = (keys[f], keys[g], int(chosen[g]), g) if keys is not None else None
             if details is not None and key in details:

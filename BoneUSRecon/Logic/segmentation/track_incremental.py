@@ -16,6 +16,12 @@ same track, bit for bit (``Testing/test_live.py`` checks it on simulated sweeps,
 hard ones included). Every per-frame and per-pair step is a function of :mod:`.track`,
 shared with the batch version, so a change of scoring there applies to both.
 
+A second solve may add one candidate to some frames (:meth:`IncrementalTrack.solve` with
+``extra``: the guided candidates of :mod:`.recovery`, the last candidate of their frame
+as offline). Only the extra nodes are linked, to the frames within ``max_skip + 1`` on
+either side; those links are kept while the extra candidate is the same object, and the
+stored state is not changed (the next plain solve is the track without them).
+
 When frames are dropped (:meth:`IncrementalTrack.keep`, e.g. a live session thinning
 its frames to stay within memory), frames that were more than ``max_skip + 1`` apart
 may become neighbours: their links are owed and are made either in spare time
@@ -25,12 +31,12 @@ may become neighbours: their links are owed and are made either in spare time
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.segmentation.track import (
     TrackChoice,
@@ -62,6 +68,28 @@ class _TrackFrame:
     #: Predecessor uid -> ``(its node, this frame's node, deviation)``, in the order
     #: :func:`~.track.select_bone_track` visits them.
     links: dict[int, list[tuple[int, int, float]]] = field(default_factory=dict)
+
+
+@dataclass(eq=False)
+class _Extra:
+    """An extra candidate of one frame (:meth:`IncrementalTrack.solve`) and its links,
+    kept while the same candidate object is given again."""
+
+    cand: BoneCandidate
+    #: Stands for the frame in the rejection details' keys (the frame with this
+    #: candidate is another frame than the one without): negative, never a uid.
+    key: int
+    candidates: FrameCandidates  # the frame's candidates with ``cand`` last
+    reason: str
+    node: bool
+    ref: np.ndarray | None
+    b_node: tuple[np.ndarray, tuple[float, float, float, float]] | None
+    #: Predecessor uid -> ``(its node, deviation)`` to this candidate.
+    into: dict[int, list[tuple[int, float]]] = field(default_factory=dict)
+    #: Successor uid -> ``(its node, deviation)`` from this candidate.
+    out: dict[int, list[tuple[int, float]]] = field(default_factory=dict)
+    #: Successor uid -> ``(its extra candidate, deviations)`` from this one to that one.
+    pair: dict[int, tuple[BoneCandidate, list[float]]] = field(default_factory=dict)
 
 
 class IncrementalTrack:
@@ -96,9 +124,17 @@ class IncrementalTrack:
         self._owed: list[tuple[int, int]] = []
         #: Rejection details from earlier solves (see :func:`~.track._finish`).
         self._details: dict[tuple[int, int, int, int], str] = {}
+        #: Frame uid -> its latest extra candidate and that candidate's links.
+        self._extra: dict[int, _Extra] = {}
+        self._next_key = -1
 
     def __len__(self) -> int:
         return len(self._frames)
+
+    @property
+    def uids(self) -> list[int]:
+        """A number per kept frame, unique within the session (stable across :meth:`keep`)."""
+        return [fr.uid for fr in self._frames]
 
     @property
     def owed(self) -> int:
@@ -156,6 +192,11 @@ class IncrementalTrack:
         kept = {fr.uid for fr in self._frames}
         self._details = {}  # positions change: details name frames by position
         self._owed = []
+        self._extra = {u: e for u, e in self._extra.items() if u in kept}
+        for e in self._extra.values():
+            e.into = {u: v for u, v in e.into.items() if u in kept}
+            e.out = {u: v for u, v in e.out.items() if u in kept}
+            e.pair = {u: v for u, v in e.pair.items() if u in kept}
         for g, fr in enumerate(self._frames):
             fr.links = {u: v for u, v in fr.links.items() if u in kept}
             for f in range(max(0, g - self.params.max_skip - 1), g):
@@ -183,19 +224,113 @@ class IncrementalTrack:
             done += 1
         return done
 
-    def solve(self) -> TrackChoice:
-        """The track over the frames kept, as :func:`~.track.select_bone_track` chooses it."""
+    def _extras(self, extra: Mapping[int, BoneCandidate] | None) -> list[_Extra | None]:
+        """Per kept frame, its extra candidate with its geometry (made once per candidate)."""
+        out: list[_Extra | None] = [None] * len(self._frames)
+        for pos, cand in (extra or {}).items():
+            f = int(pos)
+            if not 0 <= f < len(self._frames):
+                raise IndexError(f"extra candidate for position {f}, not in 0..{len(self) - 1}")
+            fr = self._frames[f]
+            e = self._extra.get(fr.uid)
+            if e is None or e.cand is not cand:
+                # As :func:`~.recovery.with_candidate` (offline) extends the frame.
+                fc = replace(fr.candidates, candidates=(*fr.candidates.candidates, cand), reason="")
+                node = _is_node(cand)
+                gm = _node_points(cand, fc.spacing, fr.pose) if node else None
+                e = _Extra(
+                    cand,
+                    self._next_key,
+                    fc,
+                    _frame_reason(fc),
+                    node,
+                    gm[0] if gm is not None else None,
+                    gm[1:] if gm is not None else None,
+                )
+                self._next_key -= 1
+                self._extra[fr.uid] = e
+            out[f] = e
+        return out
+
+    def _extra_edges(
+        self, a: _TrackFrame, ea: _Extra | None, b: _TrackFrame, eb: _Extra | None
+    ) -> tuple[list[tuple[int, float]], list[tuple[int, float]], list[float]]:
+        """Links of the extra nodes between frame a and the later frame b: a's nodes to
+        b's extra, a's extra to b's nodes, a's extra to b's extra (made once, kept)."""
+        p = self.params
+        into: list[tuple[int, float]] = []
+        out: list[tuple[int, float]] = []
+        both: list[float] = []
+        if eb is not None and eb.node:
+            got = eb.into.get(a.uid)
+            if got is None:
+                assert eb.b_node is not None
+                got = [
+                    (ia, dev)
+                    for ia, a_ref in enumerate(a.ref)
+                    for _, dev in _links(a_ref, b.plane, [eb.b_node], p)
+                ]
+                eb.into[a.uid] = got
+            into = got
+        if ea is not None and ea.node:
+            assert ea.ref is not None
+            got = ea.out.get(b.uid)
+            if got is None:
+                got = _links(ea.ref, b.plane, b.b_nodes, p) if b.nodes else []
+                ea.out[b.uid] = got
+            out = got
+            if eb is not None and eb.node:
+                kept = ea.pair.get(b.uid)
+                if kept is None or kept[0] is not eb.cand:
+                    assert eb.b_node is not None
+                    kept = (eb.cand, [dev for _, dev in _links(ea.ref, b.plane, [eb.b_node], p)])
+                    ea.pair[b.uid] = kept
+                both = kept[1]
+        return into, out, both
+
+    def solve(
+        self, extra: Mapping[int, BoneCandidate] | None = None, explain: bool = True
+    ) -> TrackChoice:
+        """The track over the frames kept, as :func:`~.track.select_bone_track` chooses it.
+
+        Parameters
+        ----------
+        extra : mapping of int to BoneCandidate, optional
+            Position of a kept frame -> one more candidate for it, as if appended to
+            its candidates (the guided candidates of :mod:`.recovery`). The choice is
+            :func:`~.track.select_bone_track` over the frames so extended; an index
+            equal to a frame's number of candidates names its extra candidate. The
+            frames kept are not changed: a later solve without ``extra`` is the plain
+            track again.
+        explain : bool
+            False: the choice only, without the rejection details (the distance from
+            each frame off the track to it, the slow part of a solve on a sweep with
+            many such frames); live recovery needs only the choice of its first solve.
+
+        Returns
+        -------
+        TrackChoice
+        """
         p = self.params
         self.work(np.inf)
         frames = self._frames
         n = len(frames)
-        reason = [fr.reason for fr in frames]
-        nodes = [(f, c) for f, fr in enumerate(frames) for c in fr.nodes]
+        ext = self._extras(extra)
+        fcs = [
+            fr.candidates if e is None else e.candidates for fr, e in zip(frames, ext, strict=True)
+        ]
+        reason = [fr.reason if e is None else e.reason for fr, e in zip(frames, ext, strict=True)]
+        # Each frame's nodes: its own, then its extra candidate (its last candidate).
+        n_base = [len(fr.nodes) for fr in frames]
+        nodes = [
+            (f, c)
+            for f, (fr, e) in enumerate(zip(frames, ext, strict=True))
+            for c in (fr.nodes + [len(fr.candidates.candidates)] if e and e.node else fr.nodes)
+        ]
         if not nodes:
             return TrackChoice(np.full(n, -1, dtype=np.intp), np.zeros(n), reason, [""] * n)
         if len(self._details) > 8 * n:
             self._details.clear()  # choices that changed long ago
-        fcs = [fr.candidates for fr in frames]
         typical = _typical_strength(fcs)
         value_arr = np.array([_node_value(fcs[f].candidates[c], typical, p) for f, c in nodes])
         # The forward pass on Python floats (the same IEEE arithmetic as the batch
@@ -204,19 +339,45 @@ class IncrementalTrack:
         score = list(value)
         back = [-1] * len(nodes)
         link_dev = [0.0] * len(nodes)
-        base = np.cumsum([0] + [len(fr.nodes) for fr in frames]).tolist()
+        count = [
+            nb + (1 if e is not None and e.node else 0) for nb, e in zip(n_base, ext, strict=True)
+        ]
+        base = np.cumsum([0] + count).tolist()
         for g, fr in enumerate(frames):
-            if not fr.nodes:
+            if not count[g]:
                 continue
-            bg = base[g]
+            bg, eg = base[g], ext[g]
             for f in range(max(0, g - p.max_skip - 1), g):
-                edges = fr.links.get(frames[f].uid)
-                if not edges:
-                    continue
+                fa, ef = frames[f], ext[f]
                 bf = base[f]
                 gap_cost = p.miss_cost * (g - f - 1)
-                for ia, ib, dev in edges:
-                    ka, kb = bf + ia, bg + ib
+                edges = fr.links.get(fa.uid)
+                if edges:
+                    for ia, ib, dev in edges:
+                        ka, kb = bf + ia, bg + ib
+                        s = score[ka] - dev**2 - gap_cost + value[kb]
+                        if s > score[kb]:
+                            score[kb], back[kb], link_dev[kb] = s, ka, dev
+                if eg is None and ef is None:
+                    continue
+                # The extra nodes' edges. Only the order of the edges into one node
+                # matters (a node's predecessors' scores are final): the batch version
+                # visits them by the predecessor's node, the extra one last.
+                into, out, both = self._extra_edges(fa, ef, fr, eg)
+                kb = bg + n_base[g]
+                for ia, dev in into:
+                    ka = bf + ia
+                    s = score[ka] - dev**2 - gap_cost + value[kb]
+                    if s > score[kb]:
+                        score[kb], back[kb], link_dev[kb] = s, ka, dev
+                ka = bf + n_base[f]
+                for ib, dev in out:
+                    kb = bg + ib
+                    s = score[ka] - dev**2 - gap_cost + value[kb]
+                    if s > score[kb]:
+                        score[kb], back[kb], link_dev[kb] = s, ka, dev
+                kb = bg + n_base[g]
+                for dev in both:
                     s = score[ka] - dev**2 - gap_cost + value[kb]
                     if s > score[kb]:
                         score[kb], back[kb], link_dev[kb] = s, ka, dev
@@ -231,8 +392,9 @@ class IncrementalTrack:
             np.array(link_dev),
             reason,
             p,
-            keys=[fr.uid for fr in frames],
+            keys=[fr.uid if e is None else e.key for fr, e in zip(frames, ext, strict=True)],
             details=self._details,
+            explain=explain,
         )
 
     def memory_bytes(self) -> int:
@@ -241,4 +403,10 @@ class IncrementalTrack:
         for fr in self._frames:
             total += sum(r.nbytes for r in fr.ref) + sum(b.nbytes + 64 for b, _ in fr.b_nodes)
             total += sum(48 * len(v) + 64 for v in fr.links.values()) + 400
+        for e in self._extra.values():
+            if e.ref is not None and e.b_node is not None:
+                total += e.ref.nbytes + e.b_node[0].nbytes
+            n_links = sum(len(v) for v in (*e.into.values(), *e.out.values()))
+            n_links += sum(len(v) for _, v in e.pair.values())
+            total += 40 * n_links + 64 * (len(e.into) + len(e.out) + len(e.pair)) + 400
         return total
