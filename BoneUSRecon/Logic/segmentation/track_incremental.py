@@ -364,20 +364,12 @@ class IncrementalTrack:
                 # matters (a node's predecessors' scores are final): the batch version
                 # visits them by the predecessor's node, the extra one last.
                 into, out, both = self._extra_edges(fa, ef, fr, eg)
-                kb = bg + n_base[g]
-                for ia, dev in into:
-                    ka = bf + ia
-                    s = score[ka] - dev**2 - gap_cost + value[kb]
-                    if s > score[kb]:
-                        score[kb], back[kb], link_dev[kb] = s, ka, dev
-                ka = bf + n_base[f]
-                for ib, dev in out:
-                    kb = bg + ib
-                    s = score[ka] - dev**2 - gap_cost + value[kb]
-                    if s > score[kb]:
-                        score[kb], back[kb], link_dev[kb] = s, ka, dev
-                kb = bg + n_base[g]
-                for dev in both:
+                xf, xg = bf + n_base[f], bg + n_base[g]  # the extra nodes' indices
+                for ka, kb, dev in (
+                    *((bf + ia, xg, dev) for ia, dev in into),
+                    *((xf, bg + ib, dev) for ib, dev in out),
+                    *((xf, xg, dev) for dev in both),
+                ):
                     s = score[ka] - dev**2 - gap_cost + value[kb]
                     if s > score[kb]:
                         score[kb], back[kb], link_dev[kb] = s, ka, dev
