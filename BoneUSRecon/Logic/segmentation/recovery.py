@@ -27,7 +27,9 @@ two track frames both sides agree on where the bone is, so a look-alike can ente
 where it lies within the tolerance of the bone (and a fascia at the bone's level
 beside it lies outside the neighbours' lateral extent). At the ends of the track only
 one side would vouch, and beyond the last frame showing bone there is no bone to find,
-so frames outside the track's span are not searched by default (``both_sides``).
+so frames outside the track's span are not searched by default (``both_sides``; with
+the bone removed from the last frames of simulated sweeps, a one-sided search found
+"bone" in the band in 7 of 24 sweeps: a layer at the bone's level carries on there).
 """
 
 from __future__ import annotations
