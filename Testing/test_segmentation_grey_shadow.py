@@ -236,10 +236,10 @@ def test_series_top_traced_along_its_echo(sim_factory, monkeypatch):
     ("bone", "seed", "least"),
     [
         ("ulna", 5, 0.9),
-        ("radius", 7, 0.9),
-        ("clavicle", 5, 0.85),
-        ("ulna", 13, 0.9),
-        ("clavicle", 13, 0.85),
+        ("radius", 7, 0.95),
+        ("clavicle", 5, 0.9),
+        ("ulna", 13, 0.95),
+        ("clavicle", 13, 0.9),
     ],
 )
 def test_small_bones_under_the_grey_shadow_keep_the_near_cortex(sim_factory, bone, seed, least):
@@ -247,7 +247,9 @@ def test_small_bones_under_the_grey_shadow_keep_the_near_cortex(sim_factory, bon
     ulna seed 5 0.60 -> 0.95, radius seed 7 0.75 -> 0.93, clavicle seed 5 0.62 -> 0.88,
     ulna seed 13 0.65 -> 0.97, clavicle seed 13 0.60 / 5 % wrong -> 0.88 / none (a fascia
     over the shallow bone, equally spaced with the bone and its copies, was taken as the
-    series' top until its first trough had to be shadow), kept points on the bone."""
+    series' top until its first trough had to be shadow), kept points on the bone. With
+    the track-guided recovery (session 20): 0.925, 1.00, 0.95, 0.975, 0.925 (clavicle
+    seeds 5 and 13 gain 0.05 each; the others unchanged)."""
     sim = sim_factory(bone=bone, seed=seed, realism="hard", hard_conditions=("grey_shadow",))
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["recall"] >= least
