@@ -61,6 +61,7 @@ from BoneUSRecon.Logic.segmentation import (
 )
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
+from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import prior_frames, recover_frame, with_candidate
 from BoneUSRecon.Logic.segmentation.result import FrameContour
 from BoneUSRecon.Logic.segmentation.track import TrackChoice
@@ -153,11 +154,6 @@ def _segment_one(
     return frame_candidates_for(image, spacing, params, prior_px)
 
 
-def _recovers(params: SegmentationParams) -> bool:
-    """Whether the sweep-level step searches frames off the track again (:mod:`~BoneUSRecon.Logic.segmentation.recovery`)."""
-    return params.method == "shadowpath" and params.recovery.enabled
-
-
 def _guided(
     frames: list[_Frame],
     choice: TrackChoice,
@@ -235,7 +231,7 @@ def _select(
     since the last refit are reused (most of them), the others made again.
     """
     extra: dict[int, BoneCandidate] = {}
-    if _recovers(params):
+    if recovery_applies(params):
         # The first track's choice only (its rejection details would be replaced).
         first = track.solve(explain=False)
         extra = _guided(frames, first, params, counts)
@@ -371,7 +367,7 @@ class LiveReconstructor:
         #: guided candidate reused, not searched for want of pixels (see
         #: :func:`_guided`: the only difference from offline).
         self.recovery_counts = {"searched": 0, "reused": 0, "no_pixels": 0}
-        self._keep_pixels = _recovers(params.segmentation)
+        self._keep_pixels = recovery_applies(params.segmentation)
 
     @property
     def n_frames(self) -> int:

@@ -277,6 +277,18 @@ def _optimal_paths(
     return paths
 
 
+def _path_steps(ev: EvidenceMaps, p: ShadowPathParams) -> tuple[np.ndarray, int]:
+    """The optimal path's cost per depth shift between neighbouring columns (``(2 n + 1,)``
+    for shifts ``-n .. n`` rows: up to ``max_slope`` depth per lateral mm, quadratic in
+    the slope) and the fewest working columns a contour may have (``min_length_mm``):
+    one definition for every path of the per-frame step and of the guided search
+    (:mod:`.recovery`)."""
+    n_shift = max(1, int(np.ceil(p.max_slope * ev.dx / ev.dy)))
+    steps = np.arange(-n_shift, n_shift + 1)
+    shift_cost = p.slope_penalty * (steps * ev.dy / ev.dx) ** 2 * ev.dx
+    return shift_cost, max(2, int(np.ceil(p.min_length_mm / ev.dx)))
+
+
 def _groups(path: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> list[np.ndarray]:
     """Columns of each group of bone runs of ``path`` (short gaps with small steps merged)."""
     cols = np.flatnonzero(path >= 0)
@@ -678,8 +690,7 @@ def _mark_series(
     h = ev.work.shape[0]
     nf = mm_to_px(p.near_field_mm, ev.dy, minimum=0)
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
-    n_shift = max(1, int(np.ceil(p.max_slope * ev.dx / ev.dy)))
-    shift_cost = p.slope_penalty * (np.arange(-n_shift, n_shift + 1) * ev.dy / ev.dx) ** 2 * ev.dx
+    shift_cost = _path_steps(ev, p)[0]
     added: list[dict] = []
 
     def confirmed(t: dict) -> bool:
@@ -995,11 +1006,9 @@ def _frame_candidates_steps(
     h, w = ev.score.shape
     gain = ev.score - np.float32(p.null_z)
     gain *= np.float32(ev.dx)
-    n_shift = max(1, int(np.ceil(p.max_slope * ev.dx / ev.dy)))
-    steps = np.arange(-n_shift, n_shift + 1)
-    shift_cost = p.slope_penalty * (steps * ev.dy / ev.dx) ** 2 * ev.dx
+    shift_cost, min_cols = _path_steps(ev, p)
+    n_shift = shift_cost.size // 2
     sup = mm_to_px(p.suppress_mm, ev.dy)
-    min_cols = max(2, int(np.ceil(p.min_length_mm / ev.dx)))
     found: list[dict] = []
     for _ in range(p.n_passes):
         pos = gain > 0

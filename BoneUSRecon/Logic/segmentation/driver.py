@@ -30,6 +30,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
+from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import recover_frames
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
@@ -212,7 +213,7 @@ def segment_sweep(
             report(progress, "segment", n + 1, int(idx.size))
     poses = sweep.image_to_reference[idx]
     choice = select_bone_track(frames, poses, params.rejection)
-    if params.method == "shadowpath" and params.recovery.enabled:
+    if recovery_applies(params):
         # Frames off the track searched again inside the band the track allows, then
         # one track over all frames again (:mod:`.recovery`).
         frames, searched = recover_frames(

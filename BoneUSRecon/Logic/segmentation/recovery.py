@@ -44,6 +44,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     FrameCandidates,
     _groups,
     _optimal_path,
+    _path_steps,
     _refine,
 )
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
@@ -53,12 +54,14 @@ from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import (
     RecoveryParams,
     RejectionParams,
+    SegmentationParams,
     ShadowPathParams,
 )
 from BoneUSRecon.Logic.segmentation.track import TrackChoice, _project, _sampled
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
 __all__ = [
+    "applies",
     "prior_frames",
     "track_prior",
     "guided_candidate",
@@ -70,6 +73,14 @@ __all__ = [
 #: A prior: per neighbouring track contour, its (lateral mm, depth mm) in the frame's
 #: plane ordered by lateral position, and its median distance along the sweep (mm).
 Prior = list[tuple[np.ndarray, np.ndarray, float]]
+
+
+def applies(params: SegmentationParams) -> bool:
+    """Whether a segmentation with these parameters searches frames off the track again:
+    recovery on, and the shadowpath segmenter (the guided search is its optimal path on
+    its evidence; the paper's snake has none). :func:`.driver.segment_sweep` and a live
+    session ask the same question here."""
+    return params.method == "shadowpath" and params.recovery.enabled
 
 
 def prior_frames(
@@ -174,7 +185,7 @@ def guided_candidate(
         den[inside] += wt
         tol[inside] = np.maximum(tol[inside], rp.tolerance_mm + rp.tolerance_per_mm * z)
     cols = np.flatnonzero((den > 0) & ev.usable)
-    min_cols = max(2, int(np.ceil(sp.min_length_mm / ev.dx)))
+    shift_cost, min_cols = _path_steps(ev, sp)
     if cols.size < min_cols:
         return None
     c0, c1 = int(cols[0]), int(cols[-1]) + 1
@@ -183,9 +194,6 @@ def guided_candidate(
     band = np.abs(yw[:, None] - expect[None, :]) <= tol[None, c0:c1]  # NaN: False
     gain = (ev.score[:, c0:c1].astype(float) - sp.null_z) * ev.dx
     gain[~band] = -1e3  # outside the band: never on the path
-    n_shift = max(1, int(np.ceil(sp.max_slope * ev.dx / ev.dy)))
-    steps = np.arange(-n_shift, n_shift + 1)
-    shift_cost = sp.slope_penalty * (steps * ev.dy / ev.dx) ** 2 * ev.dx
     path = np.full(w, -1, dtype=np.intp)
     path[c0:c1] = _optimal_path(gain, shift_cost, sp.switch_cost)
     best: tuple[float, np.ndarray] | None = None
