@@ -161,17 +161,22 @@ def test_live_recovery_after_thinning_equals_offline(sim_factory):
     kept (guided candidates linked to the frames that became neighbours), as long as
     no frame off the track had to be searched after its pixels were dropped (the one
     divergence, counted). Where one had (max_frames 30), keeping all pixels makes the
-    refit the offline one again."""
-    sweep = sim_factory(bone="tibia", realism="hard", seed=2).sweep
+    refit the offline one again.
+
+    Sweeps (hard, 0.3 mm): tibia seed 5 at max_frames 24 thins with no search missed
+    (1 frame recovered); tibia seed 2 at 24 misses 4 (before the skin-gap shade rule,
+    seed 2 missed none at 24 and some at 30; the rule changed its first tracks)."""
+    sweep = sim_factory(bone="tibia", realism="hard", seed=5).sweep
     live = LiveReconstructor(live=LiveParams(max_frames=24))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0
-    assert len(_recovered(r)) >= 2 and _same_contours(r, batch)
+    assert len(_recovered(r)) >= 1 and _same_contours(r, batch)
     # A frame on the track at an earlier refit fell off it after the thinning.
-    live = LiveReconstructor(live=LiveParams(max_frames=30))
+    sweep = sim_factory(bone="tibia", realism="hard", seed=2).sweep
+    live = LiveReconstructor(live=LiveParams(max_frames=24))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] > 0 and not _same_contours(r, batch)
-    live = LiveReconstructor(live=LiveParams(max_frames=30, keep_all_pixels=True))
+    live = LiveReconstructor(live=LiveParams(max_frames=24, keep_all_pixels=True))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0 and live.pixels_kept == live.n_frames
     assert len(_recovered(r)) >= 2 and _same_contours(r, batch)

@@ -43,7 +43,11 @@ tendon, a bright line with tissue beneath) to 1 at ``shadow_z_full`` (clearly da
 
 Columns outside the imaged field of view (black margins of scan-converted images) and
 columns without probe contact (dark from the near field down, as an uncoupled probe
-edge is) score 0.
+edge is) score 0. Columns under a *partial* no-contact gap at an edge of the field
+(the skin curving away from the probe over gel or air: dark over part of the first mm
+under the near field) keep their place, but the shade the gap casts on them (their
+darkness above the band relative to the columns in contact) is not credited to a
+line under it as its shadow (``gap_shade``, :func:`_edge_gap`).
 
 Optional terms, off by default (measured and not kept; the figures in their modules and
 in ``Testing/benchmarks/README.md``): Karamalis' confidence drop mixed into the shadow
@@ -235,28 +239,142 @@ def _window_mean(csum: np.ndarray, a_off: int, b_off: int) -> np.ndarray:
     return out
 
 
-def _robust_z(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``x`` over 1.4826 x its median absolute deviation about the median (over ``valid``)."""
+def _robust_scale(x: np.ndarray, valid: np.ndarray) -> tuple[float, float] | None:
+    """Median of ``x`` over ``valid`` and 1.4826 x its median absolute deviation (the
+    spread, at least 1e-3); None when fewer than 10 pixels are sampled."""
     # Every 3rd valid pixel is plenty for a median (and 3x faster on the hot path).
     v = x[valid][::3]
     if v.size < 10:
-        return np.zeros_like(x)
+        return None
     med = median1d(v)
-    mad = median1d(np.abs(v - med)) * 1.4826
-    return (x - np.float32(med)) / np.float32(max(mad, 1e-3))
+    return med, max(median1d(np.abs(v - med)) * 1.4826, 1e-3)
+
+
+def _robust_z(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``x`` over 1.4826 x its median absolute deviation about the median (over ``valid``)."""
+    ms = _robust_scale(x, valid)
+    if ms is None:
+        return np.zeros_like(x)
+    return (x - np.float32(ms[0])) / np.float32(ms[1])
+
+
+def _dark_share(
+    work: np.ndarray, tissue: np.ndarray, dy: float, near_field_mm: float, depth_mm: float
+) -> np.ndarray | None:
+    """Per column, the share of the rows ``depth_mm`` under the near field darker than
+    half the tissue level at their depth (None: fewer than 2 such rows in the image)."""
+    h = work.shape[0]
+    a = mm_to_px(near_field_mm, dy, minimum=0)
+    b = min(h, a + mm_to_px(depth_mm, dy))
+    if b - a < 2:
+        return None
+    return (work[a:b] < 0.5 * tissue[a:b, None]).mean(axis=0)
 
 
 def _contact(work: np.ndarray, tissue: np.ndarray, dy: float, p: ShadowPathParams) -> np.ndarray:
     """Columns in contact: not dark from the near field down (an uncoupled probe edge is)."""
-    h = work.shape[0]
-    a = mm_to_px(p.near_field_mm, dy, minimum=0)
-    b = min(h, a + mm_to_px(p.contact_mm, dy))
-    if b - a < 2:
-        return np.ones(work.shape[1], bool)
     # Share of the near rows darker than half the tissue level at their depth: an
     # uncoupled column is dark except for thin, equally spaced lens reverberations.
-    dark = (work[a:b] < 0.5 * tissue[a:b, None]).mean(axis=0)
+    dark = _dark_share(work, tissue, dy, p.near_field_mm, p.contact_mm)
+    if dark is None:
+        return np.ones(work.shape[1], bool)
     return dark < p.contact_dark_fraction
+
+
+def _edge_gap(
+    work: np.ndarray,
+    tissue: np.ndarray,
+    usable: np.ndarray,
+    dx: float,
+    dy: float,
+    p: ShadowPathParams,
+) -> np.ndarray:
+    """Columns under a partial no-contact gap at an edge of the usable field, shape (w,).
+
+    Where the skin curves away from the probe at one end of its face, gel or air lies
+    between them: the column is dark under the near field (darker than half the tissue
+    level at its depth, as :func:`_contact` judges an uncoupled column) over part of the
+    first ``gap_probe_mm``, not all of it, and the tissue under the skin line gets less
+    sound (shade that no structure below casts). A gap is a run of such columns (at
+    least ``gap_dark_fraction`` dark) that starts at the first or last usable column
+    and is at least ``gap_min_mm`` wide; it is extended ``gap_margin_mm`` inward (the
+    skin returns to contact gradually). The levels are the frame's own tissue level
+    per depth, so the rule reads no absolute grey; a dark structure inside the field
+    (a vessel, a bone's shadow) does not touch the field's edge under the near field.
+    """
+    w = work.shape[1]
+    gap = np.zeros(w, bool)
+    cols = np.flatnonzero(usable)
+    if not p.gap_shade or cols.size < 2:
+        return gap
+    dark = _dark_share(work, tissue, dy, p.near_field_mm, p.gap_probe_mm)
+    if dark is None:
+        return gap
+    dark = (dark >= p.gap_dark_fraction) & usable
+    least = max(1, int(np.ceil(p.gap_min_mm / dx - 1e-9)))
+    margin = int(round(p.gap_margin_mm / dx))
+    for edge, step in ((int(cols[0]), 1), (int(cols[-1]), -1)):
+        # The run of dark usable columns from this edge inward.
+        run = dark[edge::step] if step > 0 else dark[edge::-1]
+        n = int(np.argmin(run)) if not run.all() else run.size
+        if n < least:
+            continue
+        end = edge + step * (n - 1 + margin)
+        lo, hi = sorted((edge, int(np.clip(end, 0, w - 1))))
+        gap[lo : hi + 1] = True
+    return gap & usable
+
+
+def _withhold_gap_shade(
+    shadow_z: np.ndarray,
+    csum: np.ndarray,
+    usable: np.ndarray,
+    gap: np.ndarray,
+    above_off: int,
+    scale: float,
+    dy: float,
+    p: ShadowPathParams,
+) -> None:
+    """Take from ``shadow_z`` (in place), in the ``gap`` columns, the shade cast from above.
+
+    Under a partial no-contact gap (:func:`_edge_gap`) a column is dark from the skin
+    line down: a layer there has darker tissue under it than the tissue at its depth,
+    as a bone would, but the shade was there above it already. For each row (a band
+    centre) the column's mean from the near field down to the cover window's top
+    (``above_off`` rows from the row) is compared with the median of that mean over the
+    columns in full contact (usable, not gap): ``log(median / mean)``, the darkness of
+    the column above the band relative to the typical column at those depths. Its
+    positive part is the shade the band did not cast, and is not credited to it as
+    shadow: it is taken from the shadow log-ratio, i.e. from the z-score in units of
+    ``scale`` (the spread the z-score was computed with; the other columns' z-scores
+    stay as they are). Only the gap's columns: elsewhere a column darker above the
+    band is anatomy (measured: on the L14 recording the column over the bone is darker
+    than typical; applied everywhere, L14 grey-shadow recall 1.00 -> 0.86).
+
+    Why it generalises: both levels are means of the same frame at the same depths, a
+    ratio (gain, TGC and probe cancel), and the correction is in the frame's own spread.
+    """
+    h, w = shadow_z.shape
+    nf = mm_to_px(p.near_field_mm, dy, minimum=0)
+    end = np.clip(np.arange(h) + above_off, nf, h)
+    n = (end - nf).astype(np.float32)
+    ok = n >= 1
+    if not ok.any():
+        return
+    ref = usable & ~gap
+    if not ref.any():
+        return
+    rows = np.flatnonzero(ok)
+    e = end[rows]
+    # Column means over the rows above the band (cumulative sums: one subtraction).
+    above = csum[e] - csum[nf][None, :]
+    above /= n[rows, None]
+    srt = np.sort(above[:, ref], axis=1)
+    typical = sorted_row_medians(srt)
+    shade = np.log((typical[:, None] + _EPS) / (above[:, gap] + _EPS))
+    np.maximum(shade, 0, out=shade)
+    shade /= scale
+    shadow_z[rows[:, None], np.flatnonzero(gap)[None, :]] -= shade.astype(shadow_z.dtype)
 
 
 def bone_evidence(
@@ -346,6 +464,11 @@ def bone_evidence(
     valid = rows_ok[:, None] & usable[None, :]
     echo_z = _robust_z(log_e, valid)
     shadow_z = _robust_z(log_s, valid)
+    gap_cols = _edge_gap(work, tissue, usable, dx, dy, p)
+    if gap_cols.any() and (ms := _robust_scale(log_s, valid)) is not None:
+        # In the spread's units of the frame's shadow log-ratio as it is: the rule
+        # changes the gap's columns only, not the scale every other column is read in.
+        _withhold_gap_shade(shadow_z, csum, usable, gap_cols, t0 - cov_a, ms[1], dy, p)
     if p.confidence_weight > 0:
         # Optional (off by default; measured in .confidence): Karamalis' confidence
         # drop across the band, combined with the shadow z-score.

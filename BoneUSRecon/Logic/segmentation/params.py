@@ -280,6 +280,16 @@ class ShadowPathParams:
     """Depth below the near field over which a column's contact with the skin is judged, mm."""
     contact_dark_fraction: float = 0.7
     """A column with more than this share of those rows darker than half the tissue level at their depth has no contact (ours)."""
+    gap_shade: bool = True
+    """Withhold from the shadow the shade a partial no-contact gap at an edge of the field casts on the columns under it (:func:`.evidence._edge_gap`; issue 10: a fascia under the skin gap of the hard simulator scored as bone: ulna seed 29 at 0.3 mm, recall 0.78 -> 0.95, wrong share 0.15 -> 0.025)."""
+    gap_probe_mm: float = 3.0
+    """Depth below the near field over which a column is judged to lie under a gap, mm (ours: the gel or air wedge under a skin curving away from the probe; deeper than the skin line's own blur)."""
+    gap_dark_fraction: float = 0.3
+    """A column is under a gap when at least this share of those rows is darker than half the tissue level at their depth (ours: the contact rule's criterion, for a column only partly uncoupled; an uncoupled column, more than ``contact_dark_fraction`` dark, has no contact at all)."""
+    gap_min_mm: float = 1.0
+    """Least width of a run of such columns from an edge of the usable field, mm (ours: four working pixels; narrower runs are dark speckle, as on the L14 recording)."""
+    gap_margin_mm: float = 3.0
+    """The gap's columns are extended this far inward, mm (ours: the skin curves back to contact over a few mm and its shade spreads under the contact point; the simulator's gap tapers as the square of the distance from its inner end)."""
     fov_grey: float = 4.0
     """Grey level (0..255) below which a pixel counts as black, for finding the imaged field of view (instrument fact: scan-converted images are exactly 0 outside it)."""
     fov_fraction: float = 0.25
@@ -341,6 +351,7 @@ class ShadowPathParams:
                 "max_z",
                 "max_slope",
                 "contact_mm",
+                "gap_probe_mm",
                 "min_length_mm",
                 "n_passes",
                 "max_candidates",
@@ -369,6 +380,8 @@ class ShadowPathParams:
                 "refine_sigma_mm",
                 "cover_min_mm",
                 "fov_margin_mm",
+                "gap_min_mm",
+                "gap_margin_mm",
                 "confidence_alpha",
                 "confidence_gamma",
             ),
@@ -376,6 +389,7 @@ class ShadowPathParams:
                 "tissue_percentile": "(0, 100)",
                 "shadow_percentile": "(0, 100)",
                 "contact_dark_fraction": "[0, 1]",
+                "gap_dark_fraction": "(0, 1]",
                 "phase_weight": "[0, 1]",
                 "confidence_weight": "[0, 1]",
                 "fov_grey": "[0, 255]",
