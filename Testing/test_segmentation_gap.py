@@ -5,8 +5,10 @@ that shade for a bone's shadow."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from conftest import REAL_MHA, REAL_XML, small_simulation
 
+from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import (
     SegmentationParams,
     ShadowPathParams,
@@ -100,3 +102,15 @@ def test_fascia_under_a_skin_gap_is_not_the_bone():
     assert on["wrong_share"] <= 0.05
     assert on["recall"] >= 0.9 and on["recall"] >= off["recall"] + 0.1
     assert on["median_mm"] < 0.15  # the contours kept lie on the bone
+
+
+def test_gap_parameters_are_validated():
+    for field, bad in (
+        ("gap_dark_fraction", 0.0),
+        ("gap_dark_fraction", 1.5),
+        ("gap_probe_mm", 0.0),
+        ("gap_min_mm", -1.0),
+        ("gap_margin_mm", -0.5),
+    ):
+        with pytest.raises(BoneUSReconError, match=f"ShadowPathParams.{field}"):
+            ShadowPathParams(**{field: bad})
