@@ -29,6 +29,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     frame_candidates_many,
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
+from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import recover_frames
@@ -227,6 +228,10 @@ def segment_sweep(
         )
         if searched:
             choice = select_bone_track(frames, poses, params.rejection)
+    # The track's ends cut back where its frames cast no bone shadow (:mod:`.ends`).
+    choice = cut_bone_free_ends(
+        frames, choice, lambda n: np.asarray(sweep.frames[int(idx[n])]), params.ends
+    )
     contours = contours_from_track(idx, frames, choice, params)
     t_seg = time.perf_counter() - t0
     result = SegmentationResult(

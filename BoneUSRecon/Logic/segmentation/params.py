@@ -28,6 +28,8 @@ __all__ = [
     "FlankParams",
     "ShadowPathParams",
     "RejectionParams",
+    "RecoveryParams",
+    "EndsParams",
     "SegmentationParams",
 ]
 
@@ -472,6 +474,45 @@ class RecoveryParams:
 
 
 @dataclass(frozen=True)
+class EndsParams:
+    """The track's ends cut back where the frames show no bone shadow (ours; :mod:`.ends`).
+
+    A sweep may start or end past the bone, where the track carries on through a
+    fascia at the bone's level or the skin over a no-contact gap. Under bone the tissue
+    a few mm below the contour is darker than the tissue above it (its shadow starts
+    there); under those look-alikes it is much less so. The step is judged against the
+    track's own typical frame, never against a grey level.
+    """
+
+    enabled: bool = True
+    """Cut the track's bone-free ends (any segmenter)."""
+    under_gap_mm: float = 2.5
+    """The band under the contour starts this far below it, mm: past the bone's bright band (the simulator's echo tail decays over 0.4 mm; the real L14 recording's cortex is a band 1-2 mm thick)."""
+    above_gap_mm: float = 1.0
+    """The band above the contour ends this far above it, mm (past the echo's blur upwards)."""
+    band_mm: float = 5.0
+    """Thickness of the bands under and above the contour, mm (the shadow's reverberation bands are 2.5-3 mm apart: a band spans at least one period)."""
+    near_field_mm: float = 2.0
+    """The band above starts no shallower than this, mm (the skin line and the probe's near field: ``ShadowPathParams.near_field_mm``)."""
+    column_mm: float = 0.5
+    """One contour column in this many mm is measured (speed: a median over columns needs no more; the speckle is ~0.3-0.7 mm wide)."""
+    min_ratio: float = 0.5
+    """A frame whose step is below this share of the track's typical step counts as weak (ours: frames on the bone 0.41-1.7, bone-free frames the track kept -0.14-0.76, mostly below 0.5; hard sweeps, seeds 5 and 7)."""
+    strong_weight: float = 3.0
+    """A frame at or above ``min_ratio`` counts this many times its margin against a cut, a weak one once its margin for it (ours: a bone's own frames vary, the real L14 recording's from 0.41 to 1.6 of its median step, with frames 1-3 at 0.41-0.49 next to its first at 0.91; a run past a simulated bone's end is weak throughout, 0.1-0.7)."""
+    max_cut_share: float = 0.5
+    """Never cut more than this share of the track's frames: the typical step is the track's median, so it stands for the bone only while most of the track is on it."""
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            positive=("band_mm", "column_mm", "min_ratio"),
+            non_negative=("under_gap_mm", "above_gap_mm", "near_field_mm", "strong_weight"),
+            within={"max_cut_share": "[0, 1]"},
+        )
+
+
+@dataclass(frozen=True)
 class SegmentationParams:
     """Everything :func:`~BoneUSRecon.Logic.segmentation.segment_sweep` needs."""
 
@@ -487,6 +528,8 @@ class SegmentationParams:
     """The sweep-level choice of one bone track, applied to every segmenter's candidates."""
     recovery: RecoveryParams = field(default_factory=RecoveryParams)
     """Frames off the track searched again inside the band the track allows (shadowpath)."""
+    ends: EndsParams = field(default_factory=EndsParams)
+    """The track's ends cut back where the frames show no bone shadow (sweeps past a bone's end)."""
 
     def __post_init__(self) -> None:
         check_fields(self)
