@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -216,7 +217,11 @@ def segment_sweep(
     choice = select_bone_track(frames, poses, params.rejection)
     if recovery_applies(params):
         # Frames off the track searched again inside the band the track allows, then
-        # one track over all frames again (:mod:`.recovery`).
+        # one track over all frames again (:mod:`.recovery`); past the track's ends too
+        # (one side guiding) when the ends cut below judges what is found there.
+        recovery = params.recovery
+        if params.ends.enabled and params.ends.search_past_ends:
+            recovery = replace(recovery, both_sides=False)
         frames, searched = recover_frames(
             frames,
             choice,
@@ -224,7 +229,7 @@ def segment_sweep(
             lambda n: np.asarray(sweep.frames[int(idx[n])]),
             params.shadowpath,
             params.rejection,
-            params.recovery,
+            recovery,
         )
         if searched:
             choice = select_bone_track(frames, poses, params.rejection)
