@@ -185,3 +185,20 @@ def test_ends_params_are_validated():
         EndsParams(band_mm=0)
     with pytest.raises(BoneUSReconError, match="EndsParams.max_cut_share"):
         EndsParams(max_cut_share=1.5)
+
+
+def test_cli_simulate_bone_free(tmp_path, capsys):
+    import json
+
+    from BoneUSRecon.cli import main
+
+    out = tmp_path / "ends"
+    rc = main(
+        ["simulate", "radius", str(out), "--frames", "8", "--width", "64", "--height", "96",
+         "--spacing", "0.4", "--bone-free", "2,3", "--json"]
+    )  # fmt: skip
+    assert rc == 0
+    capsys.readouterr()
+    saved = json.loads((out / "simulation.json").read_text())
+    assert saved["parameters"]["bone_free_frames"] == [2, 3]
+    assert saved["frames_with_visible_bone"] == 3
