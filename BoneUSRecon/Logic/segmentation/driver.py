@@ -235,7 +235,10 @@ def segment_sweep(
             choice = select_bone_track(frames, poses, params.rejection)
     # The track's ends cut back where its frames cast no bone shadow (:mod:`.ends`).
     choice = cut_bone_free_ends(
-        frames, choice, lambda n: np.asarray(sweep.frames[int(idx[n])]), params.ends
+        frames,
+        choice,
+        lambda ns: (image for _, image in sweep.iter_frames(idx[ns])),
+        params.ends,
     )
     contours = contours_from_track(idx, frames, choice, params)
     t_seg = time.perf_counter() - t0

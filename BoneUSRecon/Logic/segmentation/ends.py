@@ -42,7 +42,7 @@ Measured in ``Testing/benchmarks/README.md``, "Bone-free sweep ends (branch ends
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -163,14 +163,15 @@ def bone_free_ends(steps: np.ndarray, params: EndsParams = EndsParams()) -> np.n
 def cut_bone_free_ends(
     frames: Sequence[FrameCandidates],
     choice: TrackChoice,
-    image_of: Callable[[int], np.ndarray],
+    images: Callable[[np.ndarray], Iterable[np.ndarray]],
     params: EndsParams = EndsParams(),  # noqa: B008 (frozen dataclass)
 ) -> TrackChoice:
     """``choice`` with the track's bone-free ends taken off (:func:`bone_free_ends`).
 
-    ``image_of(n)`` gives the image of the ``n``-th frame of ``frames``. Frames cut are
-    rejected with the reason "no bone shadow under it" and their step relative to the
-    track's typical one in the detail.
+    ``images(ns)`` yields the images of the frames at positions ``ns`` of ``frames``,
+    in that order (a sweep's ``iter_frames``, which keeps a memory-mapped sweep's pages
+    from piling up). Frames cut are rejected with the reason "no bone shadow under it"
+    and their step relative to the track's typical one in the detail.
     """
     if not params.enabled:
         return choice
@@ -180,12 +181,12 @@ def cut_bone_free_ends(
     steps = np.array(
         [
             shadow_step(
-                image_of(int(n)),
+                image,
                 frames[n].candidates[int(choice.chosen[n])].points_px,
                 frames[n].spacing,
                 params,
             )
-            for n in on
+            for n, image in zip(on, images(on), strict=True)
         ]
     )
     cut = bone_free_ends(steps, params)
