@@ -303,6 +303,9 @@ def test_table_refuses_absurd_parameters(capsys, bad, tmp_path, options, problem
         (["--invalid", "-0.1"], "invalid fraction must be between 0 and 1"),
         (["--width", "100000"], "at most 2048 pixels per side"),
         (["--frames", "10000000"], "would need 819.2 GB in memory"),
+        (["--bone-free", "10"], "--bone-free must look like FIRST,LAST"),
+        (["--bone-free", "0,-2"], "--bone-free frame counts must not be negative"),
+        (["--frames", "10", "--bone-free", "5,4"], "bone_free_frames: (5, 4) leaves fewer than 2"),
     ],
 )
 def test_simulate_refuses_absurd_parameters(capsys, tmp_path, options, problem):

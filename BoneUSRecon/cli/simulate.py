@@ -103,6 +103,14 @@ def register(subparsers: Any) -> None:
         f"{', '.join(names.HARD_CONDITIONS)} (default all)",
     )
     p.add_argument(
+        "--bone-free",
+        dest="bone_free",
+        metavar="FIRST,LAST",
+        default="0,0",
+        help="frames at the start and at the end of the sweep that show no bone (a sweep "
+        "running past the bone's end), e.g. 0,10 (default 0,0)",
+    )
+    p.add_argument(
         "--no-neighbour",
         dest="neighbour",
         action="store_false",
@@ -111,6 +119,21 @@ def register(subparsers: Any) -> None:
     add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
+
+
+def _bone_free(text: str) -> tuple[int, int]:
+    """``--bone-free FIRST,LAST``: two frame counts, not negative."""
+    from BoneUSRecon.Logic.errors import BoneUSReconError
+
+    try:
+        first, last = (int(v) for v in str(text).split(","))
+    except ValueError:
+        raise BoneUSReconError(
+            f"--bone-free must look like FIRST,LAST (two frame counts, e.g. 0,10), got {text!r}"
+        ) from None
+    if first < 0 or last < 0:
+        raise BoneUSReconError(f"--bone-free frame counts must not be negative, got {text!r}")
+    return first, last
 
 
 def run(args: argparse.Namespace) -> int:
@@ -145,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         reverse=args.reverse,
         neighbour=args.neighbour,
+        bone_free_frames=_bone_free(args.bone_free),
     )
     # Refuse bad input before any work is done or any folder is made.
     check_params(params)

@@ -17,7 +17,9 @@ shown), point accuracy (median, p95, share > 2 mm), flank coverage (share of the
 contour's width covered) and the median steepest slope reached on the bone (beside the
 true contour's). Cases: every bone at standard realism; every bone at ``realism="hard"``,
 at the bench's 160 x 128 pixels of 0.3 mm and at the cadaver sweep's 475 x 405 of 0.108 mm;
-each hard condition alone on the tibia; the two shared real recordings and their hard
+each hard condition alone on the tibia; tibia and humerus hard at both geometries with
+the last quarter of the frames bone-free ("end-free": a sweep running past the bone's
+end, ``SimulationParams.bone_free_frames``); the two shared real recordings and their hard
 augmentations (``augment.HARD_AUGMENTATIONS``, and "cadaver": ``augment.harden`` with the
 reference contours, the cadaver's levels exactly), scored against the reference contours
 of ``Testing/data`` (see its README for their precision).
@@ -115,6 +117,23 @@ def frame_table(n_frames: int = 40, real: bool = True) -> None:
             SimulationParams(bone="tibia", realism="hard", hard_conditions=(c,), **small),
         )
         for c in HARD_CONDITIONS
+    ]
+    # Sweeps running past the bone's end: the last quarter of the frames show no bone
+    # (``bone_free_frames``), and a frame kept there counts as wrong.
+    free = (0, n_frames // 4)
+    cases += [
+        (
+            f"{b} hard end-free",
+            SimulationParams(bone=b, realism="hard", bone_free_frames=free, **small),
+        )
+        for b in ("tibia", "humerus")
+    ]
+    cases += [
+        (
+            f"{b} 0.108mm end-free",
+            SimulationParams(bone=b, realism="hard", bone_free_frames=free, **cadaver),
+        )
+        for b in ("tibia", "humerus")
     ]
     for name, params in cases:
         sim = simulate(params)

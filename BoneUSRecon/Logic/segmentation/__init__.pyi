@@ -11,9 +11,11 @@ from .driver import (
     segment_frame,
     segment_sweep,
 )
+from .ends import cut_bone_free_ends, shadow_step
 from .evidence import bone_evidence
 from .params import (
     REFERENCE_PIXEL_MM,
+    EndsParams,
     PosteriorParams,
     RecoveryParams,
     RejectionParams,
@@ -38,6 +40,9 @@ __all__ = [
     "ShadowPathParams",
     "RejectionParams",
     "RecoveryParams",
+    "EndsParams",
+    "shadow_step",
+    "cut_bone_free_ends",
     "FrameContour",
     "SegmentationResult",
     "SegmentationPoints",

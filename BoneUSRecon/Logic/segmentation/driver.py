@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -29,6 +30,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     frame_candidates_many,
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
+from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import recover_frames
@@ -215,7 +217,11 @@ def segment_sweep(
     choice = select_bone_track(frames, poses, params.rejection)
     if recovery_applies(params):
         # Frames off the track searched again inside the band the track allows, then
-        # one track over all frames again (:mod:`.recovery`).
+        # one track over all frames again (:mod:`.recovery`); past the track's ends too
+        # (one side guiding) when the ends cut below judges what is found there.
+        recovery = params.recovery
+        if params.ends.enabled and params.ends.search_past_ends:
+            recovery = replace(recovery, both_sides=False)
         frames, searched = recover_frames(
             frames,
             choice,
@@ -223,10 +229,17 @@ def segment_sweep(
             lambda n: np.asarray(sweep.frames[int(idx[n])]),
             params.shadowpath,
             params.rejection,
-            params.recovery,
+            recovery,
         )
         if searched:
             choice = select_bone_track(frames, poses, params.rejection)
+    # The track's ends cut back where its frames cast no bone shadow (:mod:`.ends`).
+    choice = cut_bone_free_ends(
+        frames,
+        choice,
+        lambda ns: (image for _, image in sweep.iter_frames(idx[ns])),
+        params.ends,
+    )
     contours = contours_from_track(idx, frames, choice, params)
     t_seg = time.perf_counter() - t0
     result = SegmentationResult(

@@ -48,6 +48,7 @@ REASONS = {
     "short": "contour too short",
     "reverb": "reverberation copy",
     "weak": "no bone evidence along the contour",
+    "noshadow": "no bone shadow under it (sweep end)",
 }
 
 _SAMPLE_MM = 0.5  # contours are compared at ~this point spacing (speed; 1-2 px apart)

@@ -357,6 +357,16 @@ def sample_gold(sim: Simulation, region: str | None = None) -> np.ndarray:
     )
 
 
+def _bone_free_mask(params: SimulationParams) -> np.ndarray:
+    """Which frames show no bone (``params.bone_free_frames`` at the start and the end)."""
+    n = int(params.n_frames)
+    first, last = (int(v) for v in params.bone_free_frames)
+    free = np.zeros(n, bool)
+    free[:first] = True
+    free[n - last :] = last > 0
+    return free
+
+
 def _neighbour(geom: BoneGeometry, params: SimulationParams) -> BoneGeometry | None:
     """The other forearm bone beside the target, its top ~2 mm deeper than the target's."""
     if not params.neighbour or params.bone not in NEIGHBOURS:
@@ -433,6 +443,14 @@ def simulate(
         c2 = np.clip(cos_inc, 0, 1)
         both = np.where(use2, c2**ip.specular_exponent + ip.diffuse_fraction * c2, scene.strength)
         scene = replace(scene, strength=both)
+    # Frames past the bone's end: no bone is rendered there (the tissue layers, fascia,
+    # skin gap and vessel were laid out above from the bone's sections and stay).
+    free = _bone_free_mask(params)
+    if free.any():
+        top_j = np.where(free[:, None], np.nan, top_j)
+        cos_inc = np.where(free[:, None], 0.0, cos_inc)
+        if scene is not None and scene.far_j is not None:
+            scene = replace(scene, far_j=np.where(free[:, None], np.nan, scene.far_j))
     frames = render_frames(
         path.image_to_reference,
         top_j,
@@ -455,6 +473,15 @@ def simulate(
         strength=strength,
         min_strength=params.hard.visible_strength,
     )
+    if free.any():
+        contours = [np.empty((0, 2)) if free[k] else c for k, c in enumerate(contours)]
+        nan = np.where(free[:, None], np.nan, 0.0)
+        sections = replace(
+            sections,
+            top_j=sections.top_j + nan,
+            cos_incidence=np.where(free[:, None], 0.0, sections.cos_incidence),
+            bottom_j=None if sections.bottom_j is None else sections.bottom_j + nan,
+        )
     m = int(params.black_margin_px)
     if m > 0:
         # Scan-converted frames are exactly black outside the imaged area: no bone seen there.

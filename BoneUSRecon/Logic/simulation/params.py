@@ -322,6 +322,15 @@ class SimulationParams:
     frame_rate_hz: float = 20.0
     #: Length left unswept at each end of the bone segment (mm).
     sweep_margin_mm: float = 10.0
+    #: Frames at the start and at the end of the sweep that show no bone ``(first,
+    #: last)``: the sweep runs past the bone's end, or the probe has slid off it. Those
+    #: frames are rendered without any bone echo, shadow, reverberation or far cortex
+    #: (nor the neighbouring bone); the soft tissue, fascia, skin gap and vessel stay as
+    #: they would be, and their true contours are empty, so a segmentation keeping them
+    #: counts as wrong (:attr:`.scoring.FrameScore.wrong`). Real sweeps start or end
+    #: beyond the bone (issue 10's sweep ends); ``sweep_margin_mm`` cannot produce that,
+    #: as every frame then shows bone. At least 2 frames must keep the bone.
+    bone_free_frames: tuple[int, int] = (0, 0)
     #: Show the forearm's other bone beside the target (radius <-> ulna), as a
     #: transverse forearm scan does: a second bone echo with its own shadow at the
     #: side of the image. It is not part of the truth, the gold points or the contours.
@@ -364,6 +373,7 @@ class SimulationParams:
                 "depth_jitter_mm",
                 "speed_variation",
                 "sweep_margin_mm",
+                "bone_free_frames",
             ),
             positive=("frame_rate_hz",),
         )
@@ -385,6 +395,11 @@ class SimulationParams:
             )
         if self.n_frames < 2:
             raise BoneUSReconError(f"need at least 2 frames, got {self.n_frames}")
+        if sum(self.bone_free_frames) > self.n_frames - 2:
+            raise BoneUSReconError(
+                f"SimulationParams.bone_free_frames: {self.bone_free_frames} leaves fewer than "
+                f"2 of {self.n_frames} frames showing bone"
+            )
         if self.width < 16 or self.height < 16:
             raise BoneUSReconError(
                 f"images must be at least 16 x 16 pixels, got {self.height} x {self.width}"

@@ -1,0 +1,203 @@
+"""Sweep-level step: the track's ends cut back where the frames show no bone shadow.
+
+A real sweep may start or end past a bone's end, or where the probe has slid off it;
+those frames show no bone, yet the track (:mod:`.track`) carries on through whatever
+continues the bone in 3D there: a fascia leaving the bone at its level, or the skin
+line over a no-contact gap at the image edge, whose shade passes for a shadow in the
+per-frame evidence. Measured on 96 hard simulated sweeps of 40 frames with the first
+or last 3 or 10 frames bone-free (``SimulationParams.bone_free_frames``; seeds 5, 7,
+29, both geometries), the track kept 65 of 624 bone-free frames, in 10 sweeps; with
+this cut 1, recall unchanged (0.941), and with the one-sided recovery past the track's
+ends that the cut makes safe (``EndsParams.search_past_ends``) recall 0.962.
+
+What tells the bone from those look-alikes is where the dark begins. Bone casts its
+shadow from the contour down: a few mm under the contour the tissue is darker than the
+tissue just above it. A fascia over tissue has tissue beneath it (no step), and the
+shade of a no-contact gap is cast from the skin above, so the column is dark above
+the contour as well as under it (little step). :func:`shadow_step` measures that step
+per frame: the median over the contour's columns of ``log(grey under) - log(grey
+above)``, in bands ``band_mm`` thick starting ``under_gap_mm`` under the contour (past
+the bone's bright band) and ``above_gap_mm`` above it.
+
+:func:`bone_free_ends` judges the step of each track frame against the track's own
+typical step (the median over its frames): the weakness of a frame is ``min_ratio -
+step / typical``. From each end of the track, the run of frames cut is the one whose
+weakness, summed, is greatest, if it is positive (a one-sided change point, CUSUM-like),
+a frame that looks like the bone counting ``strong_weight`` times its margin: a lone
+weak frame among the bone's, or a weak stretch of the bone next to a strong end frame,
+is not cut; a run of look-alikes with a stray fair frame in it is. Frames inside the
+track are never cut (both sides vouch for them).
+
+Why it generalises: no grey level is read as such. The step is a difference of log
+greys in the same columns (a ratio: the same under any gain or display curve), and it
+is judged against the recording's own bone, the track's median frame: whatever the
+shadow's floor (the L14 recording's near-black, the cadaver's 0.65 of the tissue
+beside) and whatever lies above the bone, a frame showing that bone steps like the
+track's other frames, and one past its end, over tissue or in a shade from above,
+much less. Tried and not kept: the step less the same step in the columns beside the
+contour (tissue at the same depths): on the real L14 recording the tissue beside the
+bone at its depth is darker than its shadow, and the frames' ratios spread 0.2-1.8.
+Measured in ``Testing/benchmarks/README.md``, "Bone-free sweep ends (branch ends)".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+
+import numpy as np
+
+from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.params import EndsParams
+from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice
+
+__all__ = ["shadow_step", "bone_free_ends", "cut_bone_free_ends"]
+
+# log(grey + 1) of every uint8 grey: one table lookup instead of a log per pixel.
+_LOG = np.log(np.arange(256, dtype=float) + 1.0)
+
+
+def _band_means(cum: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
+    """Per column ``k``, the mean of rows ``[r0[k], r1[k])`` from its cumulative sum
+    ``cum[:, k]`` (``(n + 1, K)``, row 0 zero); NaN where the band is empty."""
+    n = cum.shape[0] - 1
+    a = np.clip(np.round(r0).astype(np.intp), 0, n)
+    b = np.clip(np.round(r1).astype(np.intp), 0, n)
+    k = np.arange(a.size)
+    return np.where(b > a, (cum[b, k] - cum[a, k]) / np.maximum(b - a, 1), np.nan)
+
+
+def shadow_step(
+    image: np.ndarray,
+    points_px: np.ndarray,
+    spacing: tuple[float, float],
+    params: EndsParams = EndsParams(),  # noqa: B008 (frozen dataclass)
+) -> float:
+    """How much darker the tissue under a contour is than the tissue above it (log grey).
+
+    Parameters
+    ----------
+    image : ndarray (H, W) uint8
+    points_px : ndarray (K, 2)
+        The contour's ``(i, j)`` = (column, row), sub-pixel.
+    spacing : (float, float)
+        Pixel spacing (mm) along columns and rows.
+    params : EndsParams
+
+    Returns
+    -------
+    float
+        Median over the contour's columns (one every ~``column_mm``) of the mean log
+        grey in ``[under_gap_mm, under_gap_mm + band_mm]`` under the contour less that
+        in ``[above_gap_mm, above_gap_mm + band_mm]`` above it (not above
+        ``near_field_mm``): negative under bone (its shadow starts at the contour),
+        near zero under a layer over tissue or in a shade cast from above. NaN when no
+        band fits in the image.
+    """
+    img = np.asarray(image)
+    h, w = img.shape
+    sx, sy = float(spacing[0]), float(spacing[1])
+    if points_px.shape[0] == 0:
+        return float("nan")
+    pts = points_px[:: max(1, int(round(params.column_mm / max(sx, 1e-6))))]
+    i = np.clip(np.round(pts[:, 0]).astype(np.intp), 0, w - 1)
+    j = np.asarray(pts[:, 1], dtype=float)
+    band = params.band_mm / sy
+    under0 = j + params.under_gap_mm / sy
+    above1 = j - params.above_gap_mm / sy
+    above0 = np.maximum(above1 - band, params.near_field_mm / sy)
+    # Only the rows the bands reach, cumulated once per column.
+    r0 = int(max(0, np.floor(above0.min())))
+    r1 = int(min(h, np.ceil((under0 + band).max()) + 1))
+    if r1 - r0 < 2:
+        return float("nan")
+    cum = np.zeros((r1 - r0 + 1, i.size))
+    np.cumsum(_LOG[img[r0:r1, i]], axis=0, out=cum[1:])
+    d = _band_means(cum, under0 - r0, under0 + band - r0) - _band_means(
+        cum, above0 - r0, above1 - r0
+    )
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if d.size else float("nan")
+
+
+def bone_free_ends(steps: np.ndarray, params: EndsParams = EndsParams()) -> np.ndarray:  # noqa: B008
+    """Which of a track's frames (in sweep order) to cut at its two ends.
+
+    Parameters
+    ----------
+    steps : ndarray (T,)
+        :func:`shadow_step` of each track frame, in sweep order (NaN: not measured).
+    params : EndsParams
+
+    Returns
+    -------
+    ndarray of bool (T,)
+        True for the frames cut: at each end, the run whose summed weakness
+        ``min_ratio - step / typical`` is greatest, when positive; never more than
+        ``max_cut_share`` of the track.
+    """
+    steps = np.asarray(steps, dtype=float)
+    t = steps.size
+    cut = np.zeros(t, bool)
+    ok = np.isfinite(steps)
+    if t < 3 or ok.sum() < 3:
+        return cut
+    typical = float(np.median(steps[ok]))
+    if not typical < 0:
+        return cut  # the track's own frames cast no shadow: nothing to judge against
+    # A frame not measured weighs nothing either way; a frame that looks like the
+    # bone weighs ``strong_weight`` times more than a weak one: the bone's own frames
+    # vary (a real recording's 0.4-1.6 of its median), a run past its end is weak
+    # throughout.
+    weak = np.where(ok, params.min_ratio - steps / typical, 0.0)
+    weak = np.where(weak < 0, params.strong_weight * weak, weak)
+    most = int(np.floor(params.max_cut_share * t))
+    for order in (np.arange(t)[::-1], np.arange(t)):  # from the last frame, then the first
+        s = np.cumsum(weak[order])[:most]
+        if s.size and s.max() > 0:
+            cut[order[: int(np.argmax(s)) + 1]] = True
+    if cut.sum() > most:  # both ends at once: keep the larger share of the track
+        return np.zeros(t, bool)
+    return cut
+
+
+def cut_bone_free_ends(
+    frames: Sequence[FrameCandidates],
+    choice: TrackChoice,
+    images: Callable[[np.ndarray], Iterable[np.ndarray]],
+    params: EndsParams = EndsParams(),  # noqa: B008 (frozen dataclass)
+) -> TrackChoice:
+    """``choice`` with the track's bone-free ends taken off (:func:`bone_free_ends`).
+
+    ``images(ns)`` yields the images of the frames at positions ``ns`` of ``frames``,
+    in that order (a sweep's ``iter_frames``, which keeps a memory-mapped sweep's pages
+    from piling up). Frames cut are rejected with the reason "no bone shadow under it"
+    and their step relative to the track's typical one in the detail.
+    """
+    if not params.enabled:
+        return choice
+    on = np.flatnonzero(choice.chosen >= 0)
+    if on.size < 3:
+        return choice
+    steps = np.array(
+        [
+            shadow_step(
+                image,
+                frames[n].candidates[int(choice.chosen[n])].points_px,
+                frames[n].spacing,
+                params,
+            )
+            for n, image in zip(on, images(on), strict=True)
+        ]
+    )
+    cut = bone_free_ends(steps, params)
+    if not cut.any():
+        return choice
+    typical = float(np.nanmedian(steps))
+    chosen = choice.chosen.copy()
+    conf = choice.confidence.copy()
+    reason, detail = list(choice.reason), list(choice.detail)
+    for n, s in zip(on[cut], steps[cut], strict=True):
+        chosen[n], conf[n] = -1, 0.0
+        reason[n] = REASONS["noshadow"]
+        detail[n] = f"step {s / typical:.2f} of the track's typical"
+    return TrackChoice(chosen, conf, reason, detail)

@@ -1,0 +1,204 @@
+"""Sweep ends past the bone (issue 10): the simulator's bone-free frames, and the track's
+ends cut back where the frames show no bone shadow (:mod:`.segmentation.ends`).
+
+Ground truth from the simulator: ``bone_free_frames`` renders the first / last frames
+without the bone and leaves their true contours empty, so a kept frame there is wrong.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from conftest import small_simulation
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.segmentation import EndsParams, SegmentationParams, segment_sweep
+from BoneUSRecon.Logic.segmentation.ends import bone_free_ends, shadow_step
+from BoneUSRecon.Logic.segmentation.track import REASONS
+from BoneUSRecon.Logic.simulation import SimulationParams
+from BoneUSRecon.Logic.simulation.scoring import score_simulation
+
+OFF = SegmentationParams(ends=EndsParams(enabled=False))
+
+
+def _free_end(bone: str = "tibia", seed: int = 5, free=(0, 10)):
+    return small_simulation(bone=bone, realism="hard", seed=seed, bone_free_frames=free)
+
+
+# -- the simulator ------------------------------------------------------------------
+
+
+def test_bone_free_frames_show_no_bone_and_leave_the_rest_unchanged():
+    with_bone = small_simulation(bone="tibia", realism="hard", seed=5)
+    sim = _free_end(free=(3, 10))
+    n = sim.sweep.n_frames
+    free = [*range(3), *range(n - 10, n)]
+    for k in range(n):
+        if k in free:
+            assert sim.true_contours_px[k].shape == (0, 2)
+            assert not np.isfinite(sim.sections.top_j[k]).any()
+        else:
+            np.testing.assert_array_equal(sim.true_contours_px[k], with_bone.true_contours_px[k])
+            np.testing.assert_array_equal(sim.sweep.frames[k], with_bone.sweep.frames[k])
+    # No shadow where the bone was: under its true contour (2-8 mm down) the grey is
+    # that of the tissue at those depths across the frame, where with the bone it is
+    # the shadow's (hard preset, grey display: ~0.8 of the rows' mean grey).
+    sp = sim.params.spacing_mm
+    for k in free:
+        c = with_bone.true_contours_px[k]
+        top = float(np.median(c[:, 1]))
+        rows = slice(int(top + 2 / sp), min(int(top + 8 / sp), sim.params.height))
+        cols = slice(int(c[:, 0].min()), int(c[:, 0].max()) + 1)
+
+        ratio = [
+            img[rows, cols].astype(float).mean() / img[rows].astype(float).mean()
+            for img in (with_bone.sweep.frames[k], sim.sweep.frames[k])
+        ]
+        # Measured: 0.77-0.85 with the bone, 1.02-1.09 without.
+        assert ratio[0] < 0.9
+        assert 0.95 < ratio[1] < 1.15
+    # The gold points stay on the bone the sweep imaged: between the frames showing it.
+    assert sim.swept_range_mm[1] - sim.swept_range_mm[0] < (
+        with_bone.swept_range_mm[1] - with_bone.swept_range_mm[0]
+    )
+
+
+@pytest.mark.parametrize(
+    ("free", "match"),
+    [((-1, 0), "bone_free_frames"), ((20, 19), "bone_free_frames"), ((1.5, 0), "integer")],
+)
+def test_bone_free_frames_are_validated(free, match):
+    with pytest.raises(BoneUSReconError, match=match):
+        SimulationParams(n_frames=40, bone_free_frames=free)
+
+
+def test_a_kept_bone_free_frame_counts_as_wrong():
+    sim = _free_end()
+    r = segment_sweep(sim.sweep, OFF)
+    score = score_simulation(r, sim)
+    kept_free = [f for f in score.frames if f.kept and not f.shows_bone]
+    # Measured: the plain track keeps all 10 (a fascia over the skin gap's shade).
+    assert len(kept_free) >= 5
+    assert all(f.wrong for f in kept_free)
+    assert score.frames_with_bone == 30
+
+
+# -- the rule -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("bone", "seed"), [("tibia", 5), ("humerus", 5)])
+def test_track_ends_cut_where_the_frames_show_no_bone(bone, seed):
+    sim = _free_end(bone, seed)
+    before, after = segment_sweep(sim.sweep, OFF), segment_sweep(sim.sweep)
+    s0, s1 = score_simulation(before, sim), score_simulation(after, sim)
+    free = set(range(30, 40))
+    kept_before = free & {c.frame for c in before.accepted}
+    assert len(kept_before) >= 5
+    # Measured: tibia 10 -> 1 (frame 30, next to the bone, steps 0.66 of the track's
+    # typical), humerus 10 -> 0.
+    assert len(free & {c.frame for c in after.accepted}) <= 1
+    assert s1.recall == s0.recall >= 0.85
+    assert np.median(s1.distances) < 0.3
+    cut = {c.frame for c in after.contours if c.reason == REASONS["noshadow"]}
+    assert len(cut) >= len(kept_before) - 1
+    # Only frames past the bone's end, and frames kept off the bone, are cut.
+    for k in cut - free:
+        c = before.contours[k]
+        assert np.median(sim.distance_to_truth(c.points_mm(sim.sweep))) > 1.0
+    assert all("typical" in after.contours[k].detail for k in cut)
+
+
+def test_sweeps_showing_bone_throughout_keep_every_frame():
+    """Nothing is cut where every frame shows bone (hard and standard)."""
+    for sim in (
+        small_simulation(bone="tibia", realism="hard", seed=7),
+        small_simulation(bone="radius", realism="hard", seed=7),
+        small_simulation(bone="clavicle", seed=0),
+    ):
+        before, after = segment_sweep(sim.sweep, OFF), segment_sweep(sim.sweep)
+        on = {c.frame for c in before.accepted}
+        off = on - {c.frame for c in after.accepted}
+        # Any frame cut was not on the bone (median over 1 mm: the recall criterion).
+        for k in off:
+            c = before.contours[k]
+            assert np.median(sim.distance_to_truth(c.points_mm(sim.sweep))) > 1.0
+        assert score_simulation(after, sim).recall == score_simulation(before, sim).recall
+
+
+def test_shadow_step_tells_a_shadow_from_a_layer_over_tissue():
+    """A bright line with a shadow under it steps down; the same line over tissue does not."""
+    rng = np.random.default_rng(0)
+    h, w, sp = 120, 100, 0.2
+    tissue = rng.rayleigh(60.0, (h, w))
+    line = np.full(w, 50.0)
+    pts = np.column_stack([np.arange(20, 80, dtype=float), line[20:80]])
+    layer = tissue.copy()
+    layer[49:52, 20:80] = 200.0
+    bone = layer.copy()
+    bone[52:, 20:80] *= 0.4  # the shadow: 0.4 of the tissue's amplitude
+    img = {k: np.clip(v, 0, 255).astype(np.uint8) for k, v in (("layer", layer), ("bone", bone))}
+    s_bone = shadow_step(img["bone"], pts, (sp, sp))
+    s_layer = shadow_step(img["layer"], pts, (sp, sp))
+    assert s_bone == pytest.approx(np.log(0.4), abs=0.1)
+    assert abs(s_layer) < 0.1
+    # A shade cast from above (the whole column darker): no step either.
+    shade = tissue.copy()
+    shade[:, 20:80] *= 0.4
+    shade[49:52, 20:80] = 200.0
+    s_shade = shadow_step(np.clip(shade, 0, 255).astype(np.uint8), pts, (sp, sp))
+    assert abs(s_shade) < 0.15
+    assert np.isnan(shadow_step(img["bone"], np.empty((0, 2)), (sp, sp)))
+
+
+def test_bone_free_ends_cuts_weak_runs_at_the_ends_only():
+    p = EndsParams()
+    typical = -0.6
+    steps = np.full(30, typical)
+    steps[-6:] = 0.2 * typical  # a run past the bone's end
+    steps[12] = 0.0  # one weak frame inside the track: both sides vouch for it
+    cut = bone_free_ends(steps, p)
+    assert cut[-6:].all() and not cut[:-6].any()
+    # A stray fair frame inside the weak run does not save the run beyond it.
+    steps[-3] = 0.7 * typical
+    assert bone_free_ends(steps, p)[-6:].all()
+    # A weak frame next to the end frame, itself like the bone, is not cut; nor are
+    # two weak frames beyond a strong one; a weak end frame alone is.
+    one = np.full(30, typical)
+    one[1] = 0.3 * typical
+    assert not bone_free_ends(one, p).any()
+    one[2] = 0.3 * typical
+    assert not bone_free_ends(one, p).any()
+    one[0] = 0.3 * typical
+    assert bone_free_ends(one, p)[:3].all()
+    # No shadow on the track at all: nothing to judge against.
+    assert not bone_free_ends(np.full(30, 0.1), p).any()
+    # Never more than max_cut_share of the track.
+    half = np.full(10, typical)
+    half[:6] = 0.0
+    assert bone_free_ends(half, dataclasses.replace(p, max_cut_share=0.5)).sum() <= 5
+
+
+def test_ends_params_are_validated():
+    with pytest.raises(BoneUSReconError, match="EndsParams.band_mm"):
+        EndsParams(band_mm=0)
+    with pytest.raises(BoneUSReconError, match="EndsParams.max_cut_share"):
+        EndsParams(max_cut_share=1.5)
+
+
+def test_cli_simulate_bone_free(tmp_path, capsys):
+    import json
+
+    from BoneUSRecon.cli import main
+
+    out = tmp_path / "ends"
+    rc = main(
+        ["simulate", "radius", str(out), "--frames", "8", "--width", "64", "--height", "96",
+         "--spacing", "0.4", "--bone-free", "2,3", "--json"]
+    )  # fmt: skip
+    assert rc == 0
+    capsys.readouterr()
+    saved = json.loads((out / "simulation.json").read_text())
+    assert saved["parameters"]["bone_free_frames"] == [2, 3]
+    assert saved["frames_with_visible_bone"] == 3
