@@ -52,12 +52,12 @@ its own evidence and the strongest kept.
 
 from __future__ import annotations
 
-from collections.abc import Generator, Sequence
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy.ndimage import gaussian_filter1d, grey_closing, median_filter
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, minimum_filter1d
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
@@ -1076,7 +1076,9 @@ def _frame_candidates_steps(
         # A layer running off the bone's shoulder is cut off (see _shoulder_cut); the
         # flanks are then followed from the cut end like any other (:mod:`.flanks`).
         if not c.get("reverb"):
-            sk = _shoulder_cut(pts[m], sp, _underside_step(lr, cols, rows, ev.dy), p)
+            sk = _shoulder_cut(
+                pts[m], sp, lambda cols=cols, rows=rows: _underside_step(lr, cols, rows, ev.dy), p
+            )
             if sk.sum() >= min_cols and not sk.all():
                 m = np.flatnonzero(m)[sk]
                 cols, rows = cols[sk], rows[sk]
@@ -1124,7 +1126,10 @@ def _underside_step(lr: np.ndarray, cols: np.ndarray, rows: np.ndarray, dy: floa
 
 
 def _shoulder_cut(
-    pts: np.ndarray, spacing: tuple[float, float], step: np.ndarray, p: ShadowPathParams
+    pts: np.ndarray,
+    spacing: tuple[float, float],
+    step: np.ndarray | Callable[[], np.ndarray],
+    p: ShadowPathParams,
 ) -> np.ndarray:
     """Mask of a convex piece without a layer running off the bone's shoulder.
 
@@ -1147,7 +1152,8 @@ def _shoulder_cut(
 
     Lengths and slopes in mm, so the rule holds at any pixel size. The first such turn
     from the apex on each side is cut; the cut end is followed down the wall by
-    :mod:`.flanks` where its echo holds.
+    :mod:`.flanks` where its echo holds. ``step`` is the step per point, or a function
+    giving it (computed only when a turn is found: most contours have none).
     """
     n = pts.shape[0]
     keep = np.ones(n, bool)
@@ -1162,8 +1168,8 @@ def _shoulder_cut(
     w_in, w_out = p.kink_mm, 2.0 * p.kink_mm
     for side in (-1, 1):
         idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
-        if idx.size < 6:
-            continue
+        if idx.size < 6 or abs(x[idx[-1]] - x[top]) < p.shoulder_min_mm + 0.5 * w_in:
+            continue  # too short a side to hold a turn and a layer beyond it
         xo = np.abs(x[idx] - x[top])
         zo = z[idx]
         k = np.arange(1, idx.size - 1)
@@ -1175,6 +1181,8 @@ def _shoulder_cut(
         ok &= xo[k] - xo[lo] >= 0.5 * w_in
         ok &= xo[-1] - xo[k] >= p.shoulder_min_mm
         for kk in k[ok & (s_in >= p.shoulder_slope) & (s_out < 0.5 * s_in)]:
+            if callable(step):
+                step = step()
             si, sb = median1d(step[idx[: kk + 1]]), median1d(step[idx[kk + 1 :]])
             if si > 0 and sb < p.shoulder_step_ratio * si:
                 keep[idx[kk + 1 :]] = False
@@ -1204,13 +1212,19 @@ def _excursion_free(
     span = float(x[-1] - x[0]) if n else 0.0
     if n < 6 or span <= 2 * p.min_length_mm:
         return keep
+    z = pts[:, 1] * float(spacing[1])
+    if float(z.max() - z.min()) < p.valley_mm:
+        return keep  # no room for an excursion that high
     # On a regular grid of the contour's own lateral sampling (gaps bridged linearly).
     dx = span / (n - 1)
     grid = x[0] + dx * np.arange(n)
-    z = np.interp(grid, x, pts[:, 1] * float(spacing[1]))
+    regular = bool(np.abs(x - grid).max() < 1e-6 * max(dx, 1e-9))
+    if not regular:
+        z = np.interp(grid, x, z)
     size = max(3, int(np.ceil(p.min_length_mm / dx)) | 1)
-    closed = grey_closing(z, size=size, mode="nearest")
-    lift = np.interp(x, grid, closed - z)
+    # The morphological closing (maximum then minimum filter, as grey_closing).
+    closed = minimum_filter1d(maximum_filter1d(z, size, mode="nearest"), size, mode="nearest")
+    lift = closed - z if regular else np.interp(x, grid, closed - z)
     # The whole excursion goes, down to the contour's jitter (a fifth of valley_mm):
     # its flanks too, or the stump left on the dome is taken for its apex.
     out = lift > 0.2 * p.valley_mm
