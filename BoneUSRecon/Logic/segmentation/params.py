@@ -306,8 +306,8 @@ class ShadowPathParams:
     """Lateral window over which those slopes are measured, mm."""
     shoulder_slope: float = 0.15
     """Least outward descent (depth mm per lateral mm, ~8.5 degrees) over ``kink_mm`` inside a point from which a turn to less than half of it over ``2 kink_mm`` outward, with less of a shadow step under the part beyond, is a layer leaving the bone's shoulder (see candidates._shoulder_cut)."""
-    shoulder_min_mm: float = 5.0
-    """Least lateral extent of the part beyond a shoulder turn for it to be cut as a layer, mm (a fascia running off the bone runs on for many mm; a shorter gentle stretch beyond a turn may be the bone's own relief: on the real L14 forearm, the radius' 5-7 mm plateau before its flank. Measured: at 0 / 3 / 5 mm, L14 flank coverage 0.56 / 0.58 / 0.61 (0.60 without the cut); hard sweeps seeds 5, 7, 29: kept 1-3 mm off 6 / 7 / 12 frames, coverage 0.787 / 0.789 / 0.798)."""
+    shoulder_min_mm: float = 8.0
+    """Least lateral extent of the part beyond a shoulder turn for it to be cut as a layer, mm (a fascia running off the bone runs on for many mm; a shorter gentle stretch beyond a turn may be the bone's own relief, or a layer the flank trace cannot yet follow the wall under. Measured: at 0 / 3 / 5 / 8 mm, real L14 flank coverage 0.56 / 0.58 / 0.60 / 0.61 (0.61 without the cut: the radius' 5-7 mm plateau before its flank was cut); hard sweeps seeds 5, 7, 29: kept 1-3 mm off 6 / 7 / 12 / 13 frames (18 without); reconstruction gold mean, seeds 5 and 7, 0.3 mm / 0.108 mm: 0.880 / 0.951 mm at 5, 0.818 / 0.907 at 8, 0.835 / 0.925 without the cut)."""
     shoulder_step_ratio: float = 0.25
     """The part beyond such a turn is a layer when the step from the tissue over it to what lies under it (candidates._underside_step) is, on median, under this fraction of the step under the part inside (a ratio of the contour's own values: shadow under the bone's wall, tissue or the bone's echo under a layer; ours: hard sweeps seeds 5, 7, 29, both geometries, kept 1-3 mm off 18 -> 10 / 6 / 6 frames at 0 / 0.25 / 0.5, flank coverage 0.794 -> 0.796 / 0.787 / 0.779)."""
     valley_mm: float = 0.5
