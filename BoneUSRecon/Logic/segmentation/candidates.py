@@ -1058,7 +1058,13 @@ def _frame_candidates_steps(
         pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
         # A narrow excursion over the bone is no apex (see _fill_excursions): the convex
         # pieces are cut on the contour with it filled in, and its points then dropped.
-        calm, filled = _fill_excursions(pts, sp, p)
+        # A reverberation series' top is traced inside a band along another line's shape
+        # (_trace_band), not a free path: a short stretch of it above the rest may be the
+        # reflector itself over a copy (clavicle under the grey shadow, seed 5: four
+        # frames lost their candidate on the bone when it was filled in).
+        calm, filled = (
+            (np.ones(len(pts), bool), pts) if c.get("series_top") else _fill_excursions(pts, sp, p)
+        )
         # Of the contour's convex pieces, the one with the most evidence is the candidate.
         pieces = []
         for m in _convex_pieces(filled, sp, p, min_cols, ev.shadow_z[c["rows"], c["cols"]]):
