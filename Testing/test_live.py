@@ -93,7 +93,7 @@ def test_live_recovery_equals_offline_on_hard_sweep(sim_factory):
     )
     plain = reconstruct(sweep, off)
     recovered = _recovered(offline)
-    assert len(recovered) >= 3
+    assert len(recovered) >= 2  # 3 before narrow excursions stopped splitting domes
     assert _points(plain.surface).shape != _points(offline.surface).shape or not np.array_equal(
         _points(plain.surface), _points(offline.surface)
     )
@@ -179,7 +179,8 @@ def test_live_recovery_after_thinning_equals_offline(sim_factory):
     live = LiveReconstructor(live=LiveParams(max_frames=24, keep_all_pixels=True))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0 and live.pixels_kept == live.n_frames
-    assert len(_recovered(r)) >= 2 and _same_contours(r, batch)
+    # One recovered frame here since narrow excursions stopped splitting domes (two before).
+    assert len(_recovered(r)) >= 1 and _same_contours(r, batch)
 
 
 def test_live_not_enough_yet(sim_small):

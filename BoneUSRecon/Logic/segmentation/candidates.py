@@ -52,12 +52,12 @@ its own evidence and the strongest kept.
 
 from __future__ import annotations
 
-from collections.abc import Generator, Sequence
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy.ndimage import gaussian_filter1d, median_filter
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, minimum_filter1d
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
@@ -1056,9 +1056,20 @@ def _frame_candidates_steps(
     out = []
     for c in found:
         pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
+        # A narrow excursion over the bone is no apex (see _fill_excursions): the convex
+        # pieces are cut on the contour with it filled in, and its points then dropped.
+        # A reverberation series' top is traced inside a band along another line's shape
+        # (_trace_band), not a free path: a short stretch of it above the rest may be the
+        # reflector itself over a copy (clavicle under the grey shadow, seed 5: four
+        # frames lost their candidate on the bone when it was filled in).
+        calm, filled = (
+            (np.ones(len(pts), bool), pts) if c.get("series_top") else _fill_excursions(pts, sp, p)
+        )
         # Of the contour's convex pieces, the one with the most evidence is the candidate.
         pieces = []
-        for m in _convex_pieces(pts, sp, p, min_cols, ev.shadow_z[c["rows"], c["cols"]]):
+        for m in _convex_pieces(filled, sp, p, min_cols, ev.shadow_z[c["rows"], c["cols"]]):
+            if not calm.all() and (m & calm).any():
+                m = m & calm  # an excursion's points are not the bone's
             cols, rows = c["cols"][m], c["rows"][m]
             pieces.append((float((ev.score[rows, cols] - p.null_z).sum() * ev.dx), m, cols, rows))
         best = max(pieces, key=lambda q: q[0])  # the piece around the apex is always offered
@@ -1068,6 +1079,16 @@ def _frame_candidates_steps(
             # reflector is the piece that echoes most (its evidence is the series').
             best = max(pieces, key=lambda q: median1d(ev.echo_z[q[3], q[2]]))
         strength, m, cols, rows = best
+        # A layer running off the bone's shoulder is cut off (see _shoulder_cut); the
+        # flanks are then followed from the cut end like any other (:mod:`.flanks`).
+        if not c.get("reverb"):
+            sk = _shoulder_cut(
+                pts[m], sp, lambda cols=cols, rows=rows: _underside_step(lr, cols, rows, ev.dy), p
+            )
+            if sk.sum() >= min_cols and not sk.all():
+                m = np.flatnonzero(m)[sk]
+                cols, rows = cols[sk], rows[sk]
+                strength = float((ev.score[rows, cols] - p.null_z).sum() * ev.dx)
         # A reverberation series' top carries the evidence of its copies.
         strength = max(strength, c.get("inherit", -np.inf))
         out.append(
@@ -1087,6 +1108,155 @@ def _frame_candidates_steps(
     # order, and those cut off are not traced).
     out = extend_candidates(img, ev, out[: p.max_candidates], sp, p.flanks)
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
+
+
+def _underside_step(lr: np.ndarray, cols: np.ndarray, rows: np.ndarray, dy: float) -> np.ndarray:
+    """Per point of a contour (working pixels): the log ratio ``lr`` just above it less
+    the log ratio just under it (0.5-2 mm each side, past the echo's own blur).
+
+    Under a bone's wall lies its shadow, darker than the tissue over the wall: a step
+    of a few tenths or more; under a layer of soft tissue lies tissue as bright as over
+    it (about 0), or the bone's own echo where the layer lies on it (negative). ``lr``
+    is the frame's log ratio to the tissue beside at each depth, so a shaded column (a
+    skin gap over it) darkens both sides alike and the step holds. (Measured: starting
+    the window under it at ``shadow_gap_mm`` instead, past a real echo's tail, cost the
+    L14 recording's grey-shadow copy flank coverage 0.66 -> 0.62.)
+    """
+    h = lr.shape[0]
+    a = max(1, mm_to_px(0.5, dy))
+    b = max(a + 1, mm_to_px(2.0, dy))
+    k = np.arange(a, b + 1)
+    below = lr[np.clip(rows[:, None] + k, 0, h - 1), cols[:, None]].mean(axis=1)
+    above = lr[np.clip(rows[:, None] - k, 0, h - 1), cols[:, None]].mean(axis=1)
+    return above - below
+
+
+def _shoulder_cut(
+    pts: np.ndarray,
+    spacing: tuple[float, float],
+    step: np.ndarray | Callable[[], np.ndarray],
+    p: ShadowPathParams,
+) -> np.ndarray:
+    """Mask of a convex piece without a layer running off the bone's shoulder.
+
+    A fascia running off the bone at its level meets the dome where the wall is still
+    gentle, so :func:`convex_part` (a turn from descending at least ``kink_slope``)
+    lets it through, and the path follows it, level or gently descending, past the
+    bone's wall: the contour is kept 1-3 mm off the bone on average, or the sweep's
+    track slides along the layer onto a wrong structure. Two things tell the layer from
+    the wall, both measured on this contour in this frame:
+
+    * **shape**: going outward from the apex a convex bone only steepens; the layer
+      turns flatter: its descent over ``2 kink_mm`` outward falls under half the
+      descent over ``kink_mm`` just inside, which is at least ``shoulder_slope``; and
+      it runs on for at least ``shoulder_min_mm`` (a shorter gentle stretch may be the
+      bone's own relief);
+    * **what lies under it** (:func:`_underside_step`): under the wall the bone's
+      shadow, under the layer tissue or the bone's echo. The part beyond the turn is
+      cut only when its median step is under ``shoulder_step_ratio`` of that of the
+      part inside it (a ratio of the contour's own values: no grey level).
+
+    Lengths and slopes in mm, so the rule holds at any pixel size. The first such turn
+    from the apex on each side is cut; the cut end is followed down the wall by
+    :mod:`.flanks` where its echo holds. ``step`` is the step per point, or a function
+    giving it (computed only when a turn is found: most contours have none).
+    """
+    n = pts.shape[0]
+    keep = np.ones(n, bool)
+    if n < 8:
+        return keep
+    x = pts[:, 0] * float(spacing[0])
+    z = pts[:, 1] * float(spacing[1])
+    # The apex as convex_part takes it (the shallowest point away from the ends).
+    span = x.max() - x.min()
+    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
+    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+    w_in, w_out = p.kink_mm, 2.0 * p.kink_mm
+    for side in (-1, 1):
+        idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
+        if idx.size < 6 or abs(x[idx[-1]] - x[top]) < p.shoulder_min_mm + 0.5 * w_in:
+            continue  # too short a side to hold a turn and a layer beyond it
+        xo = np.abs(x[idx] - x[top])
+        zo = z[idx]
+        k = np.arange(1, idx.size - 1)
+        lo = np.searchsorted(xo, xo[k] - w_in, side="left")
+        hi = np.searchsorted(xo, xo[k] + w_out, side="right") - 1
+        s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
+        s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
+        ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * w_out)
+        ok &= xo[k] - xo[lo] >= 0.5 * w_in
+        ok &= xo[-1] - xo[k] >= p.shoulder_min_mm
+        for kk in k[ok & (s_in >= p.shoulder_slope) & (s_out < 0.5 * s_in)]:
+            if callable(step):
+                step = step()
+            si, sb = median1d(step[idx[: kk + 1]]), median1d(step[idx[kk + 1 :]])
+            if si > 0 and sb < p.shoulder_step_ratio * si:
+                keep[idx[kk + 1 :]] = False
+                break
+    return keep
+
+
+def _excursion_free(
+    pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams
+) -> np.ndarray:
+    """Mask of a contour's points outside narrow excursions above it (:func:`_fill_excursions`)."""
+    return _fill_excursions(pts, spacing, p)[0]
+
+
+def _fill_excursions(
+    pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Narrow excursions above a contour: the mask of the points outside them, and the
+    points with each excursion filled in (moved down onto the contour's closing).
+
+    The optimal path may hop, for a few columns, onto a bright grain or a short layer
+    just above the bone (up and back down within ``min_length_mm``: shorter runs are
+    speckle, the passes' own rule) and the shallowest point of the contour is then on
+    the hop: :func:`convex_part` takes it as the apex and cuts the dome on both sides of
+    it into pieces, and only one piece is offered (on the hard simulated sweeps at
+    0.108 mm a dome of 12 mm came out as its 6 mm right half). A bone's surface has no
+    bump that narrow (a crest's top is ~5 mm wide): the points lying more than
+    ``valley_mm`` above the contour's morphological closing over ``min_length_mm`` (the
+    depth profile with every upward excursion narrower than that filled in), with the
+    whole excursion down to a fifth of that (its feet), are dropped. The convex cut is
+    made on the filled-in contour, not on one with a gap where the excursion was: a hop
+    where a layer meets the dome's side leaves the layer's turn onto the dome in the
+    filled contour (the cut sees it), while across a gap wider than ``kink_mm`` the cut
+    sees nothing (clean clavicle seed 0, frame 13: 1.6 mm of layer kept). Depths and
+    widths in mm, so it holds at any pixel size; no grey level.
+    """
+    n = pts.shape[0]
+    keep = np.ones(n, bool)
+    x = pts[:, 0] * float(spacing[0])
+    span = float(x[-1] - x[0]) if n else 0.0
+    if n < 6 or span <= 2 * p.min_length_mm:
+        return keep, pts
+    z = pts[:, 1] * float(spacing[1])
+    if float(z.max() - z.min()) < p.valley_mm:
+        return keep, pts  # no room for an excursion that high
+    # On a regular grid of the contour's own lateral sampling (gaps bridged linearly).
+    dx = span / (n - 1)
+    grid = x[0] + dx * np.arange(n)
+    regular = bool(np.abs(x - grid).max() < 1e-6 * max(dx, 1e-9))
+    zg = z if regular else np.interp(grid, x, z)
+    size = max(3, int(np.ceil(p.min_length_mm / dx)) | 1)
+    # The morphological closing (maximum then minimum filter, as grey_closing).
+    closed = minimum_filter1d(maximum_filter1d(zg, size, mode="nearest"), size, mode="nearest")
+    if not regular:
+        closed = np.interp(x, grid, closed)
+    lift = closed - z
+    if not (lift >= p.valley_mm).any():
+        return keep, pts
+    # The whole excursion goes, down to the contour's jitter (a fifth of valley_mm):
+    # its feet too, or the stump left on the dome is taken for its apex.
+    out = lift > 0.2 * p.valley_mm
+    edges = np.flatnonzero(np.diff(np.r_[False, out, False]))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if lift[a:b].max() >= p.valley_mm:
+            keep[a:b] = False
+    filled = pts.copy()
+    filled[~keep, 1] = closed[~keep] / float(spacing[1])
+    return keep, filled
 
 
 def _valley_runs(

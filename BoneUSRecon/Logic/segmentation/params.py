@@ -316,6 +316,12 @@ class ShadowPathParams:
     """Outward descent (depth mm per lateral mm, ~31 degrees) from which a turn to less than a third of it ends the bone (convexity, see candidates.convex_part)."""
     kink_mm: float = 1.5
     """Lateral window over which those slopes are measured, mm."""
+    shoulder_slope: float = 0.15
+    """Least outward descent (depth mm per lateral mm, ~8.5 degrees) over ``kink_mm`` inside a point from which a turn to less than half of it over ``2 kink_mm`` outward, with less of a shadow step under the part beyond, is a layer leaving the bone's shoulder (see candidates._shoulder_cut)."""
+    shoulder_min_mm: float = 8.0
+    """Least lateral extent of the part beyond a shoulder turn for it to be cut as a layer, mm (a fascia running off the bone runs on for many mm; a shorter gentle stretch beyond a turn may be the bone's own relief, or a layer the flank trace cannot yet follow the wall under. Measured: at 0 / 3 / 5 / 8 mm, real L14 flank coverage 0.56 / 0.58 / 0.60 / 0.61 (0.61 without the cut: the radius' 5-7 mm plateau before its flank was cut); hard sweeps seeds 5, 7, 29: kept 1-3 mm off 6 / 7 / 12 / 13 frames (18 without); reconstruction gold mean, seeds 5 and 7, 0.3 mm / 0.108 mm: 0.880 / 0.951 mm at 5, 0.818 / 0.907 at 8, 0.835 / 0.925 without the cut)."""
+    shoulder_step_ratio: float = 0.25
+    """The part beyond such a turn is a layer when the step from the tissue over it to what lies under it (candidates._underside_step) is, on median, under this fraction of the step under the part inside (a ratio of the contour's own values: shadow under the bone's wall, tissue or the bone's echo under a layer; ours: hard sweeps seeds 5, 7, 29, both geometries, kept 1-3 mm off 18 -> 10 / 6 / 6 frames at 0 / 0.25 / 0.5, flank coverage 0.794 -> 0.796 / 0.787 / 0.779)."""
     valley_mm: float = 0.5
     """A contour is split where it dips deeper than this below its shallowest point on each side of the dip, with less than a third of the shadow on one side than on the other, mm (ours: a layer meeting the bone's flank and climbing away, tissue beneath it; a groove in the bone has the shadow on both sides and stays whole; 0.5 mm is five times the refined contour's jitter)."""
     beneath_ratio: float = 0.8
@@ -362,6 +368,7 @@ class ShadowPathParams:
                 "valley_mm",
                 "refine_mm",
                 "kink_slope",
+                "shoulder_slope",
                 "series_min_mm",
                 "series_trough_ratio",
                 "under_ratio",
@@ -378,6 +385,8 @@ class ShadowPathParams:
                 "merge_gap_mm",
                 "merge_step_mm",
                 "beneath_ratio",
+                "shoulder_step_ratio",
+                "shoulder_min_mm",
                 "reverb_tolerance",
                 "refine_sigma_mm",
                 "cover_min_mm",

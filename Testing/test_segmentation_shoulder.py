@@ -1,0 +1,163 @@
+"""The bone's top and shoulder: narrow excursions over the dome, a layer running off the shoulder.
+
+``candidates._excursion_free`` drops a hop of the path onto a grain or a short layer just
+over the bone (it made a false apex that split the dome); ``candidates._shoulder_cut``
+cuts a layer running off the bone's shoulder (gentler than ``kink_slope``, tissue under
+it). Checked on drawn contours against their known shape (mm) and on small simulated
+hard sweeps against the true surface (frame recall, flank coverage).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import small_simulation
+
+from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
+from BoneUSRecon.Logic.segmentation import candidates as cand_mod
+from BoneUSRecon.Logic.segmentation.candidates import (
+    _convex_pieces,
+    _excursion_free,
+    _shoulder_cut,
+)
+from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+from BoneUSRecon.Logic.simulation.scoring import score_simulation
+
+SP = (0.15, 0.15)  # mm per pixel of the drawn contours
+R = 8.0  # dome radius, mm
+TOP = 10.0  # apex depth, mm
+
+
+def _dome(x_mm: np.ndarray) -> np.ndarray:
+    """Depth (mm) of a circular dome of radius R with its apex at x = 0, depth TOP."""
+    return TOP + R - np.sqrt(R**2 - x_mm**2)
+
+
+def _px(x_mm: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
+    return np.column_stack([x_mm / SP[0] + 100.0, z_mm / SP[1]])
+
+
+def test_a_narrow_excursion_over_the_dome_is_dropped_and_the_dome_stays_whole() -> None:
+    """A hop of 1.5 mm over 1.2 mm of the dome beside its apex: its points go, every
+    point of the dome stays, and the convex cut then keeps the whole dome as one piece
+    (with the hop, the hop is the apex and the dome is cut into pieces around it)."""
+    x = np.arange(-6.0, 6.0 + 1e-9, SP[0])
+    z = _dome(x)
+    hop = (x >= -1.5) & (x <= -0.3)
+    z_hop = np.where(hop, z - 1.5, z)
+    pts = _px(x, z_hop)
+    keep = _excursion_free(pts, SP, ShadowPathParams())
+    assert not keep[hop].any()
+    assert keep[~hop].mean() >= 0.97  # at most the hop's foot besides it
+    assert np.abs(pts[keep, 1] * SP[1] - _dome(x[keep])).max() < 1e-9  # all on the dome
+    pieces = _convex_pieces(pts[keep], SP, ShadowPathParams(), 5)
+    assert pieces[0].mean() >= 0.95  # the piece around the apex: nearly all of it
+    # Without dropping it, the piece around the apex is the hop itself (the failure).
+    raw = _convex_pieces(pts, SP, ShadowPathParams(), 5)
+    assert raw[0].sum() <= hop.sum() + 4
+
+
+@pytest.mark.parametrize("shape", ["crest", "dome with jitter", "sharp dome"])
+def test_the_bone_own_top_is_no_excursion(shape: str) -> None:
+    """A crest (5 mm flat top, 45-degree flanks), a dome with 0.05 mm of jitter and a
+    tight dome of radius 3 mm keep every point."""
+    rng = np.random.default_rng(3)
+    x = np.arange(-6.0, 6.0 + 1e-9, SP[0])
+    if shape == "crest":
+        z = TOP + np.maximum(np.abs(x) - 2.5, 0.0)
+    elif shape == "dome with jitter":
+        z = _dome(x) + rng.normal(0.0, 0.05, x.size)
+    else:
+        x = np.arange(-2.8, 2.8 + 1e-9, SP[0])
+        z = TOP + 3.0 - np.sqrt(9.0 - x**2)
+    assert _excursion_free(_px(x, z), SP, ShadowPathParams()).all()
+
+
+def _dome_and_layer(layer_mm: float, under_layer: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """A dome from x = -6 to its shoulder at x = 2.5 (descending 0.33 there, gentler than
+    kink_slope), then a layer running on outward at a 0.05 slope for ``layer_mm``.
+
+    Returns the points, the underside step per point (0.5 under the dome: shadow;
+    ``under_layer`` under the layer) and the index of the last dome point.
+    """
+    rng = np.random.default_rng(5)
+    xd = np.arange(-6.0, 2.5 + 1e-9, SP[0])
+    xl = np.arange(2.5 + SP[0], 2.5 + layer_mm + 1e-9, SP[0])
+    z = np.r_[_dome(xd), _dome(2.5) + 0.05 * (xl - 2.5)]
+    step = np.r_[np.full(xd.size, 0.5), np.full(xl.size, under_layer)]
+    step = step + rng.normal(0.0, 0.1, step.size)
+    return _px(np.r_[xd, xl], z), step, xd.size - 1
+
+
+def test_a_layer_running_off_the_shoulder_is_cut_at_the_shoulder() -> None:
+    """Tissue (step 0) under a 10 mm layer running off the dome's shoulder: the layer is
+    cut, the dome kept to within 0.5 mm of the shoulder, every point kept on the dome."""
+    pts, step, last = _dome_and_layer(10.0, 0.0)
+    keep = _shoulder_cut(pts, SP, step, ShadowPathParams())
+    assert not keep[last + 1 :].any()
+    assert keep[: last + 1].sum() >= last + 1 - round(0.5 / SP[0])
+    x = (pts[keep, 0] - 100.0) * SP[0]
+    assert np.abs(pts[keep, 1] * SP[1] - _dome(x)).max() < 1e-9
+    # The convex cut alone keeps the layer (its turn is gentler than kink_slope).
+    assert _convex_pieces(pts, SP, ShadowPathParams(), 5)[0][last + 1 :].all()
+
+
+@pytest.mark.parametrize(
+    ("layer_mm", "under", "why"),
+    [
+        (10.0, 0.5, "shadow under it: the bone's own plateau"),
+        (6.0, 0.0, "shorter than shoulder_min_mm: may be the bone's relief"),
+    ],
+)
+def test_a_gentle_stretch_of_bone_is_not_cut(layer_mm: float, under: float, why: str) -> None:
+    pts, step, _ = _dome_and_layer(layer_mm, under)
+    assert _shoulder_cut(pts, SP, step, ShadowPathParams()).all(), why
+
+
+def test_a_plain_dome_is_not_cut() -> None:
+    x = np.arange(-6.0, 6.0 + 1e-9, SP[0])
+    step = np.full(x.size, 0.5)
+    step[np.abs(x) > 4] = 0.05  # the shadow fading at the sides changes nothing
+    assert _shoulder_cut(_px(x, _dome(x)), SP, step, ShadowPathParams()).all()
+
+
+def test_shoulder_layer_cut_on_a_hard_sweep() -> None:
+    """Humerus, hard realism (a fascia running off the bone at its level, a skin gap):
+    frame 21's contour ran from the bone onto the fascia (1.66 mm off on median); cut at
+    the shoulder it lies on the bone, and no frame is kept on a wrong structure."""
+    sim = small_simulation(bone="humerus", seed=5, realism="hard")
+    with_cut = score_simulation(segment_sweep(sim.sweep), sim)
+    off = SegmentationParams(shadowpath=ShadowPathParams(shoulder_slope=100.0))
+    without = score_simulation(segment_sweep(sim.sweep, off), sim)
+    assert without.frames[21].median_mm > 1.0  # the layer kept with the bone
+    assert with_cut.frames[21].median_mm < 0.3
+    s, s0 = with_cut.summary(), without.summary()
+    assert s["recall"] >= 0.95 and s["recall"] > s0["recall"], (s["recall"], s0["recall"])
+    assert s["wrong_share"] == 0.0
+    assert s["median_mm"] <= 0.1
+
+
+def test_excursions_dropped_on_a_hard_sweep(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Radius, hard realism: with the hops over the bone dropped the domes are offered
+    whole, so the kept contours cover more of the true contour (flank coverage) and
+    still lie on the bone."""
+    sim = small_simulation(bone="radius", seed=5, realism="hard")
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    monkeypatch.setattr(
+        cand_mod, "_fill_excursions", lambda pts, sp, p: (np.ones(len(pts), bool), pts)
+    )
+    s0 = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["coverage"] >= s0["coverage"] + 0.05, (s["coverage"], s0["coverage"])
+    assert s["recall"] >= s0["recall"] and s["wrong_share"] == 0.0
+    assert s["median_mm"] <= 0.1
+
+
+def test_an_excursion_where_a_layer_meets_the_dome_does_not_let_the_layer_through() -> None:
+    """Clean clavicle, seed 0, frame 13: a layer runs in from the left and hops onto a
+    grain before meeting the dome. Dropping the hop must not hide the layer's turn from
+    the convex cut (the cut is made on the contour with the hop filled in): every kept
+    point within 0.35 mm of the bone (1.6 mm of layer kept when the hop left a gap)."""
+    sim = small_simulation(seed=0)
+    r = segment_sweep(sim.sweep)
+    d = sim.distance_to_truth(r.contours[13].points_mm(sim.sweep))
+    assert d.size >= 30 and d.max() <= 0.35, d.max()
