@@ -236,12 +236,6 @@ def extend_flanks(
     np.cumsum(v, axis=-1, out=cs[..., 1:])
     outside = cs[..., ob + 1 :] - cs[..., oa : oa + n_e]
     outside *= 1.0 / (ob - oa + 1)
-    if p.beam_reference:
-        # The tissue over the sample along the beam, where a layer running off the
-        # shoulder lies across the wall (outward of it) but not over it: the darker of
-        # the two references, for the null band too (the rule stays a comparison).
-        above = _bilinear(_above_mean(ev.work, p.outside_mm, ev.dy), wi[..., :n_e], wj[..., :n_e])
-        np.minimum(outside, above, out=outside)
     outside += _EPS
     e = np.log(v[..., :n_e] + _EPS)
     e -= np.log(outside)
@@ -308,27 +302,6 @@ def extend_flanks(
         if right is not None:
             parts.append(right)
         out[ci] = np.concatenate(parts)
-    return out
-
-
-def _above_mean(work: np.ndarray, window_mm: tuple[float, float], dy: float) -> np.ndarray:
-    """Mean of ``work`` over the rows ``window_mm`` above each pixel along the beam.
-
-    Rows above the image's top are left out (the window shrinks; at the top row the
-    pixel itself stands in). One cumulative sum per frame.
-    """
-    a = max(1, int(round(window_mm[0] / dy)))
-    b = max(a, int(round(window_mm[1] / dy)))
-    h = work.shape[0]
-    cs = np.zeros((h + 1,) + work.shape[1:], np.float64)
-    np.cumsum(work, axis=0, out=cs[1:])
-    r = np.arange(h)
-    hi = np.clip(r - a + 1, 0, h)  # rows r - b .. r - a, exclusive end r - a + 1
-    lo = np.clip(r - b, 0, h)
-    n = hi - lo
-    out = (cs[hi] - cs[lo]) / np.maximum(n, 1)[:, None]
-    top = n == 0
-    out[top] = work[top]
     return out
 
 

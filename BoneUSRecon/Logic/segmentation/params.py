@@ -164,8 +164,6 @@ class FlankParams:
     """Spacing of the samples across the band, mm (under a working pixel; the full-resolution refinement does the rest). With ``step_mm`` it bounds the ridge's turn per step down from the arc: atan(0.2 / 0.4), 27 degrees (never up: a convex flank only steepens)."""
     outside_mm: tuple[float, float] = (0.75, 1.75)
     """Window outward of a sample (on the tissue side of the flank) that its echo is compared with, mm from the sample (past the echo's lateral blur, ~0.3 mm sigma)."""
-    beam_reference: bool = True
-    """Compare a sample's echo also with the tissue over it along the beam (``outside_mm`` above it) and keep the larger of the two ratios, for the flank samples and the null band alike (ours: where a layer runs off the bone's shoulder it lies just outward of the wall, across it, and the echo across the wall stays under the stop level; the tissue over the wall along the beam is clear of it)."""
     shadow_z: float = 1.0
     """Shadow z-score under a sample along the beam (:mod:`.evidence`) at which its echo counts double, robust z units (ours: ``ShadowPathParams.shadow_z_full``, one spread darker than the tissue beside it; no shadow, no bonus)."""
     null_mm: float = 2.75
