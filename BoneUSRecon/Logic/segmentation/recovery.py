@@ -65,6 +65,7 @@ from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
 __all__ = [
     "applies",
+    "settings",
     "prior_frames",
     "track_prior",
     "guided_candidate",
@@ -84,6 +85,17 @@ def applies(params: SegmentationParams) -> bool:
     its evidence; the paper's snake has none). :func:`.driver.segment_sweep` and a live
     session ask the same question here."""
     return params.method == "shadowpath" and params.recovery.enabled
+
+
+def settings(params: SegmentationParams) -> RecoveryParams:
+    """The recovery settings a segmentation with these parameters searches with:
+    ``params.recovery``, one-sided (``both_sides`` False) past the track's ends when
+    the ends cut (:mod:`.ends`) is on to judge what is found there
+    (``EndsParams.search_past_ends``). :func:`.driver.segment_sweep` and a live
+    session take them from here."""
+    if params.ends.enabled and params.ends.search_past_ends:
+        return replace(params.recovery, both_sides=False)
+    return params.recovery
 
 
 def prior_frames(
