@@ -12,9 +12,12 @@ dynamic programme over the stored links (one bone track chosen jointly over the
 frames, the same as offline, bit for bit); the frames off the track searched again
 inside the band the track allows (:mod:`~BoneUSRecon.Logic.segmentation.recovery`,
 from the pixels kept for them; a frame's result is cached while its neighbouring
-track frames and their choices stay the same); the track again with the guided
-candidates (only their links are made, once per candidate); then resampling, fit and
-mesh. Every refit therefore equals an offline
+track frames and their choices stay the same; past the track's ends too, one side
+guiding, as offline); the track again with the guided candidates (only their links
+are made, once per candidate); its bone-free ends cut back
+(:mod:`~BoneUSRecon.Logic.segmentation.ends`) from the shadow step under each
+candidate, measured once when the candidate was made, while the frame's pixels were
+at hand; then resampling, fit and mesh. Every refit therefore equals an offline
 :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far, except where a
 frame that had been on the track (its pixels dropped) falls off it with a new prior
 and cannot be searched again (counted in ``LiveReconstructor.recovery_counts``; none
@@ -586,6 +589,7 @@ class LiveReconstructor:
             sum(
                 sum(c.points_px.nbytes + c.intensity.nbytes + 200 for c in f.candidates.candidates)
                 + 200
+                + f.steps.nbytes
                 + (f.image.nbytes if f.image is not None else 0)
                 for f in self._frames
             )

@@ -30,9 +30,9 @@ one side would vouch, and beyond the last frame showing bone there is no bone to
 so frames outside the track's span are not searched by default (``both_sides``; with
 the bone removed from the last frames of simulated sweeps, a one-sided search found
 "bone" in the band in 7 of 24 sweeps: a layer at the bone's level carries on there).
-Offline, :mod:`.ends` judges what is found past the track's ends (a bone shadow under
-it, relative to the track's typical frame), and ``EndsParams.search_past_ends`` has
-those frames searched with one side guiding.
+:mod:`.ends` judges what is found past the track's ends (a bone shadow under it,
+relative to the track's typical frame), and ``EndsParams.search_past_ends`` has those
+frames searched with one side guiding (:func:`settings`, offline and live alike).
 """
 
 from __future__ import annotations
