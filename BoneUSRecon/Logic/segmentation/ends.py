@@ -243,7 +243,7 @@ def cut_bone_free_ends(
                 frames[n].spacing,
                 params,
             )
-            for n, image in zip(on, images(on), strict=True)
+            for n, image in zip(on.tolist(), images(on), strict=True)
         ]
     )
     return cut_ends_at_steps(choice, steps, params)
