@@ -29,6 +29,7 @@ from BoneUSRecon.Logic.live import (
 from BoneUSRecon.Logic.pipeline import ReconstructionParams, reconstruct
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation.params import RecoveryParams
+from BoneUSRecon.Logic.segmentation.track import REASONS
 from BoneUSRecon.Logic.sequence_io import read_calibration, read_sweep, write_sweep
 from BoneUSRecon.Logic.sweep import Sweep
 from BoneUSRecon.Logic.vtkio import read_polydata
@@ -147,12 +148,12 @@ def _thinned(sweep, live: LiveReconstructor):
     return r, segment_sweep(sub)
 
 
-def _same_contours(r, batch) -> bool:
-    assert len(r.segmentation.contours) == len(batch.contours)
+def _same_contours(seg, batch) -> bool:
+    assert len(seg.contours) == len(batch.contours)
     return all(
         (a.reason, a.detail, a.confidence) == (b.reason, b.detail, b.confidence)
         and np.array_equal(a.points_px, b.points_px)
-        for a, b in zip(r.segmentation.contours, batch.contours, strict=True)
+        for a, b in zip(seg.contours, batch.contours, strict=True)
     )
 
 
@@ -164,23 +165,68 @@ def test_live_recovery_after_thinning_equals_offline(sim_factory):
     refit the offline one again.
 
     Sweeps (hard, 0.3 mm): tibia seed 5 at max_frames 24 thins with no search missed
-    (1 frame recovered); tibia seed 2 at 24 misses 4 (before the skin-gap shade rule,
-    seed 2 missed none at 24 and some at 30; the rule changed its first tracks)."""
+    (1 frame recovered); tibia seed 2 at 30 misses 3 (before the skin-gap shade rule,
+    seed 2 missed none at 24 and some at 30; with that rule alone it missed 4 at 24;
+    with the ends and shoulder rules merged too, none at 24 again)."""
     sweep = sim_factory(bone="tibia", realism="hard", seed=5).sweep
     live = LiveReconstructor(live=LiveParams(max_frames=24))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0
-    assert len(_recovered(r)) >= 1 and _same_contours(r, batch)
+    assert len(_recovered(r)) >= 1 and _same_contours(r.segmentation, batch)
     # A frame on the track at an earlier refit fell off it after the thinning.
     sweep = sim_factory(bone="tibia", realism="hard", seed=2).sweep
-    live = LiveReconstructor(live=LiveParams(max_frames=24))
+    live = LiveReconstructor(live=LiveParams(max_frames=30))
     r, batch = _thinned(sweep, live)
-    assert live.recovery_counts["no_pixels"] > 0 and not _same_contours(r, batch)
-    live = LiveReconstructor(live=LiveParams(max_frames=24, keep_all_pixels=True))
+    assert live.recovery_counts["no_pixels"] > 0 and not _same_contours(r.segmentation, batch)
+    live = LiveReconstructor(live=LiveParams(max_frames=30, keep_all_pixels=True))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0 and live.pixels_kept == live.n_frames
     # One recovered frame here since narrow excursions stopped splitting domes (two before).
-    assert len(_recovered(r)) >= 1 and _same_contours(r, batch)
+    assert len(_recovered(r)) >= 1 and _same_contours(r.segmentation, batch)
+
+
+def _fed(sweep, live: LiveReconstructor):
+    """Feed with live refits every 3 frames; the final refit's segmentation."""
+    for n, (k, image) in enumerate(sweep.iter_frames()):
+        live.add_frame(image, sweep.image_to_reference[k], sweep.timestamps[k])
+        if n % 3 == 0:
+            with contextlib.suppress(BoneUSReconError):
+                live.refit()
+    return live.refit(final=True).segmentation
+
+
+def test_live_ends_cut_equals_offline(sim_factory):
+    """A hard sweep that starts and ends past the bone (tibia seed 5, bone-free frames
+    0-3 and 34-39): offline, the track ran on over the last 6 and the ends cut takes
+    them off. A live refit cuts the same frames from the steps measured as each
+    candidate was made (its pixels may be gone by then), and searches past the track's
+    ends one-sided as offline: equal to offline, and no bone-free frame kept.
+
+    With the default ``keep_all_pixels`` False it may differ where a frame that was on
+    the track at an earlier refit falls off it and needs a search (counted): humerus
+    seed 5 with bone-free frames 0-2 and 30-39 loses frame 28, recovered offline
+    (0 such frames on the tibia sweep)."""
+    sim = sim_factory(bone="tibia", realism="hard", seed=5, bone_free_frames=(4, 6))
+    offline = segment_sweep(sim.sweep)
+    free = set(range(4)) | set(range(34, 40))
+    cut = {c.frame for c in offline.contours if c.reason == REASONS["noshadow"]}
+    assert cut == set(range(34, 40))
+    assert not free & {c.frame for c in offline.accepted}
+    for keep in (True, False):
+        live = LiveReconstructor(live=LiveParams(keep_all_pixels=keep))
+        seg = _fed(sim.sweep, live)
+        assert live.recovery_counts["no_pixels"] == 0
+        assert _same_contours(seg, offline), keep
+        assert not free & {c.frame for c in seg.accepted}
+    # Where a search is missed, keeping all pixels makes the live refit offline's.
+    sim = sim_factory(bone="humerus", realism="hard", seed=5, bone_free_frames=(3, 10))
+    offline = segment_sweep(sim.sweep)
+    live = LiveReconstructor()
+    seg = _fed(sim.sweep, live)
+    assert live.recovery_counts["no_pixels"] > 0 and not _same_contours(seg, offline)
+    assert {c.frame for c in seg.accepted} < {c.frame for c in offline.accepted}
+    live = LiveReconstructor(live=LiveParams(keep_all_pixels=True))
+    assert _same_contours(_fed(sim.sweep, live), offline)
 
 
 def test_live_not_enough_yet(sim_small):

@@ -12,9 +12,12 @@ dynamic programme over the stored links (one bone track chosen jointly over the
 frames, the same as offline, bit for bit); the frames off the track searched again
 inside the band the track allows (:mod:`~BoneUSRecon.Logic.segmentation.recovery`,
 from the pixels kept for them; a frame's result is cached while its neighbouring
-track frames and their choices stay the same); the track again with the guided
-candidates (only their links are made, once per candidate); then resampling, fit and
-mesh. Every refit therefore equals an offline
+track frames and their choices stay the same; past the track's ends too, one side
+guiding, as offline); the track again with the guided candidates (only their links
+are made, once per candidate); its bone-free ends cut back
+(:mod:`~BoneUSRecon.Logic.segmentation.ends`) from the shadow step under each
+candidate, measured once when the candidate was made, while the frame's pixels were
+at hand; then resampling, fit and mesh. Every refit therefore equals an offline
 :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far, except where a
 frame that had been on the track (its pixels dropped) falls off it with a new prior
 and cannot be searched again (counted in ``LiveReconstructor.recovery_counts``; none
@@ -61,8 +64,10 @@ from BoneUSRecon.Logic.segmentation import (
 )
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
+from BoneUSRecon.Logic.segmentation.ends import candidate_steps, cut_ends_at_steps, shadow_step
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import prior_frames, recover_frame, with_candidate
+from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
 from BoneUSRecon.Logic.segmentation.result import FrameContour
 from BoneUSRecon.Logic.segmentation.track import TrackChoice
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
@@ -171,7 +176,7 @@ def _guided(
     counted in ``counts["no_pixels"]``.
     """
     out: dict[int, BoneCandidate] = {}
-    rec = params.recovery
+    rec = recovery_settings(params)  # one-sided past the track's ends, as offline
     reach = params.rejection.max_skip + 1
     fcs = [fr.candidates for fr in frames]
     poses = [fr.pose for fr in frames]
@@ -198,11 +203,32 @@ def _guided(
                 params.rejection,
                 rec,
             )
-            fr.guided = (key, cand)
+            # Its shadow step (:mod:`~BoneUSRecon.Logic.segmentation.ends`) measured now,
+            # while the pixels are at hand: the ends cut may need it at any later refit.
+            step = (
+                shadow_step(fr.image, cand.points_px, fr.candidates.spacing, params.ends)
+                if cand is not None and params.ends.enabled
+                else float("nan")
+            )
+            fr.guided = (key, cand, step)
             counts["searched"] += 1
         if cand is not None:
             out[f] = cand
     return out
+
+
+def _track_steps(frames: list[_Frame], choice: TrackChoice) -> np.ndarray:
+    """The shadow step of each track frame's chosen candidate, in track order: its own
+    (measured as it arrived) or its guided one's (measured when found)."""
+    out = []
+    for n in np.flatnonzero(choice.chosen >= 0).tolist():
+        fr, c = frames[n], int(choice.chosen[n])
+        if c < len(fr.steps):
+            out.append(float(fr.steps[c]))
+        else:  # the guided candidate, appended after the frame's own
+            assert fr.guided is not None and fr.guided[1] is not None
+            out.append(fr.guided[2])
+    return np.array(out, dtype=float)
 
 
 def _prior_key(frame: _Frame) -> tuple[tuple[int, int], ...] | None:
@@ -241,6 +267,10 @@ def _select(
         choice = track.solve(extra=extra)
     else:
         choice = track.solve()
+    # The track's bone-free ends cut back as offline (:mod:`~BoneUSRecon.Logic.
+    # segmentation.ends`), from the steps measured when each candidate was made.
+    if params.ends.enabled:
+        choice = cut_ends_at_steps(choice, _track_steps(frames, choice), params.ends)
     fcs = [
         with_candidate(fr.candidates, extra[n]) if n in extra else fr.candidates
         for n, fr in enumerate(frames)
@@ -287,8 +317,12 @@ class _Frame:
     candidates: FrameCandidates
     #: The pixels, while recovery may search the frame (see :class:`LiveReconstructor`).
     image: np.ndarray | None = None
-    #: The prior of the frame's last search (:func:`_guided`) and what it found.
-    guided: tuple[tuple[tuple[int, int], ...], BoneCandidate | None] | None = None
+    #: The shadow step under each of its candidates (:mod:`~BoneUSRecon.Logic.
+    #: segmentation.ends`), measured on arrival; NaN with the ends cut off.
+    steps: np.ndarray = field(default_factory=lambda: np.empty(0))
+    #: The prior of the frame's last search (:func:`_guided`), what it found and that
+    #: candidate's shadow step.
+    guided: tuple[tuple[tuple[int, int], ...], BoneCandidate | None, float] | None = None
     #: The track's verdict at the last refit and the contour record made from it.
     contour: tuple[tuple[Any, ...], FrameContour] | None = None
 
@@ -427,11 +461,14 @@ class LiveReconstructor:
         t0 = time.perf_counter()
         fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
         self._track.add(fc, m)  # links to its predecessors, once
+        # The ends cut's measure under each candidate, while the pixels are here (the
+        # track may choose any of them at a later refit, when they may be gone).
+        steps = candidate_steps(img, fc, self.params.segmentation.ends)
         self._segment_s += time.perf_counter() - t0
         # Pixels kept until the frame is on the track (recovery may search it), or
         # always (``keep_all_pixels``).
         kept = np.array(img, copy=True) if self._keep_pixels else None
-        frame = _Frame(self._processed - 1, m, float(timestamp), fc, kept)
+        frame = _Frame(self._processed - 1, m, float(timestamp), fc, kept, steps)
         reason = frame.reason
         if not reason:
             self._prior = fc.usable[0].points_px  # as segment_sweep seeds the next frame
@@ -552,6 +589,7 @@ class LiveReconstructor:
             sum(
                 sum(c.points_px.nbytes + c.intensity.nbytes + 200 for c in f.candidates.candidates)
                 + 200
+                + f.steps.nbytes
                 + (f.image.nbytes if f.image is not None else 0)
                 for f in self._frames
             )

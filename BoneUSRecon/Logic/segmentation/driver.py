@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 
@@ -34,6 +33,7 @@ from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import recover_frames
+from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice, select_bone_track
@@ -219,9 +219,6 @@ def segment_sweep(
         # Frames off the track searched again inside the band the track allows, then
         # one track over all frames again (:mod:`.recovery`); past the track's ends too
         # (one side guiding) when the ends cut below judges what is found there.
-        recovery = params.recovery
-        if params.ends.enabled and params.ends.search_past_ends:
-            recovery = replace(recovery, both_sides=False)
         frames, searched = recover_frames(
             frames,
             choice,
@@ -229,7 +226,7 @@ def segment_sweep(
             lambda n: np.asarray(sweep.frames[int(idx[n])]),
             params.shadowpath,
             params.rejection,
-            recovery,
+            recovery_settings(params),
         )
         if searched:
             choice = select_bone_track(frames, poses, params.rejection)

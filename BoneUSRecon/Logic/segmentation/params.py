@@ -490,7 +490,7 @@ class RecoveryParams:
     max_offset: float = 0.5
     """The contour found must lie, on median, within this share of the band's half-width of the depth the track's neighbouring contours give (ours: on 82 frames recovered on the bone, median 0.12, p95 0.40, max 0.74; a false echo over the bone and layers crossing the band, 0.60-0.68)."""
     both_sides: bool = True
-    """Search only frames with a track frame on each side within ``max_skip + 1`` frames (offline, ``EndsParams.search_past_ends`` searches past the track's ends as False does, the ends cut judging what is found; ours: past the track's ends only one side vouches, and beyond the last frame showing bone there is nothing to find; measured with the bone removed from the last 10 of 40 frames, 24 hard sweeps: searching with one side recovered bone-free frames in 7 sweeps, for +0.017 mean recall on sweeps showing bone throughout)."""
+    """Search only frames with a track frame on each side within ``max_skip + 1`` frames (offline and live, ``EndsParams.search_past_ends`` searches past the track's ends as False does, the ends cut judging what is found; ours: past the track's ends only one side vouches, and beyond the last frame showing bone there is nothing to find; measured with the bone removed from the last 10 of 40 frames, 24 hard sweeps: searching with one side recovered bone-free frames in 7 sweeps, for +0.017 mean recall on sweeps showing bone throughout)."""
 
     def __post_init__(self) -> None:
         check_fields(self, within={"min_share": "[0, 1]"}, positive=("max_offset",))
@@ -524,7 +524,7 @@ class EndsParams:
     strong_weight: float = 1.0
     """A frame at or above ``min_ratio`` counts this many times its margin against a cut, a weak one once its margin for it (ours: at 3, which guards a weak stretch of the bone next to a strong end frame better, bone-free frames kept on 96 hard sweeps 4 of 624, at 1 1 of 624, the same frames on the bone; past a bone's end a layer may step 0.6-0.7 of the typical frame in the frames farthest from the bone)."""
     search_past_ends: bool = True
-    """With the cut on, the track-guided recovery (:mod:`.recovery`, offline) also searches the frames past the track's ends, guided by one side (as ``RecoveryParams.both_sides`` False): the cut judges what it finds there (ours: on 96 hard sweeps with 3 or 10 bone-free frames at an end, mean recall 0.941 -> 0.962, bone-free frames kept 1 of 624 either way; without the cut the one-sided search kept bone-free frames in 7 of 24 sweeps)."""
+    """With the cut on, the track-guided recovery (:mod:`.recovery`, offline and live) also searches the frames past the track's ends, guided by one side (as ``RecoveryParams.both_sides`` False): the cut judges what it finds there (ours: on 96 hard sweeps with 3 or 10 bone-free frames at an end, mean recall 0.941 -> 0.962, bone-free frames kept 1 of 624 either way; without the cut the one-sided search kept bone-free frames in 7 of 24 sweeps)."""
     max_cut_share: float = 0.5
     """Never cut more than this share of the track's frames: the typical step is the track's median, so it stands for the bone only while most of the track is on it."""
 

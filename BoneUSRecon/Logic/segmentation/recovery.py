@@ -30,9 +30,9 @@ one side would vouch, and beyond the last frame showing bone there is no bone to
 so frames outside the track's span are not searched by default (``both_sides``; with
 the bone removed from the last frames of simulated sweeps, a one-sided search found
 "bone" in the band in 7 of 24 sweeps: a layer at the bone's level carries on there).
-Offline, :mod:`.ends` judges what is found past the track's ends (a bone shadow under
-it, relative to the track's typical frame), and ``EndsParams.search_past_ends`` has
-those frames searched with one side guiding.
+:mod:`.ends` judges what is found past the track's ends (a bone shadow under it,
+relative to the track's typical frame), and ``EndsParams.search_past_ends`` has those
+frames searched with one side guiding (:func:`settings`, offline and live alike).
 """
 
 from __future__ import annotations
@@ -65,6 +65,7 @@ from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
 __all__ = [
     "applies",
+    "settings",
     "prior_frames",
     "track_prior",
     "guided_candidate",
@@ -84,6 +85,17 @@ def applies(params: SegmentationParams) -> bool:
     its evidence; the paper's snake has none). :func:`.driver.segment_sweep` and a live
     session ask the same question here."""
     return params.method == "shadowpath" and params.recovery.enabled
+
+
+def settings(params: SegmentationParams) -> RecoveryParams:
+    """The recovery settings a segmentation with these parameters searches with:
+    ``params.recovery``, one-sided (``both_sides`` False) past the track's ends when
+    the ends cut (:mod:`.ends`) is on to judge what is found there
+    (``EndsParams.search_past_ends``). :func:`.driver.segment_sweep` and a live
+    session take them from here."""
+    if params.ends.enabled and params.ends.search_past_ends:
+        return replace(params.recovery, both_sides=False)
+    return params.recovery
 
 
 def prior_frames(
