@@ -873,6 +873,15 @@ def _mark_echo_beneath(
                 c["beneath"] = True
 
 
+def _apex(x: np.ndarray, z: np.ndarray) -> int:
+    """Index of a contour's apex: its shallowest point away from the ends (the middle
+    60 % of its lateral span), so a contour that climbs onto a layer at one end does not
+    have its apex there. ``x`` lateral and ``z`` depth, in mm."""
+    span = x.max() - x.min()
+    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
+    return int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+
+
 def convex_part(
     points_px: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams
 ) -> np.ndarray:
@@ -892,11 +901,7 @@ def convex_part(
         return keep
     x = points_px[:, 0] * float(spacing[0])
     z = points_px[:, 1] * float(spacing[1])
-    # The apex: the shallowest point away from the ends (a contour that climbs onto a
-    # layer at one end must not have its apex there).
-    span = x.max() - x.min()
-    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
-    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+    top = _apex(x, z)
     win = p.kink_mm
     for side in (-1, 1):
         idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
@@ -1167,10 +1172,7 @@ def _shoulder_cut(
         return keep
     x = pts[:, 0] * float(spacing[0])
     z = pts[:, 1] * float(spacing[1])
-    # The apex as convex_part takes it (the shallowest point away from the ends).
-    span = x.max() - x.min()
-    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
-    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+    top = _apex(x, z)  # as convex_part takes it
     w_in, w_out = p.kink_mm, 2.0 * p.kink_mm
     for side in (-1, 1):
         idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
