@@ -47,7 +47,8 @@ flanks in arc length by :mod:`.flanks` (one depth per column samples a 70-degree
 poorly, and its echo fades there). Nothing trims the ends of a contour afterwards but the convexity cut
 (:func:`convex_part`: a layer meeting the bone); when a layer climbs above the bone's
 top the cut is made around the layer, so each convex piece of a contour is weighed on
-its own evidence and the strongest kept.
+its own evidence and the strongest kept; pieces lying over one shadow (a line flagged
+``echo_beneath`` under them: what cast it is one reflector) are joined instead.
 """
 
 from __future__ import annotations
@@ -1081,13 +1082,13 @@ def _frame_candidates_steps(
         span = _shadowed_span(c, found) if not c.get("reverb") else None
         if span is not None and len(pieces) > 1:
             # Over one shadow the pieces are one reflector: a shadow is as wide as what
-            # cast it, so the pieces lying over the shadowed line's columns (the far
-            # cortex, flagged as lying in a shadow) are joined. A faint near cortex
+            # cast it, so the pieces lying over the shadowed line's columns (80 % of
+            # theirs; the far cortex, flagged as lying in a shadow) are joined. A faint near cortex
             # (a tibia under a grey shadow, score near the null level) whose path steps
             # ~1 mm at its flank is otherwise cut there and only the short bright piece
             # offered; a layer meeting the bone runs past the shadow and stays cut off.
             # Geometry and flags only: no grey level (benchmarks README, branch tibia).
-            inside = [q for q in pieces if span[0] <= np.median(q[2]) <= span[1]]
+            inside = [q for q in pieces if np.mean((q[2] >= span[0]) & (q[2] <= span[1])) >= 0.8]
             if len(inside) > 1:
                 jm = np.logical_or.reduce([q[1] for q in inside])
                 jc, jr = c["cols"][jm], c["rows"][jm]
