@@ -47,7 +47,8 @@ flanks in arc length by :mod:`.flanks` (one depth per column samples a 70-degree
 poorly, and its echo fades there). Nothing trims the ends of a contour afterwards but the convexity cut
 (:func:`convex_part`: a layer meeting the bone); when a layer climbs above the bone's
 top the cut is made around the layer, so each convex piece of a contour is weighed on
-its own evidence and the strongest kept.
+its own evidence and the strongest kept; pieces lying over one shadow (a line flagged
+``echo_beneath`` under them: what cast it is one reflector) are joined instead.
 """
 
 from __future__ import annotations
@@ -1083,6 +1084,20 @@ def _frame_candidates_steps(
             # copies' band): the least negative piece is merely the shortest; the
             # reflector is the piece that echoes most (its evidence is the series').
             best = max(pieces, key=lambda q: median1d(ev.echo_z[q[3], q[2]]))
+        span = _shadowed_span(c, found) if not c.get("reverb") else None
+        if span is not None and len(pieces) > 1:
+            # Over one shadow the pieces are one reflector: a shadow is as wide as what
+            # cast it, so the pieces lying over the shadowed line's columns (80 % of
+            # theirs; the far cortex, flagged as lying in a shadow) are joined. A faint near cortex
+            # (a tibia under a grey shadow, score near the null level) whose path steps
+            # ~1 mm at its flank is otherwise cut there and only the short bright piece
+            # offered; a layer meeting the bone runs past the shadow and stays cut off.
+            # Geometry and flags only: no grey level (benchmarks README, branch tibia).
+            inside = [q for q in pieces if np.mean((q[2] >= span[0]) & (q[2] <= span[1])) >= 0.8]
+            if len(inside) > 1:
+                jm = np.logical_or.reduce([q[1] for q in inside])
+                jc, jr = c["cols"][jm], c["rows"][jm]
+                best = (float((ev.score[jr, jc] - p.null_z).sum() * ev.dx), jm, jc, jr)
         strength, m, cols, rows = best
         # A layer running off the bone's shoulder is cut off (see _shoulder_cut); the
         # flanks are then followed from the cut end like any other (:mod:`.flanks`).
@@ -1113,6 +1128,22 @@ def _frame_candidates_steps(
     # order, and those cut off are not traced).
     out = extend_candidates(img, ev, out[: p.max_candidates], sp, p.flanks)
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
+
+
+def _shadowed_span(c: dict, cands: list[dict]) -> tuple[int, int] | None:
+    """Column span of a candidate flagged ``beneath`` (in a shadow, or under a
+    brighter line: :func:`_mark_echo_beneath`) lying under ``c`` over most of its own
+    columns, or None: ``c`` is then what shadows it, one reflector over that span."""
+    for b in cands:
+        if b is c or not b.get("beneath") or b.get("reverb"):
+            continue
+        common = _common(c, b)
+        if (
+            common.size >= 0.5 * b["cols"].size
+            and median1d(b["dense"][common] - c["dense"][common]) > 0
+        ):
+            return int(b["cols"].min()), int(b["cols"].max())
+    return None
 
 
 def _underside_step(lr: np.ndarray, cols: np.ndarray, rows: np.ndarray, dy: float) -> np.ndarray:
