@@ -883,6 +883,27 @@ def _apex(x: np.ndarray, z: np.ndarray) -> int:
     return int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
 
 
+def _outward_slopes(
+    xo: np.ndarray, zo: np.ndarray, w_in: float, w_out: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Outward descent slopes along one side of a contour, from its apex outward.
+
+    ``xo`` is the lateral distance from the apex (mm, increasing: columns are distinct
+    and ordered) and ``zo`` the depth (mm) of the side's points. For each inner point
+    ``k`` the descent over ``w_in`` just inside it and over ``w_out`` just outside it:
+    the windows are index ranges ``[lo, k]`` and ``[k, hi]`` of ``xo``. Returns ``k,
+    lo, s_in, s_out, ok``, ``ok`` where both windows hold a point besides ``k`` and the
+    outer one spans at least half of ``w_out``.
+    """
+    k = np.arange(1, xo.size - 1)
+    lo = np.searchsorted(xo, xo[k] - w_in, side="left")
+    hi = np.searchsorted(xo, xo[k] + w_out, side="right") - 1
+    s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
+    s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
+    ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * w_out)
+    return k, lo, s_in, s_out, ok
+
+
 def convex_part(
     points_px: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams
 ) -> np.ndarray:
@@ -908,16 +929,7 @@ def convex_part(
         idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
         if idx.size < 4:
             continue
-        xo = np.abs(x[idx] - x[top])  # increasing: columns are distinct and ordered
-        zo = z[idx]
-        # Outward descent slope over ``win`` just inside and just outside each point:
-        # the windows are index ranges [lo, k] and [k, hi] of the increasing ``xo``.
-        k = np.arange(1, idx.size - 1)
-        lo = np.searchsorted(xo, xo[k] - win, side="left")
-        hi = np.searchsorted(xo, xo[k] + win, side="right") - 1
-        s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
-        s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
-        ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * win)
+        k, _, s_in, s_out, ok = _outward_slopes(np.abs(x[idx] - x[top]), z[idx], win, win)
         cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
         if cut.size:
             keep[idx[k[cut[0]] + 1 :]] = False
@@ -1210,13 +1222,7 @@ def _shoulder_cut(
         if idx.size < 6 or abs(x[idx[-1]] - x[top]) < p.shoulder_min_mm + 0.5 * w_in:
             continue  # too short a side to hold a turn and a layer beyond it
         xo = np.abs(x[idx] - x[top])
-        zo = z[idx]
-        k = np.arange(1, idx.size - 1)
-        lo = np.searchsorted(xo, xo[k] - w_in, side="left")
-        hi = np.searchsorted(xo, xo[k] + w_out, side="right") - 1
-        s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
-        s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
-        ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * w_out)
+        k, lo, s_in, s_out, ok = _outward_slopes(xo, z[idx], w_in, w_out)
         ok &= xo[k] - xo[lo] >= 0.5 * w_in
         ok &= xo[-1] - xo[k] >= p.shoulder_min_mm
         for kk in k[ok & (s_in >= p.shoulder_slope) & (s_out < 0.5 * s_in)]:
