@@ -250,9 +250,12 @@ def _robust_scale(x: np.ndarray, valid: np.ndarray) -> tuple[float, float] | Non
     return med, max(median1d(np.abs(v - med)) * 1.4826, 1e-3)
 
 
-def _robust_z(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``x`` over 1.4826 x its median absolute deviation about the median (over ``valid``)."""
-    ms = _robust_scale(x, valid)
+def _robust_z(
+    x: np.ndarray, valid: np.ndarray, ms: tuple[float, float] | None = None
+) -> np.ndarray:
+    """``x`` over 1.4826 x its median absolute deviation about the median (over ``valid``;
+    ``ms``: that median and spread, when already computed by :func:`_robust_scale`)."""
+    ms = _robust_scale(x, valid) if ms is None else ms
     if ms is None:
         return np.zeros_like(x)
     return (x - np.float32(ms[0])) / np.float32(ms[1])
@@ -467,9 +470,10 @@ def bone_evidence(
     rows_ok = (inside >= 0.5) & (top - up >= 0) & (j >= nf)
     valid = rows_ok[:, None] & usable[None, :]
     echo_z = _robust_z(log_e, valid)
-    shadow_z = _robust_z(log_s, valid)
+    shadow_ms = _robust_scale(log_s, valid)
+    shadow_z = _robust_z(log_s, valid, shadow_ms)
     gap_cols = _edge_gap(work, tissue, usable, dx, dy, p)
-    if gap_cols.any() and (ms := _robust_scale(log_s, valid)) is not None:
+    if gap_cols.any() and (ms := shadow_ms) is not None:
         # In the spread's units of the frame's shadow log-ratio as it is: the rule
         # changes the gap's columns only, not the scale every other column is read in.
         _withhold_gap_shade(shadow_z, csum, usable, gap_cols, t0 - cov_a, ms[1], dy, p)
