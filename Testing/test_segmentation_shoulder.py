@@ -1,6 +1,6 @@
 """The bone's top and shoulder: narrow excursions over the dome, a layer running off the shoulder.
 
-``candidates._excursion_free`` drops a hop of the path onto a grain or a short layer just
+``candidates._fill_excursions`` drops a hop of the path onto a grain or a short layer just
 over the bone (it made a false apex that split the dome); ``candidates._shoulder_cut``
 cuts a layer running off the bone's shoulder (gentler than ``kink_slope``, tissue under
 it). Checked on drawn contours against their known shape (mm) and on small simulated
@@ -17,7 +17,7 @@ from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation import candidates as cand_mod
 from BoneUSRecon.Logic.segmentation.candidates import (
     _convex_pieces,
-    _excursion_free,
+    _fill_excursions,
     _shoulder_cut,
 )
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
@@ -46,7 +46,7 @@ def test_a_narrow_excursion_over_the_dome_is_dropped_and_the_dome_stays_whole() 
     hop = (x >= -1.5) & (x <= -0.3)
     z_hop = np.where(hop, z - 1.5, z)
     pts = _px(x, z_hop)
-    keep = _excursion_free(pts, SP, ShadowPathParams())
+    keep = _fill_excursions(pts, SP, ShadowPathParams())[0]
     assert not keep[hop].any()
     assert keep[~hop].mean() >= 0.97  # at most the hop's foot besides it
     assert np.abs(pts[keep, 1] * SP[1] - _dome(x[keep])).max() < 1e-9  # all on the dome
@@ -70,7 +70,7 @@ def test_the_bone_own_top_is_no_excursion(shape: str) -> None:
     else:
         x = np.arange(-2.8, 2.8 + 1e-9, SP[0])
         z = TOP + 3.0 - np.sqrt(9.0 - x**2)
-    assert _excursion_free(_px(x, z), SP, ShadowPathParams()).all()
+    assert _fill_excursions(_px(x, z), SP, ShadowPathParams())[0].all()
 
 
 def _dome_and_layer(layer_mm: float, under_layer: float) -> tuple[np.ndarray, np.ndarray, int]:

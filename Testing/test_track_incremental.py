@@ -109,7 +109,7 @@ def _appended(frames, extra):
 
 
 # Recovery must find frames to add: tibia seed 2 has one left since narrow excursions
-# no longer split its domes (candidates._excursion_free); seed 7 has four.
+# no longer split its domes (candidates._fill_excursions); seed 7 has four.
 EXTRA_CASES = [{"bone": "tibia", "realism": "hard", "seed": 7}, CASES[2]]
 
 

@@ -1235,13 +1235,6 @@ def _shoulder_cut(
     return keep
 
 
-def _excursion_free(
-    pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams
-) -> np.ndarray:
-    """Mask of a contour's points outside narrow excursions above it (:func:`_fill_excursions`)."""
-    return _fill_excursions(pts, spacing, p)[0]
-
-
 def _fill_excursions(
     pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams
 ) -> tuple[np.ndarray, np.ndarray]:
