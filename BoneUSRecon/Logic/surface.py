@@ -565,6 +565,9 @@ def flank_extension(
         # turns away from the probe; clipped to [0, 0.5 / mm] (radius >= 2 mm).
         turn = np.einsum("id,id->i", t - unit(p1 - p2), down(t)) / (fit_curve / 2)
         kappa = np.clip(turn, 0.0, 0.5)
+        # The last chord's direction is the tangent half a chord inside the edge.
+        half = (kappa * fit_in / 2)[:, None]
+        t = np.cos(half) * t + np.sin(half) * down(t)
         ok = inside & (arc[:, -1] > fit_curve) & (np.einsum("id,id->i", t, upk) < 0)
         alive = ok & (-np.einsum("id,id->i", t, upk) < max_sin)
         pts = np.full((k, n_steps + 1, 3), np.nan)
