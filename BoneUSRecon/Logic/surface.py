@@ -21,6 +21,11 @@ The surface reaches exactly as far as the data, with a smooth edge:
    (:func:`clip_triangles`, linear interpolation along triangle edges), so the edge is a
    smooth curve that cuts through triangles, not a staircase of grid cells.
 
+4. **Flanks (opt-in).** With ``flank_extension_mm > 0`` each cross-section is continued
+   past its side edges down the bone's flank (:func:`flank_extension`: convex, at most
+   ``flank_max_deg`` steep), as strips flagged by the point array ``Extrapolated``;
+   ``Distance`` there says how far from the data they reach.
+
 Only then are the per-vertex quantities computed, on the kept vertices: positions on
 the spline at their ``(u, v)`` (the cut vertices too), point normals (area-weighted
 face normals, oriented toward the probe, i.e. out of the bone), texture coordinates
@@ -46,6 +51,7 @@ from BoneUSRecon.Logic.resampling import ResampledGrid
 
 __all__ = [
     "SurfaceParams",
+    "flank_extension",
     "Support",
     "surface_support",
     "surface_polydata",
@@ -110,6 +116,21 @@ class SurfaceParams:
     max_distance_mm : float or None
         If set, also cut the mesh where it is farther than this (mm) from every
         segmented point.
+    flank_extension_mm : float
+        Continue the surface this far (mm of arc) past each side edge of the data, down
+        the bone's flank (:func:`flank_extension`; >= 0). 0 (default): the surface ends
+        where the data do. The echo of a flank fades with its slope (specular
+        reflection), so every segmentation stops short of the steep flanks; the bone
+        goes on, convex. Measured on hard simulated sweeps (seeds 5 and 7, 0.3 mm, five
+        bones): gold mean 0.744 mm -> 0.669 at 1 mm -> 0.632 at 2 mm, but the surface's
+        own mean distance to the true bone 0.29 -> 0.36 -> 0.44 mm (the strip starts
+        at the data's edge, where the surface is already the least accurate), hence
+        off by default (Testing/benchmarks/README.md, branch recon). Ours.
+    flank_max_deg : float
+        The extension stops where the surface becomes steeper than this against the
+        probe's face (degrees, (0, 90)). 70: issue 10 asks to follow the flanks to
+        70 degrees; steeper walls return almost no echo to a probe above them, so no
+        method can claim to have imaged them. Ours.
     """
 
     step_mm: float = 0.5
@@ -118,9 +139,19 @@ class SurfaceParams:
     margin_mm: float = 0.0
     gap_factor: float | None = 4.0
     max_distance_mm: float | None = None
+    flank_extension_mm: float = 0.0
+    flank_max_deg: float = 70.0
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if not self.flank_extension_mm >= 0:
+            raise BoneUSReconError(
+                f"flank_extension_mm must be >= 0 (mm), got {self.flank_extension_mm}"
+            )
+        if not 0 < self.flank_max_deg < 90:
+            raise BoneUSReconError(
+                f"flank_max_deg must be in (0, 90) degrees, got {self.flank_max_deg}"
+            )
         if not self.step_mm > 0:
             raise BoneUSReconError(f"mesh step_mm must be positive (mm), got {self.step_mm}")
         if not self.support_window_mm >= 0:
@@ -438,6 +469,136 @@ def _polydata(pts: np.ndarray, tris: np.ndarray, uv: np.ndarray, dist: np.ndarra
     return pd
 
 
+def _arc_points(sec: np.ndarray, arc: np.ndarray, length: float) -> np.ndarray:
+    """Points at arc ``length`` along each row's polyline ``sec`` (rows: (k, r, 3))."""
+    k, r = arc.shape
+    j = np.clip((arc < length).sum(axis=1), 1, r - 1)  # segment [j - 1, j] holds it
+    rows = np.arange(k)
+    a0, a1 = arc[rows, j - 1], arc[rows, j]
+    t = np.clip((length - a0) / np.maximum(a1 - a0, 1e-12), 0.0, 1.0)[:, None]
+    return sec[rows, j - 1] + t * (sec[rows, j] - sec[rows, j - 1])
+
+
+def flank_extension(
+    fit: FitResult,
+    grid: ResampledGrid,
+    us: np.ndarray,
+    edges: tuple[np.ndarray, np.ndarray],
+    inside: np.ndarray,
+    length_mm: float,
+    max_deg: float = 70.0,
+    step_mm: float = 0.25,
+) -> list[np.ndarray]:
+    """Continue each cross-section of the surface past its side edges, down the flank.
+
+    Why: a bone's flank echoes less the steeper it is (specular reflection sends the
+    echo away from the probe: ~15 % of the top's amplitude at 60 degrees), so a
+    segmentation stops short of it on any recording, the real cadaver sweeps of issue
+    10 (contours cut back to ~48 degrees) as the hard simulator (ends at ~47 degrees
+    where the bone is seen to ~62); but the bone goes on, and its cross-section is
+    convex seen from the probe. So each cross-section ``S(u, .)`` is continued from its
+    edge along a circle: the direction of its last millimetre, turning away from the
+    probe at the curvature of its last 2.5 mm (only that way, at most 0.5 / mm: a
+    convex flank only steepens; a flat or straight flank, like a tibia's crest,
+    continues straight), for ``length_mm`` of arc or until it is ``max_deg`` steep
+    against the probe's face (what a probe above can image at all). Nothing is
+    extended where the edge does not descend outward (a layer at the bone's level,
+    the far side of a concave contour).
+
+    Parameters
+    ----------
+    fit : FitResult
+    grid : ResampledGrid
+        Its ``up`` directions (toward the probe) orient the flank.
+    us : ndarray, shape (k,)
+        ``u`` of the cross-sections to extend (increasing).
+    edges : (ndarray, ndarray), shapes (k,), (k,)
+        ``v`` of the surface's low and high edge at each ``u``.
+    inside : ndarray of bool, shape (k,)
+        Cross-sections within the surface's support (others are not extended).
+    length_mm : float
+        Arc length of the extension (mm).
+    max_deg : float
+        Steepest slope reached (degrees from the probe's face).
+    step_mm : float
+        Spacing of the extension's points along the arc (mm).
+
+    Returns
+    -------
+    list of two ndarray, shapes (k, s + 1, 3)
+        For the low and the high edge: row ``i`` holds the edge point then the ``s``
+        extension points of cross-section ``i``, NaN past where it stopped (or all
+        NaN past the edge when not extended).
+    """
+    k = us.size
+    lo, hi = edges
+    frac = np.linspace(0.0, 1.0, 65)
+    vv = lo[:, None] + frac[None, :] * (hi - lo)[:, None]
+    sec = fit.surface.evaluate_points(np.repeat(us, frac.size), vv.ravel()).reshape(k, -1, 3)
+    arc = np.concatenate(
+        [np.zeros((k, 1)), np.cumsum(np.linalg.norm(np.diff(sec, axis=1), axis=-1), axis=1)], 1
+    )
+    # Up (toward the probe) at each cross-section, from the planes of the fitted slices
+    # (the fit's rows are the grid's slices).
+    upk = np.stack([np.interp(us, fit.u, grid.up[:, d]) for d in range(3)], axis=1)
+    upk /= np.maximum(np.linalg.norm(upk, axis=1, keepdims=True), 1e-12)
+    n_steps = int(np.ceil(length_mm / step_mm))
+    max_sin = np.sin(np.deg2rad(max_deg))
+    fit_in, fit_curve = 1.0, 2.5  # mm of the section inside the edge: direction, curvature
+    out = []
+    for flip in (False, True):
+        sec_s = sec[:, ::-1] if flip else sec
+        arc_s = arc[:, -1:] - arc[:, ::-1] if flip else arc
+        p0 = sec_s[:, 0]
+        p1, p2 = _arc_points(sec_s, arc_s, fit_in), _arc_points(sec_s, arc_s, fit_curve)
+
+        def unit(x: np.ndarray) -> np.ndarray:
+            return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+        t = unit(p0 - p1)  # outward along the section
+
+        def down(tt: np.ndarray) -> np.ndarray:
+            # In the plane of tt and up, perpendicular to tt, away from the probe.
+            return unit(-upk + np.einsum("id,id->i", upk, tt)[:, None] * tt)
+
+        # Turn between the inner chord and the outer one, per mm: a convex section
+        # turns away from the probe; clipped to [0, 0.5 / mm] (radius >= 2 mm).
+        turn = np.einsum("id,id->i", t - unit(p1 - p2), down(t)) / (fit_curve / 2)
+        kappa = np.clip(turn, 0.0, 0.5)
+        # The last chord's direction is the tangent half a chord inside the edge.
+        half = (kappa * fit_in / 2)[:, None]
+        t = np.cos(half) * t + np.sin(half) * down(t)
+        ok = inside & (arc[:, -1] > fit_curve) & (np.einsum("id,id->i", t, upk) < 0)
+        alive = ok & (-np.einsum("id,id->i", t, upk) < max_sin)
+        pts = np.full((k, n_steps + 1, 3), np.nan)
+        pts[ok, 0] = p0[ok]
+        p, tt = p0.copy(), t
+        for j in range(1, n_steps + 1):
+            ang = (kappa * step_mm)[:, None]
+            t2 = np.cos(ang) * tt + np.sin(ang) * down(tt)
+            p = p + step_mm * unit(tt + t2)
+            tt = t2
+            pts[alive, j] = p[alive]
+            alive &= -np.einsum("id,id->i", tt, upk) < max_sin
+        out.append(pts)
+    return out
+
+
+def _strip_triangles(pts: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Triangles of a (k, s, 3) strip between consecutive rows where all corners exist,
+    indices into ``pts.reshape(-1, 3)``, each facing ``up`` (toward the probe)."""
+    k, s = pts.shape[:2]
+    idx = np.arange(k * s).reshape(k, s)
+    flat = pts.reshape(-1, 3)
+    ok = np.isfinite(flat).all(axis=-1)
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+    tris = np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)]).reshape(-1, 3)
+    tris = tris[ok[tris].all(axis=1)]
+    q = np.nan_to_num(flat)
+    nrm = np.cross(q[tris[:, 1]] - q[tris[:, 0]], q[tris[:, 2]] - q[tris[:, 0]])
+    return np.where((nrm @ up < 0)[:, None], tris[:, ::-1], tris)
+
+
 def surface_polydata(
     fit: FitResult,
     grid: ResampledGrid | None = None,
@@ -533,7 +694,64 @@ def surface_polydata(
         dist = tree.query(pts)[0]
     if tris.shape[0] == 0:
         raise BoneUSReconError("the fitted surface has no part covered by data to keep")
-    return _polydata(pts, tris, uv, dist)
+    extrapolated = None
+    if params.flank_extension_mm > 0 and grid is not None:
+        # After the max_distance cut: the extension is away from the data by design.
+        pts, tris, uv, extrapolated = _add_flanks(
+            fit, grid, support, us, mm_per_v, params, pts, tris, uv
+        )
+        dist = tree.query(pts)[0] if tree is not None else np.full(pts.shape[0], np.nan)
+    pd = _polydata(pts, tris, uv, dist)
+    if extrapolated is not None:
+        ea = numpy_support.numpy_to_vtk(extrapolated.astype(np.uint8), deep=True)
+        ea.SetName("Extrapolated")
+        pd.GetPointData().AddArray(ea)
+    return pd
+
+
+def _add_flanks(
+    fit: FitResult,
+    grid: ResampledGrid,
+    support: Support,
+    us: np.ndarray,
+    mm_per_v: float,
+    params: SurfaceParams,
+    pts: np.ndarray,
+    tris: np.ndarray,
+    uv: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh with the flank strips of :func:`flank_extension` appended.
+
+    Returns the points, triangles, ``(u, v)`` (a strip's vertices get their
+    cross-section's edge parameters) and a per-point flag: extrapolated.
+    """
+    s = np.interp(us, support.u, support.position)
+    dv = params.margin_mm / mm_per_v
+    lo = np.clip(np.interp(s, support.position, support.lo) - dv, 0.0, 1.0)
+    hi = np.clip(np.interp(s, support.position, support.hi) + dv, 0.0, 1.0)
+    a, b = support.spans[:, 0], support.spans[:, 1]
+    inside = ((s[:, None] >= a[None, :]) & (s[:, None] <= b[None, :])).any(axis=1)
+    inside &= hi > lo
+    strips = flank_extension(
+        fit, grid, us, (lo, hi), inside, params.flank_extension_mm, params.flank_max_deg
+    )
+    up = grid.up.mean(axis=0)
+    all_pts, all_tris, all_uv = [pts], [tris], [uv]
+    n = pts.shape[0]
+    for strip, edge in zip(strips, (lo, hi), strict=True):
+        k, m = strip.shape[:2]
+        all_tris.append(_strip_triangles(strip, up) + n)
+        all_pts.append(strip.reshape(-1, 3))
+        all_uv.append(np.stack([np.repeat(us, m), np.repeat(edge, m)], axis=1))
+        n += k * m
+    new_tris, used = _compact(np.concatenate(all_tris), n)
+    flag = used >= pts.shape[0]
+    return (
+        np.concatenate(all_pts)[used],
+        new_tris,
+        np.concatenate(all_uv)[used],
+        flag,
+    )
 
 
 def triangle_centroids(pd: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
