@@ -316,3 +316,26 @@ def test_table_bad_inputs_refused(capsys, files, tmp_path):
     assert_refused(
         capsys, ["table", str(sweep), "--gold", str(tmp_path / "g.csv")], "no such file", tmp_path
     )
+
+
+def test_reconstruct_flank_extension_option(capsys, files, tmp_path):
+    """--flank-extension reaches SurfaceParams: strips flagged 'Extrapolated' in the mesh;
+    a negative length is refused in one line, with nothing written."""
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    sweep, _ = files
+    out = tmp_path / "ext.vtp"
+    code, _, err = run(
+        capsys, ["reconstruct", str(sweep), "-o", str(out), "--flank-extension", "1.5", "-q"]
+    )
+    assert code == 0, err
+    flags = vtk_to_numpy(read_polydata(out).GetPointData().GetArray("Extrapolated"))
+    assert 0 < flags.sum() < flags.size
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    assert_refused(
+        capsys,
+        ["reconstruct", str(sweep), "-o", str(bad / "x.vtp"), "--flank-extension", "-1"],
+        "flank_extension_mm",
+        bad,
+    )

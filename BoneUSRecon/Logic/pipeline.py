@@ -116,6 +116,7 @@ def params_with(
     robust: str | None = None,
     axis: str | None = None,
     control_points: Sequence[int] | None = None,
+    flank_extension_mm: float | None = None,
 ) -> ReconstructionParams:
     """``base`` with the user's choices: what the CLI options and the Slicer module set.
 
@@ -138,6 +139,9 @@ def params_with(
     fit_method : {"direct", "separable"}, optional
     robust : {"tukey", "huber", "none"}, optional
     axis : {"spline", "line"}, optional
+    flank_extension_mm : float, optional
+        How far each cross-section of the surface is continued down its flanks past the
+        data, mm (:class:`~BoneUSRecon.Logic.surface.SurfaceParams`; 0 is off).
 
     Returns
     -------
@@ -147,7 +151,8 @@ def params_with(
     ------
     BoneUSReconError
         Unknown segmenter; absurd values, as refused by :class:`SegmentationParams`,
-        :class:`FitParams` and :class:`ResamplingParams` (e.g. fewer control points than degree + 1).
+        :class:`FitParams`, :class:`ResamplingParams` and :class:`SurfaceParams` (e.g.
+        fewer control points than degree + 1, a negative flank extension).
     """
     p = ReconstructionParams() if base is None else base
     seg = p.segmentation
@@ -177,11 +182,15 @@ def params_with(
     res_changes: dict[str, Any] = {
         k: v for k, v in (("n_rays", rays), ("axis", axis)) if v is not None
     }
+    surface = p.surface
+    if flank_extension_mm is not None:  # SurfaceParams checks the value
+        surface = dataclasses.replace(surface, flank_extension_mm=float(flank_extension_mm))
     return dataclasses.replace(
         p,
         segmentation=seg,
         fit=dataclasses.replace(p.fit, **fit_changes),  # FitParams checks the values
         resampling=dataclasses.replace(p.resampling, **res_changes),
+        surface=surface,
     )
 
 

@@ -28,7 +28,7 @@ __all__ = ["register", "run", "add_reconstruction_options", "params_from_args"]
 
 def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bool = True) -> None:
     """Stage options shared with ``table``: segmenter, degree, control points, rays,
-    fit method, robust weights, axis model."""
+    fit method, robust weights, axis model, flank extension."""
     p.add_argument(
         "--segmenter",
         metavar="NAME",
@@ -69,6 +69,13 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
         choices=("spline", "line"),
         help="central axis through the slice centres (default spline; 'line' is the paper's)",
     )
+    p.add_argument(
+        "--flank-extension",
+        type=float,
+        metavar="MM",
+        help="continue each cross-section down its flanks MM past the segmented points "
+        "(convex, at most 70 degrees; flagged by the point array 'Extrapolated'; default 0: off)",
+    )
 
 
 def params_from_args(args: argparse.Namespace) -> Any:
@@ -85,6 +92,7 @@ def params_from_args(args: argparse.Namespace) -> Any:
         fit_method=getattr(args, "fit_method", None),
         robust=getattr(args, "robust", None),
         axis=getattr(args, "axis", None),
+        flank_extension_mm=getattr(args, "flank_extension", None),
     )
 
 
