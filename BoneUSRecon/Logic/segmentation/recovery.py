@@ -245,9 +245,10 @@ def guided_candidate(
     rows = path[g]
     # The bone continues smoothly between the track's frames: its contour lies near
     # the interpolated one (measured on 82 recovered frames on the bone: median offset
-    # 0.12 of the band's half-width, p95 0.40, max 0.74), while a structure crossing
-    # the band (a false echo above the bone, a layer meeting it) follows it only in
-    # part (0.60-0.68 on the three look-alikes recovered without this rule).
+    # 0.12 of the wider link tolerance, then the band's half-width, p95 0.40, max
+    # 0.74), while a structure crossing the band (a false echo above the bone, a layer
+    # meeting it) follows it only in part (0.60-0.68 on the three look-alikes
+    # recovered without this rule).
     offset = median1d(np.abs(yw[rows] - expect[g - c0])) / median1d(wide[g])
     if offset > max_offset:
         return None
