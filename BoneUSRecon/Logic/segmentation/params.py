@@ -488,7 +488,7 @@ class RecoveryParams:
     min_share: float = 0.5
     """The contour found must span at least this share of the columns the neighbouring track contours span in the frame (ours: a run through speckle in the band is short)."""
     max_offset: float = 0.5
-    """The contour found must lie, on median, within this share of the band's half-width of the depth the track's neighbouring contours give (ours: on 82 frames recovered on the bone, median 0.12, p95 0.40, max 0.74; a false echo over the bone and layers crossing the band, 0.60-0.68)."""
+    """The contour found must lie, on median, within this share of the wider neighbouring track contour's link tolerance (the band's half-width when it was measured; the band is now the nearer one's, :func:`.recovery.guided_candidate`) of the depth the track's neighbouring contours give (ours: on 82 frames recovered on the bone, median 0.12, p95 0.40, max 0.74; a false echo over the bone and layers crossing the band, 0.60-0.68)."""
     both_sides: bool = True
     """Search only frames with a track frame on each side within ``max_skip + 1`` frames (offline and live, ``EndsParams.search_past_ends`` searches past the track's ends as False does, the ends cut judging what is found; ours: past the track's ends only one side vouches, and beyond the last frame showing bone there is nothing to find; measured with the bone removed from the last 10 of 40 frames, 24 hard sweeps: searching with one side recovered bone-free frames in 7 sweeps, for +0.017 mean recall on sweeps showing bone throughout)."""
 
