@@ -37,6 +37,7 @@ from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_setting
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice, select_bone_track
+from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
 
 __all__ = [
@@ -214,22 +215,31 @@ def segment_sweep(
             prior = fc.usable[0].points_px if fc.usable else None
             report(progress, "segment", n + 1, int(idx.size))
     poses = sweep.image_to_reference[idx]
-    choice = select_bone_track(frames, poses, params.rejection)
+    # select_bone_track's choice, by the incremental track (the same track bit for bit,
+    # :mod:`.track_incremental`): the links between frames (nearly all of the track's
+    # CPU) are made once, and the track chosen again after recovery makes only the
+    # guided candidates' links (on hard 480x640 sweeps, the track's CPU halved).
+    track = IncrementalTrack(params.rejection)
+    for fc, pose in zip(frames, poses, strict=True):
+        track.add(fc, pose)
     if recovery_applies(params):
         # Frames off the track searched again inside the band the track allows, then
         # one track over all frames again (:mod:`.recovery`); past the track's ends too
         # (one side guiding) when the ends cut below judges what is found there.
+        first = track.solve(explain=False)  # its rejection details would be replaced
         frames, searched = recover_frames(
             frames,
-            choice,
+            first,
             poses,
             lambda n: np.asarray(sweep.frames[int(idx[n])]),
             params.shadowpath,
             params.rejection,
             recovery_settings(params),
         )
-        if searched:
-            choice = select_bone_track(frames, poses, params.rejection)
+        # The guided candidate is its frame's last (recovery.with_candidate).
+        choice = track.solve(extra={f: frames[f].candidates[-1] for f in searched})
+    else:
+        choice = track.solve()
     # The track's ends cut back where its frames cast no bone shadow (:mod:`.ends`).
     choice = cut_bone_free_ends(
         frames,
