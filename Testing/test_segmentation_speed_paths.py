@@ -230,3 +230,85 @@ def test_sorted_row_statistics_match_numpy() -> None:
         med = np.median(s, axis=1)
         got_med = sorted_row_medians(s)
         assert got_med.dtype == med.dtype and np.array_equal(got_med, med), trial
+
+
+def _plain_segment_sweep(sweep, params):  # type: ignore[no-untyped-def]
+    """segment_sweep as it was before branch ``speed`` (session 21): the whole track
+    chosen again after recovery, every searched frame's evidence computed again."""
+    from BoneUSRecon.Logic.segmentation.driver import contours_from_track
+    from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
+    from BoneUSRecon.Logic.segmentation.recovery import recover_frames, settings
+    from BoneUSRecon.Logic.segmentation.track import select_bone_track
+
+    idx = sweep.valid_indices
+    sp = pixel_spacing(sweep.image_to_reference)
+    spacings = [(float(sp[k, 0]), float(sp[k, 1])) for k in idx]
+    frames = frame_candidates_many([sweep.frames[k] for k in idx], spacings, params.shadowpath)
+    poses = sweep.image_to_reference[idx]
+    choice = select_bone_track(frames, poses, params.rejection)
+    frames, searched = recover_frames(
+        frames,
+        choice,
+        poses,
+        lambda n: sweep.frames[int(idx[n])],
+        params.shadowpath,
+        params.rejection,
+        settings(params),
+    )
+    if searched:
+        choice = select_bone_track(frames, poses, params.rejection)
+    choice = cut_bone_free_ends(frames, choice, lambda ns: (sweep.frames[k] for k in idx[ns]))
+    return contours_from_track(idx, frames, choice, params), searched
+
+
+def test_segment_sweep_track_and_kept_evidence_match_plain(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # segment_sweep chooses the track with IncrementalTrack (links made once, only the
+    # guided candidates linked after recovery) and hands the recovery the evidence maps
+    # kept from the per-frame step: the same contours, decisions and details as the
+    # plain flow, with and without kept evidence; kept, recovery computes none again.
+    import BoneUSRecon.Logic.segmentation.driver as driver
+    import BoneUSRecon.Logic.segmentation.recovery as recovery
+    from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
+
+    # Hard tibia (grey shadow) with bone-free ends: the first track leaves frames for
+    # recovery to search (past its ends too), and the ends cut has frames to judge.
+    sim = simulate(
+        SimulationParams(
+            bone="tibia",
+            realism="hard",
+            seed=7,
+            n_frames=40,
+            width=160,
+            height=128,
+            spacing_mm=0.3,
+            bone_free_frames=(3, 10),
+        )
+    )
+    params = SegmentationParams()
+    want, searched = _plain_segment_sweep(sim.sweep, params)
+    assert len(searched) >= 2  # recovery found candidates in frames off the first track
+    computed = []
+    real = recovery.bone_evidence
+
+    def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
+        computed.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recovery, "bone_evidence", counting)
+    for room, computed_again in ((driver.EVIDENCE_CACHE_BYTES, False), (0, True)):
+        monkeypatch.setattr(driver, "EVIDENCE_CACHE_BYTES", room)
+        computed.clear()
+        got = segment_sweep(sim.sweep, params).contours
+        assert bool(computed) == computed_again
+        assert len(got) == len(want)
+        for a, b in zip(got, want, strict=True):
+            assert np.array_equal(a.points_px, b.points_px)
+            assert np.array_equal(a.intensity, b.intensity)
+            assert (a.frame, a.accepted, a.reason, a.detail, a.confidence) == (
+                b.frame,
+                b.accepted,
+                b.reason,
+                b.detail,
+                b.confidence,
+            )
+            assert a.extras == b.extras

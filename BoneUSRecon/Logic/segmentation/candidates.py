@@ -965,16 +965,21 @@ def frame_candidates_many(
     images: Sequence[np.ndarray],
     spacings: Sequence[tuple[float, float]],
     params: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+    evidence: Sequence[EvidenceMaps | None] | None = None,
 ) -> list[FrameCandidates]:
     """:func:`frame_candidates` of several frames (the same results), their paths solved together.
 
     The frames advance pass by pass in step; the optimal paths asked at each step are
     solved by one column loop (:func:`_optimal_paths`), which costs about half as much
     per frame for 16 frames or more. Memory: the frames' evidence maps are held at once
-    (~1 MB per 480x640 frame).
+    (~1 MB per 480x640 frame). ``evidence``: each frame's :func:`.evidence.bone_evidence`
+    with these ``params``, when the caller has it already (None: computed here); it is
+    read, never changed.
     """
+    evs = list(evidence) if evidence is not None else [None] * len(images)
     gens = [
-        _frame_candidates_steps(img, sp, params) for img, sp in zip(images, spacings, strict=True)
+        _frame_candidates_steps(img, sp, params, ev)
+        for img, sp, ev in zip(images, spacings, evs, strict=True)
     ]
     out: list[FrameCandidates | None] = [None] * len(gens)
     pending: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
@@ -1010,13 +1015,15 @@ def _frame_candidates_steps(
     image: np.ndarray,
     spacing: tuple[float, float],
     params: ShadowPathParams,
+    evidence: EvidenceMaps | None = None,
 ) -> Generator[tuple[np.ndarray, np.ndarray, float], np.ndarray, FrameCandidates]:
     """:func:`frame_candidates` as a generator: yields each optimal path it needs as
-    ``(gain, shift_cost, switch)``, is sent the path, returns the FrameCandidates."""
+    ``(gain, shift_cost, switch)``, is sent the path, returns the FrameCandidates.
+    ``evidence``: the frame's :func:`.evidence.bone_evidence`, if computed already."""
     p = params
     sp = (float(spacing[0]), float(spacing[1]))
     img = np.asarray(image)
-    ev = bone_evidence(img, sp, p)
+    ev = bone_evidence(img, sp, p) if evidence is None else evidence
     if ev is None:
         return FrameCandidates((), sp, "image too small")
     if not ev.usable.any():

@@ -30,6 +30,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
 from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import recover_frames
@@ -76,6 +77,21 @@ def _shadowpath(image, spacing, params, prior):  # type: ignore[no-untyped-def]
 #: 8 frames -11 %, 16 -31 %, 32 -36 %; the frames' evidence maps, ~1 MB each, are held
 #: meanwhile (32 MB at 32).
 BATCH_FRAMES = 32
+
+#: Evidence maps kept from the per-frame step for the recovery's search of frames off
+#: the track (:func:`~.recovery.guided_candidate` reads the same maps; kept, they are
+#: not computed twice), up to this many bytes per sweep, frames in sweep order (which
+#: frames recovery searches is known only once the track is chosen). A 480x640 frame's
+#: maps take ~1.8 MB at 0.15 mm per pixel, ~1.0 MB at 0.075 mm, so a 30-frame sweep at
+#: 0.15 mm is kept whole (recovery searched 1-11 of its frames on the hard presets,
+#: ~5 ms each of evidence saved) and a long sweep's first ~35-65 frames.
+EVIDENCE_CACHE_BYTES = 64 * 2**20
+
+
+def _evidence_bytes(ev: EvidenceMaps) -> int:
+    """Bytes held by one frame's evidence maps."""
+    return sum(a.nbytes for a in vars(ev).values() if isinstance(a, np.ndarray))
+
 
 #: Segmenters by name. "shadowpath" (default) offers several candidates per frame from
 #: contrast-adaptive evidence; "snake" is the paper's.
@@ -195,15 +211,22 @@ def segment_sweep(
     prior: np.ndarray | None = None
     # iter_frames releases the memory-mapped pages as it goes: a 600 MB sweep is
     # segmented without its pages piling up in the resident set.
+    kept: dict[int, EvidenceMaps] = {}  # frame position -> its evidence maps
     if params.method == "shadowpath" and SEGMENTERS["shadowpath"] is _shadowpath:
         # Shadowpath depends on each frame alone: BATCH_FRAMES frames at a time, their
         # optimal paths solved together (the same candidates, less CPU per frame).
         batch: list[tuple[np.ndarray, tuple[float, float]]] = []
+        room = EVIDENCE_CACHE_BYTES if recovery_applies(params) else 0
         for n, (k, image) in enumerate(sweep.iter_frames(idx)):
             batch.append((image, (float(spacing_all[k, 0]), float(spacing_all[k, 1]))))
             if len(batch) == BATCH_FRAMES or n + 1 == idx.size:
                 images, spacings = zip(*batch, strict=True)
-                frames += frame_candidates_many(images, spacings, params.shadowpath)
+                evs = [bone_evidence(im, sp, params.shadowpath) for im, sp in batch]
+                for m, ev in enumerate(evs, start=n + 1 - len(batch)):
+                    if ev is not None and (size := _evidence_bytes(ev)) <= room:
+                        kept[m], room = ev, room - size
+                frames += frame_candidates_many(images, spacings, params.shadowpath, evs)
+                del evs
                 for done in range(n + 2 - len(batch), n + 2):  # one report per frame
                     report(progress, "segment", done, int(idx.size))
                 batch = []
@@ -235,7 +258,9 @@ def segment_sweep(
             params.shadowpath,
             params.rejection,
             recovery_settings(params),
+            kept.get,
         )
+        kept.clear()
         # The guided candidate is its frame's last (recovery.with_candidate).
         choice = track.solve(extra={f: frames[f].candidates[-1] for f in searched})
     else:
