@@ -88,11 +88,6 @@ BATCH_FRAMES = 32
 EVIDENCE_CACHE_BYTES = 64 * 2**20
 
 
-def _evidence_bytes(ev: EvidenceMaps) -> int:
-    """Bytes held by one frame's evidence maps."""
-    return sum(a.nbytes for a in vars(ev).values() if isinstance(a, np.ndarray))
-
-
 #: Segmenters by name. "shadowpath" (default) offers several candidates per frame from
 #: contrast-adaptive evidence; "snake" is the paper's.
 SEGMENTERS: dict[str, FrameSegmenter] = {"shadowpath": _shadowpath, "snake": _snake}
@@ -223,7 +218,7 @@ def segment_sweep(
                 images, spacings = zip(*batch, strict=True)
                 evs = [bone_evidence(im, sp, params.shadowpath) for im, sp in batch]
                 for m, ev in enumerate(evs, start=n + 1 - len(batch)):
-                    if ev is not None and (size := _evidence_bytes(ev)) <= room:
+                    if ev is not None and (size := ev.nbytes) <= room:
                         kept[m], room = ev, room - size
                 frames += frame_candidates_many(images, spacings, params.shadowpath, evs)
                 del evs
