@@ -2,7 +2,7 @@
 
 The speed-ups of branches ``segspeed`` (optimal path column loop, window means on row
 slices, median of three) and ``speed`` (optimal paths of several frames in one column
-loop, cached window plans, one-partition medians of large even counts, percentiles and
+loop, each with its own costs; cached window plans, one-partition medians of large even counts, percentiles and
 medians of sorted rows, the track's pair tests from its boxes) must not change a single
 candidate: each is compared here, value for value, with the straightforward computation
 it replaces, on inputs built to hit its edge cases (ties, clipped windows, long no-bone
@@ -111,13 +111,39 @@ def test_optimal_paths_batch_matches_plain_loop() -> None:
     assert with_bone >= 60
 
 
+def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
+    # Gains solved together, each with its own shift costs (frames whose spacings differ,
+    # if only in the last bits): each path as if alone with its costs.
+    rng = np.random.default_rng(11)
+    steps = np.arange(-2, 3)
+    with_bone = 0
+    for trial in range(40):
+        switch = float(rng.choice([0.5, 1.0, 2.0]))
+        gains, costs = [], []
+        for _ in range(int(rng.integers(2, 7))):
+            h, w = int(rng.integers(1, 40)), int(rng.integers(1, 60))
+            gain = np.round(rng.normal(-0.4, 1.0, (h, w)) * 4) / 4
+            gain[:, rng.random(w) < 0.4] = -1.0
+            gains.append(gain.astype(np.float32))
+            # Costs far apart (other paths) or a hair apart (the same spacing from poses).
+            scale = rng.uniform(0.5, 2.0) if trial % 2 else 1.0 + 1e-15 * rng.integers(0, 3)
+            costs.append(0.05 * (steps * scale) ** 2 * 0.3)
+        batch = _optimal_paths([g.copy() for g in gains], costs, switch)
+        for g, c, path in zip(gains, costs, batch, strict=True):
+            assert np.array_equal(path, _plain_optimal_path(g.copy(), c, switch)), trial
+            assert np.array_equal(path, _optimal_path(g.copy(), c, switch)), trial
+            with_bone += bool((path >= 0).any() and (path < 0).any())
+    assert with_bone >= 40
+
+
 def test_frame_candidates_many_matches_one_by_one() -> None:
     # Frames with bone, an empty frame and one too small: the same candidates as alone.
     sim = simulate(SimulationParams(n_frames=5, width=160, height=128, seed=3))
     images = [sim.sweep.frames[k] for k in range(5)]
     images += [np.zeros((128, 160), np.uint8), np.zeros((4, 4), np.uint8)]
     sp = pixel_spacing(sim.sweep.image_to_reference)
-    spacings = [(float(sp[0, 0]), float(sp[0, 1]))] * len(images)
+    # Spacings a hair apart (as from poses): the paths are still solved together.
+    spacings = [(float(sp[0, 0]) * (1 + 1e-16 * k), float(sp[0, 1])) for k in range(len(images))]
     many = frame_candidates_many(images, spacings)
     assert sum(len(fc.candidates) for fc in many) >= 5
     for img, s, got in zip(images, spacings, many, strict=True):
