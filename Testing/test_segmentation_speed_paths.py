@@ -290,8 +290,9 @@ def _plain_segment_sweep(sweep, params):  # type: ignore[no-untyped-def]
 def test_segment_sweep_track_and_kept_evidence_match_plain(monkeypatch) -> None:  # type: ignore[no-untyped-def]
     # segment_sweep chooses the track with IncrementalTrack (links made once, only the
     # guided candidates linked after recovery) and hands the recovery the evidence maps
-    # kept from the per-frame step: the same contours, decisions and details as the
-    # plain flow, with and without kept evidence; kept, recovery computes none again.
+    # kept from the per-frame step (when all of them fit EVIDENCE_CACHE_BYTES): the
+    # same contours, decisions and details as the plain flow, with and without kept
+    # evidence; kept, recovery computes none again.
     import BoneUSRecon.Logic.segmentation.driver as driver
     import BoneUSRecon.Logic.segmentation.recovery as recovery
     from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
@@ -321,7 +322,16 @@ def test_segment_sweep_track_and_kept_evidence_match_plain(monkeypatch) -> None:
         return real(*args, **kwargs)
 
     monkeypatch.setattr(recovery, "bone_evidence", counting)
-    for room, computed_again in ((driver.EVIDENCE_CACHE_BYTES, False), (0, True)):
+    idx = sim.sweep.valid_indices
+    sp = pixel_spacing(sim.sweep.image_to_reference)[idx[0]]
+    whole = idx.size * real(sim.sweep.frames[idx[0]], (float(sp[0]), float(sp[1]))).nbytes
+    # Kept when all of the sweep's maps fit, else none (a long sweep's peak memory).
+    for room, computed_again in (
+        (driver.EVIDENCE_CACHE_BYTES, False),
+        (whole, False),
+        (whole - 1, True),
+        (0, True),
+    ):
         monkeypatch.setattr(driver, "EVIDENCE_CACHE_BYTES", room)
         computed.clear()
         got = segment_sweep(sim.sweep, params).contours

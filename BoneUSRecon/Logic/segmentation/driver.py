@@ -80,11 +80,12 @@ BATCH_FRAMES = 32
 
 #: Evidence maps kept from the per-frame step for the recovery's search of frames off
 #: the track (:func:`~.recovery.guided_candidate` reads the same maps; kept, they are
-#: not computed twice), up to this many bytes per sweep, frames in sweep order (which
-#: frames recovery searches is known only once the track is chosen). A 480x640 frame's
-#: maps take ~1.8 MB at 0.15 mm per pixel, ~1.0 MB at 0.075 mm, so a 30-frame sweep at
-#: 0.15 mm is kept whole (recovery searched 1-11 of its frames on the hard presets,
-#: ~5 ms each of evidence saved) and a long sweep's first ~35-65 frames.
+#: not computed twice) when all of the sweep's fit in this many bytes (which frames
+#: recovery searches is known only once the track is chosen): a 480x640 frame's maps
+#: take ~1.8 MB at 0.15 mm per pixel, ~1.0 MB at 0.075 mm, so a 30-frame sweep at
+#: 0.15 mm keeps them (recovery searched 1-11 of its frames on the hard presets, ~5 ms
+#: of evidence each), while a long sweep keeps none: its peak memory (issue 7's
+#: 2,000-frame sweep) stays as it was.
 EVIDENCE_CACHE_BYTES = 64 * 2**20
 
 
@@ -211,15 +212,20 @@ def segment_sweep(
         # Shadowpath depends on each frame alone: BATCH_FRAMES frames at a time, their
         # optimal paths solved together (the same candidates, less CPU per frame).
         batch: list[tuple[np.ndarray, tuple[float, float]]] = []
-        room = EVIDENCE_CACHE_BYTES if recovery_applies(params) else 0
+        room: int | None = None  # bytes left for kept maps, set at the first frame's
         for n, (k, image) in enumerate(sweep.iter_frames(idx)):
             batch.append((image, (float(spacing_all[k, 0]), float(spacing_all[k, 1]))))
             if len(batch) == BATCH_FRAMES or n + 1 == idx.size:
                 images, spacings = zip(*batch, strict=True)
                 evs = [bone_evidence(im, sp, params.shadowpath) for im, sp in batch]
                 for m, ev in enumerate(evs, start=n + 1 - len(batch)):
-                    if ev is not None and (size := ev.nbytes) <= room:
-                        kept[m], room = ev, room - size
+                    if ev is None:
+                        continue
+                    if room is None:  # every frame of a sweep has the same size
+                        room = EVIDENCE_CACHE_BYTES if recovery_applies(params) else 0
+                        room = room if idx.size * ev.nbytes <= room else 0
+                    if ev.nbytes <= room:
+                        kept[m], room = ev, room - ev.nbytes
                 frames += frame_candidates_many(images, spacings, params.shadowpath, evs)
                 del evs
                 for done in range(n + 2 - len(batch), n + 2):  # one report per frame
