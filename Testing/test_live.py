@@ -157,6 +157,49 @@ def _same_contours(seg, batch) -> bool:
     )
 
 
+def test_live_recovery_reads_kept_evidence(sim_factory, monkeypatch):
+    """The newest frames keep their evidence maps (LIVE_EVIDENCE_BYTES) until a refit
+    finds them on the track: recovery reads them instead of computing them again, and
+    every refit is the same as with none kept (and the final one the offline one)."""
+    import BoneUSRecon.Logic.live as live_mod
+    import BoneUSRecon.Logic.segmentation.recovery as recovery
+
+    sweep = sim_factory(bone="humerus", realism="hard", seed=7).sweep
+    size = recovery.bone_evidence(sweep.frames[0], sweep.spacing_mm).nbytes
+    computed = []
+    real = recovery.bone_evidence
+
+    def counting(*args, **kwargs):
+        computed.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recovery, "bone_evidence", counting)
+    runs = {}
+    # The default keeps this small sweep's newest 20 frames or more; 0 the newest only.
+    for room in (max(live_mod.LIVE_EVIDENCE_BYTES, 20 * size), 0):
+        monkeypatch.setattr(live_mod, "LIVE_EVIDENCE_BYTES", room)
+        newest = max(1, room // size)
+        computed.clear()
+        live = LiveReconstructor()
+        segs = []
+        for n, (k, image) in enumerate(sweep.iter_frames()):
+            live.add_frame(image, sweep.image_to_reference[k], sweep.timestamps[k])
+            if n % 8 == 7:
+                with contextlib.suppress(BoneUSReconError):
+                    segs.append(live.refit(with_points=False).segmentation)
+            held = [f.evidence is not None for f in live._frames]
+            assert not any(held[:-newest])  # the newest frames only
+        segs.append(live.refit(final=True, with_points=False).segmentation)
+        runs[room] = (segs, live.recovery_counts["searched"], len(computed))
+    (kept, searched, n_kept), (none, searched_0, n_none) = runs.values()
+    # Without room, only a search of the newest frame at a refit reads kept maps.
+    assert searched == searched_0 >= 2 and n_none >= searched_0 - len(none)
+    assert n_kept < n_none / 2
+    assert len(kept) == len(none) >= 3
+    assert all(_same_contours(a, b) for a, b in zip(kept, none, strict=True))
+    assert _same_contours(kept[-1], segment_sweep(sweep))
+
+
 def test_live_recovery_after_thinning_equals_offline(sim_factory):
     """Thinned past max_frames, the live refit is the offline segmentation of the frames
     kept (guided candidates linked to the frames that became neighbours), as long as

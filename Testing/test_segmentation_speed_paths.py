@@ -2,7 +2,7 @@
 
 The speed-ups of branches ``segspeed`` (optimal path column loop, window means on row
 slices, median of three) and ``speed`` (optimal paths of several frames in one column
-loop, cached window plans, one-partition medians of large even counts, percentiles and
+loop, each with its own costs; cached window plans, one-partition medians of large even counts, percentiles and
 medians of sorted rows, the track's pair tests from its boxes) must not change a single
 candidate: each is compared here, value for value, with the straightforward computation
 it replaces, on inputs built to hit its edge cases (ties, clipped windows, long no-bone
@@ -111,13 +111,39 @@ def test_optimal_paths_batch_matches_plain_loop() -> None:
     assert with_bone >= 60
 
 
+def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
+    # Gains solved together, each with its own shift costs (frames whose spacings differ,
+    # if only in the last bits): each path as if alone with its costs.
+    rng = np.random.default_rng(11)
+    steps = np.arange(-2, 3)
+    with_bone = 0
+    for trial in range(40):
+        switch = float(rng.choice([0.5, 1.0, 2.0]))
+        gains, costs = [], []
+        for _ in range(int(rng.integers(2, 7))):
+            h, w = int(rng.integers(1, 40)), int(rng.integers(1, 60))
+            gain = np.round(rng.normal(-0.4, 1.0, (h, w)) * 4) / 4
+            gain[:, rng.random(w) < 0.4] = -1.0
+            gains.append(gain.astype(np.float32))
+            # Costs far apart (other paths) or a hair apart (the same spacing from poses).
+            scale = rng.uniform(0.5, 2.0) if trial % 2 else 1.0 + 1e-15 * rng.integers(0, 3)
+            costs.append(0.05 * (steps * scale) ** 2 * 0.3)
+        batch = _optimal_paths([g.copy() for g in gains], costs, switch)
+        for g, c, path in zip(gains, costs, batch, strict=True):
+            assert np.array_equal(path, _plain_optimal_path(g.copy(), c, switch)), trial
+            assert np.array_equal(path, _optimal_path(g.copy(), c, switch)), trial
+            with_bone += bool((path >= 0).any() and (path < 0).any())
+    assert with_bone >= 40
+
+
 def test_frame_candidates_many_matches_one_by_one() -> None:
     # Frames with bone, an empty frame and one too small: the same candidates as alone.
     sim = simulate(SimulationParams(n_frames=5, width=160, height=128, seed=3))
     images = [sim.sweep.frames[k] for k in range(5)]
     images += [np.zeros((128, 160), np.uint8), np.zeros((4, 4), np.uint8)]
     sp = pixel_spacing(sim.sweep.image_to_reference)
-    spacings = [(float(sp[0, 0]), float(sp[0, 1]))] * len(images)
+    # Spacings a hair apart (as from poses): the paths are still solved together.
+    spacings = [(float(sp[0, 0]) * (1 + 1e-16 * k), float(sp[0, 1])) for k in range(len(images))]
     many = frame_candidates_many(images, spacings)
     assert sum(len(fc.candidates) for fc in many) >= 5
     for img, s, got in zip(images, spacings, many, strict=True):
@@ -230,3 +256,95 @@ def test_sorted_row_statistics_match_numpy() -> None:
         med = np.median(s, axis=1)
         got_med = sorted_row_medians(s)
         assert got_med.dtype == med.dtype and np.array_equal(got_med, med), trial
+
+
+def _plain_segment_sweep(sweep, params):  # type: ignore[no-untyped-def]
+    """segment_sweep as it was before branch ``speed`` (session 21): the whole track
+    chosen again after recovery, every searched frame's evidence computed again."""
+    from BoneUSRecon.Logic.segmentation.driver import contours_from_track
+    from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
+    from BoneUSRecon.Logic.segmentation.recovery import recover_frames, settings
+    from BoneUSRecon.Logic.segmentation.track import select_bone_track
+
+    idx = sweep.valid_indices
+    sp = pixel_spacing(sweep.image_to_reference)
+    spacings = [(float(sp[k, 0]), float(sp[k, 1])) for k in idx]
+    frames = frame_candidates_many([sweep.frames[k] for k in idx], spacings, params.shadowpath)
+    poses = sweep.image_to_reference[idx]
+    choice = select_bone_track(frames, poses, params.rejection)
+    frames, searched = recover_frames(
+        frames,
+        choice,
+        poses,
+        lambda n: sweep.frames[int(idx[n])],
+        params.shadowpath,
+        params.rejection,
+        settings(params),
+    )
+    if searched:
+        choice = select_bone_track(frames, poses, params.rejection)
+    choice = cut_bone_free_ends(frames, choice, lambda ns: (sweep.frames[k] for k in idx[ns]))
+    return contours_from_track(idx, frames, choice, params), searched
+
+
+def test_segment_sweep_track_and_kept_evidence_match_plain(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # segment_sweep chooses the track with IncrementalTrack (links made once, only the
+    # guided candidates linked after recovery) and hands the recovery the evidence maps
+    # kept from the per-frame step (when all of them fit EVIDENCE_CACHE_BYTES): the
+    # same contours, decisions and details as the plain flow, with and without kept
+    # evidence; kept, recovery computes none again.
+    import BoneUSRecon.Logic.segmentation.driver as driver
+    import BoneUSRecon.Logic.segmentation.recovery as recovery
+    from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
+
+    # Hard tibia (grey shadow) with bone-free ends: the first track leaves frames for
+    # recovery to search (past its ends too), and the ends cut has frames to judge.
+    sim = simulate(
+        SimulationParams(
+            bone="tibia",
+            realism="hard",
+            seed=7,
+            n_frames=40,
+            width=160,
+            height=128,
+            spacing_mm=0.3,
+            bone_free_frames=(3, 10),
+        )
+    )
+    params = SegmentationParams()
+    want, searched = _plain_segment_sweep(sim.sweep, params)
+    assert len(searched) >= 2  # recovery found candidates in frames off the first track
+    computed = []
+    real = recovery.bone_evidence
+
+    def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
+        computed.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recovery, "bone_evidence", counting)
+    idx = sim.sweep.valid_indices
+    sp = pixel_spacing(sim.sweep.image_to_reference)[idx[0]]
+    whole = idx.size * real(sim.sweep.frames[idx[0]], (float(sp[0]), float(sp[1]))).nbytes
+    # Kept when all of the sweep's maps fit, else none (a long sweep's peak memory).
+    for room, computed_again in (
+        (driver.EVIDENCE_CACHE_BYTES, False),
+        (whole, False),
+        (whole - 1, True),
+        (0, True),
+    ):
+        monkeypatch.setattr(driver, "EVIDENCE_CACHE_BYTES", room)
+        computed.clear()
+        got = segment_sweep(sim.sweep, params).contours
+        assert bool(computed) == computed_again
+        assert len(got) == len(want)
+        for a, b in zip(got, want, strict=True):
+            assert np.array_equal(a.points_px, b.points_px)
+            assert np.array_equal(a.intensity, b.intensity)
+            assert (a.frame, a.accepted, a.reason, a.detail, a.confidence) == (
+                b.frame,
+                b.accepted,
+                b.reason,
+                b.detail,
+                b.confidence,
+            )
+            assert a.extras == b.extras

@@ -62,9 +62,14 @@ from BoneUSRecon.Logic.segmentation import (
     SegmentationParams,
     SegmentationResult,
 )
-from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
+from BoneUSRecon.Logic.segmentation.candidates import (
+    BoneCandidate,
+    FrameCandidates,
+    frame_candidates_many,
+)
 from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
 from BoneUSRecon.Logic.segmentation.ends import candidate_steps, cut_ends_at_steps, shadow_step
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import prior_frames, recover_frame, with_candidate
 from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
@@ -154,9 +159,15 @@ def _segment_one(
     spacing: tuple[float, float],
     params: SegmentationParams,
     prior_px: np.ndarray | None,
-) -> FrameCandidates:
-    """Per-frame step, done once per frame: the frame's candidate bone contours."""
-    return frame_candidates_for(image, spacing, params, prior_px)
+    keep_evidence: bool = False,
+) -> tuple[FrameCandidates, EvidenceMaps | None]:
+    """Per-frame step, done once per frame: the frame's candidate bone contours, and
+    with ``keep_evidence`` (shadowpath) the evidence maps they were found on, for
+    recovery to search the frame with again (the same maps it would compute)."""
+    if keep_evidence and params.method == "shadowpath":
+        ev = bone_evidence(image, spacing, params.shadowpath)
+        return frame_candidates_many([image], [spacing], params.shadowpath, [ev])[0], ev
+    return frame_candidates_for(image, spacing, params, prior_px), None
 
 
 def _guided(
@@ -202,6 +213,7 @@ def _guided(
                 params.shadowpath,
                 params.rejection,
                 rec,
+                lambda _, ev=fr.evidence: ev,  # type: ignore[misc]
             )
             # Its shadow step (:mod:`~BoneUSRecon.Logic.segmentation.ends`) measured now,
             # while the pixels are at hand: the ends cut may need it at any later refit.
@@ -261,8 +273,9 @@ def _select(
         # The first track's choice only (its rejection details would be replaced).
         first = track.solve(explain=False)
         extra = _guided(frames, first, params, counts)
-        if not keep_pixels:
-            for n in np.flatnonzero(first.chosen >= 0).tolist():
+        for n in np.flatnonzero(first.chosen >= 0).tolist():
+            frames[n].evidence = None  # 6x the pixels: never kept for all frames
+            if not keep_pixels:
                 frames[n].image = None
         choice = track.solve(extra=extra)
     else:
@@ -317,6 +330,11 @@ class _Frame:
     candidates: FrameCandidates
     #: The pixels, while recovery may search the frame (see :class:`LiveReconstructor`).
     image: np.ndarray | None = None
+    #: Its evidence maps (:func:`~BoneUSRecon.Logic.segmentation.evidence.bone_evidence`)
+    #: while it is among the newest frames (:data:`LIVE_EVIDENCE_BYTES`) and no refit
+    #: found it on the first track: a search of the frame (at the next refit, and again
+    #: whenever its prior changes) reads them instead of computing them.
+    evidence: EvidenceMaps | None = None
     #: The shadow step under each of its candidates (:mod:`~BoneUSRecon.Logic.
     #: segmentation.ends`), measured on arrival; NaN with the ends cut off.
     steps: np.ndarray = field(default_factory=lambda: np.empty(0))
@@ -341,6 +359,14 @@ class _Frame:
 MIN_FRAMES_PER_CONTROL_POINT = 2
 
 
+#: The newest frames keep their evidence maps up to this many bytes together (~1.8 MB
+#: per 480x640 frame at 0.15 mm per pixel: 17 frames; ~1.0 MB at 0.075 mm: 33 frames),
+#: so that recovery reads them instead of computing them again. On ``bench_live.py``'s
+#: hard sweep (0.075 mm, a refit every 30 frames) 75 of its 90 searches are of frames
+#: at most 32 frames old (the other 15: older frames whose prior changed).
+LIVE_EVIDENCE_BYTES = 32 * 2**20
+
+
 class LiveReconstructor:
     """Frames in one at a time, a surface out whenever asked.
 
@@ -359,7 +385,9 @@ class LiveReconstructor:
     kept, and the pixels (uint8) of a frame only while recovery may search it: from
     its arrival until a refit finds it on the (first) track, when they are dropped
     for good (recovery searches only frames off that track). On ``bench_live.py``
-    (480x640) that is 11 frames at a median refit, 19 at most (5.8 MB); with
+    (480x640) that is 11 frames at a median refit, 19 at most (5.8 MB); the newest
+    of them also keep their evidence maps (:data:`LIVE_EVIDENCE_BYTES`, at most
+    32 MB), which recovery reads instead of computing them again; with
     recovery off (``params.segmentation.recovery.enabled`` False, or the snake) no
     pixels are kept. Should a frame whose pixels were dropped fall off the track later
     with neighbours it was not searched between, it is not searched (the one
@@ -459,7 +487,9 @@ class LiveReconstructor:
         self._processed += 1
         sx, sy = pixel_spacing(m)
         t0 = time.perf_counter()
-        fc = _segment_one(img, (float(sx), float(sy)), self.params.segmentation, self._prior)
+        fc, ev = _segment_one(
+            img, (float(sx), float(sy)), self.params.segmentation, self._prior, self._keep_pixels
+        )
         self._track.add(fc, m)  # links to its predecessors, once
         # The ends cut's measure under each candidate, while the pixels are here (the
         # track may choose any of them at a later refit, when they may be gone).
@@ -468,11 +498,18 @@ class LiveReconstructor:
         # Pixels kept until the frame is on the track (recovery may search it), or
         # always (``keep_all_pixels``).
         kept = np.array(img, copy=True) if self._keep_pixels else None
-        frame = _Frame(self._processed - 1, m, float(timestamp), fc, kept, steps)
+        frame = _Frame(self._processed - 1, m, float(timestamp), fc, kept, ev, steps)
         reason = frame.reason
         if not reason:
             self._prior = fc.usable[0].points_px  # as segment_sweep seeds the next frame
         self._frames.append(frame)
+        # Evidence maps for the newest frames only (LIVE_EVIDENCE_BYTES): a frame is
+        # searched first at the refit after it arrives, and again while the track's end
+        # moves past it; an older frame's search is mostly reused.
+        if ev is not None:
+            newest = max(1, LIVE_EVIDENCE_BYTES // max(ev.nbytes, 1))
+            if len(self._frames) > newest:
+                self._frames[-newest - 1].evidence = None
         if len(self._frames) >= self.live.max_frames:
             self._thin()
         return reason
@@ -591,6 +628,7 @@ class LiveReconstructor:
                 + 200
                 + f.steps.nbytes
                 + (f.image.nbytes if f.image is not None else 0)
+                + (f.evidence.nbytes if f.evidence is not None else 0)
                 for f in self._frames
             )
             + self._track.memory_bytes()

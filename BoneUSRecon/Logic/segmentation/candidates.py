@@ -198,9 +198,12 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
 
 
 def _optimal_paths(
-    gains: Sequence[np.ndarray], shift_cost: np.ndarray, switch: float
+    gains: Sequence[np.ndarray], shift_cost: np.ndarray | Sequence[np.ndarray], switch: float
 ) -> list[np.ndarray]:
     """:func:`_optimal_path` of several gains at once (the same paths), one column loop for all.
+
+    ``shift_cost``: one for all gains, or one per gain (all of the same size: each gain's
+    path is the one :func:`_optimal_path` finds with its own).
 
     The column loop of one ~150-row gain is bound by its ~6 numpy calls per column, not
     by the arithmetic; stacking the gains of several frames makes each call do the work
@@ -212,7 +215,12 @@ def _optimal_paths(
     so the maximum is the no-bone score, and the no-bone score does not rise).
     """
     m = len(gains)
-    n = shift_cost.size
+    costs = (
+        [np.asarray(shift_cost, dtype=float)] * m
+        if isinstance(shift_cost, np.ndarray)
+        else [np.asarray(c, dtype=float) for c in shift_cost]
+    )
+    n = costs[0].size
     d = n // 2
     hs = [g.shape[0] for g in gains]
     ws = [g.shape[1] for g in gains]
@@ -230,7 +238,8 @@ def _optimal_paths(
     shifts = cand[:n]
     from_null = cand[n]
     cost = np.empty((n, m, hmax))
-    cost[...] = np.asarray(shift_cost, dtype=float)[:, None, None]
+    for i, ci in enumerate(costs):
+        cost[:, i, :] = ci[:, None]
     best = np.empty((m, hmax))
     top = np.empty(m)
     null = np.zeros(m)
@@ -257,6 +266,7 @@ def _optimal_paths(
     for i in range(m):
         w, h = ws[i], hs[i]
         sc = score[:, i]
+        shift_cost = costs[i]
         nb = null_before[:, i].tolist()
         ro = rose[:, i].tolist()
         path = np.full(w, -1, dtype=np.intp)
@@ -965,16 +975,21 @@ def frame_candidates_many(
     images: Sequence[np.ndarray],
     spacings: Sequence[tuple[float, float]],
     params: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+    evidence: Sequence[EvidenceMaps | None] | None = None,
 ) -> list[FrameCandidates]:
     """:func:`frame_candidates` of several frames (the same results), their paths solved together.
 
     The frames advance pass by pass in step; the optimal paths asked at each step are
     solved by one column loop (:func:`_optimal_paths`), which costs about half as much
     per frame for 16 frames or more. Memory: the frames' evidence maps are held at once
-    (~1 MB per 480x640 frame).
+    (~1 MB per 480x640 frame). ``evidence``: each frame's :func:`.evidence.bone_evidence`
+    with these ``params``, when the caller has it already (None: computed here); it is
+    read, never changed.
     """
+    evs = list(evidence) if evidence is not None else [None] * len(images)
     gens = [
-        _frame_candidates_steps(img, sp, params) for img, sp in zip(images, spacings, strict=True)
+        _frame_candidates_steps(img, sp, params, ev)
+        for img, sp, ev in zip(images, spacings, evs, strict=True)
     ]
     out: list[FrameCandidates | None] = [None] * len(gens)
     pending: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
@@ -989,17 +1004,19 @@ def frame_candidates_many(
         advance(i, None)
     while pending:
         asked, pending = pending, {}
-        # Paths are solved together when their costs agree (the same spacing).
-        groups: dict[tuple[bytes, float], list[int]] = {}
+        # Paths are solved together when their costs have the same size and switch, each
+        # with its own costs: frames' spacings (from their poses) differ in the last bits,
+        # and grouping by equal costs split a 30-frame batch into 5-10 column loops.
+        groups: dict[tuple[int, float], list[int]] = {}
         for i, (_, cost, switch) in asked.items():
-            groups.setdefault((cost.tobytes(), switch), []).append(i)
+            groups.setdefault((cost.size, switch), []).append(i)
         for idx in groups.values():
-            cost, switch = asked[idx[0]][1], asked[idx[0]][2]
+            switch = asked[idx[0]][2]
             gains = [asked[i][0] for i in idx]
             if len(idx) == 1:
-                paths = [_optimal_path(gains[0], cost, switch)]
+                paths = [_optimal_path(gains[0], asked[idx[0]][1], switch)]
             else:
-                paths = _optimal_paths(gains, cost, switch)
+                paths = _optimal_paths(gains, [asked[i][1] for i in idx], switch)
             for i, path in zip(idx, paths, strict=True):
                 advance(i, path)
     assert all(fc is not None for fc in out)  # every frame's steps ran to their end
@@ -1010,13 +1027,15 @@ def _frame_candidates_steps(
     image: np.ndarray,
     spacing: tuple[float, float],
     params: ShadowPathParams,
+    evidence: EvidenceMaps | None = None,
 ) -> Generator[tuple[np.ndarray, np.ndarray, float], np.ndarray, FrameCandidates]:
     """:func:`frame_candidates` as a generator: yields each optimal path it needs as
-    ``(gain, shift_cost, switch)``, is sent the path, returns the FrameCandidates."""
+    ``(gain, shift_cost, switch)``, is sent the path, returns the FrameCandidates.
+    ``evidence``: the frame's :func:`.evidence.bone_evidence`, if computed already."""
     p = params
     sp = (float(spacing[0]), float(spacing[1]))
     img = np.asarray(image)
-    ev = bone_evidence(img, sp, p)
+    ev = bone_evidence(img, sp, p) if evidence is None else evidence
     if ev is None:
         return FrameCandidates((), sp, "image too small")
     if not ev.usable.any():

@@ -30,6 +30,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
 from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import recover_frames
@@ -37,6 +38,7 @@ from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_setting
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice, select_bone_track
+from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
 
 __all__ = [
@@ -75,6 +77,17 @@ def _shadowpath(image, spacing, params, prior):  # type: ignore[no-untyped-def]
 #: 8 frames -11 %, 16 -31 %, 32 -36 %; the frames' evidence maps, ~1 MB each, are held
 #: meanwhile (32 MB at 32).
 BATCH_FRAMES = 32
+
+#: Evidence maps kept from the per-frame step for the recovery's search of frames off
+#: the track (:func:`~.recovery.guided_candidate` reads the same maps; kept, they are
+#: not computed twice) when all of the sweep's fit in this many bytes (which frames
+#: recovery searches is known only once the track is chosen): a 480x640 frame's maps
+#: take ~1.8 MB at 0.15 mm per pixel, ~1.0 MB at 0.075 mm, so a 30-frame sweep at
+#: 0.15 mm keeps them (recovery searched 1-11 of its frames on the hard presets, ~5 ms
+#: of evidence each), while a long sweep keeps none: its peak memory (issue 7's
+#: 2,000-frame sweep) stays as it was.
+EVIDENCE_CACHE_BYTES = 64 * 2**20
+
 
 #: Segmenters by name. "shadowpath" (default) offers several candidates per frame from
 #: contrast-adaptive evidence; "snake" is the paper's.
@@ -194,15 +207,27 @@ def segment_sweep(
     prior: np.ndarray | None = None
     # iter_frames releases the memory-mapped pages as it goes: a 600 MB sweep is
     # segmented without its pages piling up in the resident set.
+    kept: dict[int, EvidenceMaps] = {}  # frame position -> its evidence maps
     if params.method == "shadowpath" and SEGMENTERS["shadowpath"] is _shadowpath:
         # Shadowpath depends on each frame alone: BATCH_FRAMES frames at a time, their
         # optimal paths solved together (the same candidates, less CPU per frame).
         batch: list[tuple[np.ndarray, tuple[float, float]]] = []
+        room: int | None = None  # bytes left for kept maps, set at the first frame's
         for n, (k, image) in enumerate(sweep.iter_frames(idx)):
             batch.append((image, (float(spacing_all[k, 0]), float(spacing_all[k, 1]))))
             if len(batch) == BATCH_FRAMES or n + 1 == idx.size:
                 images, spacings = zip(*batch, strict=True)
-                frames += frame_candidates_many(images, spacings, params.shadowpath)
+                evs = [bone_evidence(im, sp, params.shadowpath) for im, sp in batch]
+                for m, ev in enumerate(evs, start=n + 1 - len(batch)):
+                    if ev is None:
+                        continue
+                    if room is None:  # every frame of a sweep has the same size
+                        room = EVIDENCE_CACHE_BYTES if recovery_applies(params) else 0
+                        room = room if idx.size * ev.nbytes <= room else 0
+                    if ev.nbytes <= room:
+                        kept[m], room = ev, room - ev.nbytes
+                frames += frame_candidates_many(images, spacings, params.shadowpath, evs)
+                del evs
                 for done in range(n + 2 - len(batch), n + 2):  # one report per frame
                     report(progress, "segment", done, int(idx.size))
                 batch = []
@@ -214,22 +239,33 @@ def segment_sweep(
             prior = fc.usable[0].points_px if fc.usable else None
             report(progress, "segment", n + 1, int(idx.size))
     poses = sweep.image_to_reference[idx]
-    choice = select_bone_track(frames, poses, params.rejection)
+    # select_bone_track's choice, by the incremental track (the same track bit for bit,
+    # :mod:`.track_incremental`): the links between frames (nearly all of the track's
+    # CPU) are made once, and the track chosen again after recovery makes only the
+    # guided candidates' links (on hard 480x640 sweeps, the track's CPU halved).
+    track = IncrementalTrack(params.rejection)
+    for fc, pose in zip(frames, poses, strict=True):
+        track.add(fc, pose)
     if recovery_applies(params):
         # Frames off the track searched again inside the band the track allows, then
         # one track over all frames again (:mod:`.recovery`); past the track's ends too
         # (one side guiding) when the ends cut below judges what is found there.
+        first = track.solve(explain=False)  # its rejection details would be replaced
         frames, searched = recover_frames(
             frames,
-            choice,
+            first,
             poses,
             lambda n: np.asarray(sweep.frames[int(idx[n])]),
             params.shadowpath,
             params.rejection,
             recovery_settings(params),
+            kept.get,
         )
-        if searched:
-            choice = select_bone_track(frames, poses, params.rejection)
+        kept.clear()
+        # The guided candidate is its frame's last (recovery.with_candidate).
+        choice = track.solve(extra={f: frames[f].candidates[-1] for f in searched})
+    else:
+        choice = track.solve()
     # The track's ends cut back where its frames cast no bone shadow (:mod:`.ends`).
     choice = cut_bone_free_ends(
         frames,

@@ -52,7 +52,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     _refine,
 )
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
-from BoneUSRecon.Logic.segmentation.evidence import bone_evidence
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import (
@@ -170,6 +170,7 @@ def guided_candidate(
     rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
     min_share: float = RecoveryParams.min_share,
     max_offset: float = RecoveryParams.max_offset,
+    evidence: EvidenceMaps | None = None,
 ) -> BoneCandidate | None:
     """The bone contour of one frame inside the band a track prior allows, or None.
 
@@ -196,11 +197,14 @@ def guided_candidate(
     1.4-1.5 mm over the bone's faint top, while the interpolated contour lay within
     0.5 mm of it (0.40 and 0.15 mm with the nearer band). No grey level and no new
     constant: the band is the nearer link's own tolerance.
+
+    ``evidence``: the frame's :func:`.evidence.bone_evidence` with ``shadowpath``, if
+    the caller kept it (the same result; None: computed here).
     """
     sp, rp = shadowpath, rejection
     spc = (float(spacing[0]), float(spacing[1]))
     img = np.asarray(image)
-    ev = bone_evidence(img, spc, sp)
+    ev = bone_evidence(img, spc, sp) if evidence is None else evidence
     if ev is None:
         return None
     h, w = ev.score.shape
@@ -272,6 +276,7 @@ def recover_frames(
     shadowpath: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
     rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
     params: RecoveryParams = RecoveryParams(),  # noqa: B008 (frozen dataclass)
+    evidence_of: Callable[[int], EvidenceMaps | None] | None = None,
 ) -> tuple[list[FrameCandidates], list[int]]:
     """Frames off the track with a guided candidate added (:func:`guided_candidate`).
 
@@ -286,6 +291,9 @@ def recover_frames(
         only for the frames searched.
     shadowpath, rejection, params
         The per-frame evidence, the track's tolerances, and this step's settings.
+    evidence_of : callable, optional
+        ``evidence_of(n)``: frame ``n``'s evidence maps if the caller kept them (None:
+        computed from its pixels); called only for the frames searched.
 
     Returns
     -------
@@ -300,7 +308,9 @@ def recover_frames(
         return out, changed
     poses = np.asarray(poses, dtype=float)
     for f in np.flatnonzero(np.asarray(choice.chosen) < 0).tolist():
-        cand = recover_frame(frames, choice, poses, f, image_of, shadowpath, rejection, params)
+        cand = recover_frame(
+            frames, choice, poses, f, image_of, shadowpath, rejection, params, evidence_of
+        )
         if cand is None:
             continue
         out[f] = with_candidate(frames[f], cand)
@@ -317,11 +327,13 @@ def recover_frame(
     shadowpath: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
     rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
     params: RecoveryParams = RecoveryParams(),  # noqa: B008 (frozen dataclass)
+    evidence_of: Callable[[int], EvidenceMaps | None] | None = None,
 ) -> BoneCandidate | None:
     """The guided candidate of one frame off the track (None: not searched, or nothing
     found); :func:`recover_frames` for each such frame, and a live session for the
-    frames whose prior (:func:`prior_frames`) changed. ``image_of(f)`` is called only
-    when the frame is searched.
+    frames whose prior (:func:`prior_frames`) changed. ``image_of(f)`` and
+    ``evidence_of(f)`` (the frame's evidence maps if kept) are called only when the
+    frame is searched.
     """
     prior = track_prior(frames, choice, poses, f, rejection.max_skip + 1, params.both_sides)
     if prior is None:
@@ -334,6 +346,7 @@ def recover_frame(
         rejection,
         params.min_share,
         params.max_offset,
+        evidence_of(f) if evidence_of is not None else None,
     )
 
 
