@@ -202,12 +202,16 @@ def test_pip_packages_only_the_library() -> None:
 
 
 def test_ui_binds_every_parameter_with_matching_ranges() -> None:
-    from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, NODE_PARAMETERS
+    from BoneSurfaceReconstructionLib.parameters import (
+        FLOAT_PARAMETERS,
+        INT_PARAMETERS,
+        NODE_PARAMETERS,
+    )
 
     fields = _parameter_fields()
     bindings = _ui_bindings()
     assert set(bindings) == set(fields)
-    assert set(fields) == set(INT_PARAMETERS) | set(NODE_PARAMETERS) | {
+    assert set(fields) == set(INT_PARAMETERS) | set(FLOAT_PARAMETERS) | set(NODE_PARAMETERS) | {
         "segmenter",
         "calibrationFile",
     }
@@ -219,6 +223,24 @@ def test_ui_binds_every_parameter_with_matching_ranges() -> None:
         assert int(props["maximum"].find("number").text) == hi
         assert int(props["value"].find("number").text) == default
         assert f"WithinRange(*_RANGE['{name}'])" in fields[name]
+    assert "flankExtension" in FLOAT_PARAMETERS
+    for name, (default, lo, hi, tip) in FLOAT_PARAMETERS.items():
+        w = bindings[name]
+        # Slicer's GUI connector binds a float to a QDoubleSpinBox (not ctkDoubleSpinBox).
+        assert w.get("class") == "QDoubleSpinBox" and w.get("name") == f"{name}SpinBox"
+        props = {p.get("name"): p for p in w.findall("property")}
+        assert float(props["minimum"].find("double").text) == lo
+        assert float(props["maximum"].find("double").text) == hi
+        assert float(props["value"].find("double").text) == default
+        assert props["suffix"].find("string").text == " mm"
+        assert props["toolTip"].find("string").text == tip  # the .ui says the same
+        assert fields[name].startswith("Annotated[float, ")
+        assert f"WithinRange(*_RANGE['{name}'])" in fields[name]
+    tip = FLOAT_PARAMETERS["flankExtension"][3]
+    assert "extrapolated" in tip and "'Extrapolated'" in tip
+    # Off by default, as the library's SurfaceParams.flank_extension_mm; never negative.
+    default, lo, hi, _ = FLOAT_PARAMETERS["flankExtension"]
+    assert default == 0.0 and lo == 0.0 and 0.0 < hi <= 10.0
     for name, types_ in NODE_PARAMETERS.items():
         w = bindings[name]
         assert w.get("class") == "qMRMLNodeComboBox"
@@ -232,11 +254,11 @@ def test_ui_binds_every_parameter_with_matching_ranges() -> None:
 
 
 def test_widgets_used_by_the_module_exist_in_the_ui() -> None:
-    from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS
+    from BoneSurfaceReconstructionLib.parameters import FLOAT_PARAMETERS, INT_PARAMETERS
 
     names = {w.get("name") for w in ET.parse(UI).iter("widget")}
     used = set(re.findall(r"self\.ui\.(\w+)", (MODULE_DIR / f"{MODULE}.py").read_text()))
-    used |= {f"{n}SpinBox" for n in INT_PARAMETERS}  # tooltips set in a loop
+    used |= {f"{n}SpinBox" for n in (*INT_PARAMETERS, *FLOAT_PARAMETERS)}  # tooltips: a loop
     assert used and used <= names, sorted(used - names)
 
 
@@ -772,6 +794,7 @@ def test_self_test_scenario_meets_its_accuracy(small_sim, scene) -> None:
 def test_parameters_from_widget_values_maps_the_module_choices() -> None:
     pytest.importorskip("BoneUSRecon.Logic.pipeline")
     from BoneSurfaceReconstructionLib.parameters import (
+        FLOAT_PARAMETERS,
         INT_PARAMETERS,
         parameters_from_widget_values,
         widgetValues,
@@ -785,14 +808,16 @@ def test_parameters_from_widget_values_maps_the_module_choices() -> None:
         "degreeU": 3,
         "degreeV": 1,
         "rays": 21,
+        "flankExtension": 2.5,
     }
     p = parameters_from_widget_values(values)
     assert p.segmentation.method == "snake"
     assert p.fit.n_control_points == (10, 4) and p.fit.degree == (3, 1)
     assert p.resampling.n_rays == 21
+    assert p.surface.flank_extension_mm == 2.5
     assert parameters_from_widget_values(widgetValues(types.SimpleNamespace(**values))) == p
     # The module's defaults are the library's.
-    defaults = {name: v[0] for name, v in INT_PARAMETERS.items()}
+    defaults = {name: v[0] for name, v in {**INT_PARAMETERS, **FLOAT_PARAMETERS}.items()}
     assert parameters_from_widget_values(defaults) == ReconstructionParams()
     assert parameters_from_widget_values({}) == ReconstructionParams()
     # Half a pair keeps the other half.
@@ -803,6 +828,17 @@ def test_parameters_from_widget_values_maps_the_module_choices() -> None:
         parameters_from_widget_values({"segmenter": "magic"})
     with pytest.raises(BoneUSReconError, match="unknown module parameter 'controlPoints'"):
         parameters_from_widget_values({"controlPoints": (10, 4)})
+    # Only the flank extension changes the surface parameters; the rest stay the library's.
+    ext = parameters_from_widget_values({"flankExtension": 1})
+    assert ext.surface.flank_extension_mm == 1.0
+    assert ext.surface.flank_max_deg == ReconstructionParams().surface.flank_max_deg
+    assert ext.fit == ReconstructionParams().fit
+    # The spin box stops at 0, a script does not: refused by the library's check, with
+    # the field, its unit and the value.
+    with pytest.raises(BoneUSReconError, match=r"flank_extension_mm must be >= 0 \(mm\), got -0.5"):
+        parameters_from_widget_values({"flankExtension": -0.5})
+    with pytest.raises(BoneUSReconError, match="flank_extension_mm must be finite, got nan"):
+        parameters_from_widget_values({"flankExtension": float("nan")})
 
 
 # ---- the module's Logic class -------------------------------------------------------
@@ -867,6 +903,7 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
         degreeU=2,
         degreeV=2,
         rays=15,
+        flankExtension=0.0,
         outputSurface=None,
         outputPoints=None,
         targetModel=None,
@@ -947,6 +984,7 @@ def test_module_logic_cancel_is_a_flag_not_a_failure(module_logic, small_sim, sc
         degreeU=2,
         degreeV=2,
         rays=15,
+        flankExtension=0.0,
         outputSurface=None,
         outputPoints=None,
         targetModel=None,
@@ -984,6 +1022,7 @@ def test_module_logic_registers_to_a_target_model(module_logic, small_sim, scene
         degreeU=2,
         degreeV=2,
         rays=15,
+        flankExtension=0.0,
         outputSurface=None,
         outputPoints=None,
         targetModel=model,
