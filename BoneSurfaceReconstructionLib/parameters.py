@@ -56,7 +56,8 @@ FLOAT_PARAMETERS: dict[str, tuple[float, float, float, str]] = {
         "Continue the surface this far (mm) past the segmented points down the bone's "
         "flanks (convex, at most 70 degrees steep). This part is extrapolated, not "
         "imaged: its points are flagged by the point array 'Extrapolated' (1) of the "
-        "output model, and show at the far end of the Distance colours. 0: off.",
+        "output model, and their Distance colour says how far past the data they reach "
+        "(the colour range is set on the imaged part alone). 0: off.",
     ),
 }
 
