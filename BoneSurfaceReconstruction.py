@@ -470,7 +470,8 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
 
     @staticmethod
     def summaryText(result) -> str:
-        """One line for the panel: frames used, points, fit residual."""
+        """A line for the panel: frames used, points, fit residual; then how much of the
+        surface is extrapolated (flank extension) and the registration, if any."""
         sweep = result.sweep
         points = result.points_node
         nPoints = (
@@ -482,6 +483,19 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         text = _("{frames} frames, {points} segmented points, fit RMS {rms:.2f} mm").format(
             frames=sweep.n_valid, points=nPoints, rms=rms
         )
+        flags = result.surface_node.GetPolyData().GetPointData().GetArray("Extrapolated")
+        if flags is not None:
+            from vtkmodules.util.numpy_support import vtk_to_numpy
+
+            # Said on the panel: part of the model was not imaged.
+            text += "\n" + _(
+                "Flanks extended {mm:g} mm past the data: {n} of {total} surface points "
+                "extrapolated (point array 'Extrapolated')."
+            ).format(
+                mm=result.reconstruction.params.surface.flank_extension_mm,
+                n=int(vtk_to_numpy(flags).astype(bool).sum()),
+                total=flags.GetNumberOfTuples(),
+            )
         if result.registration is not None:
             from BoneSurfaceReconstructionLib.registration import summaryText
 

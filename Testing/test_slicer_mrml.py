@@ -952,7 +952,8 @@ def test_module_logic_flank_extension_reaches_the_model_node(
     # point array "Extrapolated", near the true bone; the imaged part keeps its colours.
     nodes = mrml.sweep_to_scene(small_sim.sweep, scene)
     logic = module_logic.BoneSurfaceReconstructionLogic()
-    plain = logic.process(nodes.browser).surface_node
+    plain_result = logic.process(nodes.browser)
+    plain = plain_result.surface_node
     assert plain.GetPolyData().GetPointData().GetArray("Extrapolated") is None
     p = types.SimpleNamespace(
         inputNode=nodes.browser,
@@ -967,7 +968,8 @@ def test_module_logic_flank_extension_reaches_the_model_node(
         registeredModel=None,
     )
     p.flankExtension = 1.5
-    node = logic.processParameterNode(p).surface_node
+    result = logic.processParameterNode(p)
+    node = result.surface_node
     pts = slicer.util.arrayFromModelPoints(node)
     flag = slicer.util.arrayFromModelPointData(node, "Extrapolated").astype(bool)
     assert 0 < flag.sum() < flag.size
@@ -986,6 +988,10 @@ def test_module_logic_flank_extension_reaches_the_model_node(
     assert node.GetDisplayNode().GetScalarRange() == pytest.approx(
         plain.GetDisplayNode().GetScalarRange()
     )
+    # The panel's result line says it (and says nothing of it without the extension).
+    text = logic.summaryText(result)
+    assert f"Flanks extended 1.5 mm past the data: {flag.sum()} of {flag.size}" in text
+    assert "Flanks" not in logic.summaryText(plain_result)
     # The explicit entry point takes the same name.
     explicit = logic.process(nodes.browser, flankExtension=1.5).surface_node
     np.testing.assert_allclose(slicer.util.arrayFromModelPoints(explicit), pts, atol=1e-9)
