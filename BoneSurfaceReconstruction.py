@@ -37,7 +37,11 @@ from slicer.util import VTKObservationMixin
 # and earlier), so that such a Slicer shows why the module cannot run instead of a
 # SyntaxError; the library itself needs Python 3.10 (dependencies.MIN_PYTHON).
 from BoneSurfaceReconstructionLib import dependencies
-from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, segmenterNames
+from BoneSurfaceReconstructionLib.parameters import (
+    FLOAT_PARAMETERS,
+    INT_PARAMETERS,
+    segmenterNames,
+)
 
 _UNSUPPORTED = dependencies.unsupportedReason()
 
@@ -45,8 +49,9 @@ _SEGMENTERS = segmenterNames()
 
 
 # Defaults and ranges come from one table (BoneSurfaceReconstructionLib.parameters).
-_DEFAULT = {name: v[0] for name, v in INT_PARAMETERS.items()}
-_RANGE = {name: (v[1], v[2]) for name, v in INT_PARAMETERS.items()}
+_NUMBER_PARAMETERS = {**INT_PARAMETERS, **FLOAT_PARAMETERS}
+_DEFAULT = {name: v[0] for name, v in _NUMBER_PARAMETERS.items()}
+_RANGE = {name: (v[1], v[2]) for name, v in _NUMBER_PARAMETERS.items()}
 
 
 #
@@ -69,7 +74,10 @@ class BoneSurfaceReconstruction(ScriptedLoadableModule):
             "contours are segmented in each frame, resampled along rays, and approximated "
             "by a tensor-product B-spline surface, after Lopez-Perez et al., 'Bone Surface "
             "Reconstruction Using Localized Freehand Ultrasound Imaging'. The output model "
-            "is coloured by its distance (mm) to the nearest segmented point."
+            "is coloured by its distance (mm) to the nearest segmented point. Optionally "
+            "(Flank extension) the surface is continued down the bone's flanks past the "
+            "data: those points are extrapolated, flagged by the point array "
+            "'Extrapolated'."
         )
         self.parent.acknowledgementText = _(
             "Built on the BoneUSRecon library. Layout after Slicer's scripted-module "
@@ -107,6 +115,8 @@ class BoneSurfaceReconstructionParameterNode:
     segmenter - bone contour segmenter ("snake" is the paper's).
     controlPointsU/V, degreeU/V - the B-spline surface (paper: 15 x 5, quadratic).
     rays - rays per frame when resampling (paper: 15).
+    flankExtension - mm the surface is continued down the bone's flanks past the data
+        (extrapolated, flagged by the point array "Extrapolated"; 0: off, the default).
     outputSurface, outputPoints - where the results go (created if empty).
     targetModel - optional bone model (CT/MRI, mm) to register the surface to;
         outputTransform (surface -> model) and registeredModel receive the result.
@@ -126,6 +136,9 @@ class BoneSurfaceReconstructionParameterNode:
     degreeU: Annotated[int, WithinRange(*_RANGE["degreeU"])] = _DEFAULT["degreeU"]
     degreeV: Annotated[int, WithinRange(*_RANGE["degreeV"])] = _DEFAULT["degreeV"]
     rays: Annotated[int, WithinRange(*_RANGE["rays"])] = _DEFAULT["rays"]
+    flankExtension: Annotated[float, WithinRange(*_RANGE["flankExtension"])] = _DEFAULT[
+        "flankExtension"
+    ]
     outputSurface: vtkMRMLModelNode
     outputPoints: Union[vtkMRMLModelNode, vtkMRMLMarkupsFiducialNode]  # noqa: UP007
     targetModel: vtkMRMLModelNode
@@ -160,7 +173,7 @@ class BoneSurfaceReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservati
         self.layout.addWidget(uiWidget)
         self.ui = slicer.util.childWidgetVariables(uiWidget)
         uiWidget.setMRMLScene(slicer.mrmlScene)
-        for name, (_default, _lo, _hi, tip) in INT_PARAMETERS.items():
+        for name, (_default, _lo, _hi, tip) in _NUMBER_PARAMETERS.items():
             getattr(self.ui, name + "SpinBox").toolTip = tip
 
         self.logic = BoneSurfaceReconstructionLogic()
@@ -320,6 +333,7 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         degreeU=_DEFAULT["degreeU"],
         degreeV=_DEFAULT["degreeV"],
         rays=_DEFAULT["rays"],
+        flankExtension=_DEFAULT["flankExtension"],
         outputSurface=None,
         outputPoints=None,
         progress=None,
@@ -337,7 +351,9 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         :param controlPointsU, controlPointsV: B-spline control points along and across (e, f).
         :param degreeU, degreeV: B-spline degrees along and across (p, q).
         :param rays: rays per frame.
-            These six are the parameter node's values, made library parameters by
+        :param flankExtension: mm the surface is continued down the bone's flanks past
+            the data (0: off); those points are flagged by the point array "Extrapolated".
+            These seven are the parameter node's values, made library parameters by
             BoneSurfaceReconstructionLib.parameters.parameters_from_widget_values.
         :param outputSurface: model node to fill (new if None).
         :param outputPoints: model or markups fiducial node to fill (new if None).
@@ -369,6 +385,7 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
                 "degreeU": degreeU,
                 "degreeV": degreeV,
                 "rays": rays,
+                "flankExtension": flankExtension,
             }
         )
         startTime = time.time()
@@ -453,7 +470,8 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
 
     @staticmethod
     def summaryText(result) -> str:
-        """One line for the panel: frames used, points, fit residual."""
+        """A line for the panel: frames used, points, fit residual; then how much of the
+        surface is extrapolated (flank extension) and the registration, if any."""
         sweep = result.sweep
         points = result.points_node
         nPoints = (
@@ -465,6 +483,19 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         text = _("{frames} frames, {points} segmented points, fit RMS {rms:.2f} mm").format(
             frames=sweep.n_valid, points=nPoints, rms=rms
         )
+        flags = result.surface_node.GetPolyData().GetPointData().GetArray("Extrapolated")
+        if flags is not None:
+            from vtkmodules.util.numpy_support import vtk_to_numpy
+
+            # Said on the panel: part of the model was not imaged.
+            text += "\n" + _(
+                "Flanks extended {mm:g} mm past the data: {n} of {total} surface points "
+                "extrapolated (point array 'Extrapolated')."
+            ).format(
+                mm=result.reconstruction.params.surface.flank_extension_mm,
+                n=int(vtk_to_numpy(flags).astype(bool).sum()),
+                total=flags.GetNumberOfTuples(),
+            )
         if result.registration is not None:
             from BoneSurfaceReconstructionLib.registration import summaryText
 

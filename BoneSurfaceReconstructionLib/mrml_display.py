@@ -78,15 +78,19 @@ def show_surface(
     Parameters
     ----------
     surface : vtkPolyData
-        Triangles with the point array ``Distance`` (mm).
+        Triangles with the point array ``Distance`` (mm), and ``Extrapolated`` (1 on the
+        flank strips of ``SurfaceParams.flank_extension_mm``) if it was extended; every
+        point array is kept in the node.
     scene : vtkMRMLScene
     node : vtkMRMLModelNode, optional
         Node to fill (its previous geometry is replaced); a new one if None.
     name : str
         Name of a new node.
     scalar_range : (float, float), optional
-        Colour range in mm; default 0 .. the 95th percentile of ``Distance`` (so that a
-        few far points do not wash out the map).
+        Colour range in mm; default 0 .. the 95th percentile of ``Distance`` over the
+        points that are not ``Extrapolated`` (so that a few far points do not wash out
+        the map, and the extrapolated flanks, farther from the data by design, show in
+        the far colour instead of compressing the imaged part's colours).
 
     Returns
     -------
@@ -104,6 +108,9 @@ def show_surface(
     if dist is not None:
         pd.GetPointData().SetActiveScalars("Distance")
         d = numpy_support.vtk_to_numpy(dist)
+        extrapolated = pd.GetPointData().GetArray("Extrapolated")
+        if extrapolated is not None:
+            d = d[numpy_support.vtk_to_numpy(extrapolated) == 0]
         d = d[np.isfinite(d)]
         if scalar_range is None:
             hi = float(np.percentile(d, 95)) if d.size else 1.0

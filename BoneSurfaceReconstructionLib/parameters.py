@@ -1,10 +1,11 @@
 """The module's user-facing parameters: defaults, ranges, and what they become.
 
-One table (:data:`INT_PARAMETERS`) feeds the ``@parameterNodeWrapper`` class of the
-module file (its ``WithinRange`` bounds and defaults) and the tests that check the
-``.ui`` file, so the three cannot drift apart. The defaults are the paper's
-(Lopez-Perez et al., Sect. II-C/D): quadratic splines (p = q = 2), e = 15 by f = 5
-control points for elongated bones, 15 rays per frame.
+Two tables (:data:`INT_PARAMETERS`, :data:`FLOAT_PARAMETERS`) feed the
+``@parameterNodeWrapper`` class of the module file (its ``WithinRange`` bounds and
+defaults) and the tests that check the ``.ui`` file, so the three cannot drift apart.
+The defaults are the paper's (Lopez-Perez et al., Sect. II-C/D): quadratic splines
+(p = q = 2), e = 15 by f = 5 control points for elongated bones, 15 rays per frame; the
+flank extension (ours) is off by default, as in the library.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any
 
 __all__ = [
     "INT_PARAMETERS",
+    "FLOAT_PARAMETERS",
     "NODE_PARAMETERS",
     "PATH_PARAMETERS",
     "CHOICE_PARAMETERS",
@@ -40,6 +42,25 @@ INT_PARAMETERS: dict[str, tuple[int, int, int, str]] = {
     "rays": (15, 3, 90, "Rays cast per frame when resampling the contours (n; paper: 15)."),
 }
 
+#: name -> (default, minimum, maximum, tooltip) for the float parameters (a
+#: ``QDoubleSpinBox`` each: Slicer's parameter-node GUI connector binds a float to a
+#: ``QDoubleSpinBox`` or ``ctkSliderWidget``, not to a ``ctkDoubleSpinBox``).
+#: ``flankExtension`` is ``SurfaceParams.flank_extension_mm``: off by default there
+#: (it brings gold points closer but moves the surface's own mean away from the bone;
+#: measured at 1 and 2 mm, see its docstring); the range stops at 10 mm.
+FLOAT_PARAMETERS: dict[str, tuple[float, float, float, str]] = {
+    "flankExtension": (
+        0.0,
+        0.0,
+        10.0,
+        "Continue the surface this far (mm) past the segmented points down the bone's "
+        "flanks (convex, at most 70 degrees steep). This part is extrapolated, not "
+        "imaged: its points are flagged by the point array 'Extrapolated' (1) of the "
+        "output model, and their Distance colour says how far past the data they reach "
+        "(the colour range is set on the imaged part alone). 0: off.",
+    ),
+}
+
 #: node parameters -> MRML class names offered in their selector.
 NODE_PARAMETERS: dict[str, tuple[str, ...]] = {
     "inputNode": ("vtkMRMLSequenceBrowserNode", "vtkMRMLSequenceNode"),
@@ -56,6 +77,9 @@ PATH_PARAMETERS = ("calibrationFile",)
 
 #: choice parameters (a QComboBox each).
 CHOICE_PARAMETERS = ("segmenter",)
+
+# The parameter node's values that make up ReconstructionParams (widgetValues).
+_VALUE_NAMES = ("segmenter", *INT_PARAMETERS, *FLOAT_PARAMETERS)
 
 #: Used only when BoneUSRecon cannot be imported yet (its own dependency lazy_loader
 #: not installed, or Python older than 3.10), while Slicer loads the module: a copy of
@@ -97,24 +121,25 @@ def calibrationMatrix(path: Any) -> Any:
 def widgetValues(parameterNode: Any) -> dict[str, Any]:
     """The parameter node's values that make up the reconstruction parameters.
 
-    ``segmenter`` and every name of :data:`INT_PARAMETERS`, as stored in the node:
-    what :func:`parameters_from_widget_values` takes.
+    ``segmenter`` and every name of :data:`INT_PARAMETERS` and :data:`FLOAT_PARAMETERS`,
+    as stored in the node: what :func:`parameters_from_widget_values` takes.
     """
-    return {name: getattr(parameterNode, name) for name in ("segmenter", *INT_PARAMETERS)}
+    return {name: getattr(parameterNode, name) for name in _VALUE_NAMES}
 
 
 def parameters_from_widget_values(values: Mapping[str, Any]) -> Any:
     """The :class:`~BoneUSRecon.Logic.pipeline.ReconstructionParams` for the module's values.
 
-    The one place the module's parameters (the names of :data:`INT_PARAMETERS` and
-    ``segmenter``) become the library's; the explicit ``process`` arguments, the
-    parameter node and the live session all come through here.
+    The one place the module's parameters (the names of :data:`INT_PARAMETERS`,
+    :data:`FLOAT_PARAMETERS` and ``segmenter``) become the library's; the explicit
+    ``process`` arguments, the parameter node and the live session all come through here.
 
     Parameters
     ----------
     values : mapping
-        ``segmenter``, ``controlPointsU``/``V``, ``degreeU``/``V``, ``rays``; a missing
-        or ``None`` value keeps the library's default.
+        ``segmenter``, ``controlPointsU``/``V``, ``degreeU``/``V``, ``rays``,
+        ``flankExtension`` (mm, ``SurfaceParams.flank_extension_mm``); a missing or
+        ``None`` value keeps the library's default.
 
     Returns
     -------
@@ -124,13 +149,14 @@ def parameters_from_widget_values(values: Mapping[str, Any]) -> Any:
     ------
     BoneUSReconError
         (a ValueError) An unknown name in ``values``, or values the library refuses
-        (fewer control points than degree + 1, an unknown segmenter).
+        (fewer control points than degree + 1, an unknown segmenter, a negative flank
+        extension).
     """
     from BoneUSRecon.Logic.errors import BoneUSReconError
     from BoneUSRecon.Logic.pipeline import ReconstructionParams, params_with
 
     given = {k: v for k, v in values.items() if v is not None}
-    unknown = sorted(set(given) - {"segmenter", *INT_PARAMETERS})
+    unknown = sorted(set(given) - set(_VALUE_NAMES))
     if unknown:
         raise BoneUSReconError(f"unknown module parameter {unknown[0]!r}")
     degree = None
@@ -143,4 +169,5 @@ def parameters_from_widget_values(values: Mapping[str, Any]) -> Any:
         around=given.get("controlPointsV"),
         degree=degree,
         rays=given.get("rays"),
+        flank_extension_mm=given.get("flankExtension"),
     )

@@ -109,6 +109,8 @@ def test_cli_and_slicer_module_build_the_same_parameters():
             "4",
             "--rays",
             "21",
+            "--flank-extension",
+            "2.5",
         ]
     )
     cli = params_from_args(args)
@@ -120,6 +122,7 @@ def test_cli_and_slicer_module_build_the_same_parameters():
             "controlPointsU": 10,
             "controlPointsV": 4,
             "rays": 21,
+            "flankExtension": 2.5,
         }
     )
     assert asdict(cli) == asdict(module)
@@ -128,12 +131,14 @@ def test_cli_and_slicer_module_build_the_same_parameters():
         cli.fit.degree,
         cli.fit.n_control_points,
         cli.resampling.n_rays,
-    ) == ("snake", (3, 1), (10, 4), 21)
+        cli.surface.flank_extension_mm,
+    ) == ("snake", (3, 1), (10, 4), 21, 2.5)
     assert asdict(params_with()) != asdict(cli)
     for kw, match in [
         ({"segmenter": "magic"}, "unknown segmenter 'magic'"),
         ({"n_control_points": (3, 5), "degree": (3, 2)}, "too few"),
         ({"rays": 0}, "at least 2 rays"),
+        ({"flank_extension_mm": -1}, "flank_extension_mm must be >= 0"),
     ]:
         with pytest.raises(BoneUSReconError, match=match):
             params_with(**kw)

@@ -147,3 +147,39 @@ def test_live_surface_refuses_bad_nodes_and_frames(sim_small):
     assert live.frames == 0 and sum(live.skipped.values()) == 1
     assert "8-bit" in next(iter(live.skipped))
     assert live.stop() is None and "0 frames" in live.statusText()
+
+
+def test_live_surface_takes_the_module_flank_extension(sim_small):
+    # The Live panel builds its parameters as Apply does (parameters_from_widget_values of
+    # the parameter node): a flank extension reaches the live model, flagged.
+    from BoneSurfaceReconstructionLib.parameters import parameters_from_widget_values
+
+    sweep = sim_small.sweep
+    params = parameters_from_widget_values({"flankExtension": 1.5})
+    scene = slicer.vtkMRMLScene()
+    volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "Image_Reference")
+    image, buf = _image(sweep.height, sweep.width)
+    volume.SetAndObserveImageData(image)
+    loop = _Loop()
+    live = LiveSurface(
+        volume,
+        params=params,
+        live=LiveParams(update_every_s=60.0),  # only the final refit
+        schedule=loop.schedule,
+        clock=lambda: loop.t,
+    )
+    live.start()
+    for k in range(sweep.n_frames):
+        volume.SetIJKToRASMatrix(matrix_to_vtk(sweep.image_to_reference[k]))
+        buf[:] = sweep.frames[k].reshape(-1)
+        image.GetPointData().GetScalars().Modified()
+        image.Modified()
+        loop.turn(1 / 30)
+    final = live.stop()
+    pd = live.model.GetPolyData()
+    flag = numpy_support.vtk_to_numpy(pd.GetPointData().GetArray("Extrapolated"))
+    assert 0 < flag.sum() < flag.size
+    poses = live.reconstructor.sweep().image_to_reference
+    same = reconstruct(sweep.replace(image_to_reference=poses), params)
+    np.testing.assert_array_equal(_points(final.surface), _points(same.surface))
+    np.testing.assert_allclose(_points(pd), _points(same.surface))

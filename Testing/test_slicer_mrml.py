@@ -202,12 +202,16 @@ def test_pip_packages_only_the_library() -> None:
 
 
 def test_ui_binds_every_parameter_with_matching_ranges() -> None:
-    from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS, NODE_PARAMETERS
+    from BoneSurfaceReconstructionLib.parameters import (
+        FLOAT_PARAMETERS,
+        INT_PARAMETERS,
+        NODE_PARAMETERS,
+    )
 
     fields = _parameter_fields()
     bindings = _ui_bindings()
     assert set(bindings) == set(fields)
-    assert set(fields) == set(INT_PARAMETERS) | set(NODE_PARAMETERS) | {
+    assert set(fields) == set(INT_PARAMETERS) | set(FLOAT_PARAMETERS) | set(NODE_PARAMETERS) | {
         "segmenter",
         "calibrationFile",
     }
@@ -219,6 +223,24 @@ def test_ui_binds_every_parameter_with_matching_ranges() -> None:
         assert int(props["maximum"].find("number").text) == hi
         assert int(props["value"].find("number").text) == default
         assert f"WithinRange(*_RANGE['{name}'])" in fields[name]
+    assert "flankExtension" in FLOAT_PARAMETERS
+    for name, (default, lo, hi, tip) in FLOAT_PARAMETERS.items():
+        w = bindings[name]
+        # Slicer's GUI connector binds a float to a QDoubleSpinBox (not ctkDoubleSpinBox).
+        assert w.get("class") == "QDoubleSpinBox" and w.get("name") == f"{name}SpinBox"
+        props = {p.get("name"): p for p in w.findall("property")}
+        assert float(props["minimum"].find("double").text) == lo
+        assert float(props["maximum"].find("double").text) == hi
+        assert float(props["value"].find("double").text) == default
+        assert props["suffix"].find("string").text == " mm"
+        assert props["toolTip"].find("string").text == tip  # the .ui says the same
+        assert fields[name].startswith("Annotated[float, ")
+        assert f"WithinRange(*_RANGE['{name}'])" in fields[name]
+    tip = FLOAT_PARAMETERS["flankExtension"][3]
+    assert "extrapolated" in tip and "'Extrapolated'" in tip
+    # Off by default, as the library's SurfaceParams.flank_extension_mm; never negative.
+    default, lo, hi, _ = FLOAT_PARAMETERS["flankExtension"]
+    assert default == 0.0 and lo == 0.0 and 0.0 < hi <= 10.0
     for name, types_ in NODE_PARAMETERS.items():
         w = bindings[name]
         assert w.get("class") == "qMRMLNodeComboBox"
@@ -232,11 +254,11 @@ def test_ui_binds_every_parameter_with_matching_ranges() -> None:
 
 
 def test_widgets_used_by_the_module_exist_in_the_ui() -> None:
-    from BoneSurfaceReconstructionLib.parameters import INT_PARAMETERS
+    from BoneSurfaceReconstructionLib.parameters import FLOAT_PARAMETERS, INT_PARAMETERS
 
     names = {w.get("name") for w in ET.parse(UI).iter("widget")}
     used = set(re.findall(r"self\.ui\.(\w+)", (MODULE_DIR / f"{MODULE}.py").read_text()))
-    used |= {f"{n}SpinBox" for n in INT_PARAMETERS}  # tooltips set in a loop
+    used |= {f"{n}SpinBox" for n in (*INT_PARAMETERS, *FLOAT_PARAMETERS)}  # tooltips: a loop
     assert used and used <= names, sorted(used - names)
 
 
@@ -699,6 +721,25 @@ def test_surface_node_shows_distance_through_a_colour_table(scene) -> None:
     assert scene.GetNumberOfNodesByClass("vtkMRMLColorTableNode") == 1
 
 
+def test_surface_colour_range_leaves_out_extrapolated_points(scene) -> None:
+    # The flank strips are far from the data by design: their Distance must not stretch
+    # the colour range of the imaged part; their flag stays in the node.
+    from vtkmodules.util import numpy_support
+
+    pd, d = _surface_polydata()
+    flag = np.zeros(d.size, np.uint8)
+    flag[d > 2.0] = 1  # the far third: "extrapolated"
+    arr = numpy_support.numpy_to_vtk(flag, deep=True)
+    arr.SetName("Extrapolated")
+    pd.GetPointData().AddArray(arr)
+    node = mrml.show_surface(pd, scene, name="Bone")
+    lo, hi = node.GetDisplayNode().GetScalarRange()
+    assert lo == 0.0 and hi == pytest.approx(np.percentile(d[d <= 2.0], 95))
+    assert hi < np.percentile(d, 95)  # what the range would be with the strips counted
+    np.testing.assert_array_equal(slicer.util.arrayFromModelPointData(node, "Extrapolated"), flag)
+    assert node.GetDisplayNode().GetActiveScalarName() == "Distance"
+
+
 def test_points_go_to_a_model_or_a_markups_node(scene) -> None:
     from BoneUSRecon.Logic.vtkio import points_to_polydata
 
@@ -772,6 +813,7 @@ def test_self_test_scenario_meets_its_accuracy(small_sim, scene) -> None:
 def test_parameters_from_widget_values_maps_the_module_choices() -> None:
     pytest.importorskip("BoneUSRecon.Logic.pipeline")
     from BoneSurfaceReconstructionLib.parameters import (
+        FLOAT_PARAMETERS,
         INT_PARAMETERS,
         parameters_from_widget_values,
         widgetValues,
@@ -785,14 +827,16 @@ def test_parameters_from_widget_values_maps_the_module_choices() -> None:
         "degreeU": 3,
         "degreeV": 1,
         "rays": 21,
+        "flankExtension": 2.5,
     }
     p = parameters_from_widget_values(values)
     assert p.segmentation.method == "snake"
     assert p.fit.n_control_points == (10, 4) and p.fit.degree == (3, 1)
     assert p.resampling.n_rays == 21
+    assert p.surface.flank_extension_mm == 2.5
     assert parameters_from_widget_values(widgetValues(types.SimpleNamespace(**values))) == p
     # The module's defaults are the library's.
-    defaults = {name: v[0] for name, v in INT_PARAMETERS.items()}
+    defaults = {name: v[0] for name, v in {**INT_PARAMETERS, **FLOAT_PARAMETERS}.items()}
     assert parameters_from_widget_values(defaults) == ReconstructionParams()
     assert parameters_from_widget_values({}) == ReconstructionParams()
     # Half a pair keeps the other half.
@@ -803,6 +847,17 @@ def test_parameters_from_widget_values_maps_the_module_choices() -> None:
         parameters_from_widget_values({"segmenter": "magic"})
     with pytest.raises(BoneUSReconError, match="unknown module parameter 'controlPoints'"):
         parameters_from_widget_values({"controlPoints": (10, 4)})
+    # Only the flank extension changes the surface parameters; the rest stay the library's.
+    ext = parameters_from_widget_values({"flankExtension": 1})
+    assert ext.surface.flank_extension_mm == 1.0
+    assert ext.surface.flank_max_deg == ReconstructionParams().surface.flank_max_deg
+    assert ext.fit == ReconstructionParams().fit
+    # The spin box stops at 0, a script does not: refused by the library's check, with
+    # the field, its unit and the value.
+    with pytest.raises(BoneUSReconError, match=r"flank_extension_mm must be >= 0 \(mm\), got -0.5"):
+        parameters_from_widget_values({"flankExtension": -0.5})
+    with pytest.raises(BoneUSReconError, match="flank_extension_mm must be finite, got nan"):
+        parameters_from_widget_values({"flankExtension": float("nan")})
 
 
 # ---- the module's Logic class -------------------------------------------------------
@@ -867,6 +922,7 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
         degreeU=2,
         degreeV=2,
         rays=15,
+        flankExtension=0.0,
         outputSurface=None,
         outputPoints=None,
         targetModel=None,
@@ -886,6 +942,61 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
     n_models = scene.GetNumberOfNodesByClass("vtkMRMLModelNode")
     logic.processParameterNode(p)
     assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == n_models
+
+
+def test_module_logic_flank_extension_reaches_the_model_node(
+    module_logic, small_sim, scene
+) -> None:
+    # The panel's Flank extension (parameter node flankExtension, mm) reaches the library
+    # (SurfaceParams.flank_extension_mm): the model node gets the strips, flagged by the
+    # point array "Extrapolated", near the true bone; the imaged part keeps its colours.
+    nodes = mrml.sweep_to_scene(small_sim.sweep, scene)
+    logic = module_logic.BoneSurfaceReconstructionLogic()
+    plain_result = logic.process(nodes.browser)
+    plain = plain_result.surface_node
+    assert plain.GetPolyData().GetPointData().GetArray("Extrapolated") is None
+    p = types.SimpleNamespace(
+        inputNode=nodes.browser,
+        transformSequence=None,
+        calibrationFile=Path("."),
+        segmenter=module_logic._SEGMENTERS[0],
+        **module_logic._DEFAULT,
+        outputSurface=None,
+        outputPoints=None,
+        targetModel=None,
+        outputTransform=None,
+        registeredModel=None,
+    )
+    p.flankExtension = 1.5
+    result = logic.processParameterNode(p)
+    node = result.surface_node
+    pts = slicer.util.arrayFromModelPoints(node)
+    flag = slicer.util.arrayFromModelPointData(node, "Extrapolated").astype(bool)
+    assert 0 < flag.sum() < flag.size
+    n_plain = plain.GetPolyData().GetNumberOfPoints()
+    assert (~flag).sum() == n_plain  # the imaged part is the plain surface, strips added
+    np.testing.assert_allclose(pts[~flag], slicer.util.arrayFromModelPoints(plain), atol=1e-9)
+    # Ground truth (the simulator's bone): measured 0.11 mm median on the strips (0.03 on
+    # the imaged part), the farthest 1.9 mm: a bound that a strip off the bone fails.
+    d = small_sim.geometry.distance(pts)
+    assert np.median(d[flag]) < 0.3 and np.median(d[~flag]) < 0.1
+    dist = slicer.util.arrayFromModelPointData(node, "Distance")
+    # The strips reach ~1.5 mm of arc past the data (measured: median 1.55 mm from the
+    # nearest segmented point, against 0.84 on the imaged part, between the frames).
+    assert 1.0 < np.median(dist[flag]) < 2.0
+    # The colour range is the imaged part's, as without the strips.
+    assert node.GetDisplayNode().GetScalarRange() == pytest.approx(
+        plain.GetDisplayNode().GetScalarRange()
+    )
+    # The panel's result line says it (and says nothing of it without the extension).
+    text = logic.summaryText(result)
+    assert f"Flanks extended 1.5 mm past the data: {flag.sum()} of {flag.size}" in text
+    assert "Flanks" not in logic.summaryText(plain_result)
+    # The explicit entry point takes the same name.
+    explicit = logic.process(nodes.browser, flankExtension=1.5).surface_node
+    np.testing.assert_allclose(slicer.util.arrayFromModelPoints(explicit), pts, atol=1e-9)
+    with pytest.raises(BoneUSReconError, match="flank_extension_mm must be >= 0"):
+        logic.process(nodes.browser, flankExtension=-1.0)
 
 
 def test_module_logic_loads_a_plus_file(
@@ -947,6 +1058,7 @@ def test_module_logic_cancel_is_a_flag_not_a_failure(module_logic, small_sim, sc
         degreeU=2,
         degreeV=2,
         rays=15,
+        flankExtension=0.0,
         outputSurface=None,
         outputPoints=None,
         targetModel=None,
@@ -984,6 +1096,7 @@ def test_module_logic_registers_to_a_target_model(module_logic, small_sim, scene
         degreeU=2,
         degreeV=2,
         rays=15,
+        flankExtension=0.0,
         outputSurface=None,
         outputPoints=None,
         targetModel=model,
