@@ -1204,6 +1204,17 @@ def _shoulder_cut(
       cut only when its median step is under ``shoulder_step_ratio`` of that of the
       part inside it (a ratio of the contour's own values: no grey level).
 
+    The turn is sought outward from the apex (:func:`_apex`, in the middle 60 % of the
+    span) and, when the contour's shallowest point lies at one of its ends, inward from
+    that end too: the path ran along a layer rising gently towards the bone and climbed
+    the bone's wall where the two met, and stopped there (radius, hard, seed 43: the
+    apex of the middle lay on the layer, which linked the bone of one frame to the layer
+    of the next). Seen from that end the climb is the wall and the long gentle stretch
+    the layer: the same turn and the same underside ratio decide. It generalises
+    because nothing in it depends on which end the bone is at: a layer over the bone that
+    the path climbed onto at an end instead has tissue and the bone's echo under it and
+    the bone's shadow under the part inside it, so the ratio never cuts the bone away.
+
     Lengths and slopes in mm, so the rule holds at any pixel size. The first such turn
     from the apex on each side is cut; the cut end is followed down the wall by
     :mod:`.flanks` where its echo holds. ``step`` is the step per point, or a function
@@ -1217,11 +1228,15 @@ def _shoulder_cut(
     z = pts[:, 1] * float(spacing[1])
     top = _apex(x, z)  # as convex_part takes it
     w_in, w_out = p.kink_mm, 2.0 * p.kink_mm
-    for side in (-1, 1):
-        idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
-        if idx.size < 6 or abs(x[idx[-1]] - x[top]) < p.shoulder_min_mm + 0.5 * w_in:
+    # From the contour's shallowest point too when it lies at an end (outside the middle
+    # 60 % that _apex looks in): inwards only (see the docstring).
+    end = int(np.argmin(z))
+    sides = [(top, -1), (top, 1)] + ([(end, -1 if end > top else 1)] if end != top else [])
+    for start, side in sides:
+        idx = np.arange(start, -1, -1) if side < 0 else np.arange(start, n)
+        if idx.size < 6 or abs(x[idx[-1]] - x[start]) < p.shoulder_min_mm + 0.5 * w_in:
             continue  # too short a side to hold a turn and a layer beyond it
-        xo = np.abs(x[idx] - x[top])
+        xo = np.abs(x[idx] - x[start])
         k, lo, s_in, s_out, ok = _outward_slopes(xo, z[idx], w_in, w_out)
         ok &= xo[k] - xo[lo] >= 0.5 * w_in
         ok &= xo[-1] - xo[k] >= p.shoulder_min_mm
