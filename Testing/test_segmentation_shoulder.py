@@ -199,16 +199,25 @@ def test_a_layer_whose_path_climbs_onto_the_wall_at_its_end_is_cut() -> None:
     assert np.abs(pts[keep, 1] * SP[1] - _dome(x)).max() < 0.05 + 1e-9
 
 
-def test_a_layer_climbed_onto_at_an_end_over_the_bone_does_not_cut_the_bone() -> None:
+@pytest.mark.parametrize(
+    ("under_dome", "under_layer"),
+    [(0.5, -0.3), (0.0, 0.3)],
+    ids=["shadow under the dome", "grey shadow: the underside says nothing"],
+)
+def test_a_layer_climbed_onto_at_an_end_over_the_bone_does_not_cut_the_bone(
+    under_dome: float, under_layer: float
+) -> None:
     """The other way round: a dome whose path climbs at its right end onto a layer 1 mm
-    over the apex (the bone's echo under the layer: step -0.3). The end is the contour's
-    shallowest point, but the part inside it has the shadow under it: the dome is kept
-    whole (the layer itself is cut from the dome's apex, as before)."""
+    over the apex for 1.5 mm. The end is the contour's shallowest point, but the dome beyond it
+    rises back over its foot (no layer falling away from a wall), and with the bone's
+    shadow under the dome the underside ratio refuses as well: the dome is kept whole
+    (the layer itself is cut from the dome's apex when the underside tells, as before)."""
     rng = np.random.default_rng(11)
     xd = np.arange(-6.0, 4.0 + 1e-9, SP[0])
-    xl = np.arange(4.0 + SP[0], 7.0 + 1e-9, SP[0])
+    xl = np.arange(4.0 + SP[0], 5.5 + 1e-9, SP[0])  # short: the dome holds the apex
     z = np.r_[_dome(xd), np.full(xl.size, TOP - 1.0)]
-    step = np.r_[np.full(xd.size, 0.5), np.full(xl.size, -0.3)] + rng.normal(0.0, 0.1, z.size)
+    step = np.r_[np.full(xd.size, under_dome), np.full(xl.size, under_layer)]
+    step = step + rng.normal(0.0, 0.1, z.size)
     keep = _shoulder_cut(_px(np.r_[xd, xl], z), SP, step, ShadowPathParams())
     assert keep[: xd.size].all()
 

@@ -1210,10 +1210,18 @@ def _shoulder_cut(
     the bone's wall where the two met, and stopped there (radius, hard, seed 43: the
     apex of the middle lay on the layer, which linked the bone of one frame to the layer
     of the next). Seen from that end the climb is the wall and the long gentle stretch
-    the layer: the same turn and the same underside ratio decide. It generalises
-    because nothing in it depends on which end the bone is at: a layer over the bone that
-    the path climbed onto at an end instead has tissue and the bone's echo under it and
-    the bone's shadow under the part inside it, so the ratio never cuts the bone away.
+    the layer: the same turn and the same underside ratio decide, and two things of the
+    shape that premise implies. The layer beyond lies wholly under the wall's foot and
+    falls away from it (it rises towards the bone and meets the wall there), never
+    rising back by more than the least descent the turn asks of the wall
+    (``shoulder_slope`` over ``kink_mm``): a dome beyond, or a hook at the other end, is
+    not it (under a grey shadow the underside of the bone is as noisy as a layer's, and
+    the ratio alone cut domes away and kept a hook onto a layer over them: clavicle seed
+    13 lost 4 frames, humerus seed 43 one). And the contour is no bowl (both ends over
+    its middle third: the far cortex, whose ends are its shallowest points whatever lies
+    beyond them). It generalises because nothing in it depends on which end the bone is
+    at, and all of it is the contour's own shape and the ratio of its own underside
+    steps: no grey level and no new constant.
 
     Lengths and slopes in mm, so the rule holds at any pixel size. The first such turn
     from the apex on each side is cut; the cut end is followed down the wall by
@@ -1229,9 +1237,12 @@ def _shoulder_cut(
     top = _apex(x, z)  # as convex_part takes it
     w_in, w_out = p.kink_mm, 2.0 * p.kink_mm
     # From the contour's shallowest point too when it lies at an end (outside the middle
-    # 60 % that _apex looks in): inwards only (see the docstring).
+    # 60 % that _apex looks in) and the contour is no bowl: inwards only (see above).
     end = int(np.argmin(z))
-    sides = [(top, -1), (top, 1)] + ([(end, -1 if end > top else 1)] if end != top else [])
+    sides = [(top, -1), (top, 1)]
+    e, mid = max(1, n // 6), median1d(z[n // 3 : n - n // 3])
+    if end != top and not (median1d(z[:e]) < mid and median1d(z[-e:]) < mid):
+        sides.append((end, -1 if end > top else 1))
     for start, side in sides:
         idx = np.arange(start, -1, -1) if side < 0 else np.arange(start, n)
         if idx.size < 6 or abs(x[idx[-1]] - x[start]) < p.shoulder_min_mm + 0.5 * w_in:
@@ -1243,6 +1254,15 @@ def _shoulder_cut(
         for kk in k[ok & (s_in >= p.shoulder_slope) & (s_out < 0.5 * s_in)]:
             if callable(step):
                 step = step()
+            if start != top:
+                # A layer falling away from the wall's foot: wholly under the foot, and
+                # never rising back by the least descent the turn asks of the wall.
+                zb = z[idx[kk + 1 :]]
+                if (
+                    zb.min() < z[idx[kk]]
+                    or (np.maximum.accumulate(zb) - zb).max() > p.shoulder_slope * w_in
+                ):
+                    continue
             si, sb = median1d(step[idx[: kk + 1]]), median1d(step[idx[kk + 1 :]])
             if si > 0 and sb < p.shoulder_step_ratio * si:
                 keep[idx[kk + 1 :]] = False
