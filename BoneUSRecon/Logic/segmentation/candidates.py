@@ -1223,6 +1223,25 @@ def _shoulder_cut(
       cut only when its median step is under ``shoulder_step_ratio`` of that of the
       part inside it (a ratio of the contour's own values: no grey level).
 
+    The turn is sought outward from the apex (:func:`_apex`, in the middle 60 % of the
+    span) and, when the contour's shallowest point lies at one of its ends, inward from
+    that end too: the path ran along a layer rising gently towards the bone and climbed
+    the bone's wall where the two met, and stopped there (radius, hard, seed 43: the
+    apex of the middle lay on the layer, which linked the bone of one frame to the layer
+    of the next). Seen from that end the climb is the wall and the long gentle stretch
+    the layer: the same turn and the same underside ratio decide, and two things of the
+    shape that premise implies. The layer beyond lies wholly under the wall's foot and
+    falls away from it (it rises towards the bone and meets the wall there), never
+    rising back by more than the least descent the turn asks of the wall
+    (``shoulder_slope`` over ``kink_mm``): a dome beyond, or a hook at the other end, is
+    not it (under a grey shadow the underside of the bone is as noisy as a layer's, and
+    the ratio alone cut domes away and kept a hook onto a layer over them: clavicle seed
+    13 lost 4 frames, humerus seed 43 one). And the contour is no bowl (both ends over
+    its middle third: the far cortex, whose ends are its shallowest points whatever lies
+    beyond them). It generalises because nothing in it depends on which end the bone is
+    at, and all of it is the contour's own shape and the ratio of its own underside
+    steps: no grey level and no new constant.
+
     Lengths and slopes in mm, so the rule holds at any pixel size. The first such turn
     from the apex on each side is cut; the cut end is followed down the wall by
     :mod:`.flanks` where its echo holds. ``step`` is the step per point, or a function
@@ -1236,17 +1255,33 @@ def _shoulder_cut(
     z = pts[:, 1] * float(spacing[1])
     top = _apex(x, z)  # as convex_part takes it
     w_in, w_out = p.kink_mm, 2.0 * p.kink_mm
-    for side in (-1, 1):
-        idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
-        if idx.size < 6 or abs(x[idx[-1]] - x[top]) < p.shoulder_min_mm + 0.5 * w_in:
+    # From the contour's shallowest point too when it lies at an end (outside the middle
+    # 60 % that _apex looks in) and the contour is no bowl: inwards only (see above).
+    end = int(np.argmin(z))
+    sides = [(top, -1), (top, 1)]
+    e, mid = max(1, n // 6), median1d(z[n // 3 : n - n // 3])
+    if end != top and not (median1d(z[:e]) < mid and median1d(z[-e:]) < mid):
+        sides.append((end, -1 if end > top else 1))
+    for start, side in sides:
+        idx = np.arange(start, -1, -1) if side < 0 else np.arange(start, n)
+        if idx.size < 6 or abs(x[idx[-1]] - x[start]) < p.shoulder_min_mm + 0.5 * w_in:
             continue  # too short a side to hold a turn and a layer beyond it
-        xo = np.abs(x[idx] - x[top])
+        xo = np.abs(x[idx] - x[start])
         k, lo, s_in, s_out, ok = _outward_slopes(xo, z[idx], w_in, w_out)
         ok &= xo[k] - xo[lo] >= 0.5 * w_in
         ok &= xo[-1] - xo[k] >= p.shoulder_min_mm
         for kk in k[ok & (s_in >= p.shoulder_slope) & (s_out < 0.5 * s_in)]:
             if callable(step):
                 step = step()
+            if start != top:
+                # A layer falling away from the wall's foot: wholly under the foot, and
+                # never rising back by the least descent the turn asks of the wall.
+                zb = z[idx[kk + 1 :]]
+                if (
+                    zb.min() < z[idx[kk]]
+                    or (np.maximum.accumulate(zb) - zb).max() > p.shoulder_slope * w_in
+                ):
+                    continue
             si, sb = median1d(step[idx[: kk + 1]]), median1d(step[idx[kk + 1 :]])
             if si > 0 and sb < p.shoulder_step_ratio * si:
                 keep[idx[kk + 1 :]] = False
