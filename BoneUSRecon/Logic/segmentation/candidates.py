@@ -381,9 +381,19 @@ def _dense_rows(cands: list[dict]) -> None:
         c["dense"] = d
 
 
+def _present(c: dict) -> np.ndarray:
+    """``~isnan(c["dense"])``, kept with the array it was made from: candidates are
+    compared pairwise thousands of times per sweep, the mask is made once per candidate."""
+    d = c["dense"]
+    kept = c.get("present")
+    if kept is None or kept[0] is not d:
+        kept = c["present"] = (d, ~np.isnan(d))
+    return kept[1]
+
+
 def _common(a: dict, b: dict) -> np.ndarray:
     """Columns (ascending) where both candidates lie (``_dense_rows`` first)."""
-    return np.flatnonzero(~np.isnan(a["dense"]) & ~np.isnan(b["dense"]))
+    return (_present(a) & _present(b)).nonzero()[0]
 
 
 def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
@@ -509,11 +519,18 @@ def _series(
     Returns the members' offsets, shallowest first, or ``[0]`` when there is no series.
     """
     v, peaks = vp
+    # Plain Python on the handful of peaks and the profile's values (the same float64
+    # values, the same comparisons): ~1,000 calls per sweep, where numpy's per-call
+    # cost outweighs the work.
+    plist = peaks.tolist()
     # A series needs two lines besides the top (strict: below offset 0; loose: three
     # above it): most profiles stop here.
-    if (peaks >= min_px).sum() < 2 if strict else (peaks <= -min_px).sum() < 3:
+    if strict:
+        if sum(q >= min_px for q in plist) < 2:
+            return [0]
+    elif sum(q <= -min_px for q in plist) < 3:
         return [0]
-    plist = [int(q) for q in peaks]  # a handful: plain Python beats numpy calls here
+    vl = v.tolist()
 
     def step_from(k: int, d: float, sign: int) -> int | None:
         want = k + sign * d
@@ -537,9 +554,18 @@ def _series(
     def valid(members: list[int]) -> bool:
         if len(members) < 3:
             return False
-        m = np.asarray(members) + reach
-        troughs = [float(v[a + 1 : b].min()) for a, b in zip(m[:-1], m[1:], strict=True)]
-        if float(np.mean(troughs)) >= (dark if strict else 0.5 * dark):
+        m = [q + reach for q in members]
+        troughs = [min(vl[a + 1 : b]) for a, b in zip(m[:-1], m[1:], strict=True)]
+        if len(troughs) < 8:
+            # np.mean's value: under 8 values numpy adds them in order (its pairwise
+            # sum starts at 8); a loop, not sum() (Python 3.12's is compensated).
+            total = 0.0
+            for t in troughs:
+                total += t
+            mean_trough = total / len(troughs)
+        else:
+            mean_trough = float(np.mean(troughs))
+        if mean_trough >= (dark if strict else 0.5 * dark):
             return False
         if not strict:
             return True
@@ -550,25 +576,26 @@ def _series(
         if cover.size == 0:
             return False
         lid = float(np.median(cover))
-        if float(np.mean(troughs)) >= lid + dark or max(troughs) >= lid:
+        if mean_trough >= lid + dark or max(troughs) >= lid:
             return False
         if troughs[0] >= dark:
             return False
         # Only shadow between copies: no line between two members brighter than the
         # upper one (a brighter layer between them is tissue, not a gap in a shadow).
         for a, b in zip(members[:-1], members[1:], strict=True):
-            inner = peaks[(peaks > a) & (peaks < b)] + reach
-            if inner.size and float(v[inner].max()) > float(v[a + reach]) + 0.05:
+            inner = [vl[q + reach] for q in plist if a < q < b]
+            if inner and max(inner) > vl[a + reach] + 0.05:
                 return False
-        vals = v[m]
+        vals = [vl[q] for q in m]
         # The deepest member is exempt from fading: the far cortex may lie where the
         # last copy falls (it is still dimmer than the top).
-        return bool(np.all(np.diff(vals[:-1]) <= 0.15)) and vals[0] >= vals.max() - 0.05
+        fades = all(y - x <= 0.15 for x, y in zip(vals[:-2], vals[1:-1], strict=True))
+        return fades and vals[0] >= max(vals) - 0.05
 
     if strict:
         # From offset 0 down, the spacing set by one of the nearest lines below (the
         # nearest may be speckle or the echo's own tail).
-        for q in np.sort(peaks[peaks >= min_px])[:3]:
+        for q in sorted(q for q in plist if q >= min_px)[:3]:
             members = [0]
             k = 0
             while (nxt := step_from(k, float(q), 1)) is not None:
@@ -580,14 +607,14 @@ def _series(
     # Loose: a series among the lines above offset 0 (0 itself may be a copy or lie
     # under the series, as a far cortex does), the spacing set by a line and the next
     # one above it; the longest series wins.
-    above = np.sort(peaks[peaks <= -min_px])[::-1]  # nearest first
+    above = sorted((q for q in plist if q <= -min_px), reverse=True)  # nearest first
     best: list[int] = [0]
     for i, q in enumerate(above[:4]):
-        nxt_up = above[i + 1 :][above[i + 1 :] <= q - min_px]
-        if nxt_up.size == 0:
+        nxt_up = [u for u in above[i + 1 :] if u <= q - min_px]
+        if not nxt_up:
             continue
         d = float(q - nxt_up[0])
-        members = chain(int(q), d, (-1, 1))
+        members = chain(q, d, (-1, 1))
         if valid(members) and len(members) > len(best):
             best = members
     return best
