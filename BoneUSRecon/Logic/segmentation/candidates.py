@@ -468,8 +468,10 @@ def _underside_profile(
     # Rows past the image repeat its edge; the median is NaN where most of them are.
     lw = lr[np.clip(rr, 0, h - 1), cols[None, :]]
     mid = cols.size // 2
-    prof = np.partition(lw, mid, axis=1)[:, mid].astype(float)
-    prof[((rr >= 0) & (rr < h)).mean(axis=1) < 0.5] = np.nan
+    lw.partition(mid, axis=1)  # a fresh gather: partitioned in place (no wrapper, no copy)
+    prof = lw[:, mid].astype(float)
+    # "Under half of the columns inside", counted in integers (mean < 0.5 exactly).
+    prof[2 * ((rr >= 0) & (rr < h)).sum(axis=1) < cols.size] = np.nan
     return prof
 
 
@@ -647,7 +649,12 @@ def _trace_band(
     gain = np.maximum(ev.echo_z[r0:r1, cols], 0).astype(float) * ev.dx + 1e-3
     rr = np.arange(r0, r1)[:, None]
     t = np.clip(rr + half, 1, h - 2)
-    trough = (lr[t - 1, cols] + lr[t, cols] + lr[t + 1, cols]) / 3.0
+    # The trough rows ``t`` are consecutive (clipped at the ends): ``lr``'s columns are
+    # gathered once over their span, then rows taken from that block (the same values).
+    t0 = int(t[0, 0]) - 1
+    blk = lr[t0 : int(t[-1, 0]) + 2][:, cols]
+    ti = t[:, 0] - t0
+    trough = (blk[ti - 1] + blk[ti] + blk[ti + 1]) / 3.0
     gain *= np.where(trough < dark, 1.0, 0.2)
     gain[np.abs(rr - base[None, :]) > rw] = -1e3  # outside the band
     n = cols.size
