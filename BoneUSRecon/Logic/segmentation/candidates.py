@@ -403,19 +403,23 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
         for s in cands:
             if s is c:
                 continue
+            # A copy lies under its original (it is never wider) and is fainter. (The
+            # cheap tests first: s's own width bounds the columns in common.)
+            if c["grey"] > s["grey"] or s["cols"].size < 0.8 * c["cols"].size:
+                continue
             common = _common(c, s)
-            # A copy lies under its original (it is never wider) and is fainter.
-            if common.size < 0.8 * c["cols"].size or c["grey"] > s["grey"]:
+            if common.size < 0.8 * c["cols"].size:
                 continue
             dc, ds = c["dense"][common], s["dense"][common]
-            if np.median(dc - ds) <= 0:
+            if median1d(dc - ds) <= 0:
                 continue  # s is not above c
             if _is_copy(dc, ds, -0.5, tol):
                 c["reverb"] = True
                 break
             # Equal spacing: a third line at the same offset (s, c, then c + offset).
             off = dc - ds
-            if np.std(off) > tol * np.median(off) + 1:
+            med_off = median1d(off)
+            if np.std(off) > tol * med_off + 1:
                 continue  # not parallel: not a copy
             for t in cands:
                 if t is c or t is s:
@@ -424,7 +428,7 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
                 if cm.size < 0.5 * c["cols"].size:
                     continue
                 off2 = t["dense"][cm] - c["dense"][cm]
-                if abs(np.median(off2) - np.median(off)) <= tol * np.median(off) + 1:
+                if abs(median1d(off2) - med_off) <= tol * med_off + 1:
                     c["reverb"] = True
                     t["reverb"] = True
             if c.get("reverb"):
