@@ -372,6 +372,12 @@ def _is_copy(deep: np.ndarray, shallow: np.ndarray, depth0: float, tol: float) -
     return bool(np.percentile(np.abs(ratio - 2.0), 90) <= 2.0 * tol)
 
 
+def _clip_rows(rows: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """``np.clip(rows, lo, hi)`` of integer rows (the same values): two ufuncs, without
+    ``np.clip``'s layers of Python wrappers (~80 calls per frame)."""
+    return np.minimum(np.maximum(rows, lo), hi)
+
+
 def _dense_rows(cands: list[dict]) -> None:
     """Give each candidate ``dense``: its row per working column, NaN where it is absent."""
     w = max(int(c["cols"][-1]) for c in cands) + 1
@@ -470,7 +476,7 @@ def _underside_profile(
     k = np.arange(-reach, reach + 1)
     rr = rows[None, :] + k[:, None]
     # Rows past the image repeat its edge; the median is NaN where most of them are.
-    lw = lr[np.clip(rr, 0, h - 1), cols[None, :]]
+    lw = lr[_clip_rows(rr, 0, h - 1), cols[None, :]]
     mid = cols.size // 2
     lw.partition(mid, axis=1)  # a fresh gather: partitioned in place (no wrapper, no copy)
     prof = lw[:, mid].astype(float)
@@ -652,7 +658,7 @@ def _trace_band(
     r0, r1 = max(0, int(base.min()) - rw), min(h, int(base.max()) + rw + 1)
     gain = np.maximum(ev.echo_z[r0:r1, cols], 0).astype(float) * ev.dx + 1e-3
     rr = np.arange(r0, r1)[:, None]
-    t = np.clip(rr + half, 1, h - 2)
+    t = _clip_rows(rr + half, 1, h - 2)
     # The trough rows ``t`` are consecutive (clipped at the ends): ``lr``'s columns are
     # gathered once over their span, then rows taken from that block (the same values).
     t0 = int(t[0, 0]) - 1
@@ -674,10 +680,10 @@ def _trace_band(
         if ok.sum() >= 2:
             rows = np.rint(np.interp(np.arange(n), x[ok], path[ok] + r0)).astype(np.intp)
             inb = np.abs(rows - base) <= rw
-            return np.where(inb, rows, np.clip(base, 0, h - 1))
+            return np.where(inb, rows, _clip_rows(base, 0, h - 1))
     # A switch cost no path pays: the top runs over all of the columns.
     path = _optimal_path(gain, shift_cost, 1e6)
-    return np.where(path >= 0, path + r0, np.clip(base, 0, h - 1))
+    return np.where(path >= 0, path + r0, _clip_rows(base, 0, h - 1))
 
 
 def _curves_down(rows: np.ndarray) -> bool:
@@ -685,7 +691,9 @@ def _curves_down(rows: np.ndarray) -> bool:
     ends (a bowl seen from the probe: the back wall of a convex bone, not its front)."""
     n = rows.size
     e = max(1, n // 6)
-    return n >= 6 and median1d(rows[n // 3 : n - n // 3]) > median1d(np.r_[rows[:e], rows[-e:]])
+    return n >= 6 and median1d(rows[n // 3 : n - n // 3]) > median1d(
+        np.concatenate((rows[:e], rows[-e:]))
+    )
 
 
 def _mirrored(c: dict) -> dict:
@@ -775,7 +783,7 @@ def _mark_series(
             base = shape["rows"] + top
             if median1d(base) < nf:
                 return None  # in the near field: no first interface (as confirmed() rules)
-            base = np.clip(base, 0, h - 1)
+            base = _clip_rows(base, 0, h - 1)
             rows = _trace_band(ev, c["cols"], base, rw, shift_cost, lr, int(round(d / 2)), dark)
             sc = ev.score[rows, c["cols"]]
             dense = np.full(c["dense"].size, np.nan)
@@ -1231,8 +1239,8 @@ def _underside_step(lr: np.ndarray, cols: np.ndarray, rows: np.ndarray, dy: floa
     a = max(1, mm_to_px(0.5, dy))
     b = max(a + 1, mm_to_px(2.0, dy))
     k = np.arange(a, b + 1)
-    below = lr[np.clip(rows[:, None] + k, 0, h - 1), cols[:, None]].mean(axis=1)
-    above = lr[np.clip(rows[:, None] - k, 0, h - 1), cols[:, None]].mean(axis=1)
+    below = lr[_clip_rows(rows[:, None] + k, 0, h - 1), cols[:, None]].mean(axis=1)
+    above = lr[_clip_rows(rows[:, None] - k, 0, h - 1), cols[:, None]].mean(axis=1)
     return above - below
 
 
