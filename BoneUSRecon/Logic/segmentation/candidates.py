@@ -329,13 +329,33 @@ def _refine(
     sy: float,
 ) -> np.ndarray:
     """Sub-pixel ``(i, j)`` of the echo peak near working rows ``rows_w`` in columns ``cols``."""
+    return _refine_many(image, ev, [(cols, rows_w)], p, sy)[0]
+
+
+def _refine_many(
+    image: np.ndarray,
+    ev: EvidenceMaps,
+    contours: list[tuple[np.ndarray, np.ndarray]],
+    p: ShadowPathParams,
+    sy: float,
+) -> list[np.ndarray]:
+    """:func:`_refine` of several contours ``(cols, rows_w)`` of one frame at once.
+
+    Every step but the lateral median works column by column (the profile's smoothing
+    runs along each column's own profile), so the columns of all of a frame's
+    candidates are refined in one set of numpy calls (the same values as one call per
+    contour); the lateral median then runs per contour, over its own ends.
+    """
+    sizes = [c.size for c, _ in contours]
+    cols = np.concatenate([c for c, _ in contours])
+    rows_w = np.concatenate([r for _, r in contours])
     hh_full = ev.colmean.shape[0]
     centre = (rows_w + 0.5) * ev.fy - 0.5
     half = mm_to_px(p.refine_mm, sy)
     sig = p.refine_sigma_mm / sy
     pad = int(np.ceil(3 * sig)) if sig >= 0.5 else 0
     off = np.arange(-half - pad - 1, half + pad + 2)
-    rows = np.clip(np.rint(centre).astype(np.intp)[:, None] + off[None, :], 0, hh_full - 1)
+    rows = _clip_rows(np.rint(centre).astype(np.intp)[:, None] + off[None, :], 0, hh_full - 1)
     prof = ev.colmean[rows, cols[:, None]]
     if pad:
         prof = gaussian_filter1d(prof, sig, axis=1, mode="nearest")
@@ -345,19 +365,26 @@ def _refine(
     y0, y1, y2 = prof[r, k - 1], prof[r, k], prof[r, k + 1]
     denom = y0 - 2 * y1 + y2
     frac = np.where(denom < 0, 0.5 * (y0 - y2) / np.where(denom < 0, denom, -1.0), 0.0)
-    j = rows[r, k] + np.clip(frac, -0.5, 0.5) + p.surface_offset_mm / sy
+    j_all = rows[r, k] + np.clip(frac, -0.5, 0.5) + p.surface_offset_mm / sy
+    i_all = (cols + 0.5) * ev.fx - 0.5
     # Lateral median over ~0.6 mm: removes single-column speckle jumps.
     size = max(1, int(round(0.6 / ev.dx)) | 1)
-    if size == 3 and j.size >= 3:
-        # The usual size: the median of three is one of them, so min/max give exactly
-        # ``median_filter(j, 3, mode="nearest")`` without scipy's per-call cost.
-        pj = np.concatenate((j[:1], j, j[-1:]))
-        a, b, c = pj[:-2], pj[1:-1], pj[2:]
-        j = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
-    elif size > 1 and j.size >= size:
-        j = median_filter(j, size=size, mode="nearest")
-    i = (cols + 0.5) * ev.fx - 0.5
-    return np.column_stack([i, j])
+    out = []
+    start = 0
+    for n in sizes:
+        j, i = j_all[start : start + n], i_all[start : start + n]
+        start += n
+        if size == 3 and j.size >= 3:
+            # The usual size: the median of three is one of them, so min/max give
+            # exactly ``median_filter(j, 3, mode="nearest")`` without scipy's per-call
+            # cost.
+            pj = np.concatenate((j[:1], j, j[-1:]))
+            a, b, c = pj[:-2], pj[1:-1], pj[2:]
+            j = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+        elif size > 1 and j.size >= size:
+            j = median_filter(j, size=size, mode="nearest")
+        out.append(np.column_stack([i, j]))
+    return out
 
 
 def _is_copy(deep: np.ndarray, shallow: np.ndarray, depth0: float, tol: float) -> bool:
@@ -1137,8 +1164,9 @@ def _frame_candidates_steps(
     found = _mark_series(found, ev, lr, p)
     _mark_echo_beneath(found, ev, lr, p)
     out = []
-    for c in found:
-        pts = _refine(img, ev, c["cols"], c["rows"], p, sp[1])
+    # Every candidate's sub-pixel rows in one go (the same values as one at a time).
+    refined = _refine_many(img, ev, [(c["cols"], c["rows"]) for c in found], p, sp[1])
+    for c, pts in zip(found, refined, strict=True):
         # A narrow excursion over the bone is no apex (see _fill_excursions): the convex
         # pieces are cut on the contour with it filled in, and its points then dropped.
         # A reverberation series' top is traced inside a band along another line's shape
