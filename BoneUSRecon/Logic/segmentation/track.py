@@ -98,6 +98,14 @@ def _project(
     return out
 
 
+def _overlap_share(a_x: tuple[float, float], b_x: tuple[float, float]) -> float:
+    """The lateral overlap share of :func:`_in_plane_deviation` from the contours' lateral
+    ``(min, max)`` mm: a's extent widened by 1 mm each side, relative to the shorter."""
+    lo, hi = a_x[0] - 1.0, a_x[1] + 1.0
+    overlap = max(0.0, min(hi, b_x[1]) - max(lo, b_x[0]))
+    return overlap / max(min(hi - lo, float(b_x[1] - b_x[0]) + 2.0), 1e-6)
+
+
 def _in_plane_deviation(
     a: np.ndarray,
     b_mm: np.ndarray,
@@ -118,8 +126,7 @@ def _in_plane_deviation(
     a_min, a_max = a_x if a_x is not None else (ax.min(), ax.max())
     lo, hi = a_min - 1.0, a_max + 1.0
     bx_min, bx_max = b_x if b_x is not None else (bx.min(), bx.max())
-    overlap = max(0.0, min(hi, bx_max) - max(lo, bx_min))
-    share = overlap / max(min(hi - lo, float(bx_max - bx_min) + 2.0), 1e-6)
+    share = _overlap_share((a_min, a_max), (bx_min, bx_max))
     if bx_min < lo or bx_max > hi:
         inside = (bx >= lo) & (bx <= hi)
         if not inside.any():
@@ -255,17 +262,21 @@ def _links(
             or bb[3] < a_box[2] - reach
         ):
             continue
+        # The share first, from the boxes (the same value _in_plane_deviation gives):
+        # about one pair in eight is ruled out on it without the point distances.
+        if _overlap_share(a_x, bb[:2]) < p.min_overlap_share:
+            continue
         # The boxes' lateral extents are the contours' own min and max (same values).
         d, share, z = _in_plane_deviation(a, b, a_x=a_x, b_x=bb[:2])
         if share < p.min_overlap_share or not np.isfinite(d):
             continue
+        tol = p.tolerance_mm + p.tolerance_per_mm * z
+        if d > p.max_deviation * tol:
+            continue  # tested before the step (either rules the pair out)
         if a_sorted is None:
             o = np.argsort(a[:, 0])
             a_sorted = (a[o, 0], a[o, 1])
         if _stepped(a, b, p.max_step_mm + p.step_per_mm * z, a_x=a_x, a_sorted=a_sorted):
-            continue
-        tol = p.tolerance_mm + p.tolerance_per_mm * z
-        if d > p.max_deviation * tol:
             continue
         out.append((i, d / tol))
     return out
