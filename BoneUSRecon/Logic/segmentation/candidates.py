@@ -783,13 +783,14 @@ def _mark_series(
         prof = t["prof"]
         if "peaks" not in t:
             t["peaks"] = _profile_peaks(prof, reach)
+        # The near-field test first (cheap; the same answer in either order).
+        if median1d(t["rows"]) < nf:
+            return False
         if len(_series(t["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
             return False
         above = prof[reach - 2 * gap : reach - gap]
         above = above[np.isfinite(above)]
-        return float(np.median(t["rows"])) >= nf and not (
-            above.size >= gap and median1d(above) < float(np.log(p.under_ratio))
-        )
+        return not (above.size >= gap and median1d(above) < float(np.log(p.under_ratio)))
 
     def top_at(c: dict, shape: dict, top: int, d: float) -> tuple[dict, bool] | None:
         """The series' top ``top`` rows from ``shape`` over c's columns, if confirmed:
