@@ -121,10 +121,17 @@ def scheduler(tmp_path_factory):
     )
     procs = [sched]
     try:
+        # The scheduler creates its file before it writes it (not atomically): wait
+        # until it holds the JSON, not only until it exists (an empty read failed CI once).
         t_end = time.monotonic() + 60
-        while not info.exists() and time.monotonic() < t_end and sched.poll() is None:
-            time.sleep(0.1)
-        address = json.loads(info.read_text())["address"]
+        doc = None
+        while doc is None and time.monotonic() < t_end and sched.poll() is None:
+            try:
+                doc = json.loads(info.read_text())
+            except (FileNotFoundError, json.JSONDecodeError):
+                time.sleep(0.1)
+        assert doc is not None, "dask scheduler wrote no scheduler file within 60 s"
+        address = doc["address"]
         assert address.startswith("tcp://127.0.0.1:")
         procs.append(
             subprocess.Popen(
