@@ -110,11 +110,14 @@ def test_live_recovery_equals_offline_on_hard_sweep(sim_factory):
     counts = live.recovery_counts
     assert counts["searched"] >= len(recovered) and counts["reused"] > counts["searched"]
     assert counts["no_pixels"] == 0
-    # Pixels only of frames off the track (those recovered included).
+    # Pixels only of frames off the track (those recovered included), of track frames
+    # whose contour strays from their neighbours' (searched again, .recovery.recheck_frame)
+    # and of the track's two end frames (no track frame on one side yet).
+    strayed = sum(f.recheck is not None and f.recheck[2] for f in live._frames)
     assert (
         len(recovered)
         <= live.pixels_kept
-        <= sum(not c.accepted for c in r.segmentation.contours) + len(recovered)
+        <= sum(not c.accepted for c in r.segmentation.contours) + len(recovered) + strayed + 2
     )
     # Against the true surface (offline measures the same: 1.43 mm mean, 0.47 median;
     # 1.13 and 0.42 without recovery on this sweep).
@@ -204,24 +207,25 @@ def test_live_recovery_after_thinning_equals_offline(sim_factory):
     """Thinned past max_frames, the live refit is the offline segmentation of the frames
     kept (guided candidates linked to the frames that became neighbours), as long as
     no frame off the track had to be searched after its pixels were dropped (the one
-    divergence, counted). Where one had (max_frames 30), keeping all pixels makes the
+    divergence, counted). Where one had, keeping all pixels makes the
     refit the offline one again.
 
     Sweeps (hard, 0.3 mm): tibia seed 5 at max_frames 24 thins with no search missed
-    (1 frame recovered); tibia seed 2 at 30 misses 3 (before the skin-gap shade rule,
-    seed 2 missed none at 24 and some at 30; with that rule alone it missed 4 at 24;
-    with the ends and shoulder rules merged too, none at 24 again)."""
+    (1 frame recovered); tibia seed 11 at 24 misses 9 searches (tibia seed 2 at 30
+    missed 3 until the track's end frames kept their pixels for the recheck of
+    straying track frames, branch classa: none since, on seeds 2-10)."""
     sweep = sim_factory(bone="tibia", realism="hard", seed=5).sweep
     live = LiveReconstructor(live=LiveParams(max_frames=24))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0
     assert len(_recovered(r)) >= 1 and _same_contours(r.segmentation, batch)
-    # A frame on the track at an earlier refit fell off it after the thinning.
-    sweep = sim_factory(bone="tibia", realism="hard", seed=2).sweep
-    live = LiveReconstructor(live=LiveParams(max_frames=30))
+    # A frame on the track at an earlier refit fell off it after the thinning (its
+    # search missed, counted; here the search would not have found a contour either).
+    sweep = sim_factory(bone="tibia", realism="hard", seed=11).sweep
+    live = LiveReconstructor(live=LiveParams(max_frames=24))
     r, batch = _thinned(sweep, live)
-    assert live.recovery_counts["no_pixels"] > 0 and not _same_contours(r.segmentation, batch)
-    live = LiveReconstructor(live=LiveParams(max_frames=30, keep_all_pixels=True))
+    assert live.recovery_counts["no_pixels"] > 0
+    live = LiveReconstructor(live=LiveParams(max_frames=24, keep_all_pixels=True))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0 and live.pixels_kept == live.n_frames
     # One recovered frame here since narrow excursions stopped splitting domes (two before).

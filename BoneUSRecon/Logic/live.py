@@ -43,7 +43,7 @@ import contextlib
 import os
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -71,7 +71,13 @@ from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_can
 from BoneUSRecon.Logic.segmentation.ends import candidate_steps, cut_ends_at_steps, shadow_step
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
-from BoneUSRecon.Logic.segmentation.recovery import prior_frames, recover_frame, with_candidate
+from BoneUSRecon.Logic.segmentation.recovery import (
+    prior_frames,
+    recheck_candidate,
+    recheck_prior,
+    recover_frame,
+    with_candidate,
+)
 from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
 from BoneUSRecon.Logic.segmentation.result import FrameContour
 from BoneUSRecon.Logic.segmentation.track import TrackChoice
@@ -248,6 +254,75 @@ def _prior_key(frame: _Frame) -> tuple[tuple[int, int], ...] | None:
     return frame.guided[0] if frame.guided is not None else None
 
 
+def _candidate_key(frame: _Frame, c: int) -> tuple[Any, ...]:
+    """Names candidate ``c`` of a frame across refits: its own candidates by index, its
+    guided candidate (the index past them) by the prior that found it."""
+    if c < len(frame.candidates.candidates):
+        return (frame.uid, c)
+    return (frame.uid, c, _prior_key(frame))
+
+
+def _rechecked(
+    frames: list[_Frame],
+    fcs: list[FrameCandidates],
+    choice: TrackChoice,
+    params: SegmentationParams,
+    counts: dict[str, int],
+) -> tuple[dict[int, BoneCandidate], set[int]]:
+    """The replacements of the track's straying contours, as offline
+    (:func:`~BoneUSRecon.Logic.segmentation.recovery.recheck_track`), and the track
+    frames whose pixels a later refit may need.
+
+    A frame's verdict depends on its pixels, its track contour and its prior (the
+    nearest track frames on both sides and their contours): it is cached with their
+    names and made again only when one of them changed. A straying frame keeps its
+    pixels (its prior may change), as does a track frame without a track frame on
+    each side yet (it may stray once it has them). A straying frame whose pixels were
+    dropped (it did not stray when a refit last judged it) is not searched: counted
+    in ``counts["no_pixels"]``, as for recovery.
+    """
+    out: dict[int, BoneCandidate] = {}
+    keep: set[int] = set()
+    rec = params.recovery
+    if not rec.recheck:
+        return out, keep
+    reach = params.rejection.max_skip + 1
+    poses = [fr.pose for fr in frames]
+    for f in np.flatnonzero(choice.chosen >= 0).tolist():
+        fr = frames[f]
+        near = prior_frames(choice.chosen, f, reach, True)
+        if near is None:
+            keep.add(f)
+            continue
+        c = int(choice.chosen[f])
+        key = tuple(_candidate_key(frames[g], int(choice.chosen[g])) for g in (f, *near))
+        if fr.recheck is None or fr.recheck[0] != key:
+            got = recheck_prior(fcs, choice, poses, f, params.rejection, rec)
+            if got is None:
+                fr.recheck = (key, None, False)
+            elif fr.image is None:
+                counts["no_pixels"] += 1
+                continue
+            else:
+                cand = recheck_candidate(
+                    fr.image,
+                    fcs[f].spacing,
+                    fcs[f].candidates[c],
+                    *got,
+                    params.shadowpath,
+                    params.rejection,
+                    rec,
+                    fr.evidence,
+                )
+                fr.recheck = (key, cand, True)
+                counts["rechecked"] += 1
+        if fr.recheck[2]:
+            keep.add(f)
+        if fr.recheck[1] is not None:
+            out[f] = fr.recheck[1]
+    return out, keep
+
+
 def _select(
     frames: list[_Frame],
     track: IncrementalTrack,
@@ -269,14 +344,12 @@ def _select(
     since the last refit are reused (most of them), the others made again.
     """
     extra: dict[int, BoneCandidate] = {}
+    again: dict[int, BoneCandidate] = {}  # track contours replaced (_rechecked)
+    first: TrackChoice | None = None
     if recovery_applies(params):
         # The first track's choice only (its rejection details would be replaced).
         first = track.solve(explain=False)
         extra = _guided(frames, first, params, counts)
-        for n in np.flatnonzero(first.chosen >= 0).tolist():
-            frames[n].evidence = None  # 6x the pixels: never kept for all frames
-            if not keep_pixels:
-                frames[n].image = None
         choice = track.solve(extra=extra)
     else:
         choice = track.solve()
@@ -288,6 +361,22 @@ def _select(
         with_candidate(fr.candidates, extra[n]) if n in extra else fr.candidates
         for n, fr in enumerate(frames)
     ]
+    if first is not None:
+        # The track's straying contours searched again and replaced where the search
+        # agrees with their neighbours, as offline (after the ends cut).
+        again, keep = _rechecked(frames, fcs, choice, params, counts)
+        if again:
+            chosen = choice.chosen.copy()
+            for n, cand in again.items():
+                fcs[n] = with_candidate(fcs[n], cand)
+                chosen[n] = len(fcs[n].candidates) - 1
+            choice = replace(choice, chosen=chosen)
+        for n in np.flatnonzero(first.chosen >= 0).tolist():
+            if n in keep:
+                continue
+            frames[n].evidence = None  # 6x the pixels: never kept for all frames
+            if not keep_pixels:
+                frames[n].image = None
     verdicts = [
         (
             n,
@@ -296,6 +385,7 @@ def _select(
             choice.detail[n],
             float(choice.confidence[n]),
             _prior_key(frames[n]) if n in extra else None,
+            frames[n].recheck[0] if n in again else None  # type: ignore[index],
         )
         for n in range(len(frames))
     ]
@@ -341,6 +431,10 @@ class _Frame:
     #: The prior of the frame's last search (:func:`_guided`), what it found and that
     #: candidate's shadow step.
     guided: tuple[tuple[tuple[int, int], ...], BoneCandidate | None, float] | None = None
+    #: The names of the frame's track contour and its prior at its last recheck
+    #: (:func:`_rechecked`), the contour found to replace it (or None), and whether it
+    #: strayed (was searched).
+    recheck: tuple[tuple[Any, ...], BoneCandidate | None, bool] | None = None
     #: The track's verdict at the last refit and the contour record made from it.
     contour: tuple[tuple[Any, ...], FrameContour] | None = None
 
@@ -427,8 +521,9 @@ class LiveReconstructor:
         self.counts = {"added": 0, "thinned": 0, "wrong_size": 0}
         #: Over all refits, frames off the track with a prior: searched, their cached
         #: guided candidate reused, not searched for want of pixels (see
-        #: :func:`_guided`: the only difference from offline).
-        self.recovery_counts = {"searched": 0, "reused": 0, "no_pixels": 0}
+        #: :func:`_guided` and :func:`_rechecked`: the only difference from offline);
+        #: and straying track frames searched again (:func:`_rechecked`).
+        self.recovery_counts = {"searched": 0, "reused": 0, "no_pixels": 0, "rechecked": 0}
         self._keep_pixels = recovery_applies(params.segmentation)
 
     @property

@@ -33,7 +33,7 @@ from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
-from BoneUSRecon.Logic.segmentation.recovery import recover_frames
+from BoneUSRecon.Logic.segmentation.recovery import recheck_track, recover_frames
 from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
@@ -261,7 +261,6 @@ def segment_sweep(
             recovery_settings(params),
             kept.get,
         )
-        kept.clear()
         # The guided candidate is its frame's last (recovery.with_candidate).
         choice = track.solve(extra={f: frames[f].candidates[-1] for f in searched})
     else:
@@ -273,6 +272,20 @@ def segment_sweep(
         lambda ns: (image for _, image in sweep.iter_frames(idx[ns])),
         params.ends,
     )
+    if recovery_applies(params):
+        # Track frames whose contour strays from their neighbours' searched again,
+        # the contour replaced where the search agrees with them (:mod:`.recovery`).
+        frames, choice, _ = recheck_track(
+            frames,
+            choice,
+            poses,
+            lambda n: np.asarray(sweep.frames[int(idx[n])]),
+            params.shadowpath,
+            params.rejection,
+            params.recovery,
+            kept.get,
+        )
+    kept.clear()
     contours = contours_from_track(idx, frames, choice, params)
     t_seg = time.perf_counter() - t0
     result = SegmentationResult(

@@ -492,8 +492,20 @@ class RecoveryParams:
     both_sides: bool = True
     """Search only frames with a track frame on each side within ``max_skip + 1`` frames (offline and live, ``EndsParams.search_past_ends`` searches past the track's ends as False does, the ends cut judging what is found; ours: past the track's ends only one side vouches, and beyond the last frame showing bone there is nothing to find; measured with the bone removed from the last 10 of 40 frames, 24 hard sweeps: searching with one side recovered bone-free frames in 7 sweeps, for +0.017 mean recall on sweeps showing bone throughout)."""
 
+    recheck: bool = True
+    """Also search track frames whose contour strays from their neighbours' interpolation, and replace a contour the search finds agreeing with them (:func:`.recovery.recheck_frame`; ours, class A of "Weakest sweeps and guided recovery" in ``Testing/benchmarks/README.md``)."""
+    min_stray: float = 0.25
+    """A track frame is searched again when its contour lies, on median, at least this share of the nearer neighbouring track frame's link tolerance off the depth the track frames on both sides interpolate (ours: contours on the bone, seeds 13 and 31, p90 0.16, p95 0.21; a cap over a faint top 0.28-0.82)."""
+    max_stray_ratio: float = 0.5
+    """The guided contour replaces the frame's only if its stray is at most this share of the frame's own, and it is at least as wide (ours, seeds 13 and 31, 16 straying track frames: the four replaced 1.07-1.73 -> 0.05-0.53 mm and 0.53 -> 0.10 mm at ratios 0.21-0.46; the others 0.64-1.36, among them a frame on the bone beside a capped one, 0.18 mm, whose guided contour followed the cap to 0.70 mm at 0.94)."""
+
     def __post_init__(self) -> None:
-        check_fields(self, within={"min_share": "[0, 1]"}, positive=("max_offset",))
+        check_fields(
+            self,
+            within={"min_share": "[0, 1]", "max_stray_ratio": "[0, 1]"},
+            positive=("max_offset",),
+            non_negative=("min_stray",),
+        )
 
 
 @dataclass(frozen=True)

@@ -72,6 +72,11 @@ __all__ = [
     "guided_candidate",
     "recover_frame",
     "recover_frames",
+    "stray",
+    "recheck_prior",
+    "recheck_frame",
+    "recheck_candidate",
+    "recheck_track",
     "with_candidate",
 ]
 
@@ -348,6 +353,166 @@ def recover_frame(
         params.max_offset,
         evidence_of(f) if evidence_of is not None else None,
     )
+
+
+def stray(
+    cand: BoneCandidate,
+    spacing: tuple[float, float],
+    prior: Prior,
+    rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+) -> float:
+    """How far a contour strays from the depth a track prior interpolates.
+
+    The median, over the contour's points (sampled as the track samples them) that the
+    prior covers, of ``|depth - interpolated depth| / tol``: the interpolation and
+    ``tol`` (the nearer covering track frame's link tolerance) as the guided band of
+    :func:`guided_candidate` makes them, so 1 is the band's edge. NaN when the prior
+    covers fewer than two of its points.
+    """
+    xy = _sampled(cand.points_px, spacing) * np.asarray(spacing, dtype=float)
+    x = xy[:, 0]
+    num, den, tol = np.zeros(x.size), np.zeros(x.size), np.full(x.size, np.inf)
+    for lat, depth, z in prior:
+        inside = (x >= lat[0]) & (x <= lat[-1])
+        wt = 1.0 / (z + 0.1)
+        num[inside] += wt * np.interp(x[inside], lat, depth)
+        den[inside] += wt
+        link = rejection.tolerance_mm + rejection.tolerance_per_mm * z
+        tol[inside] = np.minimum(tol[inside], link)
+    ok = den > 0
+    if np.count_nonzero(ok) < 2:
+        return float("nan")
+    return median1d(np.abs(xy[ok, 1] - num[ok] / den[ok]) / tol[ok])
+
+
+def recheck_prior(
+    frames: Sequence[FrameCandidates],
+    choice: TrackChoice,
+    poses: np.ndarray | Sequence[np.ndarray],
+    f: int,
+    rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+    params: RecoveryParams = RecoveryParams(),  # noqa: B008 (frozen dataclass)
+) -> tuple[Prior, float] | None:
+    """The prior of track frame ``f`` and its contour's :func:`stray` from it, when the
+    frame is to be searched again (:func:`recheck_frame`): ``params.recheck`` on, a
+    track frame on each side within ``max_skip + 1`` frames, and a stray of at least
+    ``params.min_stray``. None otherwise."""
+    if not params.recheck or choice.chosen[f] < 0:
+        return None
+    prior = track_prior(frames, choice, poses, f, rejection.max_skip + 1, True)
+    if prior is None:
+        return None
+    fc = frames[f]
+    own = stray(fc.candidates[int(choice.chosen[f])], fc.spacing, prior, rejection)
+    if not own >= params.min_stray:
+        return None
+    return prior, own
+
+
+def recheck_frame(
+    frames: Sequence[FrameCandidates],
+    choice: TrackChoice,
+    poses: np.ndarray | Sequence[np.ndarray],
+    f: int,
+    image_of: Callable[[int], np.ndarray],
+    shadowpath: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+    rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+    params: RecoveryParams = RecoveryParams(),  # noqa: B008 (frozen dataclass)
+    evidence_of: Callable[[int], EvidenceMaps | None] | None = None,
+) -> BoneCandidate | None:
+    """The contour that replaces track frame ``f``'s, or None (kept as it is).
+
+    A track frame whose contour strays from its neighbours' interpolation
+    (:func:`recheck_prior`) is searched as a frame off the track is
+    (:func:`guided_candidate`, both sides guiding). The guided contour replaces the
+    frame's when it agrees with the neighbours (its :func:`stray` at most
+    ``params.max_stray_ratio`` of the frame's own) and is at least as wide as the
+    frame's contour (its evidence above the null level over at least as many mm).
+    """
+    got = recheck_prior(frames, choice, poses, f, rejection, params)
+    if got is None:
+        return None
+    fc = frames[f]
+    own = fc.candidates[int(choice.chosen[f])]
+    return recheck_candidate(
+        image_of(f),
+        fc.spacing,
+        own,
+        *got,
+        shadowpath,
+        rejection,
+        params,
+        evidence_of(f) if evidence_of is not None else None,
+    )
+
+
+def recheck_candidate(
+    image: np.ndarray,
+    spacing: tuple[float, float],
+    own: BoneCandidate,
+    prior: Prior,
+    own_stray: float,
+    shadowpath: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+    rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+    params: RecoveryParams = RecoveryParams(),  # noqa: B008 (frozen dataclass)
+    evidence: EvidenceMaps | None = None,
+) -> BoneCandidate | None:
+    """:func:`recheck_frame`'s search and verdict, given the frame's pixels, its track
+    contour ``own``, and the prior and stray :func:`recheck_prior` found (a live session
+    calls it with the pixels it kept)."""
+    g = guided_candidate(
+        image,
+        spacing,
+        prior,
+        shadowpath,
+        rejection,
+        params.min_share,
+        params.max_offset,
+        evidence,
+    )
+    if g is None:
+        return None
+    if not stray(g, spacing, prior, rejection) <= params.max_stray_ratio * own_stray:
+        return None
+    if np.ptp(g.points_px[:, 0]) < np.ptp(own.points_px[:, 0]):
+        return None
+    return g
+
+
+def recheck_track(
+    frames: Sequence[FrameCandidates],
+    choice: TrackChoice,
+    poses: np.ndarray,
+    image_of: Callable[[int], np.ndarray],
+    shadowpath: ShadowPathParams = ShadowPathParams(),  # noqa: B008 (frozen dataclass)
+    rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+    params: RecoveryParams = RecoveryParams(),  # noqa: B008 (frozen dataclass)
+    evidence_of: Callable[[int], EvidenceMaps | None] | None = None,
+) -> tuple[list[FrameCandidates], TrackChoice, list[int]]:
+    """The track with the contours of its straying frames replaced (:func:`recheck_frame`).
+
+    Every frame is judged against the track as given (a replacement does not move
+    its neighbours' priors). Returns the frames (a replaced frame's guided contour
+    appended, :func:`with_candidate`), the choice naming it, and the frames replaced.
+    """
+    out = list(frames)
+    changed: list[int] = []
+    if not params.recheck:
+        return out, choice, changed
+    poses = np.asarray(poses, dtype=float)
+    chosen = np.array(choice.chosen, copy=True)
+    for f in np.flatnonzero(np.asarray(choice.chosen) >= 0).tolist():
+        cand = recheck_frame(
+            frames, choice, poses, f, image_of, shadowpath, rejection, params, evidence_of
+        )
+        if cand is None:
+            continue
+        out[f] = with_candidate(frames[f], cand)
+        chosen[f] = len(out[f].candidates) - 1
+        changed.append(f)
+    if not changed:
+        return out, choice, changed
+    return out, replace(choice, chosen=chosen), changed
 
 
 def with_candidate(fc: FrameCandidates, cand: BoneCandidate) -> FrameCandidates:
