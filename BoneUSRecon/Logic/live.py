@@ -385,7 +385,7 @@ def _select(
             choice.detail[n],
             float(choice.confidence[n]),
             _prior_key(frames[n]) if n in extra else None,
-            frames[n].recheck[0] if n in again else None  # type: ignore[index],
+            frames[n].recheck[0] if n in again else None,  # type: ignore[index]
         )
         for n in range(len(frames))
     ]
