@@ -17,10 +17,12 @@ guiding, as offline); the track again with the guided candidates (only their lin
 are made, once per candidate); its bone-free ends cut back
 (:mod:`~BoneUSRecon.Logic.segmentation.ends`) from the shadow step under each
 candidate, measured once when the candidate was made, while the frame's pixels were
-at hand; then resampling, fit and mesh. Every refit therefore equals an offline
+at hand; the track frames whose contour strays from their neighbours' searched again
+and replaced where the search agrees with them (cached as the search of frames off
+the track is); then resampling, fit and mesh. Every refit therefore equals an offline
 :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far, except where a
-frame that had been on the track (its pixels dropped) falls off it with a new prior
-and cannot be searched again (counted in ``LiveReconstructor.recovery_counts``; none
+frame that had been on the track (its pixels dropped) falls off it with a new prior,
+or starts to stray from new neighbours, and cannot be searched again (counted in ``LiveReconstructor.recovery_counts``; none
 on the tests' sweeps and ``bench_live.py``'s). At 480x640, one core: ~12 ms per
 frame, ~0.13 s per refit of 300-400 frames (``Testing/benchmarks/bench_live.py``).
 
@@ -336,8 +338,10 @@ def _select(
     (``track`` holds the same frames, linked as they arrived): the track, the frames
     off it searched again inside the band it allows (:func:`_guided`), and the track
     again with the guided candidates (only their links are made, once per candidate).
-    Frames on the first track give up their pixels (recovery never searches them)
-    unless ``keep_pixels`` (``LiveParams.keep_all_pixels``).
+    Then the track's straying contours searched again (:func:`_rechecked`). Frames on
+    the first track give up their pixels (recovery never searches them) unless
+    ``keep_pixels`` (``LiveParams.keep_all_pixels``), or the recheck may need them
+    (a straying frame, a track frame without a track frame on each side yet).
 
     A frame's contour record depends only on the frame, its guided candidate, its
     position and the track's verdict on it: records whose verdict did not change
@@ -477,9 +481,11 @@ class LiveReconstructor:
     last frame that passed its per-frame checks, exactly as in
     :func:`~BoneUSRecon.Logic.segmentation.segment_sweep`. The contours and poses are
     kept, and the pixels (uint8) of a frame only while recovery may search it: from
-    its arrival until a refit finds it on the (first) track, when they are dropped
-    for good (recovery searches only frames off that track). On ``bench_live.py``
-    (480x640) that is 11 frames at a median refit, 19 at most (5.8 MB); the newest
+    its arrival until a refit finds it on the (first) track, with a track frame on
+    each side and a contour that does not stray from theirs, when they are dropped
+    for good (recovery searches only frames off that track, and the recheck straying
+    track frames). On ``bench_live.py`` (480x640) that was 11 frames at a median
+    refit, 19 at most (5.8 MB) before the recheck; the newest
     of them also keep their evidence maps (:data:`LIVE_EVIDENCE_BYTES`, at most
     32 MB), which recovery reads instead of computing them again; with
     recovery off (``params.segmentation.recovery.enabled`` False, or the snake) no

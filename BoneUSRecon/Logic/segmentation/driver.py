@@ -8,7 +8,9 @@ Two public steps, usable separately (e.g. live, as frames arrive):
   frame, chosen jointly over the frames so far.
 
 Between the two, offline, frames off the track are searched again inside the band the
-track allows (:mod:`.recovery`; shadowpath only), and the track is chosen once more.
+track allows (:mod:`.recovery`; shadowpath only), and the track is chosen once more;
+after the ends cut, track frames whose contour strays from their neighbours' are
+searched the same way and their contour replaced where the search agrees with them.
 
 :func:`segment_sweep` runs both over a sweep and packs the result.
 """

@@ -34,6 +34,18 @@ the bone removed from the last frames of simulated sweeps, a one-sided search fo
 :mod:`.ends` judges what is found past the track's ends (a bone shadow under it,
 relative to the track's typical frame), and ``EndsParams.search_past_ends`` has those
 frames searched with one side guiding (:func:`settings`, offline and live alike).
+
+The same search judges the track's own frames (:func:`recheck_track`, after the ends
+cut): a track frame may carry a contour 1-1.8 mm over a faint top (a run of speckle or
+a layer capping the dome, wider than the per-frame step's excursion rule takes), which
+links to its neighbours within tolerance. Where its contour strays from the
+interpolation of the nearest track frames on both sides (:func:`stray`: at least
+``min_stray`` of the nearer link tolerance on median), the frame is searched as a
+frame off the track, and the guided contour replaces its own only if it agrees with
+the neighbours (stray at most ``max_stray_ratio`` of its own) and is at least as wide
+(evidence above the null level over at least as many mm). Why it generalises: the
+same band and evidence as recovery, judged by the track's own tolerance, no grey
+level; the frame's own evidence still decides where in the band the contour runs.
 """
 
 from __future__ import annotations
