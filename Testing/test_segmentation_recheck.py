@@ -77,18 +77,6 @@ def test_live_recheck_equals_offline():
     assert _median_mm(sim, seg.contours[18]) < 0.5
 
 
-def test_recheck_off_leaves_the_track_as_it_was():
-    """With ``recheck`` off the segmentation is the track without this step (the
-    capped frame keeps its contour), and the parameters are validated."""
-    sim = small_simulation(bone="tibia", realism="hard", seed=31)
-    r = segment_sweep(sim.sweep, NO_RECHECK)
-    assert not r.contours[18].extras.get("recovered")
-    with pytest.raises(BoneUSReconError, match="max_stray_ratio"):
-        RecoveryParams(max_stray_ratio=1.5)
-    with pytest.raises(BoneUSReconError, match="min_stray"):
-        RecoveryParams(min_stray=-0.1)
-
-
 def test_stray_is_the_offset_in_units_of_the_nearer_link_tolerance():
     """A contour 0.6 mm under a flat prior whose nearer frame is 1 mm away (link
     tolerance 1 + 0.4 * 1 = 1.4 mm) strays 0.6 / 1.4; on the prior it strays 0; where
