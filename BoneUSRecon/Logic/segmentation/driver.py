@@ -81,8 +81,8 @@ def _shadowpath(image, spacing, params, prior):  # type: ignore[no-untyped-def]
 BATCH_FRAMES = 32
 
 #: Evidence maps kept from the per-frame step for the recovery's search of frames off
-#: the track (:func:`~.recovery.guided_candidate` reads the same maps; kept, they are
-#: not computed twice) when all of the sweep's fit in this many bytes (which frames
+#: the track and of the track's straying frames (:func:`~.recovery.guided_candidate`
+#: reads the same maps; kept, they are not computed twice) when all of the sweep's fit in this many bytes (which frames
 #: recovery searches is known only once the track is chosen): a 480x640 frame's maps
 #: take ~1.8 MB at 0.15 mm per pixel, ~1.0 MB at 0.075 mm, so a 30-frame sweep at
 #: 0.15 mm keeps them (recovery searched 1-11 of its frames on the hard presets, ~5 ms
