@@ -65,6 +65,7 @@ from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+from BoneUSRecon.Logic.segmentation.settle import settle_candidates
 
 __all__ = [
     "BoneCandidate",
@@ -1232,7 +1233,10 @@ def _frame_candidates_steps(
     # Past the path's reach: each candidate kept followed down the bone's flanks
     # (:mod:`.flanks`; strengths unchanged, so the same candidates are kept, in the same
     # order, and those cut off are not traced).
-    out = extend_candidates(img, ev, out[: p.max_candidates], sp, p.flanks)
+    # A candidate running on a layer just over the bone is first moved onto it where the
+    # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
+    out = settle_candidates(img, ev, out[: p.max_candidates], sp, p.settle)
+    out = extend_candidates(img, ev, out, sp, p.flanks)
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
 
 
