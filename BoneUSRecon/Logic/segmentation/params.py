@@ -231,6 +231,9 @@ class SettleParams:
     gain_z: float = 1.5
     """A point moves when the averaged onset at its best depth beats its own by this many robust spreads (ours, hard simulated sweeps seed 7: at 1.5, 411 of 484 moved points came >0.2 mm nearer the bone and 50 went >0.2 mm farther; at 2, 240 / 20 of 269; at 3, 67 / 2 of 69)."""
 
+    shadow_z: float = 1.0
+    """Least shadow z-score under the new point (:mod:`.evidence`, averaged alike), robust z units (ours: ``ShadowPathParams.shadow_z_full``, clearly darker than the tissue beside it; a phantom bone that passes sound has none, and nothing moves)."""
+
     def __post_init__(self) -> None:
         check_fields(
             self, positive=("depth_mm", "run_mm", "window_mm"), non_negative=("own_mm", "gain_z")

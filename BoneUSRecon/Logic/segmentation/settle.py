@@ -70,6 +70,10 @@ def onset_z(ev: EvidenceMaps, window_mm: tuple[float, float]) -> np.ndarray:
     r = np.arange(h)
     above = (cs[np.clip(r - a + 1, 0, h)] - cs[np.clip(r - b, 0, h)]) / (b - a + 1)
     below = (cs[np.clip(r + b + 1, 0, h)] - cs[np.clip(r + a, 0, h)]) / (b - a + 1)
+    # Above is tissue at most: an echo in the window above (a pixel just under a bright
+    # line) must not pass for the tissue the sound crossed, or any bright line would
+    # have an onset under it, shadow or not.
+    np.minimum(above, 1.0, out=above)
     o = np.log((above + _EPS) / (below + _EPS))
     inside = (r - b >= 0) & (r + b < h)
     v = o[inside][:, ev.usable][::2, ::2].ravel()  # every 4th pixel is plenty for a median
@@ -124,16 +128,27 @@ def settle_points(
     # Averaged along each contour over run_mm (its own points: the filter runs per contour).
     sx = float(spacing[0])
     cut = np.cumsum([0, *sizes])
+    spans = []  # (first, end, points per run_mm) per contour
     for lo, hi in zip(cut[:-1], cut[1:], strict=True):
         step = median1d(np.hypot(*np.diff(pts[lo:hi], axis=0).T)) * sx
-        m = max(1, int(round(p.run_mm / max(step, 1e-6))))
+        spans.append((lo, hi, max(1, int(round(p.run_mm / max(step, 1e-6))))))
+    for lo, hi, m in spans:
         if m > 1:
             g[lo:hi] = uniform_filter1d(g[lo:hi], m, axis=0, mode="nearest")
     n_own = own + 2  # offsets -1 .. own
     mine = g[:, :n_own].max(axis=1)
     best = g[:, n_own:].argmax(axis=1) + n_own
     gain = g[np.arange(g.shape[0]), best] - mine
-    move = gain >= p.gain_z
+    # And the bone's shadow must be there: under the new point the region is darker than
+    # the tissue beside it at the same depth (:mod:`.evidence`'s shadow z-score, averaged
+    # alike). Without it (a phantom bone that passes sound) a line under a layer is just
+    # another line, and the onset alone would favour whichever lies over a darker patch.
+    rb = np.clip(r0 + d[best], 0, h - 1)
+    sz = ev.shadow_z[rb, col].astype(float)
+    for lo, hi, m in spans:
+        if m > 1:
+            sz[lo:hi] = uniform_filter1d(sz[lo:hi], m, mode="nearest")
+    move = (gain >= p.gain_z) & (sz >= p.shadow_z)
     if not move.any():
         return out
     # The new point: the echo peak just above the onset, on the full-resolution column
