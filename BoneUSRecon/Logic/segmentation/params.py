@@ -234,6 +234,12 @@ class SettleParams:
     shadow_z: float = 1.0
     """Least shadow z-score under the new point (:mod:`.evidence`, averaged alike), robust z units (ours: ``ShadowPathParams.shadow_z_full``, clearly darker than the tissue beside it; a phantom bone that passes sound has none, and nothing moves)."""
 
+    gap_ratio: float = 1.0
+    """Between the point and the new one the darkest working pixel must be at most this times the tissue level at its depth (averaged alike; ours: soft tissue lies between a layer and the bone, a thick echo is bright through)."""
+
+    echo_ratio: float = 1.0
+    """The new point's echo must be brighter than this times the tissue level at its depth (averaged alike; ours: an echo is brighter than the typical tissue, the inside of a bone that passes sound is not)."""
+
     def __post_init__(self) -> None:
         check_fields(
             self, positive=("depth_mm", "run_mm", "window_mm"), non_negative=("own_mm", "gain_z")

@@ -148,9 +148,50 @@ def settle_points(
     for lo, hi, m in spans:
         if m > 1:
             sz[lo:hi] = uniform_filter1d(sz[lo:hi], m, mode="nearest")
-    move = (gain >= p.gain_z) & (sz >= p.shadow_z)
+    # The new point: the echo peak just above the onset, on the full-resolution column
+    # profile (``colmean``: the working column's mean at every image row).
+    py = ev.dy / ev.fy  # mm per image row
+    onset = (r0 + d[best] + 0.5) * ev.fy - 0.5
+    lo = np.rint(onset - 0.6 / py).astype(np.intp)
+    rows = np.clip(
+        lo[:, None] + np.arange(max(2, int(round(0.8 / py)))), 0, ev.colmean.shape[0] - 1
+    )
+    peak = rows[np.arange(rows.shape[0]), ev.colmean[rows, col[:, None]].argmax(axis=1)]
+    # And tissue must lie between the two lines: a layer and the bone have soft tissue
+    # between them (no brighter than the tissue level at its depth: the frame's own
+    # per-depth level); a thick echo (a cortex band, the L14 forearm's ~1 mm) is bright
+    # from its top, the surface, down to where its shadow starts. Judged on the working
+    # rows strictly between the point and the new echo's peak, averaged along the contour.
+    rel = ev.work / ev.tissue[:, None]
+    r_new = np.floor((peak + 0.5) / ev.fy - 0.5).astype(np.intp)
+    between = (rr > r0[:, None]) & (rr < r_new[:, None]) & (rr < h)
+    column = rel[np.clip(rr, 0, h - 1), col[:, None]]
+    trough = np.where(between, column, 10.0).min(axis=1)
+    # The line the point is on must be thin (the tissue comes within ``own_mm`` under it):
+    # a thick echo band's top is the bone's surface, whatever lies under the band.
+    dark = (column <= p.gap_ratio) & between
+    thin = dark[:, : own + 2].any(axis=1).astype(float)
+    echo = rel[np.clip(r_new, 0, h - 1), col]
+    for lo, hi, m in spans:
+        if m > 1:
+            trough[lo:hi] = uniform_filter1d(trough[lo:hi], m, mode="nearest")
+            echo[lo:hi] = uniform_filter1d(echo[lo:hi], m, mode="nearest")
+            thin[lo:hi] = uniform_filter1d(thin[lo:hi], m, mode="nearest")
+    move = (
+        (gain >= p.gain_z)
+        & (sz >= p.shadow_z)
+        & (trough <= p.gap_ratio)
+        & (echo > p.echo_ratio)
+        & (thin >= 0.5)
+    )
     if not move.any():
         return out
+    new = pts.copy()
+    new[move, 1] = peak[move]
+    for k, n in enumerate(use):
+        if move[cut[k] : cut[k + 1]].any():
+            out[n] = new[cut[k] : cut[k + 1]]
+    return out
     # The new point: the echo peak just above the onset, on the full-resolution column
     # profile (``colmean``: the working column's mean at every image row).
     py = ev.dy / ev.fy  # mm per image row
@@ -159,8 +200,31 @@ def settle_points(
     span = max(2, int(round(0.8 / py)))
     rows = np.clip(lo[:, None] + np.arange(span), 0, ev.colmean.shape[0] - 1)
     prof = ev.colmean[rows, col[move][:, None]]
+    peak = rows[np.arange(rows.shape[0]), prof.argmax(axis=1)]
+    # And tissue must lie between the two lines: a layer and the bone have soft tissue
+    # between them (no brighter than the tissue level at its depth: the frame's own
+    # per-depth level); a thick echo (a cortex band, the L14 forearm's ~1 mm) is bright
+    # from its top, the surface, down to where its shadow starts. Judged on the working
+    # rows strictly between the point and the new echo's peak, averaged along the contour.
+    rel = ev.work / ev.tissue[:, None]
+    r_new = np.full(r0.shape, -1)
+    r_new[move] = np.floor((peak + 0.5) / ev.fy - 0.5).astype(np.intp)
+    between = (rr > r0[:, None]) & (rr < r_new[:, None]) & (rr < h)
+    column = rel[np.clip(rr, 0, h - 1), col[:, None]]
+    trough = np.where(between, column, 10.0).min(axis=1)
+    # The line the point is on must be thin (the tissue comes within ``own_mm`` under it):
+    # a thick echo band's top is the bone's surface, whatever lies under the band.
+    dark = (column <= p.gap_ratio) & between
+    thin = dark[:, : own + 2].any(axis=1).astype(float)
+    for lo, hi, m in spans:
+        if m > 1 and move[lo:hi].any():
+            trough[lo:hi] = uniform_filter1d(trough[lo:hi], m, mode="nearest")
+    keep = trough[move] <= p.gap_ratio
+    move[move] = keep
+    if not move.any():
+        return out
     new = pts.copy()
-    new[move, 1] = rows[np.arange(rows.shape[0]), prof.argmax(axis=1)]
+    new[move, 1] = peak[keep]
     for k, n in enumerate(use):
         if move[cut[k] : cut[k + 1]].any():
             out[n] = new[cut[k] : cut[k + 1]]
