@@ -231,14 +231,17 @@ class SettleParams:
     gain_z: float = 1.5
     """A point moves when the averaged onset at its best depth beats its own by this many robust spreads (ours, hard simulated sweeps seed 7: at 1.5, 411 of 484 moved points came >0.2 mm nearer the bone and 50 went >0.2 mm farther; at 2, 240 / 20 of 269; at 3, 67 / 2 of 69)."""
 
-    shadow_z: float = 1.0
-    """Least shadow z-score under the new point (:mod:`.evidence`, averaged alike), robust z units (ours: ``ShadowPathParams.shadow_z_full``, clearly darker than the tissue beside it; a phantom bone that passes sound has none, and nothing moves)."""
+    shadow_z: float = 0.5
+    """Least shadow z-score under the new point (:mod:`.evidence`, averaged alike), robust z units (ours: between the evidence's zero and full levels; the hard simulated sweeps' grey shadow, 0.65 of the tissue beside it as on the cadaver, scores 0.6-0.9 under a faint top; a phantom bone that passes sound, brighter inside than the tissue beside it as the L14 forearm, scores below 0 and nothing moves)."""
 
     gap_ratio: float = 1.0
     """Between the point and the new one the darkest working pixel must be at most this times the tissue level at its depth (averaged alike; ours: soft tissue lies between a layer and the bone, a thick echo is bright through)."""
 
     echo_ratio: float = 1.0
     """The new point's echo must be brighter than this times the tissue level at its depth (averaged alike; ours: an echo is brighter than the typical tissue, the inside of a bone that passes sound is not)."""
+
+    thin_mm: float = 0.6
+    """The line a point is on must end within this depth under it (a working pixel no brighter than the tissue level there), mm (ours: a fascia and a cadaver's bone echo are thin lines; the L14 forearm's cortex is a band ~1 mm thick, 1-1.5 mm along the beam on its flanks, and its top is the surface)."""
 
     def __post_init__(self) -> None:
         check_fields(

@@ -40,7 +40,7 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.ndimage import uniform_filter1d
+from scipy.ndimage import median_filter, uniform_filter1d
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
@@ -170,12 +170,12 @@ def settle_points(
     # The line the point is on must be thin (the tissue comes within ``own_mm`` under it):
     # a thick echo band's top is the bone's surface, whatever lies under the band.
     dark = (column <= p.gap_ratio) & between
-    thin = dark[:, : own + 2].any(axis=1).astype(float)
+    thin = dark[:, : mm_to_px(p.thin_mm, ev.dy, minimum=0) + 2].any(axis=1).astype(float)
     echo = rel[np.clip(r_new, 0, h - 1), col]
     for lo, hi, m in spans:
         if m > 1:
-            trough[lo:hi] = uniform_filter1d(trough[lo:hi], m, mode="nearest")
-            echo[lo:hi] = uniform_filter1d(echo[lo:hi], m, mode="nearest")
+            trough[lo:hi] = median_filter(trough[lo:hi], m, mode="nearest")
+            echo[lo:hi] = median_filter(echo[lo:hi], m, mode="nearest")
             thin[lo:hi] = uniform_filter1d(thin[lo:hi], m, mode="nearest")
     move = (
         (gain >= p.gain_z)
@@ -215,7 +215,7 @@ def settle_points(
     # The line the point is on must be thin (the tissue comes within ``own_mm`` under it):
     # a thick echo band's top is the bone's surface, whatever lies under the band.
     dark = (column <= p.gap_ratio) & between
-    thin = dark[:, : own + 2].any(axis=1).astype(float)
+    thin = dark[:, : mm_to_px(p.thin_mm, ev.dy, minimum=0) + 2].any(axis=1).astype(float)
     for lo, hi, m in spans:
         if m > 1 and move[lo:hi].any():
             trough[lo:hi] = uniform_filter1d(trough[lo:hi], m, mode="nearest")
