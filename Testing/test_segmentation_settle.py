@@ -9,8 +9,6 @@ surface is known analytically.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from conftest import small_simulation
@@ -22,26 +20,44 @@ from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation.evidence import bone_evidence
 from BoneUSRecon.Logic.segmentation.params import SettleParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.settle import settle_points
+from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
 SPACING = 0.1  # mm per pixel
 BONE_MM, H, W = 15.0, 260, 240  # the bone's top 15 mm deep; a 26 x 24 mm frame
 LEFT, RIGHT = 40, 200  # the bone's columns
 
 
-def layer_frame(seed: int, *, gap_mm: float = 1.0, shadow: float = 0.45) -> np.ndarray:
+def layer_frame(
+    seed: int,
+    *,
+    gap_mm: float | None = 1.0,
+    shadow: float = 0.45,
+    band_mm: float = 0.0,
+    inside_mm: float | None = None,
+) -> np.ndarray:
     """A flat bone ``BONE_MM`` deep (echo 3x the tissue) under a layer ``gap_mm`` over it
-    (echo 4x: brighter than the bone), speckle blurred by a point spread function,
-    log-compressed to 50 dB; everything under the bone returns ``shadow`` of the tissue
-    (1.0: a phantom that passes sound)."""
+    (echo 4x: brighter than the bone; None: no layer), speckle blurred by a point spread
+    function, log-compressed to 50 dB; everything under the bone returns ``shadow`` of
+    the tissue (above 1: a phantom bone that passes sound and echoes inside, as the L14
+    forearm's). ``band_mm``: the bone's echo is a band this thick (the L14 cortex);
+    ``inside_mm``: an echo this far under the bone's top, inside it."""
     rng = np.random.default_rng(seed)
     z = np.arange(H)[:, None] * SPACING
     speckle = gaussian_filter(rng.rayleigh(1.0, (H, W)), (1.0, 2.0))
     speckle /= speckle.mean()
     cols = np.zeros(W, bool)
     cols[LEFT:RIGHT] = True
-    amp = speckle * np.where((z > BONE_MM) & cols, shadow, 1.0)
-    line = lambda depth, a: a * np.exp(-0.5 * ((z - depth) / 0.12) ** 2) * cols  # noqa: E731
-    amp += line(BONE_MM, 3.0) + line(BONE_MM - gap_mm, 4.0)
+    amp = speckle * np.where((z > BONE_MM + band_mm) & cols, shadow, 1.0)
+
+    def line(depth: float, a: float, thick: float = 0.0) -> np.ndarray:
+        dz = np.maximum(np.abs(z - depth - thick / 2) - thick / 2, 0.0)
+        return a * np.exp(-0.5 * (dz / 0.12) ** 2) * cols
+
+    amp += line(BONE_MM, 3.0, band_mm)
+    if gap_mm is not None:
+        amp += line(BONE_MM - gap_mm, 4.0)
+    if inside_mm is not None:
+        amp += line(BONE_MM + inside_mm, 2.0)
     db = 20 * np.log10(amp + 1e-3)
     return np.clip(255 * (db + 30) / 50, 0, 255).astype(np.uint8)
 
@@ -76,11 +92,50 @@ def test_a_contour_on_the_bone_stays(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_no_shadow_nothing_moves(seed):
-    # A phantom bone that passes sound (the L14 recording): no onset, nothing to go by.
-    img = layer_frame(seed, gap_mm=1.0, shadow=1.0)
+def test_a_bone_that_passes_sound_moves_nothing(seed):
+    # A phantom bone brighter inside than the tissue beside it (the L14 forearm's 1.67x):
+    # no shadow under the lower line, so nothing says it is the bone.
+    img = layer_frame(seed, gap_mm=1.0, shadow=1.3)
     c = contour_at(BONE_MM - 1.0)
     assert settled(img, c) is c
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_top_of_a_thick_echo_band_stays(seed):
+    # The L14 cortex: a band ~1.2 mm thick over a shadow, an echo inside the bone 0.6 mm
+    # under the band. Its top is the surface: the onset under the band and the echo
+    # inside must not pull it 1.8 mm into the bone (only the thin-line test stops it
+    # here; on the recording's flanks points went 2-3 mm in without it).
+    img = layer_frame(seed, gap_mm=None, band_mm=1.2, inside_mm=1.8)
+    c = contour_at(BONE_MM)
+    assert settled(img, c) is c
+
+
+def test_settle_brings_a_hard_sweep_nearer_the_bone():
+    # Hard simulated radius (seed 7): fascia converging on the shoulders, faint tops.
+    # Measured: kept points > 0.5 mm from the true surface 17.2 % -> 15.6 %, mean
+    # 0.258 -> 0.244 mm; recall 1.00 both, no wrong frame.
+    sim = small_simulation(bone="radius", seed=7, realism="hard")
+    rows = []
+    for enabled in (False, True):
+        params = SegmentationParams(
+            shadowpath=ShadowPathParams(settle=SettleParams(enabled=enabled))
+        )
+        res = segment_sweep(sim.sweep, params)
+        d = []
+        for f, truth in enumerate(sim.true_contours_px):
+            kept = res.contours[f].points_px
+            if truth is None or kept is None or len(kept) == 0:
+                continue
+            tree = cKDTree(np.asarray(truth) * 0.3)
+            d.append(tree.query(np.asarray(kept) * 0.3)[0])
+        d = np.concatenate(d)
+        sc = score_simulation(res, sim)
+        rows.append((np.mean(d > 0.5), d.mean(), sc.recall, sc.wrong_share))
+    (off0, mean0, rec0, wrong0), (off1, mean1, rec1, wrong1) = rows
+    assert off1 <= off0 - 0.01, rows
+    assert mean1 <= mean0 - 0.008, rows
+    assert rec1 >= rec0 and wrong1 <= wrong0, rows
 
 
 def test_disabled_or_short_contours_are_returned_as_given():

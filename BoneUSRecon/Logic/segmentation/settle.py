@@ -1,36 +1,47 @@
 """Settle: a contour running on a layer just over the bone is moved down onto the bone.
 
 On hard simulated sweeps 16 % of the kept points lay more than 0.5 mm from the bone,
-and 68 % of those lay 0.5-3 mm *over* it (2 % under it): a fascia or a run of speckle
-converging on the bone's shoulder, or capping a faint top, that the optimal path of
-:mod:`.candidates` follows because its echo is brighter. The evidence cannot tell them
-apart there: its shadow windows start ``shadow_gap_mm`` (1.5 mm) under a line so that
-an echo's blur and the reverberation under it do not count against the bone, and a
-layer 1 mm over the bone then has the bone's own shadow in its windows.
+and 68 % of those lay 0.5-3 mm *over* it (2 % under it): a fascia converging on the
+bone's shoulder, or a layer or a run of speckle capping a faint top, that the optimal
+path of :mod:`.candidates` follows because its echo is brighter. The evidence cannot
+tell them apart there: its shadow windows start ``shadow_gap_mm`` (1.5 mm) under a line
+so that an echo's blur and the reverberation under it do not count against the bone,
+and a layer 1 mm over the bone then has the bone's own shadow in its windows.
 
-What tells them apart is where the shadow *starts*. Along the beam, the bone is where
+What tells them apart is where the shadow *starts*. Along the beam the bone is where
 the tissue ends and the shadow begins: the **onset** ``log(above / below)`` of the mean
-grey in short windows above and below a pixel (``window_mm``, after the per-depth tissue
-level is divided out, so gain, TGC and attenuation do not tilt it) is high at the
-bone's surface. Under a layer over the bone lie tissue and then the bone's echo, so the
-layer's own onset is low, and the bone's, 0.5-3 mm under it, high. Inside the shadow
-(a far cortex, a reverberation copy) both windows are in shadow, so nothing there wins;
-on a phantom bone that passes sound (the L14 recording) no onset wins and nothing moves.
+``work / tissue`` in short windows above and below a pixel (``window_mm``; the per-depth
+tissue level divided out, so gain, TGC and attenuation do not tilt it; the window
+above capped at the tissue level, so an echo in it does not pass for the tissue the
+sound crossed) is high at the bone's surface. Under a layer over the bone lie tissue
+and then the bone's echo, so the layer's own onset is low and the bone's, 0.5-3 mm
+under it, high. Inside the shadow (a far cortex, a reverberation copy) both windows
+are in shadow, so nothing there wins.
 
-Per candidate point, the onset is read at every depth from just over the point to
+Per candidate point the onset is read at every depth from just over the point to
 ``depth_mm`` under it, in robust z units of this frame's own onset spread (1.4826 MAD
-over the usable field: what speckle and tissue texture alone produce), averaged along
-the contour over ``run_mm`` (a layer runs for mm; one grain of speckle does not). A
-point moves where the best averaged onset deeper than its own (``own_mm``: a bright
-echo's onset lies up to ~0.5 mm under its peak) beats its own by ``gain_z``; it moves
-onto the echo peak just above that onset, on the full-resolution column profile.
-Levels are ratios of the same frame's grey levels at nearby places, in units of that
-frame's spread: no grey level and no level fitted to one data source.
+over the usable field: what speckle and texture alone produce), averaged along the
+contour over ``run_mm`` (a layer runs for mm; one grain of speckle does not). A point
+moves, onto the echo peak just above the best deeper onset (full-resolution column
+profile), where that onset beats its own (within ``own_mm``: a bright echo's onset lies
+up to ~0.5 mm under its peak) by ``gain_z``, and the picture is that of a layer over a
+bone (each test averaged along the contour alike):
 
-Applied per frame to each candidate before its flanks are followed (a settled end on
-the bone's flank is followed down it, one on the layer was not), so a live
-reconstruction gets the same contours as an offline one. Vectorised over the points of
-all of a frame's candidates at once. Figures: ``Testing/benchmarks/README.md``
+* the point's line is thin: tissue (no brighter than the tissue level at its depth)
+  comes within ``thin_mm`` under it. The L14 forearm's cortex is a band ~1 mm thick
+  (1-1.5 mm along the beam on its flanks) over a bone that passes sound; its top is the
+  surface, and without this test points of its flanks went 2-3 mm into the bone;
+* tissue lies between the two lines (``gap_ratio``), and the new point is an echo,
+  brighter than the tissue level (``echo_ratio``);
+* the bone's shadow is under the new point (:mod:`.evidence`'s shadow z-score at least
+  ``shadow_z``): without it a line under a layer is just another line.
+
+Every level is a ratio of the same frame's grey levels at nearby places, in units of
+that frame's spread or of its per-depth tissue level: no grey level and no level fitted
+to one data source. Applied per frame to each candidate before its flanks are followed
+(a settled end on the bone's flank is followed down it, one on the layer was not), so
+a live reconstruction gets the same contours as an offline one. Vectorised over the
+points of all of a frame's candidates at once. Figures: ``Testing/benchmarks/README.md``
 ("Settle").
 """
 
@@ -188,43 +199,6 @@ def settle_points(
         return out
     new = pts.copy()
     new[move, 1] = peak[move]
-    for k, n in enumerate(use):
-        if move[cut[k] : cut[k + 1]].any():
-            out[n] = new[cut[k] : cut[k + 1]]
-    return out
-    # The new point: the echo peak just above the onset, on the full-resolution column
-    # profile (``colmean``: the working column's mean at every image row).
-    py = ev.dy / ev.fy  # mm per image row
-    onset = (r0[move] + d[best[move]] + 0.5) * ev.fy - 0.5
-    lo = np.rint(onset - 0.6 / py).astype(np.intp)
-    span = max(2, int(round(0.8 / py)))
-    rows = np.clip(lo[:, None] + np.arange(span), 0, ev.colmean.shape[0] - 1)
-    prof = ev.colmean[rows, col[move][:, None]]
-    peak = rows[np.arange(rows.shape[0]), prof.argmax(axis=1)]
-    # And tissue must lie between the two lines: a layer and the bone have soft tissue
-    # between them (no brighter than the tissue level at its depth: the frame's own
-    # per-depth level); a thick echo (a cortex band, the L14 forearm's ~1 mm) is bright
-    # from its top, the surface, down to where its shadow starts. Judged on the working
-    # rows strictly between the point and the new echo's peak, averaged along the contour.
-    rel = ev.work / ev.tissue[:, None]
-    r_new = np.full(r0.shape, -1)
-    r_new[move] = np.floor((peak + 0.5) / ev.fy - 0.5).astype(np.intp)
-    between = (rr > r0[:, None]) & (rr < r_new[:, None]) & (rr < h)
-    column = rel[np.clip(rr, 0, h - 1), col[:, None]]
-    trough = np.where(between, column, 10.0).min(axis=1)
-    # The line the point is on must be thin (the tissue comes within ``own_mm`` under it):
-    # a thick echo band's top is the bone's surface, whatever lies under the band.
-    dark = (column <= p.gap_ratio) & between
-    thin = dark[:, : mm_to_px(p.thin_mm, ev.dy, minimum=0) + 2].any(axis=1).astype(float)
-    for lo, hi, m in spans:
-        if m > 1 and move[lo:hi].any():
-            trough[lo:hi] = uniform_filter1d(trough[lo:hi], m, mode="nearest")
-    keep = trough[move] <= p.gap_ratio
-    move[move] = keep
-    if not move.any():
-        return out
-    new = pts.copy()
-    new[move, 1] = peak[keep]
     for k, n in enumerate(use):
         if move[cut[k] : cut[k + 1]].any():
             out[n] = new[cut[k] : cut[k + 1]]
