@@ -240,8 +240,8 @@ class SettleParams:
     echo_ratio: float = 1.0
     """The new point's echo must be brighter than this times the tissue level at its depth (averaged alike; ours: an echo is brighter than the typical tissue, the inside of a bone that passes sound is not)."""
 
-    thin_mm: float = 0.6
-    """The line a point is on must end within this depth under it (a working pixel no brighter than the tissue level there), mm (ours: a fascia and a cadaver's bone echo are thin lines; the L14 forearm's cortex is a band ~1 mm thick, 1-1.5 mm along the beam on its flanks, and its top is the surface)."""
+    thin_mm: float = 1.2
+    """The line a point is on must end within this depth under it (a working pixel no brighter than the tissue level there), mm (ours: a fascia is a thin line, blurred to ~1 mm along the beam on the hard simulated sweeps, where 0.6 mm blocked 163 moves onto the bone on six sweeps and 1.2 mm 60; the L14 forearm's cortex is a band ~1 mm thick over a bone that passes sound, 1-1.5 mm along the beam on its flanks, and its top is the surface: with no such test its flank points went 2-3 mm into it; none moves up to 1.5 mm)."""
 
     def __post_init__(self) -> None:
         check_fields(

@@ -28,7 +28,7 @@ up to ~0.5 mm under its peak) by ``gain_z``, and the picture is that of a layer 
 bone (each test averaged along the contour alike):
 
 * the point's line is thin: tissue (no brighter than the tissue level at its depth)
-  comes within ``thin_mm`` under it. The L14 forearm's cortex is a band ~1 mm thick
+  comes within ``thin_mm`` under it (a fascia is thin). The L14 forearm's cortex is a band ~1 mm thick
   (1-1.5 mm along the beam on its flanks) over a bone that passes sound; its top is the
   surface, and without this test points of its flanks went 2-3 mm into the bone;
 * tissue lies between the two lines (``gap_ratio``), and the new point is an echo,
@@ -178,7 +178,7 @@ def settle_points(
     between = (rr > r0[:, None]) & (rr < r_new[:, None]) & (rr < h)
     column = rel[np.clip(rr, 0, h - 1), col[:, None]]
     trough = np.where(between, column, 10.0).min(axis=1)
-    # The line the point is on must be thin (the tissue comes within ``own_mm`` under it):
+    # The line the point is on must be thin (the tissue comes within ``thin_mm`` under it):
     # a thick echo band's top is the bone's surface, whatever lies under the band.
     dark = (column <= p.gap_ratio) & between
     thin = dark[:, : mm_to_px(p.thin_mm, ev.dy, minimum=0) + 2].any(axis=1).astype(float)
