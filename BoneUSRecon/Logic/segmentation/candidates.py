@@ -39,6 +39,11 @@ Look-alikes handled per frame (each with a simulated test in
   (:func:`_mark_series`): under a grey shadow the copies, with the darkest shadow
   beneath them, outscore the faint reflector itself.
 
+Layers over the bone: a candidate that runs on a fascia or a run of speckle just over
+the bone (its shadow windows, 1.5 mm under it, hold the bone's own shadow) is moved down
+onto the bone where the shadow starts under it (:mod:`.settle`), before its flanks are
+followed.
+
 Flanks: the path may change depth by up to ``max_slope`` (tan 72 degrees) per lateral
 mm with a small quadratic penalty, and the shadow windows hang below each column (the
 inside of a convex bone lies below every point of its upper surface, so the shadow

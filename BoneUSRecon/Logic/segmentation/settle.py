@@ -51,7 +51,6 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.ndimage import median_filter, uniform_filter1d
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
@@ -64,38 +63,78 @@ _EPS = 1e-3  # guards log(0) in black regions (no decision rests on it)
 _BAD = -1e3  # onset of a depth outside the image: never the best
 
 
-def onset_z(ev: EvidenceMaps, window_mm: tuple[float, float]) -> np.ndarray:
-    """Robust z-score of the shadow onset along the beam per working pixel, shape (h, w).
+def onset_z(
+    ev: EvidenceMaps,
+    window_mm: tuple[float, float],
+    rows: tuple[int, int] | None = None,
+    rel: np.ndarray | None = None,
+) -> np.ndarray:
+    """Robust z-score of the shadow onset along the beam per working pixel.
 
     ``log(above / below)``: the mean of ``work / tissue`` over rows ``window_mm`` (from,
-    to) above the pixel against that below it, centred on its median over the usable
-    columns and scaled by 1.4826 x the median absolute deviation. Rows whose windows
-    leave the image and unusable columns are 0.
+    to) above the pixel against that below it (above capped at 1, the tissue level),
+    centred on its median over the usable field and scaled by 1.4826 x its median
+    absolute deviation (both from every third row and usable column). Rows whose
+    windows leave the image and unusable columns are 0.
+
+    Parameters
+    ----------
+    ev : EvidenceMaps
+    window_mm : (from, to)
+    rows : (first, end), optional
+        Only these working rows (the z-scale still comes from the whole field).
+    rel : ndarray, optional
+        ``ev.work / ev.tissue[:, None]`` when already computed.
+
+    Returns
+    -------
+    ndarray, shape (end - first, w)
     """
     a = mm_to_px(window_mm[0], ev.dy)
     b = max(a + 1, mm_to_px(window_mm[1], ev.dy))
-    w = ev.work / ev.tissue[:, None]
+    w = ev.work / ev.tissue[:, None] if rel is None else rel
     h = w.shape[0]
     cs = np.zeros((h + 1, w.shape[1]), np.float32)
     np.cumsum(w, axis=0, out=cs[1:])
-    r = np.arange(h)
-    above = (cs[np.clip(r - a + 1, 0, h)] - cs[np.clip(r - b, 0, h)]) / (b - a + 1)
-    below = (cs[np.clip(r + b + 1, 0, h)] - cs[np.clip(r + a, 0, h)]) / (b - a + 1)
-    # Above is tissue at most: an echo in the window above (a pixel just under a bright
-    # line) must not pass for the tissue the sound crossed, or any bright line would
-    # have an onset under it, shadow or not.
-    np.minimum(above, 1.0, out=above)
-    o = np.log((above + _EPS) / (below + _EPS))
-    inside = (r - b >= 0) & (r + b < h)
-    v = o[inside][:, ev.usable][::2, ::2].ravel()  # every 4th pixel is plenty for a median
+
+    def onset(r: np.ndarray, c: slice | np.ndarray) -> np.ndarray:
+        above = cs[np.clip(r - a + 1, 0, h)][:, c] - cs[np.clip(r - b, 0, h)][:, c]
+        below = cs[np.clip(r + b + 1, 0, h)][:, c] - cs[np.clip(r + a, 0, h)][:, c]
+        above *= 1.0 / (b - a + 1)
+        below *= 1.0 / (b - a + 1)
+        # Above is tissue at most: an echo in the window above (a pixel just under a
+        # bright line) must not pass for the tissue the sound crossed, or any bright
+        # line would have an onset under it, shadow or not.
+        np.minimum(above, 1.0, out=above)
+        above += _EPS
+        below += _EPS
+        return np.log(above / below)
+
+    lo, hi = (0, h) if rows is None else (max(0, rows[0]), min(h, rows[1]))
+    r = np.arange(lo, hi)
+    out = onset(r, slice(None)) if hi > lo else np.zeros((0, w.shape[1]), np.float32)
+    sample = np.arange(b, h - b, 3)
+    v = onset(sample, np.flatnonzero(ev.usable)[::3]).ravel() if sample.size else sample
     if v.size < 10:
-        return np.zeros_like(o)
+        return np.zeros_like(out)
     med = median1d(v)
-    o -= med
-    o *= 1.0 / max(1.4826 * median1d(np.abs(v - med)), 1e-3)
-    o[~inside] = 0.0
-    o[:, ~ev.usable] = 0.0
-    return o
+    out -= med
+    out *= 1.0 / max(1.4826 * median1d(np.abs(v - med)), 1e-3)
+    out[(r - b < 0) | (r + b >= h)] = 0.0
+    out[:, ~ev.usable] = 0.0
+    return out
+
+
+def _run_mean(a: np.ndarray, first: np.ndarray, end: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Mean of ``a`` (n, ...) over ``+-half[i]`` points around each point ``i``, the window
+    clipped to its own contour ``[first[i], end[i])``: all contours in one set of calls."""
+    cs = np.zeros((a.shape[0] + 1,) + a.shape[1:])
+    np.cumsum(a, axis=0, out=cs[1:])
+    i = np.arange(a.shape[0])
+    lo = np.maximum(i - half, first)
+    hi = np.minimum(i + half + 1, end)
+    n = (hi - lo).reshape((-1,) + (1,) * (a.ndim - 1))
+    return (cs[hi] - cs[lo]) / n
 
 
 def settle_points(
@@ -126,39 +165,36 @@ def settle_points(
     use = [n for n, c in enumerate(out) if len(c) >= 3]
     if not p.enabled or not use:
         return out
-    oz = onset_z(ev, p.window_mm)
-    h, w = oz.shape
+    h, w = ev.work.shape
     pts = np.concatenate([np.asarray(out[n], float) for n in use])
-    sizes = [len(out[n]) for n in use]
+    sizes = np.array([len(out[n]) for n in use])
     col = np.clip(np.rint((pts[:, 0] + 0.5) / ev.fx - 0.5).astype(np.intp), 0, w - 1)
     r0 = np.rint((pts[:, 1] + 0.5) / ev.fy - 0.5).astype(np.intp)
     own = mm_to_px(p.own_mm, ev.dy, minimum=0)
     d = np.arange(-1, mm_to_px(p.depth_mm, ev.dy) + 1)
     rr = r0[:, None] + d
-    g = np.where((rr >= 0) & (rr < h), oz[np.clip(rr, 0, h - 1), col[:, None]], _BAD)
-    # Averaged along each contour over run_mm (its own points: the filter runs per contour).
-    sx = float(spacing[0])
-    cut = np.cumsum([0, *sizes])
-    spans = []  # (first, end, points per run_mm) per contour
-    for lo, hi in zip(cut[:-1], cut[1:], strict=True):
-        step = median1d(np.hypot(*np.diff(pts[lo:hi], axis=0).T)) * sx
-        spans.append((lo, hi, max(1, int(round(p.run_mm / max(step, 1e-6))))))
-    for lo, hi, m in spans:
-        if m > 1:
-            g[lo:hi] = uniform_filter1d(g[lo:hi], m, axis=0, mode="nearest")
+    inside = (rr >= 0) & (rr < h)
+    rc = np.clip(rr, 0, h - 1)
+    # The onset only on the rows the points reach (its scale from the whole field).
+    rel = ev.work / ev.tissue[:, None]
+    top, bottom = int(rc.min()), int(rc.max()) + 1
+    oz = onset_z(ev, p.window_mm, (top, bottom), rel)
+    g = np.where(inside, oz[rc - top, col[:, None]], _BAD)
+    # Every test is averaged along its own contour over run_mm (windows clipped to the
+    # contour: all contours in one set of calls).
+    cut = np.cumsum(np.r_[0, sizes])
+    first = np.repeat(cut[:-1], sizes)
+    end = np.repeat(cut[1:], sizes)
+    seg = np.hypot(*np.diff(pts, axis=0).T) * float(spacing[0])
+    step = np.array([median1d(seg[a : b - 1]) for a, b in zip(cut[:-1], cut[1:], strict=True)])
+    half = np.repeat(
+        np.maximum(0, np.rint(p.run_mm / np.maximum(step, 1e-6)).astype(int) // 2), sizes
+    )
+    g = _run_mean(g, first, end, half)
     n_own = own + 2  # offsets -1 .. own
     mine = g[:, :n_own].max(axis=1)
     best = g[:, n_own:].argmax(axis=1) + n_own
     gain = g[np.arange(g.shape[0]), best] - mine
-    # And the bone's shadow must be there: under the new point the region is darker than
-    # the tissue beside it at the same depth (:mod:`.evidence`'s shadow z-score, averaged
-    # alike). Without it (a phantom bone that passes sound) a line under a layer is just
-    # another line, and the onset alone would favour whichever lies over a darker patch.
-    rb = np.clip(r0 + d[best], 0, h - 1)
-    sz = ev.shadow_z[rb, col].astype(float)
-    for lo, hi, m in spans:
-        if m > 1:
-            sz[lo:hi] = uniform_filter1d(sz[lo:hi], m, mode="nearest")
     # The new point: the echo peak just above the onset, on the full-resolution column
     # profile (``colmean``: the working column's mean at every image row).
     py = ev.dy / ev.fy  # mm per image row
@@ -168,26 +204,31 @@ def settle_points(
         lo[:, None] + np.arange(max(2, int(round(0.8 / py)))), 0, ev.colmean.shape[0] - 1
     )
     peak = rows[np.arange(rows.shape[0]), ev.colmean[rows, col[:, None]].argmax(axis=1)]
-    # And tissue must lie between the two lines: a layer and the bone have soft tissue
-    # between them (no brighter than the tissue level at its depth: the frame's own
-    # per-depth level); a thick echo (a cortex band, the L14 forearm's ~1 mm) is bright
-    # from its top, the surface, down to where its shadow starts. Judged on the working
-    # rows strictly between the point and the new echo's peak, averaged along the contour.
-    rel = ev.work / ev.tissue[:, None]
-    r_new = np.floor((peak + 0.5) / ev.fy - 0.5).astype(np.intp)
-    between = (rr > r0[:, None]) & (rr < r_new[:, None]) & (rr < h)
-    column = rel[np.clip(rr, 0, h - 1), col[:, None]]
-    trough = np.where(between, column, 10.0).min(axis=1)
-    # The line the point is on must be thin (the tissue comes within ``thin_mm`` under it):
-    # a thick echo band's top is the bone's surface, whatever lies under the band.
-    dark = (column <= p.gap_ratio) & between
-    thin = dark[:, : mm_to_px(p.thin_mm, ev.dy, minimum=0) + 2].any(axis=1).astype(float)
-    echo = rel[np.clip(r_new, 0, h - 1), col]
-    for lo, hi, m in spans:
-        if m > 1:
-            trough[lo:hi] = median_filter(trough[lo:hi], m, mode="nearest")
-            echo[lo:hi] = median_filter(echo[lo:hi], m, mode="nearest")
-            thin[lo:hi] = uniform_filter1d(thin[lo:hi], m, mode="nearest")
+    r_new = np.clip(np.floor((peak + 0.5) / ev.fy - 0.5).astype(np.intp), 0, h - 1)
+    # The bone's shadow must be there: under the new point the region is darker than
+    # the tissue beside it at the same depth (:mod:`.evidence`'s shadow z-score).
+    # Without it (a phantom bone that passes sound) a line under a layer is just
+    # another line, and the onset alone would favour whichever lies over a darker patch.
+    # Tissue must lie between the two lines (a layer and the bone have soft tissue
+    # between them, no brighter than the tissue level at its depth: the frame's own
+    # per-depth level), on the working rows strictly between the point and the new echo;
+    # the new point is an echo (brighter than that level); the line the point is on is
+    # thin (tissue comes within ``thin_mm`` under it): a thick echo band (a cortex band,
+    # the L14 forearm's ~1 mm) is bright from its top, the surface, down to where its
+    # shadow starts.
+    column = rel[rc, col[:, None]]
+    between = (rr > r0[:, None]) & (rr < r_new[:, None]) & inside
+    tests = np.column_stack(
+        [
+            ev.shadow_z[r_new, col],
+            np.minimum(np.where(between, column, 2.0).min(axis=1), 2.0),
+            rel[r_new, col],
+            ((column <= p.gap_ratio) & between)[:, : mm_to_px(p.thin_mm, ev.dy, minimum=0) + 2].any(
+                axis=1
+            ),
+        ]
+    )
+    sz, trough, echo, thin = _run_mean(tests, first, end, half).T
     move = (
         (gain >= p.gain_z)
         & (sz >= p.shadow_z)
