@@ -243,6 +243,9 @@ class SettleParams:
     thin_mm: float = 1.2
     """The line a point is on must end within this depth under it (a working pixel no brighter than the tissue level there), mm (ours: a fascia is a thin line, blurred to ~1 mm along the beam on the hard simulated sweeps, where 0.6 mm blocked 163 moves onto the bone on six sweeps and 1.2 mm 60; the L14 forearm's cortex is a band ~1 mm thick over a bone that passes sound, 1-1.5 mm along the beam on its flanks, and its top is the surface: with no such test its flank points went 2-3 mm into it; none moves up to 1.5 mm)."""
 
+    max_slope_deg: float = 45.0
+    """Only where the contour (averaged over ``run_mm``) is at most this steep, degrees (ours: along the beam, under a steep flank lies the bone's inside, where a fascia touching the flank or the inside of a bone that passes sound is met before any layer; the layers over the bone found on the hard simulated sweeps cap tops and shoulders)."""
+
     def __post_init__(self) -> None:
         check_fields(
             self, positive=("depth_mm", "run_mm", "window_mm"), non_negative=("own_mm", "gain_z")

@@ -170,7 +170,6 @@ def settle_points(
     sizes = np.array([len(out[n]) for n in use])
     col = np.clip(np.rint((pts[:, 0] + 0.5) / ev.fx - 0.5).astype(np.intp), 0, w - 1)
     r0 = np.rint((pts[:, 1] + 0.5) / ev.fy - 0.5).astype(np.intp)
-    own = mm_to_px(p.own_mm, ev.dy, minimum=0)
     d = np.arange(-1, mm_to_px(p.depth_mm, ev.dy) + 1)
     rr = r0[:, None] + d
     inside = (rr >= 0) & (rr < h)
@@ -191,9 +190,18 @@ def settle_points(
         np.maximum(0, np.rint(p.run_mm / np.maximum(step, 1e-6)).astype(int) // 2), sizes
     )
     g = _run_mean(g, first, end, half)
-    n_own = own + 2  # offsets -1 .. own
-    mine = g[:, :n_own].max(axis=1)
-    best = g[:, n_own:].argmax(axis=1) + n_own
+    # A point's own onset: the best within own_mm under it *across the line*, so along
+    # the beam own_mm / cos(slope) (on a 55-degree flank an echo 0.3 mm thick spans
+    # 0.5 mm of the beam, and its shadow starts under that).
+    cos = np.abs(np.gradient(pts[:, 0] * float(spacing[0])))
+    slope_len = np.hypot(cos, np.gradient(pts[:, 1] * float(spacing[1])))
+    cos = _run_mean(cos, first, end, half) / np.maximum(
+        _run_mean(slope_len, first, end, half), 1e-9
+    )
+    own = np.rint(p.own_mm / np.maximum(cos, 0.3) / ev.dy).astype(np.intp)
+    is_own = d[None, :] <= own[:, None]
+    mine = np.where(is_own, g, _BAD).max(axis=1)
+    best = np.where(is_own, _BAD, g).argmax(axis=1)
     gain = g[np.arange(g.shape[0]), best] - mine
     # The new point: the echo peak just above the onset, on the full-resolution column
     # profile (``colmean``: the working column's mean at every image row).
@@ -235,6 +243,7 @@ def settle_points(
         & (trough <= p.gap_ratio)
         & (echo > p.echo_ratio)
         & (thin >= 0.5)
+        & (cos >= np.cos(np.radians(p.max_slope_deg)))
     )
     if not move.any():
         return out
