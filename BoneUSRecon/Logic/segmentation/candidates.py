@@ -1241,7 +1241,7 @@ def _frame_candidates_steps(
     # A candidate running on a layer just over the bone is first moved onto it where the
     # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
     out = settle_candidates(img, ev, out[: p.max_candidates], sp, p.settle)
-    out = extend_candidates(img, ev, out, sp, p.flanks)
+    out = extend_candidates(img, ev, out, sp, p.flanks, p.rim)
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
 
 

@@ -27,6 +27,7 @@ __all__ = [
     "PosteriorParams",
     "FlankParams",
     "SettleParams",
+    "RimParams",
     "ShadowPathParams",
     "RejectionParams",
     "RecoveryParams",
@@ -211,6 +212,65 @@ class FlankParams:
 
 
 @dataclass(frozen=True)
+class RimParams:
+    """Following a contour's flat ends round the bone's outline in polar coordinates (:mod:`.rim`).
+
+    Lengths in mm; the stop level is a share of the contour's own echo in the frame (no
+    grey level enters).
+    """
+
+    enabled: bool = True
+    """Follow the ends :mod:`.flanks` did not extend (off: those ends stay)."""
+    min_points: int = 12
+    """Contours with fewer points are not followed (a circle fit needs an arc)."""
+    radius_mm: tuple[float, float] = (2.0, 40.0)
+    """Radii of the fitted circle accepted, mm (a clavicle's 5 mm to a tibia's broad face; a flatter fit is a layer)."""
+    step_mm: float = 0.3
+    """Arc-length step at the end's radius, mm (about a working pixel)."""
+    band_mm: float = 3.0
+    """Half-width of the radial band searched about the end's radius, mm (a crest departs from its fitted circle by a few mm)."""
+    offset_mm: float = 0.1
+    """Spacing of the radial samples, mm."""
+    max_step_mm: float = 0.1
+    """Largest change of radius per step, mm (an outline departing from the circle by at most ~18 degrees per step; a layer leaving the bone flat needs more)."""
+    outside_mm: tuple[float, float] = (0.75, 1.75)
+    """Window out along the ray that a sample's echo is compared with, mm (as ``FlankParams.outside_mm``)."""
+    run_mm: float = 1.5
+    """Arc over which the echo is averaged, mm (as ``FlankParams.run_mm``)."""
+    keep: float = 0.3
+    """The trace continues while its echo is at least this share of the contour's own (log ratios; ours: on the L14 forearm the flank's echo is 0.5-1.0 of the top's)."""
+    gap_mm: float = 0.9
+    """A shorter dropout under the level is bridged, mm (as ``FlankParams.gap_mm``)."""
+    max_deg: float = 95.0
+    """Furthest direction followed, degrees from the beam's up direction (past the bone's widest point a beam from above sees nothing)."""
+    min_steps: int = 3
+    """Shorter traces are dropped."""
+    refine_mm: float = 0.3
+    """Half-length of the full-resolution profile along the ray on which each point's echo peak is fitted, mm."""
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            positive=(
+                "radius_mm",
+                "step_mm",
+                "band_mm",
+                "offset_mm",
+                "max_step_mm",
+                "outside_mm",
+                "run_mm",
+                "refine_mm",
+            ),
+            non_negative=("keep", "gap_mm", "min_points", "min_steps"),
+            within={"max_deg": "(0, 180]"},
+        )
+        for name in ("radius_mm", "outside_mm"):
+            lo, hi = getattr(self, name)
+            if not hi > lo:
+                raise BoneUSReconError(f"RimParams.{name} must be increasing, got {(lo, hi)!r}")
+
+
+@dataclass(frozen=True)
 class SettleParams:
     """Moving a contour that runs on a layer just over the bone down onto it (:mod:`.settle`).
 
@@ -329,6 +389,8 @@ class ShadowPathParams:
     """Moving each candidate that runs on a layer just over the bone down onto it, before its flanks are followed (:mod:`.settle`)."""
     flanks: FlankParams = field(default_factory=FlankParams)
     """Following each candidate down the bone's flanks, past where one depth per column holds (:mod:`.flanks`)."""
+    rim: RimParams = field(default_factory=RimParams)
+    """Following the ends the flanks tracer left, flat ones included, round the outline in polar coordinates (:mod:`.rim`)."""
     near_field_mm: float = 2.0
     """Rows shallower than this are never bone, mm (gel, skin line and lens reverberation)."""
     contact_mm: float = 4.0
