@@ -223,6 +223,10 @@ class RimParams:
     """Follow the ends :mod:`.flanks` did not extend (off: those ends stay)."""
     min_points: int = 12
     """Contours with fewer points are not followed (a circle fit needs an arc)."""
+    max_start_deg: float = 20.0
+    """Only ends whose last ``fit_mm`` of contour descends outward less steeply than this are followed, degrees (ours: ``FlankParams.min_start_deg``: an end that descends is the arc tracer's, and its stop rule ended it; following those too added twice the points off the bone on the hard simulated sweeps, 24 % of all kept points farther than 0.5 mm against 18 %)."""
+    fit_mm: float = 2.0
+    """Length of contour at an end over which its slope is measured, mm (as ``FlankParams.fit_mm``)."""
     radius_mm: tuple[float, float] = (2.0, 40.0)
     """Radii of the fitted circle accepted, mm (a clavicle's 5 mm to a tibia's broad face; a flatter fit is a layer)."""
     step_mm: float = 0.3
@@ -241,6 +245,10 @@ class RimParams:
     """The trace continues while its echo is at least this share of the contour's own (log ratios; ours: on the L14 forearm the flank's echo is 0.5-1.0 of the top's)."""
     gap_mm: float = 0.9
     """A shorter dropout under the level is bridged, mm (as ``FlankParams.gap_mm``)."""
+    null_mm: float = 8.0
+    """The null band: the same search this far out along the rays (past the band and its outside windows), in the tissue beside the bone, mm."""
+    stop_z: float = 0.0
+    """The trace's echo must also beat the null's median by this many of its robust spreads (pooled over the frame's traces: what speckle and the tissue's layers give with the same search)."""
     max_deg: float = 95.0
     """Furthest direction followed, degrees from the beam's up direction (past the bone's widest point a beam from above sees nothing)."""
     min_steps: int = 3
@@ -261,7 +269,7 @@ class RimParams:
                 "run_mm",
                 "refine_mm",
             ),
-            non_negative=("keep", "gap_mm", "min_points", "min_steps"),
+            non_negative=("keep", "gap_mm", "min_points", "min_steps", "null_mm", "stop_z"),
             within={"max_deg": "(0, 180]"},
         )
         for name in ("radius_mm", "outside_mm"):

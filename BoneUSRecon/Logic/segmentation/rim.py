@@ -115,6 +115,15 @@ def follow_rims(
             phi0 = float(np.arctan2(side * (x[k] - cx), cz - z[k]))
             if phi0 >= np.radians(p.max_deg) - 1e-6:
                 continue
+            # The end's own outward slope over the last fit_mm of contour: an end that
+            # already descends was the arc tracer's (:mod:`.flanks`), whose stop rule
+            # ended it; only flatter ends are followed here.
+            q = np.hypot(x - x[k], z - z[k]) <= p.fit_mm
+            qi = np.flatnonzero(q)
+            far = qi[np.argmax(np.abs(qi - (0 if side < 0 else len(x) - 1)))]
+            dx_, dz_ = side * (x[k] - x[far]), z[k] - z[far]
+            if dx_ > 0 and np.degrees(np.arctan2(dz_, dx_)) >= p.max_start_deg:
+                continue
             rows.append((n, side, cx, cz, r0, phi0, x, z))
     if not rows:
         return out
@@ -138,7 +147,11 @@ def follow_rims(
     # on a regular grid of offset_mm; sample that grid once.
     k0 = int(round(p.outside_mm[0] / p.offset_mm))
     k1 = int(round(p.outside_mm[1] / p.offset_mm))
-    grid = off[0] + p.offset_mm * np.arange(nb + k1 + 1)
+    # The null band (the same search in the tissue beside the bone, null_mm out) on the
+    # same radial grid, ``shift`` samples further out.
+    shift = int(round(p.null_mm / p.offset_mm))
+    ne = nb + shift
+    grid = off[0] + p.offset_mm * np.arange(ne + k1 + 1)
     gx = cx + side * sin * (r0[:, None, None] + grid)
     gz = cz - cos * (r0[:, None, None] + grid)
     gi = gx / fx + (0.5 / ev.fx - 0.5)
@@ -148,15 +161,16 @@ def follow_rims(
     g = _bilinear(ev.work, gi, gj)
     cs = np.zeros(g.shape[:2] + (g.shape[2] + 1,))
     np.cumsum(g, axis=-1, out=cs[..., 1:])
-    outside = (cs[..., k1 + 1 : k1 + 1 + nb] - cs[..., k0 : k0 + nb]) / (k1 - k0 + 1)
-    e = np.log(g[..., :nb] + _EPS) - np.log(outside + _EPS)
+    outside = (cs[..., k1 + 1 : k1 + 1 + ne] - cs[..., k0 : k0 + ne]) / (k1 - k0 + 1)
+    e = np.log(g[..., :ne] + _EPS) - np.log(outside + _EPS)
     nbad = np.zeros(g.shape[:2] + (g.shape[2] + 1,), np.int32)
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
-    bad = (nbad[..., k1 + 1 : k1 + 1 + nb] - nbad[..., :nb]) > 0
+    bad = (nbad[..., k1 + 1 : k1 + 1 + ne] - nbad[..., :ne]) > 0
     e[bad | ~live[:, :, None]] = _BAD
+    e = np.concatenate([e[..., :nb], e[..., shift : shift + nb]])  # traces, then nulls
     run = max(1, int(round(p.run_mm / p.step_mm)))
     if run > 1:
-        ce = np.zeros((n_t, n_step + 1, nb))
+        ce = np.zeros((2 * n_t, n_step + 1, nb))
         np.cumsum(e, axis=1, out=ce[:, 1:])
         i = np.arange(n_step)
         lo = np.clip(i - run // 2, 0, n_step)
@@ -164,16 +178,16 @@ def follow_rims(
         e = (ce[:, hi] - ce[:, lo]) / (hi - lo)[None, :, None]
     # The path: Viterbi over the steps, the radius moving at most max_step per step.
     ms = max(1, int(round(p.max_step_mm / p.offset_mm)))
-    acc = np.full((n_t, nb), -np.inf)
+    acc = np.full((2 * n_t, nb), -np.inf)
     acc[:, m] = e[:, 0, m]
-    back = np.zeros((n_step, n_t, nb), np.intp)
+    back = np.zeros((n_step, 2 * n_t, nb), np.intp)
     idx = np.arange(nb)
     for t in range(1, n_step):
         best = acc.copy()
-        arg = np.zeros((n_t, nb), np.intp)
+        arg = np.zeros((2 * n_t, nb), np.intp)
         for s in range(1, ms + 1):
             for sh in (s, -s):
-                cand = np.full((n_t, nb), -np.inf)
+                cand = np.full((2 * n_t, nb), -np.inf)
                 if sh > 0:
                     cand[:, sh:] = acc[:, :-sh]
                 else:
@@ -183,12 +197,21 @@ def follow_rims(
                 arg = np.where(better, -sh, arg)
         back[t] = idx + arg
         acc = best + e[:, t]
-    path = np.empty((n_t, n_step), np.intp)
+    path = np.empty((2 * n_t, n_step), np.intp)
     path[:, -1] = acc.argmax(axis=1)
-    tt = np.arange(n_t)
+    tt = np.arange(2 * n_t)
     for t in range(n_step - 1, 0, -1):
         path[:, t - 1] = back[t, tt, path[:, t]]
-    ridge = e[tt[:, None], np.arange(n_step), path]
+    vals = e[tt[:, None], np.arange(n_step), path]
+    ridge, null, path = vals[:n_t], vals[n_t:], path[:n_t]
+    tt = tt[:n_t]
+    # What speckle and the tissue's own layers give with the same search, pooled over
+    # the frame's traces (median and robust spread).
+    pool = null[(null > 0.5 * _BAD) & live]
+    if pool.size < 10:
+        return out
+    med = median1d(pool)
+    floor = med + p.stop_z * max(1.4826 * median1d(np.abs(pool - med)), 1e-6)
     # The contour's own echo, measured the same way along its own rays.
     level = np.empty(n_t)
     for q, (_, sd, ccx, ccz, _, _, x, z) in enumerate(rows):
@@ -199,7 +222,7 @@ def follow_rims(
         qj = (ccz - np.cos(ph)[:, None] * ri) / fy + (0.5 / ev.fy - 0.5)
         s = _bilinear(ev.work, qi, qj)
         level[q] = p.keep * median1d(np.log(s[:, 0] + _EPS) - np.log(s[:, 1:].mean(axis=1) + _EPS))
-    good = ridge >= level[:, None]
+    good = ridge >= np.maximum(level, floor)[:, None]
     good &= ridge > 0.5 * _BAD
     gap = max(1, int(round(p.gap_mm / p.step_mm)))
     cb = np.zeros((n_t, n_step + gap + 1), np.intp)
