@@ -241,6 +241,8 @@ class RimParams:
     """Window out along the ray that a sample's echo is compared with, mm (as ``FlankParams.outside_mm``)."""
     run_mm: float = 1.5
     """Arc over which the echo is averaged, mm (as ``FlankParams.run_mm``)."""
+    inside: bool = True
+    """The echo is also measured against the window as far inward (the smaller of the two counts): a line, not a step."""
     keep: float = 0.3
     """The trace continues while its echo is at least this share of the contour's own (log ratios; ours: on the L14 forearm the flank's echo is 0.5-1.0 of the top's)."""
     gap_mm: float = 0.9

@@ -151,7 +151,8 @@ def follow_rims(
     # same radial grid, ``shift`` samples further out.
     shift = int(round(p.null_mm / p.offset_mm))
     ne = nb + shift
-    grid = off[0] + p.offset_mm * np.arange(ne + k1 + 1)
+    # ... and k1 samples further in, for the window inward of each sample.
+    grid = off[0] + p.offset_mm * np.arange(-k1, ne + k1 + 1)
     gx = cx + side * sin * (r0[:, None, None] + grid)
     gz = cz - cos * (r0[:, None, None] + grid)
     gi = gx / fx + (0.5 / ev.fx - 0.5)
@@ -161,11 +162,21 @@ def follow_rims(
     g = _bilinear(ev.work, gi, gj)
     cs = np.zeros(g.shape[:2] + (g.shape[2] + 1,))
     np.cumsum(g, axis=-1, out=cs[..., 1:])
-    outside = (cs[..., k1 + 1 : k1 + 1 + ne] - cs[..., k0 : k0 + ne]) / (k1 - k0 + 1)
-    e = np.log(g[..., :ne] + _EPS) - np.log(outside + _EPS)
+    # Sample b of the band is grid index b + k1; outward window b + k1 + k0 .. b + 2 k1,
+    # inward window b .. b + k1 - k0.
+    w = k1 - k0 + 1
+    outside = (cs[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - cs[..., k1 + k0 : k1 + k0 + ne]) / w
+    inside = (cs[..., w : w + ne] - cs[..., :ne]) / w
+    centre = np.log(g[..., k1 : k1 + ne] + _EPS)
+    e = centre - np.log(outside + _EPS)
+    if p.inside:
+        # A line, not a step: brighter than what lies inward too (a layer over the bone
+        # has the bone's echo under it; the bone has its shadow, or on a phantom that
+        # passes sound, its fainter inside).
+        np.minimum(e, centre - np.log(inside + _EPS), out=e)
     nbad = np.zeros(g.shape[:2] + (g.shape[2] + 1,), np.int32)
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
-    bad = (nbad[..., k1 + 1 : k1 + 1 + ne] - nbad[..., :ne]) > 0
+    bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
     e[bad | ~live[:, :, None]] = _BAD
     e = np.concatenate([e[..., :nb], e[..., shift : shift + nb]])  # traces, then nulls
     run = max(1, int(round(p.run_mm / p.step_mm)))
@@ -217,11 +228,16 @@ def follow_rims(
     for q, (_, sd, ccx, ccz, _, _, x, z) in enumerate(rows):
         ph = np.arctan2(sd * (x - ccx), ccz - z)
         rc = np.hypot(x - ccx, z - ccz)
-        ri = rc[:, None] + np.r_[0.0, p.offset_mm * np.arange(k0, k1 + 1)]
+        win = p.offset_mm * np.arange(k0, k1 + 1)
+        ri = rc[:, None] + np.r_[0.0, win, -win]
         qi = (ccx + sd * np.sin(ph)[:, None] * ri) / fx + (0.5 / ev.fx - 0.5)
         qj = (ccz - np.cos(ph)[:, None] * ri) / fy + (0.5 / ev.fy - 0.5)
         s = _bilinear(ev.work, qi, qj)
-        level[q] = p.keep * median1d(np.log(s[:, 0] + _EPS) - np.log(s[:, 1:].mean(axis=1) + _EPS))
+        c0 = np.log(s[:, 0] + _EPS)
+        own = c0 - np.log(s[:, 1 : 1 + win.size].mean(axis=1) + _EPS)
+        if p.inside:
+            own = np.minimum(own, c0 - np.log(s[:, 1 + win.size :].mean(axis=1) + _EPS))
+        level[q] = p.keep * median1d(own)
     good = ridge >= np.maximum(level, floor)[:, None]
     good &= ridge > 0.5 * _BAD
     gap = max(1, int(round(p.gap_mm / p.step_mm)))
