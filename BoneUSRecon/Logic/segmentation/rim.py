@@ -1,44 +1,54 @@
-"""Rim: follow a contour round the bone's outline in polar coordinates, past a flat end.
+"""Rim: follow a contour's flat ends round the bone's outline in polar coordinates.
 
 :mod:`.flanks` follows a contour's end that already descends, along an arc extrapolated
 from the end's own direction and curvature. Where the path stopped on a shoulder (a
 flat end, as on the L14 forearm's right side, whose bone passes sound: no shadow under
-its flank holds the path there), the extrapolated arc runs straight out and the bone
-turns down beside it; 10-20 mm of flank at 50-70 degrees were then missing from every
-frame and the surface's mean distance to the reference was 1.86 mm.
+its flank holds the path there), that tracer does not start, and an arc from the end
+would run straight out while the bone turns down beside it: 10-20 mm of flank at 50-70
+degrees were missing from every frame, and the surface's mean distance to the reference
+contours was 1.86 mm.
 
 A bone's cross-section is convex, so seen from a point inside it its outline is one
-radius per direction. Here each end is followed in polar coordinates about the centre
-of the circle fitted to the whole contour (Kasa's algebraic fit: for a round bone the
-centre of the cross-section, for a crest a point inside it):
+radius per direction. Each flat end (its last ``fit_mm`` descending outward less than
+``max_start_deg``) is followed in polar coordinates about the centre of the circle
+fitted to the whole contour (Kasa's algebraic fit: for a round bone the centre of the
+cross-section, for a crest a point inside it):
 
 1. **Band.** For directions from the end's outward, every ``step_mm`` of arc, up to
    ``max_deg`` from the beam's up direction (past the bone's widest point a beam from
    above sees nothing), the working image is sampled along the ray over the end's radius
    +-``band_mm``.
-2. **Echo across the outline.** A sample's echo is its log ratio to the mean of the
-   samples ``outside_mm`` further out along the ray (the tissue beside the bone),
-   averaged over ``run_mm`` of arc: the bone's echo against the tissue outside it,
-   whatever the outline's slope.
+2. **A line across the outline.** A sample's echo is the smaller of its log ratios to
+   the mean of the samples ``outside_mm`` further out along the ray (the tissue beside
+   the bone) and as far in (``inside``): a line, not a step. A layer lying over the bone
+   has the bone's echo inside it and is no line by this measure (on hard simulated
+   sweeps the points the rim added farther than 1 mm from the bone went from 15-65 % to
+   5-18 % per sweep with it, and none on the sweep with fascia running off the bone).
+   Averaged over ``run_mm`` of arc.
 3. **Path.** The best path through the band, the radius changing by at most
    ``max_step_mm`` per step (the outline may depart from the circle, but a layer
-   leaving the bone nearly flat would need the radius to grow as ``tan`` of the
+   leaving the bone nearly flat needs the radius to grow as the tangent of the
    direction: it is left at ~18 degrees), starting at the end's own radius.
 4. **Stop.** The trace continues while its echo is at least ``keep`` of the contour's
-   own echo (measured the same way along its own rays: the bone's echo in this frame)
-   and ends at its last such step before ``gap_mm`` under it, at an unusable column
-   (outside the field of view or without contact) or at the image's edge. The level is
-   a ratio of two echoes of the same bone in the same frame: no grey level, none fitted
-   to one data source; on a bone whose echo fades down its flanks (specular reflection,
-   the hard simulator and a cadaver's crest) the trace stops where it fades, and what
-   :mod:`.flanks` found stays.
+   own (measured the same way along its own rays: this bone's echo in this frame) and
+   above what the same search gives in the tissue ``null_mm`` further out (median of the
+   frame's null paths, plus ``stop_z`` robust spreads), and ends at its last such step
+   before ``gap_mm`` under it, at an unusable column (outside the field of view or
+   without contact) or at the image's edge. Both levels are ratios of grey levels of the
+   same frame: no grey level, none fitted to one data source. The null alone is not
+   the rule (as it is in :mod:`.flanks`): the tissue beside a real bone holds fasciae
+   as bright as a flank's echo (on the L14 recording and its cadaver-level copy a null
+   floor of 1-2 spreads stopped the traces on the flank; the copy's reconstruction
+   3.2 mm against 0.66 mm without).
 5. **Points.** Each step's point is refined on the full-resolution image along its ray
    (:func:`.flanks._refine_across`) and appended to the contour's end.
 
-Only ends that :mod:`.flanks` did not extend, of contours of at least ``min_points``
-points with a good circle fit (centre below the contour's deepest point, radius within
-``radius_mm``), are followed; reverberation copies never are. Vectorised over all
-traces of a frame; Python loops only over the steps of the path search.
+Only contours of at least ``min_points`` points with a good circle fit (centre below the
+contour's deepest point, radius within ``radius_mm``) are followed, at the ends the arc
+tracer left; reverberation copies never are. Applied per frame to every candidate
+(:func:`.flanks.extend_candidates`), so live and offline get the same contours.
+Vectorised over all traces of a frame (and their nulls); Python loops only over the
+steps of the path search. Figures: ``Testing/benchmarks/README.md`` ("Rim").
 """
 
 from __future__ import annotations
