@@ -39,6 +39,11 @@ Look-alikes handled per frame (each with a simulated test in
   (:func:`_mark_series`): under a grey shadow the copies, with the darkest shadow
   beneath them, outscore the faint reflector itself.
 
+Layers over the bone: a candidate that runs on a fascia or a run of speckle just over
+the bone (its shadow windows, 1.5 mm under it, hold the bone's own shadow) is moved down
+onto the bone where the shadow starts under it (:mod:`.settle`), before its flanks are
+followed.
+
 Flanks: the path may change depth by up to ``max_slope`` (tan 72 degrees) per lateral
 mm with a small quadratic penalty, and the shadow windows hang below each column (the
 inside of a convex bone lies below every point of its upper surface, so the shadow
@@ -65,6 +70,7 @@ from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+from BoneUSRecon.Logic.segmentation.settle import settle_candidates
 
 __all__ = [
     "BoneCandidate",
@@ -1232,7 +1238,10 @@ def _frame_candidates_steps(
     # Past the path's reach: each candidate kept followed down the bone's flanks
     # (:mod:`.flanks`; strengths unchanged, so the same candidates are kept, in the same
     # order, and those cut off are not traced).
-    out = extend_candidates(img, ev, out[: p.max_candidates], sp, p.flanks)
+    # A candidate running on a layer just over the bone is first moved onto it where the
+    # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
+    out = settle_candidates(img, ev, out[: p.max_candidates], sp, p.settle)
+    out = extend_candidates(img, ev, out, sp, p.flanks, p.rim)
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
 
 

@@ -70,7 +70,8 @@ import numpy as np
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
-from BoneUSRecon.Logic.segmentation.params import FlankParams
+from BoneUSRecon.Logic.segmentation.params import FlankParams, RimParams
+from BoneUSRecon.Logic.segmentation.rim import follow_rims
 
 __all__ = ["extend_flanks", "extend_candidates"]
 
@@ -437,17 +438,30 @@ def extend_candidates(
     candidates: Sequence,
     spacing: tuple[float, float],
     params: FlankParams = FlankParams(),  # noqa: B008 (frozen dataclass)
+    rim: RimParams | None = None,
 ) -> list:
-    """:func:`extend_flanks` on the points of each candidate that may be chosen.
+    """:func:`extend_flanks` on the points of each candidate that may be chosen, then
+    :func:`.rim.follow_rims` at the ends it did not extend (``rim``; None: not).
 
     Reverberation copies are left as they are (never chosen); a candidate whose points
     changed gets its grey values re-sampled; strengths are unchanged.
     """
     cands = list(candidates)
     which = [n for n, c in enumerate(cands) if not c.reverberation]
-    if not params.enabled or not which:
+    if not which:
         return cands
-    new = extend_flanks(image, ev, [cands[n].points_px for n in which], spacing, params)
+    old = [cands[n].points_px for n in which]
+    new = extend_flanks(image, ev, old, spacing, params) if params.enabled else list(old)
+    if rim is not None and rim.enabled:
+        # The ends the arc tracer left (a contour it did not change, or an end point
+        # that is still the contour's own).
+        ends = [
+            (True, True)
+            if b is a
+            else (bool(np.array_equal(b[0], a[0])), bool(np.array_equal(b[-1], a[-1])))
+            for a, b in zip(old, new, strict=True)
+        ]
+        new = follow_rims(image, ev, new, ends, spacing, rim)
     changed = [(n, pts) for n, pts in zip(which, new, strict=True) if pts is not cands[n].points_px]
     if changed:
         allp = np.concatenate([pts for _, pts in changed])

@@ -26,6 +26,8 @@ __all__ = [
     "SnakeParams",
     "PosteriorParams",
     "FlankParams",
+    "SettleParams",
+    "RimParams",
     "ShadowPathParams",
     "RejectionParams",
     "RecoveryParams",
@@ -210,6 +212,125 @@ class FlankParams:
 
 
 @dataclass(frozen=True)
+class RimParams:
+    """Following a contour's flat ends round the bone's outline in polar coordinates (:mod:`.rim`).
+
+    Lengths in mm; the stop level is a share of the contour's own echo in the frame (no
+    grey level enters).
+    """
+
+    enabled: bool = True
+    """Follow the ends :mod:`.flanks` did not extend (off: those ends stay)."""
+    min_points: int = 12
+    """Contours with fewer points are not followed (a circle fit needs an arc)."""
+    max_start_deg: float = 20.0
+    """Only ends whose last ``fit_mm`` of contour descends outward less steeply than this are followed, degrees (ours: ``FlankParams.min_start_deg``: an end that descends is the arc tracer's, and its stop rule ended it; following those too added twice the points off the bone on the hard simulated sweeps, 24 % of all kept points farther than 0.5 mm against 18 %)."""
+    fit_mm: float = 2.0
+    """Length of contour at an end over which its slope is measured, mm (as ``FlankParams.fit_mm``)."""
+    radius_mm: tuple[float, float] = (2.0, 40.0)
+    """Radii of the fitted circle accepted, mm (a clavicle's 5 mm to a tibia's broad face; a flatter fit is a layer)."""
+    step_mm: float = 0.3
+    """Arc-length step at the end's radius, mm (about a working pixel)."""
+    band_mm: float = 3.0
+    """Half-width of the radial band searched about the end's radius, mm (a crest departs from its fitted circle by a few mm)."""
+    offset_mm: float = 0.1
+    """Spacing of the radial samples, mm."""
+    max_step_mm: float = 0.1
+    """Largest change of radius per step, mm (an outline departing from the circle by at most ~18 degrees per step; a layer leaving the bone flat needs more)."""
+    outside_mm: tuple[float, float] = (0.75, 1.75)
+    """Window out along the ray that a sample's echo is compared with, mm (as ``FlankParams.outside_mm``)."""
+    run_mm: float = 1.5
+    """Arc over which the echo is averaged, mm (as ``FlankParams.run_mm``)."""
+    inside: bool = True
+    """The echo is also measured against the window as far inward (the smaller of the two counts): a line, not a step."""
+    keep: float = 0.3
+    """The trace continues while its echo is at least this share of the contour's own (log ratios; ours: on the L14 forearm the flank's echo is 0.5-1.0 of the top's)."""
+    gap_mm: float = 0.9
+    """A shorter dropout under the level is bridged, mm (as ``FlankParams.gap_mm``)."""
+    null_mm: float = 8.0
+    """The null band: the same search this far out along the rays (past the band and its outside windows), in the tissue beside the bone, mm."""
+    stop_z: float = 0.0
+    """The trace's echo must also beat the null's median by this many of its robust spreads (pooled over the frame's traces: what speckle and the tissue's layers give with the same search)."""
+    max_deg: float = 95.0
+    """Furthest direction followed, degrees from the beam's up direction (past the bone's widest point a beam from above sees nothing)."""
+    min_steps: int = 3
+    """Shorter traces are dropped."""
+    refine_mm: float = 0.3
+    """Half-length of the full-resolution profile along the ray on which each point's echo peak is fitted, mm."""
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            positive=(
+                "radius_mm",
+                "step_mm",
+                "band_mm",
+                "offset_mm",
+                "max_step_mm",
+                "outside_mm",
+                "run_mm",
+                "refine_mm",
+            ),
+            non_negative=("keep", "gap_mm", "min_points", "min_steps", "null_mm", "stop_z"),
+            within={"max_deg": "(0, 180]"},
+        )
+        for name in ("radius_mm", "outside_mm"):
+            lo, hi = getattr(self, name)
+            if not hi > lo:
+                raise BoneUSReconError(f"RimParams.{name} must be increasing, got {(lo, hi)!r}")
+
+
+@dataclass(frozen=True)
+class SettleParams:
+    """Moving a contour that runs on a layer just over the bone down onto it (:mod:`.settle`).
+
+    Lengths in mm; the level is in robust z units of this frame's own shadow-onset
+    spread (no grey level enters).
+    """
+
+    enabled: bool = True
+    """Settle the candidates (off: the contours of the optimal path as refined)."""
+    depth_mm: float = 3.0
+    """Deepest the bone is sought under a contour point, mm (ours: on hard simulated sweeps 68 % of the kept points farther than 0.5 mm from the bone lay 0.5-3 mm over it, 2 % deeper)."""
+    own_mm: float = 0.6
+    """A point's own onset is the best within this depth under it, mm (a bright echo's onset lies up to ~0.5 mm under its peak: the window above it then holds the echo)."""
+    window_mm: tuple[float, float] = (0.3, 1.2)
+    """Windows above and below a pixel along the beam for the onset, mm from it (from, to): past the echo's axial blur, short enough to fit between a layer and the bone 1 mm under it."""
+    run_mm: float = 1.5
+    """Length of contour over which the onsets are averaged before the decision, mm (a layer over the bone runs for mm; one grain of speckle does not)."""
+    gain_z: float = 1.5
+    """A point moves when the averaged onset at its best depth beats its own by this many robust spreads (ours, hard simulated sweeps seed 7: at 1.5, 411 of 484 moved points came >0.2 mm nearer the bone and 50 went >0.2 mm farther; at 2, 240 / 20 of 269; at 3, 67 / 2 of 69)."""
+
+    shadow_z: float = 0.5
+    """Least shadow z-score under the new point (:mod:`.evidence`, averaged alike), robust z units (ours: between the evidence's zero and full levels; the hard simulated sweeps' grey shadow, 0.65 of the tissue beside it as on the cadaver, scores 0.6-0.9 under a faint top; a phantom bone that passes sound, brighter inside than the tissue beside it as the L14 forearm, scores below 0 and nothing moves)."""
+
+    gap_ratio: float = 1.0
+    """Between the point and the new one the darkest working pixel must be at most this times the tissue level at its depth (averaged alike; ours: soft tissue lies between a layer and the bone, a thick echo is bright through)."""
+
+    echo_ratio: float = 1.0
+    """The new point's echo must be brighter than this times the tissue level at its depth (averaged alike; ours: an echo is brighter than the typical tissue, the inside of a bone that passes sound is not)."""
+
+    thin_mm: float = 1.2
+    """The line a point is on must end within this depth under it (a working pixel no brighter than the tissue level there), mm (ours: a fascia is a thin line, blurred to ~1 mm along the beam on the hard simulated sweeps, where 0.6 mm blocked 163 moves onto the bone on six sweeps and 1.2 mm 60; the L14 forearm's cortex is a band ~1 mm thick over a bone that passes sound, 1-1.5 mm along the beam on its flanks, and its top is the surface: with no such test its flank points went 2-3 mm into it; none moves up to 1.5 mm)."""
+
+    max_slope_deg: float = 45.0
+    """Only where the contour (averaged over ``run_mm``) is at most this steep, degrees (ours: along the beam, under a steep flank lies the bone's inside, where a fascia touching the flank or the inside of a bone that passes sound is met before any layer; the layers over the bone found on the hard simulated sweeps cap tops and shoulders)."""
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self, positive=("depth_mm", "run_mm", "window_mm"), non_negative=("own_mm", "gain_z")
+        )
+        if not self.window_mm[1] > self.window_mm[0]:
+            raise BoneUSReconError(
+                f"SettleParams.window_mm must be increasing, got {self.window_mm!r}"
+            )
+        if not self.depth_mm > self.own_mm:
+            raise BoneUSReconError(
+                f"SettleParams.depth_mm must exceed own_mm, got {self.depth_mm!r}"
+            )
+
+
+@dataclass(frozen=True)
 class ShadowPathParams:
     """The default segmenter: contrast-adaptive bone evidence and optimal paths across columns.
 
@@ -274,8 +395,12 @@ class ShadowPathParams:
     """Cost per (mm of depth change per lateral mm)^2 between neighbouring columns, in score units (ours: small, so steep flanks are kept)."""
     max_slope: float = 3.0
     """Largest depth change per lateral mm of the path (tan 72 degrees; past the path's reach a flank is followed by ``flanks``)."""
+    settle: SettleParams = field(default_factory=SettleParams)
+    """Moving each candidate that runs on a layer just over the bone down onto it, before its flanks are followed (:mod:`.settle`)."""
     flanks: FlankParams = field(default_factory=FlankParams)
     """Following each candidate down the bone's flanks, past where one depth per column holds (:mod:`.flanks`)."""
+    rim: RimParams = field(default_factory=RimParams)
+    """Following the ends the flanks tracer left, flat ones included, round the outline in polar coordinates (:mod:`.rim`)."""
     near_field_mm: float = 2.0
     """Rows shallower than this are never bone, mm (gel, skin line and lens reverberation)."""
     contact_mm: float = 4.0

@@ -1,0 +1,280 @@
+"""Rim: follow a contour's flat ends round the bone's outline in polar coordinates.
+
+:mod:`.flanks` follows a contour's end that already descends, along an arc extrapolated
+from the end's own direction and curvature. Where the path stopped on a shoulder (a
+flat end, as on the L14 forearm's right side, whose bone passes sound: no shadow under
+its flank holds the path there), that tracer does not start, and an arc from the end
+would run straight out while the bone turns down beside it: 10-20 mm of flank at 50-70
+degrees were missing from every frame, and the surface's mean distance to the reference
+contours was 1.86 mm.
+
+A bone's cross-section is convex, so seen from a point inside it its outline is one
+radius per direction. Each flat end (its last ``fit_mm`` descending outward less than
+``max_start_deg``) is followed in polar coordinates about the centre of the circle
+fitted to the whole contour (Kasa's algebraic fit: for a round bone the centre of the
+cross-section, for a crest a point inside it):
+
+1. **Band.** For directions from the end's outward, every ``step_mm`` of arc, up to
+   ``max_deg`` from the beam's up direction (past the bone's widest point a beam from
+   above sees nothing), the working image is sampled along the ray over the end's radius
+   +-``band_mm``.
+2. **A line across the outline.** A sample's echo is the smaller of its log ratios to
+   the mean of the samples ``outside_mm`` further out along the ray (the tissue beside
+   the bone) and as far in (``inside``): a line, not a step. A layer lying over the bone
+   has the bone's echo inside it and is no line by this measure (on hard simulated
+   sweeps the share of the points the rim added farther than 1 mm from the bone went
+   from 18-65 % to 0-18 % per sweep with it: none on the sweep with fascia running off
+   the bone).
+   Averaged over ``run_mm`` of arc.
+3. **Path.** The best path through the band, the radius changing by at most
+   ``max_step_mm`` per step (the outline may depart from the circle, but a layer
+   leaving the bone nearly flat needs the radius to grow as the tangent of the
+   direction: it is left at ~18 degrees), starting at the end's own radius.
+4. **Stop.** The trace continues while its echo is at least ``keep`` of the contour's
+   own (measured the same way along its own rays: this bone's echo in this frame) and
+   above what the same search gives in the tissue ``null_mm`` further out (median of the
+   frame's null paths, plus ``stop_z`` robust spreads), and ends at its last such step
+   before ``gap_mm`` under it, at an unusable column (outside the field of view or
+   without contact) or at the image's edge. Both levels are ratios of grey levels of the
+   same frame: no grey level, none fitted to one data source. The null alone is not
+   the rule (as it is in :mod:`.flanks`): the tissue beside a real bone holds fasciae
+   as bright as a flank's echo (on the L14 recording's cadaver-level copy a null floor
+   of 1 or 2 spreads stopped traces on the flank: reconstruction 2.4 or 3.3 mm from the
+   reference against 1.9 mm with the median alone).
+5. **Points.** Each step's point is refined on the full-resolution image along its ray
+   (:func:`.flanks._refine_across`) and appended to the contour's end.
+
+Only contours of at least ``min_points`` points with a good circle fit (centre below the
+contour's deepest point, radius within ``radius_mm``) are followed, at the ends the arc
+tracer left; reverberation copies never are. Applied per frame to every candidate
+(:func:`.flanks.extend_candidates`), so live and offline get the same contours.
+Vectorised over all traces of a frame (and their nulls); Python loops only over the
+steps of the path search. Figures: ``Testing/benchmarks/README.md`` ("Rim").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
+from BoneUSRecon.Logic.segmentation.features import median1d
+from BoneUSRecon.Logic.segmentation.params import RimParams
+
+__all__ = ["follow_rims", "kasa_circle"]
+
+_EPS = 1e-3
+_BAD = -1e3
+
+
+def kasa_circle(x: np.ndarray, z: np.ndarray) -> tuple[float, float, float]:
+    """Algebraic least-squares circle through points ``(x, z)``: ``(cx, cz, radius)``."""
+    a = np.column_stack([x, z, np.ones_like(x)])
+    c = np.linalg.lstsq(a, x * x + z * z, rcond=None)[0]
+    cx, cz = 0.5 * c[0], 0.5 * c[1]
+    return float(cx), float(cz), float(np.sqrt(max(c[2] + cx * cx + cz * cz, 0.0)))
+
+
+def follow_rims(
+    image: np.ndarray,
+    ev: EvidenceMaps,
+    contours_px: Sequence[np.ndarray],
+    ends: Sequence[tuple[bool, bool]],
+    spacing: tuple[float, float],
+    params: RimParams = RimParams(),  # noqa: B008 (frozen dataclass)
+) -> list[np.ndarray]:
+    """Each contour continued round its outline at the ends flagged in ``ends``.
+
+    Parameters
+    ----------
+    image : ndarray of uint8, shape (H, W)
+    ev : EvidenceMaps
+    contours_px : sequence of ndarray, each (K, 2)
+        ``(i, j)`` pixels, ordered by increasing ``i``.
+    ends : sequence of (bool, bool)
+        Per contour: follow its first end (smaller columns), its last end.
+    spacing : (sx, sy)
+    params : RimParams
+
+    Returns
+    -------
+    list of ndarray
+        The contours, extended where a trace held (the others the same objects).
+    """
+    from BoneUSRecon.Logic.segmentation.flanks import _bilinear, _refine_across
+
+    p = params
+    out = list(contours_px)
+    if not p.enabled:
+        return out
+    sx, sy = float(spacing[0]), float(spacing[1])
+    # The traces: (contour, side, cx, cz, r0, phi0, own echo).
+    rows = []
+    for n, (c, (lo, hi)) in enumerate(zip(out, ends, strict=True)):
+        if not (lo or hi) or len(c) < p.min_points:
+            continue
+        x, z = c[:, 0] * sx, c[:, 1] * sy
+        cx, cz, rad = kasa_circle(x, z)
+        if not (cz > z.max() and p.radius_mm[0] <= rad <= p.radius_mm[1]):
+            continue
+        for side, want in ((-1.0, lo), (1.0, hi)):
+            if not want:
+                continue
+            k = 0 if side < 0 else -1
+            r0 = float(np.hypot(x[k] - cx, z[k] - cz))
+            phi0 = float(np.arctan2(side * (x[k] - cx), cz - z[k]))
+            if phi0 >= np.radians(p.max_deg) - 1e-6:
+                continue
+            # The end's own outward slope over the last fit_mm of contour: an end that
+            # already descends was the arc tracer's (:mod:`.flanks`), whose stop rule
+            # ended it; only flatter ends are followed here.
+            q = np.hypot(x - x[k], z - z[k]) <= p.fit_mm
+            qi = np.flatnonzero(q)
+            far = qi[np.argmax(np.abs(qi - (0 if side < 0 else len(x) - 1)))]
+            dx_, dz_ = side * (x[k] - x[far]), z[k] - z[far]
+            if dx_ > 0 and np.degrees(np.arctan2(dz_, dx_)) >= p.max_start_deg:
+                continue
+            rows.append((n, side, cx, cz, r0, phi0, x, z))
+    if not rows:
+        return out
+    n_t = len(rows)
+    side = np.array([r[1] for r in rows])[:, None, None]
+    cx = np.array([r[2] for r in rows])[:, None, None]
+    cz = np.array([r[3] for r in rows])[:, None, None]
+    r0 = np.array([r[4] for r in rows])
+    phi0 = np.array([r[5] for r in rows])
+    dphi = p.step_mm / r0
+    n_step = int(np.ceil(((np.radians(p.max_deg) - phi0) / dphi).max())) + 1
+    phi = phi0[:, None] + dphi[:, None] * np.arange(n_step)
+    live = phi <= np.radians(p.max_deg)
+    m = int(round(p.band_mm / p.offset_mm))
+    off = p.offset_mm * np.arange(-m, m + 1)
+    fx, fy = sx * ev.fx, sy * ev.fy
+    sin, cos = np.sin(phi)[:, :, None], np.cos(phi)[:, :, None]
+    hw, ww = ev.work.shape
+    nb = off.size
+    # Outward window of band sample b: radii off[b] + outs, i.e. indices b + k0 .. b + k1
+    # on a regular grid of offset_mm; sample that grid once.
+    k0 = int(round(p.outside_mm[0] / p.offset_mm))
+    k1 = int(round(p.outside_mm[1] / p.offset_mm))
+    # The null band (the same search in the tissue beside the bone, null_mm out) on the
+    # same radial grid, ``shift`` samples further out.
+    shift = int(round(p.null_mm / p.offset_mm))
+    ne = nb + shift
+    # ... and k1 samples further in, for the window inward of each sample.
+    grid = off[0] + p.offset_mm * np.arange(-k1, ne + k1 + 1)
+    gx = cx + side * sin * (r0[:, None, None] + grid)
+    gz = cz - cos * (r0[:, None, None] + grid)
+    gi = gx / fx + (0.5 / ev.fx - 0.5)
+    gj = gz / fy + (0.5 / ev.fy - 0.5)
+    gvalid = (gi >= 0) & (gi <= ww - 1) & (gj >= 0) & (gj <= hw - 1)
+    gvalid &= ev.usable[np.rint(np.clip(gi, 0, ww - 1)).astype(np.intp)]
+    g = _bilinear(ev.work, gi, gj)
+    cs = np.zeros(g.shape[:2] + (g.shape[2] + 1,))
+    np.cumsum(g, axis=-1, out=cs[..., 1:])
+    # Sample b of the band is grid index b + k1; outward window b + k1 + k0 .. b + 2 k1,
+    # inward window b .. b + k1 - k0.
+    w = k1 - k0 + 1
+    outside = (cs[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - cs[..., k1 + k0 : k1 + k0 + ne]) / w
+    inside = (cs[..., w : w + ne] - cs[..., :ne]) / w
+    centre = np.log(g[..., k1 : k1 + ne] + _EPS)
+    e = centre - np.log(outside + _EPS)
+    if p.inside:
+        # A line, not a step: brighter than what lies inward too (a layer over the bone
+        # has the bone's echo under it; the bone has its shadow, or on a phantom that
+        # passes sound, its fainter inside).
+        np.minimum(e, centre - np.log(inside + _EPS), out=e)
+    nbad = np.zeros(g.shape[:2] + (g.shape[2] + 1,), np.int32)
+    np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
+    bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
+    e[bad | ~live[:, :, None]] = _BAD
+    e = np.concatenate([e[..., :nb], e[..., shift : shift + nb]])  # traces, then nulls
+    run = max(1, int(round(p.run_mm / p.step_mm)))
+    if run > 1:
+        ce = np.zeros((2 * n_t, n_step + 1, nb))
+        np.cumsum(e, axis=1, out=ce[:, 1:])
+        i = np.arange(n_step)
+        lo = np.clip(i - run // 2, 0, n_step)
+        hi = np.clip(i - run // 2 + run, 0, n_step)
+        e = (ce[:, hi] - ce[:, lo]) / (hi - lo)[None, :, None]
+    # The path: Viterbi over the steps, the radius moving at most max_step per step.
+    ms = max(1, int(round(p.max_step_mm / p.offset_mm)))
+    acc = np.full((2 * n_t, nb), -np.inf)
+    acc[:, m] = e[:, 0, m]
+    back = np.zeros((n_step, 2 * n_t, nb), np.intp)
+    idx = np.arange(nb)
+    for t in range(1, n_step):
+        best = acc.copy()
+        arg = np.zeros((2 * n_t, nb), np.intp)
+        for s in range(1, ms + 1):
+            for sh in (s, -s):
+                cand = np.full((2 * n_t, nb), -np.inf)
+                if sh > 0:
+                    cand[:, sh:] = acc[:, :-sh]
+                else:
+                    cand[:, :sh] = acc[:, -sh:]
+                better = cand > best
+                best = np.where(better, cand, best)
+                arg = np.where(better, -sh, arg)
+        back[t] = idx + arg
+        acc = best + e[:, t]
+    path = np.empty((2 * n_t, n_step), np.intp)
+    path[:, -1] = acc.argmax(axis=1)
+    tt = np.arange(2 * n_t)
+    for t in range(n_step - 1, 0, -1):
+        path[:, t - 1] = back[t, tt, path[:, t]]
+    vals = e[tt[:, None], np.arange(n_step), path]
+    ridge, null, path = vals[:n_t], vals[n_t:], path[:n_t]
+    tt = tt[:n_t]
+    # What speckle and the tissue's own layers give with the same search, pooled over
+    # the frame's traces (median and robust spread).
+    pool = null[(null > 0.5 * _BAD) & live]
+    if pool.size < 10:
+        return out
+    med = median1d(pool)
+    floor = med + p.stop_z * max(1.4826 * median1d(np.abs(pool - med)), 1e-6)
+    # The contour's own echo, measured the same way along its own rays.
+    level = np.empty(n_t)
+    for q, (_, sd, ccx, ccz, _, _, x, z) in enumerate(rows):
+        ph = np.arctan2(sd * (x - ccx), ccz - z)
+        rc = np.hypot(x - ccx, z - ccz)
+        win = p.offset_mm * np.arange(k0, k1 + 1)
+        ri = rc[:, None] + np.r_[0.0, win, -win]
+        qi = (ccx + sd * np.sin(ph)[:, None] * ri) / fx + (0.5 / ev.fx - 0.5)
+        qj = (ccz - np.cos(ph)[:, None] * ri) / fy + (0.5 / ev.fy - 0.5)
+        s = _bilinear(ev.work, qi, qj)
+        c0 = np.log(s[:, 0] + _EPS)
+        own = c0 - np.log(s[:, 1 : 1 + win.size].mean(axis=1) + _EPS)
+        if p.inside:
+            own = np.minimum(own, c0 - np.log(s[:, 1 + win.size :].mean(axis=1) + _EPS))
+        level[q] = p.keep * median1d(own)
+    good = ridge >= np.maximum(level, floor)[:, None]
+    good &= ridge > 0.5 * _BAD
+    gap = max(1, int(round(p.gap_mm / p.step_mm)))
+    cb = np.zeros((n_t, n_step + gap + 1), np.intp)
+    np.cumsum(~good, axis=1, out=cb[:, 1 : n_step + 1])
+    cb[:, n_step + 1 :] = cb[:, n_step : n_step + 1] + np.arange(1, gap + 1)
+    first = (cb[:, gap:] - cb[:, :-gap] == gap).argmax(axis=1)
+    steps = np.arange(n_step)
+    last = np.where(good & (steps < first[:, None]) & (steps > 0), steps, -1).max(axis=1)
+    # Points (step 0 is the end itself), refined along the ray on the full image.
+    t_i, k_i = np.nonzero((steps >= 1) & (steps <= last[:, None]))
+    if t_i.size == 0:
+        return out
+    rad = r0[t_i] + off[path[t_i, k_i]]
+    ph = phi[t_i, k_i]
+    sd = side[t_i, 0, 0]
+    nx, nz = sd * np.sin(ph), -np.cos(ph)
+    rx, rz = _refine_across(
+        image, cx[t_i, 0, 0] + nx * rad, cz[t_i, 0, 0] + nz * rad, nx, nz, sx, sy, p.refine_mm
+    )
+    pts = np.stack([rx / sx, rz / sy], axis=1)
+    cut = np.searchsorted(t_i, np.arange(n_t + 1))
+    for q, (n, sd_q, *_rest) in enumerate(rows):
+        piece = pts[cut[q] : cut[q + 1]]
+        if piece.shape[0] < p.min_steps:
+            continue
+        c = np.asarray(out[n], float)
+        out[n] = np.concatenate([piece[::-1], c]) if sd_q < 0 else np.concatenate([c, piece])
+    return out
