@@ -239,6 +239,7 @@ def settle_points(
     sz, trough, echo, thin = _run_mean(tests, first, end, half).T
     move = (
         (gain >= p.gain_z)
+        & (mine <= p.own_max_z)
         & (sz >= p.shadow_z)
         & (trough <= p.gap_ratio)
         & (echo > p.echo_ratio)
