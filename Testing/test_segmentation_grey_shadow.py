@@ -284,11 +284,14 @@ def test_pieces_over_one_shadow_are_one_near_cortex(sim_factory, monkeypatch):
     the piece with the larger sum was offered (frame 34: columns 113-136 of 49-132).
     Pieces over one shadow (the far cortex lying under them) are one reflector and are
     joined: the widest candidate on the bone spans 58 % of the true contour's columns
-    on average (frames 33 and 34: 92 and 93 %), 51 % without the rule (45 and 17 %)."""
+    on average (frames 33 and 34: 92 and 93 %), 51 % without the rule (45 and 17 %).
+    Since candidates on a layer over the bone are settled onto it (settle.py): 59 %
+    with the rule, 54 % without."""
     from BoneUSRecon.Logic.segmentation import candidates
 
     sim = sim_factory(bone="tibia", seed=5, realism="hard")
     frames = range(20, 40)
-    assert _dome_covered(sim, frames) >= 0.56
+    with_rule = _dome_covered(sim, frames)
+    assert with_rule >= 0.56
     monkeypatch.setattr(candidates, "_shadowed_span", lambda c, cands: None)  # the rule off
-    assert _dome_covered(sim, frames) <= 0.53
+    assert _dome_covered(sim, frames) <= with_rule - 0.04

@@ -19,6 +19,7 @@ from BoneUSRecon.Logic.segmentation import (
     select_bone_track,
 )
 from BoneUSRecon.Logic.segmentation.candidates import frame_candidates_many
+from BoneUSRecon.Logic.segmentation.params import RimParams, SettleParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.recovery import guided_candidate, track_prior
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
@@ -50,8 +51,10 @@ def test_recovery_raises_recall_on_the_bone(bone, seed):
     before = segment_sweep(sim.sweep, OFF)
     after = segment_sweep(sim.sweep)
     s0, s1 = score_simulation(before, sim), score_simulation(after, sim)
-    # Measured: ulna 31 0.875 -> 1.00 (5 frames recovered), tibia 11 0.900 -> 1.00 (4).
-    assert s1.recall >= s0.recall + 0.1
+    # Measured: ulna 31 0.875 -> 1.00 (5 frames recovered), tibia 11 0.900 -> 1.00 (4);
+    # 0.925 -> 1.00 (3) since flat ends are followed round the outline (rim.py): one
+    # more frame is on the first track.
+    assert s1.recall >= s0.recall + 0.075
     assert s1.recall >= 0.95
     assert s1.wrong_share == 0.0
     medians = _recovered_medians(sim, after)
@@ -120,7 +123,11 @@ def test_recovery_off_is_the_plain_track():
 
 def _first_track(sim):
     sw = sim.sweep
-    frames = frame_candidates_many(list(sw.frames), [sw.spacing_mm] * sw.n_frames)
+    # The per-frame step without settle.py and rim.py: these frames (radius 13 frame 27,
+    # ulna 29 frame 18) had no contour on the first track then; settled, they have one,
+    # and the guided band is what is measured here.
+    bare = ShadowPathParams(settle=SettleParams(enabled=False), rim=RimParams(enabled=False))
+    frames = frame_candidates_many(list(sw.frames), [sw.spacing_mm] * sw.n_frames, bare)
     return frames, select_bone_track(frames, sw.image_to_reference)
 
 

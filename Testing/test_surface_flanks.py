@@ -14,8 +14,10 @@ from vtkmodules.util import numpy_support
 from BoneUSRecon.Logic.bspline import FitParams, fit_surface
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.evaluation import evaluate_surface
-from BoneUSRecon.Logic.pipeline import reconstruct
+from BoneUSRecon.Logic.pipeline import ReconstructionParams, reconstruct
 from BoneUSRecon.Logic.resampling import resample
+from BoneUSRecon.Logic.segmentation import SegmentationParams
+from BoneUSRecon.Logic.segmentation.params import RimParams, SettleParams, ShadowPathParams
 from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.surface import SurfaceParams, surface_polydata
 
@@ -122,7 +124,14 @@ def test_hard_sweep_gold_nearer_with_the_strips():
             spacing_mm=0.3,
         )
     )
-    rec = reconstruct(sim.sweep)
+    # The strips measured on contours as they stopped before settle.py and rim.py: with
+    # them this sweep's contours reach further down its flanks, some past the bone, and
+    # the strip 0.7-1 mm out is 2.25 mm off the bone on median (at its seam 0.23 mm): the
+    # extension stays opt-in (Testing/benchmarks/README.md, branch onset).
+    bare = ShadowPathParams(settle=SettleParams(enabled=False), rim=RimParams(enabled=False))
+    rec = reconstruct(
+        sim.sweep, ReconstructionParams(segmentation=SegmentationParams(shadowpath=bare))
+    )
     seg = rec.segmentation.points_mm(sim.sweep).xyz
     params = dataclasses.replace(rec.params.surface, flank_extension_mm=1.0)
     ext = surface_polydata(rec.fit, rec.grid, seg, params)

@@ -316,8 +316,8 @@ class SettleParams:
     max_slope_deg: float = 45.0
     """Only where the contour (averaged over ``run_mm``) is at most this steep, degrees (ours: along the beam, under a steep flank lies the bone's inside, where a fascia touching the flank or the inside of a bone that passes sound is met before any layer; the layers over the bone found on the hard simulated sweeps cap tops and shoulders)."""
 
-    own_max_z: float = 0.5
-    """A point moves only while its own onset (averaged alike) is at most this, robust z units (ours: a point with the shadow starting under it is on the bone, whatever lies deeper; on the standard simulated sweeps, whose grey shadow holds reverberation copies of the bone's echo, points of the bone were otherwise moved onto the copy 3 mm down)."""
+    own_max_z: float = 1.0
+    """A point moves only while its own onset (averaged alike) is at most this, robust z units (ours: a point with the shadow starting under it is on the bone, whatever lies deeper; on the standard simulated sweeps, whose grey shadow holds reverberation copies of the bone's echo, points of the bone were otherwise moved onto the copy 3 mm down, and a false echo over the bone accepted; at 0.5 two hard sweeps each lost a frame, radius 13 frame 27 and ulna 29 frame 37)."""
 
     def __post_init__(self) -> None:
         check_fields(
