@@ -455,11 +455,15 @@ def extend_candidates(
     if rim is not None and rim.enabled:
         # The ends the arc tracer left (a contour it did not change, or an end point
         # that is still the contour's own).
+        # Only the strongest ``rim.candidates`` (candidates come strongest first): the
+        # bone is among them, and each trace costs ~1 ms at 480x640.
         ends = [
-            (True, True)
+            (False, False)
+            if q >= rim.candidates
+            else (True, True)
             if b is a
             else (bool(np.array_equal(b[0], a[0])), bool(np.array_equal(b[-1], a[-1])))
-            for a, b in zip(old, new, strict=True)
+            for q, (a, b) in enumerate(zip(old, new, strict=True))
         ]
         new = follow_rims(image, ev, new, ends, spacing, rim)
     changed = [(n, pts) for n, pts in zip(which, new, strict=True) if pts is not cands[n].points_px]

@@ -221,6 +221,8 @@ class RimParams:
 
     enabled: bool = True
     """Follow the ends :mod:`.flanks` did not extend (off: those ends stay)."""
+    candidates: int = 2
+    """Only the strongest this many candidates of a frame (not reverberation copies) are followed (ours: the bone is among them on the L14 recording, its copies and the hard simulated sweeps, and each trace costs ~1 ms at 480x640)."""
     min_points: int = 12
     """Contours with fewer points are not followed (a circle fit needs an arc)."""
     max_start_deg: float = 20.0
@@ -251,6 +253,8 @@ class RimParams:
     """The null band: the same search this far out along the rays (past the band and its outside windows), in the tissue beside the bone, mm."""
     stop_z: float = 0.0
     """The trace's echo must also beat the null's median by this many of its robust spreads (pooled over the frame's traces: what speckle and the tissue's layers give with the same search)."""
+    max_mm: float = 15.0
+    """Longest trace, mm of arc at the end's radius (the L14 forearm's right flank: 10-20 mm from the shoulder; bounds the work on a flat fit's large radius)."""
     max_deg: float = 95.0
     """Furthest direction followed, degrees from the beam's up direction (past the bone's widest point a beam from above sees nothing)."""
     min_steps: int = 3
@@ -271,7 +275,15 @@ class RimParams:
                 "run_mm",
                 "refine_mm",
             ),
-            non_negative=("keep", "gap_mm", "min_points", "min_steps", "null_mm", "stop_z"),
+            non_negative=(
+                "keep",
+                "gap_mm",
+                "candidates",
+                "min_points",
+                "min_steps",
+                "null_mm",
+                "stop_z",
+            ),
             within={"max_deg": "(0, 180]"},
         )
         for name in ("radius_mm", "outside_mm"):

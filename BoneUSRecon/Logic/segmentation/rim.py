@@ -146,6 +146,7 @@ def follow_rims(
     phi0 = np.array([r[5] for r in rows])
     dphi = p.step_mm / r0
     n_step = int(np.ceil(((np.radians(p.max_deg) - phi0) / dphi).max())) + 1
+    n_step = min(n_step, int(np.ceil(p.max_mm / p.step_mm)) + 1)
     phi = phi0[:, None] + dphi[:, None] * np.arange(n_step)
     live = phi <= np.radians(p.max_deg)
     m = int(round(p.band_mm / p.offset_mm))
@@ -200,30 +201,24 @@ def follow_rims(
         e = (ce[:, hi] - ce[:, lo]) / (hi - lo)[None, :, None]
     # The path: Viterbi over the steps, the radius moving at most max_step per step.
     ms = max(1, int(round(p.max_step_mm / p.offset_mm)))
-    acc = np.full((2 * n_t, nb), -np.inf)
-    acc[:, m] = e[:, 0, m]
-    back = np.zeros((n_step, 2 * n_t, nb), np.intp)
-    idx = np.arange(nb)
+    acc = np.full((2 * n_t, nb + 2 * ms), -np.inf)  # padded by ms each side
+    acc[:, ms + m] = e[:, 0, m]
+    back = np.zeros((n_step, 2 * n_t, nb), np.int8)  # the move taken, -ms .. ms
+    rows_ = np.arange(2 * n_t)[:, None]
+    cols_ = np.arange(nb)[None, :]
     for t in range(1, n_step):
-        best = acc.copy()
-        arg = np.zeros((2 * n_t, nb), np.intp)
-        for s in range(1, ms + 1):
-            for sh in (s, -s):
-                cand = np.full((2 * n_t, nb), -np.inf)
-                if sh > 0:
-                    cand[:, sh:] = acc[:, :-sh]
-                else:
-                    cand[:, :sh] = acc[:, -sh:]
-                better = cand > best
-                best = np.where(better, cand, best)
-                arg = np.where(better, -sh, arg)
-        back[t] = idx + arg
-        acc = best + e[:, t]
+        # Predecessor of state b at b + k, k = -ms .. ms (a view per k, no copies).
+        views = np.stack([acc[:, ms + k : ms + k + nb] for k in range(-ms, ms + 1)])
+        k = views.argmax(axis=0)
+        new = views[k, rows_, cols_]
+        new += e[:, t]
+        acc[:, ms : ms + nb] = new
+        back[t] = k - ms
     path = np.empty((2 * n_t, n_step), np.intp)
-    path[:, -1] = acc.argmax(axis=1)
+    path[:, -1] = acc[:, ms : ms + nb].argmax(axis=1)
     tt = np.arange(2 * n_t)
     for t in range(n_step - 1, 0, -1):
-        path[:, t - 1] = back[t, tt, path[:, t]]
+        path[:, t - 1] = path[:, t] + back[t, tt, path[:, t]]
     vals = e[tt[:, None], np.arange(n_step), path]
     ridge, null, path = vals[:n_t], vals[n_t:], path[:n_t]
     tt = tt[:n_t]
