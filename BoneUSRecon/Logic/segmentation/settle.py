@@ -203,6 +203,8 @@ def settle_points(
     mine = np.where(is_own, g, _BAD).max(axis=1)
     best = np.where(is_own, _BAD, g).argmax(axis=1)
     gain = g[np.arange(g.shape[0]), best] - mine
+    if not ((gain >= p.gain_z) & (mine <= p.own_max_z)).any():
+        return out  # most frames: nothing to move, the other tests not needed
     # The new point: the echo peak just above the onset, on the full-resolution column
     # profile (``colmean``: the working column's mean at every image row).
     py = ev.dy / ev.fy  # mm per image row
