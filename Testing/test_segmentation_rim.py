@@ -17,6 +17,7 @@ import pytest
 from conftest import REAL_MHA, REAL_XML, small_simulation
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
+from test_segmentation_flanks import added_distances
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
@@ -152,21 +153,7 @@ def test_rim_adds_no_point_off_the_bone_where_a_fascia_runs_off_it():
     off = dataclasses.replace(
         base, shadowpath=dataclasses.replace(base.shadowpath, rim=RimParams(enabled=False))
     )
-    a_, b_ = segment_sweep(sim.sweep, base), segment_sweep(sim.sweep, off)
-    added = []
-    for a, b in zip(a_.contours, b_.contours, strict=True):
-        if not a.accepted:
-            continue
-        p = a.points_px
-        q = b.points_px if b.accepted and len(b.points_px) else np.empty((0, 2))
-        new = (
-            np.ones(len(p), bool)
-            if not len(q)
-            else np.sqrt(((p[:, None] - q[None]) ** 2).sum(-1)).min(1) > 1e-6
-        )
-        if new.any():
-            added.append(sim.distance_to_truth(a.points_mm(sim.sweep)[new]))
-    d = np.concatenate(added) if added else np.zeros(0)
+    d = added_distances(sim, segment_sweep(sim.sweep, base), segment_sweep(sim.sweep, off))
     assert d.size == 0 or (np.mean(d > 0.5) <= 0.05 and d.max() <= 1.0), (
         d.size,
         np.mean(d > 0.5),
