@@ -72,21 +72,13 @@ from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import FlankParams, RimParams
 from BoneUSRecon.Logic.segmentation.rim import follow_rims
+from BoneUSRecon.Logic.segmentation.sampling import bilinear_at, median3, refine_across
 
 __all__ = ["extend_flanks", "extend_candidates"]
 
 _EPS = 1e-3  # grey/255: guards log(0) in black regions (no decision rests on it)
 _BAD = -1e3  # evidence of a sample outside the usable image: any window holding one is
 # under every level (the evidence itself is a log ratio of a few units at most)
-
-
-def _median3(a: np.ndarray) -> np.ndarray:
-    """Median of three along the last axis (ends kept), vectorised over the others."""
-    if a.shape[-1] < 3:
-        return a
-    x, y, z = a[..., :-2], a[..., 1:-1], a[..., 2:]
-    mid = np.maximum(np.minimum(x, y), np.minimum(np.maximum(x, y), z))
-    return np.concatenate([a[..., :1], mid, a[..., -1:]], axis=-1)
 
 
 def _ends(
@@ -222,7 +214,7 @@ def extend_flanks(
     wj = (cz[..., None] + off * nz[..., None]) / fy + (0.5 / ev.fy - 0.5)
     hw, ww = ev.work.shape
     valid = (wi >= 0) & (wi <= ww - 1) & (wj >= 0) & (wj <= hw - 1)
-    v = _bilinear(ev.work, wi, wj)
+    v = bilinear_at(ev.work, wi, wj)
     valid &= ev.usable[np.rint(np.clip(wi, 0, ww - 1)).astype(np.intp)]
     # For each sample q: the echo across the flank, the log ratio of the sample to the
     # mean of the samples oa..ob outward of it (the tissue beside the flank), whatever
@@ -240,7 +232,7 @@ def extend_flanks(
     outside += _EPS
     e = np.log(v[..., :n_e] + _EPS)
     e -= np.log(outside)
-    g = _bilinear(ev.shadow_z, wi[..., :n_e], wj[..., :n_e])
+    g = bilinear_at(ev.shadow_z, wi[..., :n_e], wj[..., :n_e])
     g *= 1.0 / p.shadow_z
     np.clip(g, 0.0, 1.0, out=g)
     g *= np.maximum(e, 0.0)
@@ -274,9 +266,9 @@ def extend_flanks(
     last = np.where(good & (idx < first[:, None]), idx, -1).max(axis=1)
     # Ridge points (offset smoothed along the trace), refined on the full image.
     t_i, k_i = np.nonzero(idx <= last[:, None])
-    o = off[_median3(pick)][t_i, k_i]
+    o = off[median3(pick)][t_i, k_i]
     nxk, nzk = nx[t_i, k_i], nz[t_i, k_i]
-    rx, rz = _refine_across(
+    rx, rz = refine_across(
         image, cx[t_i, k_i] + o * nxk, cz[t_i, k_i] + o * nzk, nxk, nzk, sx, sy, p.refine_mm
     )
     # Assemble: the trace (outermost first on the left) replaces the contour beyond its
@@ -304,37 +296,6 @@ def extend_flanks(
             parts.append(right)
         out[ci] = np.concatenate(parts)
     return out
-
-
-def _bilinear(a: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear sample of ``a`` (h, w) at column ``x``, row ``y`` (any shape), clamped.
-
-    The flat-index form of :func:`.detection.sample_bilinear` for arrays of points (a
-    third of its numpy calls; the same values inside the image).
-    """
-    h, w = a.shape
-    x = np.clip(x, 0, w - 1.000001)
-    y = np.clip(y, 0, h - 1.000001)
-    x0 = x.astype(np.intp)
-    y0 = y.astype(np.intp)
-    x -= x0
-    y -= y0
-    i = y0 * w
-    i += x0
-    flat = a.ravel()
-    v00, v01, v10, v11 = flat[i], flat[i + 1], flat[i + w], flat[i + w + 1]
-    if flat.dtype.kind != "f":  # grey values: differences must not wrap
-        v00, v01, v10, v11 = (c.astype(np.float32) for c in (v00, v01, v10, v11))
-    top = v01 - v00
-    top *= x
-    top += v00
-    bot = v11 - v10
-    bot *= x
-    bot += v10
-    bot -= top
-    bot *= y
-    bot += top
-    return bot
 
 
 def _moving_mean(a: np.ndarray, n: int) -> np.ndarray:
@@ -392,44 +353,6 @@ def _continuous_paths(bands: np.ndarray, centre: int) -> tuple[np.ndarray, np.nd
     rows = np.arange(n)
     vals = bands[rows[:, None], np.arange(n_k), path]
     return path, vals
-
-
-def _refine_across(
-    image: np.ndarray,
-    rx: np.ndarray,
-    rz: np.ndarray,
-    nx: np.ndarray,
-    nz: np.ndarray,
-    sx: float,
-    sy: float,
-    half_mm: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Ridge points ``(N,)`` mm moved to the echo's peak along their normals, full resolution.
-
-    The profile across the flank (+-``half_mm``, half-pixel steps) is the mean of three
-    parallel lines half a pixel apart along the flank (speckle averages, the echo does
-    not), smoothed over three samples; the peak is fitted by a parabola. Offsets along a
-    trace are smoothed by a median of three (one speckle grain does not bend it).
-    """
-    if rx.size == 0:
-        return rx, rz
-    step = 0.5 * min(sx, sy)
-    n = max(1, int(round(half_mm / step)))
-    u = step * np.arange(-n - 1, n + 2)  # one extra each side for the parabola
-    along = step * np.array([-1.0, 0.0, 1.0])
-    # (N, len(u), 3): across by u, along the flank (-nz, nx) by ``along``.
-    qx = (rx[:, None, None] + u[:, None] * nx[:, None, None] - along * nz[:, None, None]) / sx
-    qz = (rz[:, None, None] + u[:, None] * nz[:, None, None] + along * nx[:, None, None]) / sy
-    prof = _bilinear(np.asarray(image), qx, qz).sum(axis=-1)
-    sm = prof[:, :-2] + prof[:, 1:-1] + prof[:, 2:]  # index i: centred on u[i + 1]
-    kk = sm[:, 1:-1].argmax(axis=1) + 1  # the peak, with a neighbour on each side
-    r = np.arange(kk.size)
-    y0, y1, y2 = sm[r, kk - 1], sm[r, kk], sm[r, kk + 1]
-    den = y0 - 2 * y1 + y2
-    frac = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
-    d = u[kk + 1] + step * np.clip(frac, -0.5, 0.5)
-    d = _median3(d)
-    return rx + d * nx, rz + d * nz
 
 
 def extend_candidates(

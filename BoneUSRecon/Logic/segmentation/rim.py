@@ -42,7 +42,7 @@ cross-section, for a crest a point inside it):
    of 1 or 2 spreads stopped traces on the flank: reconstruction 2.4 or 3.3 mm from the
    reference against 1.9 mm with the median alone).
 5. **Points.** Each step's point is refined on the full-resolution image along its ray
-   (:func:`.flanks._refine_across`) and appended to the contour's end.
+   (:func:`.sampling.refine_across`) and appended to the contour's end.
 
 Only contours of at least ``min_points`` points with a good circle fit (centre below the
 contour's deepest point, radius within ``radius_mm``) are followed, at the ends the arc
@@ -61,6 +61,7 @@ import numpy as np
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.params import RimParams
+from BoneUSRecon.Logic.segmentation.sampling import bilinear_at, refine_across
 
 __all__ = ["follow_rims", "kasa_circle"]
 
@@ -102,8 +103,6 @@ def follow_rims(
     list of ndarray
         The contours, extended where a trace held (the others the same objects).
     """
-    from BoneUSRecon.Logic.segmentation.flanks import _bilinear, _refine_across
-
     p = params
     out = list(contours_px)
     if not p.enabled:
@@ -171,7 +170,7 @@ def follow_rims(
     gj = gz / fy + (0.5 / ev.fy - 0.5)
     gvalid = (gi >= 0) & (gi <= ww - 1) & (gj >= 0) & (gj <= hw - 1)
     gvalid &= ev.usable[np.rint(np.clip(gi, 0, ww - 1)).astype(np.intp)]
-    g = _bilinear(ev.work, gi, gj)
+    g = bilinear_at(ev.work, gi, gj)
     cs = np.zeros(g.shape[:2] + (g.shape[2] + 1,))
     np.cumsum(g, axis=-1, out=cs[..., 1:])
     # Sample b of the band is grid index b + k1; outward window b + k1 + k0 .. b + 2 k1,
@@ -238,7 +237,7 @@ def follow_rims(
         ri = rc[:, None] + np.r_[0.0, win, -win]
         qi = (ccx + sd * np.sin(ph)[:, None] * ri) / fx + (0.5 / ev.fx - 0.5)
         qj = (ccz - np.cos(ph)[:, None] * ri) / fy + (0.5 / ev.fy - 0.5)
-        s = _bilinear(ev.work, qi, qj)
+        s = bilinear_at(ev.work, qi, qj)
         c0 = np.log(s[:, 0] + _EPS)
         own = c0 - np.log(s[:, 1 : 1 + win.size].mean(axis=1) + _EPS)
         if p.inside:
@@ -261,7 +260,7 @@ def follow_rims(
     ph = phi[t_i, k_i]
     sd = side[t_i, 0, 0]
     nx, nz = sd * np.sin(ph), -np.cos(ph)
-    rx, rz = _refine_across(
+    rx, rz = refine_across(
         image, cx[t_i, 0, 0] + nx * rad, cz[t_i, 0, 0] + nz * rad, nx, nz, sx, sy, p.refine_mm
     )
     pts = np.stack([rx / sx, rz / sy], axis=1)
