@@ -62,17 +62,20 @@ accuracy, speed) are in ``Testing/benchmarks/README.md`` ("Flanks").
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
 
-from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import FlankParams, RimParams
 from BoneUSRecon.Logic.segmentation.rim import follow_rims
-from BoneUSRecon.Logic.segmentation.sampling import bilinear_at, median3, refine_across
+from BoneUSRecon.Logic.segmentation.sampling import (
+    bilinear_at,
+    median3,
+    refine_across,
+    with_points,
+)
 
 __all__ = ["extend_flanks", "extend_candidates"]
 
@@ -376,27 +379,14 @@ def extend_candidates(
     old = [cands[n].points_px for n in which]
     new = extend_flanks(image, ev, old, spacing, params) if params.enabled else list(old)
     if rim is not None and rim.enabled:
-        # The ends the arc tracer left (a contour it did not change, or an end point
-        # that is still the contour's own).
-        # Only the strongest ``rim.candidates`` (candidates come strongest first): the
-        # bone is among them, and each trace costs ~1 ms at 480x640.
+        # The ends the arc tracer left (an end point that is still the contour's own),
+        # of the strongest ``rim.candidates`` only (candidates come strongest first:
+        # the bone is among them, and each trace costs ~1 ms at 480x640).
         ends = [
-            (False, False)
-            if q >= rim.candidates
-            else (True, True)
-            if b is a
-            else (bool(np.array_equal(b[0], a[0])), bool(np.array_equal(b[-1], a[-1])))
+            (bool(np.array_equal(b[0], a[0])), bool(np.array_equal(b[-1], a[-1])))
+            if q < rim.candidates
+            else (False, False)
             for q, (a, b) in enumerate(zip(old, new, strict=True))
         ]
         new = follow_rims(image, ev, new, ends, spacing, rim)
-    changed = [(n, pts) for n, pts in zip(which, new, strict=True) if pts is not cands[n].points_px]
-    if changed:
-        allp = np.concatenate([pts for _, pts in changed])
-        # Grey values as every candidate's (candidates.frame_candidates).
-        grey = sample_bilinear(np.asarray(image), allp)
-        cut = np.cumsum([0] + [pts.shape[0] for _, pts in changed])
-        for q, (n, pts) in enumerate(changed):
-            cands[n] = dataclasses.replace(
-                cands[n], points_px=pts, intensity=grey[cut[q] : cut[q + 1]]
-            )
-    return cands
+    return with_points(image, cands, which, new)

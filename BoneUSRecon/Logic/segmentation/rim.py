@@ -108,7 +108,8 @@ def follow_rims(
     if not p.enabled:
         return out
     sx, sy = float(spacing[0]), float(spacing[1])
-    # The traces: (contour, side, cx, cz, r0, phi0, own echo).
+    # The traces: (contour, side, circle centre cx, cz, end radius r0 and direction
+    # phi0, the contour's x, z in mm).
     rows = []
     for n, (c, (lo, hi)) in enumerate(zip(out, ends, strict=True)):
         if not (lo or hi) or len(c) < p.min_points:

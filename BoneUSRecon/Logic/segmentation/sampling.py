@@ -1,4 +1,4 @@
-"""Sampling along lines on a frame: the helpers :mod:`.flanks` and :mod:`.rim` share.
+"""Sampling along lines on a frame: the helpers :mod:`.flanks`, :mod:`.rim` and :mod:`.settle` share.
 
 Bilinear samples at arrays of points (the flat-index form of
 :func:`.detection.sample_bilinear`), a median of three along a trace, and the
@@ -7,9 +7,14 @@ full-resolution refinement of ridge points along their normals.
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+
 import numpy as np
 
-__all__ = ["bilinear_at", "median3", "refine_across"]
+from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
+
+__all__ = ["bilinear_at", "median3", "refine_across", "with_points"]
 
 
 def median3(a: np.ndarray) -> np.ndarray:
@@ -88,3 +93,23 @@ def refine_across(
     d = u[kk + 1] + step * np.clip(frac, -0.5, 0.5)
     d = median3(d)
     return rx + d * nx, rz + d * nz
+
+
+def with_points(
+    image: np.ndarray, cands: list, which: Sequence[int], points: Sequence[np.ndarray]
+) -> list:
+    """``cands`` with candidate ``which[k]`` given ``points[k]`` where those are new
+    objects, its grey values re-sampled as every candidate's
+    (:func:`.candidates.frame_candidates`; one sample of all changed points); strengths
+    and flags unchanged."""
+    changed = [
+        (n, pts) for n, pts in zip(which, points, strict=True) if pts is not cands[n].points_px
+    ]
+    if changed:
+        grey = sample_bilinear(np.asarray(image), np.concatenate([pts for _, pts in changed]))
+        cut = np.cumsum([0] + [pts.shape[0] for _, pts in changed])
+        for q, (n, pts) in enumerate(changed):
+            cands[n] = dataclasses.replace(
+                cands[n], points_px=pts, intensity=grey[cut[q] : cut[q + 1]]
+            )
+    return cands

@@ -47,15 +47,14 @@ points of all of a frame's candidates at once. Figures: ``Testing/benchmarks/REA
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
 
-from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import SettleParams
+from BoneUSRecon.Logic.segmentation.sampling import with_points
 
 __all__ = ["onset_z", "settle_points", "settle_candidates"]
 
@@ -273,9 +272,4 @@ def settle_candidates(
     if not params.enabled or not which:
         return cands
     new = settle_points(ev, [cands[n].points_px for n in which], spacing, params)
-    for n, pts in zip(which, new, strict=True):
-        if pts is not cands[n].points_px:
-            cands[n] = dataclasses.replace(
-                cands[n], points_px=pts, intensity=sample_bilinear(np.asarray(image), pts)
-            )
-    return cands
+    return with_points(image, cands, which, new)
