@@ -367,7 +367,7 @@ def extend_candidates(
     rim: RimParams | None = None,
 ) -> list:
     """:func:`extend_flanks` on the points of each candidate that may be chosen, then
-    :func:`.rim.follow_rims` at the ends it did not extend (``rim``; None: not).
+    :func:`.rim.follow_rims` on from their ends (``rim``; None: not).
 
     Reverberation copies are left as they are (never chosen); a candidate whose points
     changed gets its grey values re-sampled; strengths are unchanged.
@@ -379,14 +379,9 @@ def extend_candidates(
     old = [cands[n].points_px for n in which]
     new = extend_flanks(image, ev, old, spacing, params) if params.enabled else list(old)
     if rim is not None and rim.enabled:
-        # The ends the arc tracer left (an end point that is still the contour's own),
-        # of the strongest ``rim.candidates`` only (candidates come strongest first:
-        # the bone is among them, and each trace costs ~1 ms at 480x640).
-        ends = [
-            (bool(np.array_equal(b[0], a[0])), bool(np.array_equal(b[-1], a[-1])))
-            if q < rim.candidates
-            else (False, False)
-            for q, (a, b) in enumerate(zip(old, new, strict=True))
-        ]
+        # Both ends, on from where the arc tracer left them, of the strongest
+        # ``rim.candidates`` only (candidates come strongest first: the bone is among
+        # them, and each trace costs ~1 ms at 480x640).
+        ends = [(q < rim.candidates,) * 2 for q in range(len(new))]
         new = follow_rims(image, ev, new, ends, spacing, rim)
     return with_points(image, cands, which, new)

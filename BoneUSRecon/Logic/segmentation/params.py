@@ -213,22 +213,18 @@ class FlankParams:
 
 @dataclass(frozen=True)
 class RimParams:
-    """Following a contour's flat ends round the bone's outline in polar coordinates (:mod:`.rim`).
+    """Following a contour's ends round the bone's outline in polar coordinates (:mod:`.rim`).
 
     Lengths in mm; the stop level is a share of the contour's own echo in the frame (no
     grey level enters).
     """
 
     enabled: bool = True
-    """Follow the ends :mod:`.flanks` did not extend (off: those ends stay)."""
+    """Follow the contours' ends on from where :mod:`.flanks` left them (off: they stay)."""
     candidates: int = 2
     """Only the strongest this many candidates of a frame (not reverberation copies) are followed (ours: the bone is among them on the L14 recording, its copies and the hard simulated sweeps, and each trace costs ~1 ms at 480x640)."""
     min_points: int = 12
     """Contours with fewer points are not followed (a circle fit needs an arc)."""
-    max_start_deg: float = 20.0
-    """Only ends whose last ``fit_mm`` of contour descends outward less steeply than this are followed, degrees (ours: ``FlankParams.min_start_deg``: an end that descends is the arc tracer's, and its stop rule ended it; following those too added twice the points off the bone on the hard simulated sweeps, 24 % of all kept points farther than 0.5 mm against 18 %)."""
-    fit_mm: float = 2.0
-    """Length of contour at an end over which its slope is measured, mm (as ``FlankParams.fit_mm``)."""
     radius_mm: tuple[float, float] = (2.0, 40.0)
     """Radii of the fitted circle accepted, mm (a clavicle's 5 mm to a tibia's broad face; a flatter fit is a layer)."""
     step_mm: float = 0.3
@@ -245,6 +241,8 @@ class RimParams:
     """Arc over which the echo is averaged, mm (as ``FlankParams.run_mm``)."""
     inside: bool = True
     """The echo is also measured against the window as far inward (the smaller of the two counts): a line, not a step."""
+    edge_mm: float = 0.8
+    """Windows either side of a sample for the edge measure, mm: the log ratio of the mean grey over this length outward to the mean as far inward, taken where it beats the line's (a steep flank whose echo has faded is the edge between the tissue and the bone's shadow; ours: about the echo's own thickness plus a speckle grain, so the edge is located within it). 0: the line alone."""
     keep: float = 0.3
     """The trace continues while its echo is at least this share of the contour's own (log ratios; ours: on the L14 forearm the flank's echo is 0.5-1.0 of the top's)."""
     gap_mm: float = 0.9
@@ -255,8 +253,14 @@ class RimParams:
     """The trace's echo must also beat the null's median by this many of its robust spreads (pooled over the frame's traces: what speckle and the tissue's layers give with the same search)."""
     max_mm: float = 15.0
     """Longest trace, mm of arc at the end's radius (the L14 forearm's right flank: 10-20 mm from the shoulder; bounds the work on a flat fit's large radius)."""
-    max_deg: float = 95.0
-    """Furthest direction followed, degrees from the beam's up direction (past the bone's widest point a beam from above sees nothing)."""
+    max_deg: float = 80.0
+    """Furthest direction followed, degrees from the beam's up direction about the fitted circle (past the bone's widest point a beam from above sees nothing, and the shadow's edge there runs straight down; ours: the flanks to 70 degrees that issue 10 asks for, with a margin for a circle fitted to a crest; at 95 the edge measure followed the shadow's side below the widest point on the hard simulated sweeps)."""
+    max_slope_deg: float = 80.0
+    """The trace ends before its first point descending steeper than this over ``slope_mm``, degrees (past the bone's widest point the edge of its shadow runs straight down; ours: issue 10's 70 degrees with a margin; 90: no limit)."""
+    max_flatten_deg: float = 20.0
+    """The trace ends before its first point flatter by this than the steepest it has been (with the contour's end), degrees (a convex outline only steepens; a layer running off the shoulder is flatter than the flank it leaves; ours: above the descent's spread over ``slope_mm`` on a traced flank)."""
+    slope_mm: float = 1.2
+    """Length of contour and trace over which the descent is measured, mm (a few speckle grains)."""
     min_steps: int = 3
     """Shorter traces are dropped."""
     refine_mm: float = 0.3
@@ -274,9 +278,11 @@ class RimParams:
                 "outside_mm",
                 "run_mm",
                 "refine_mm",
+                "slope_mm",
             ),
             non_negative=(
                 "keep",
+                "edge_mm",
                 "gap_mm",
                 "candidates",
                 "min_points",
@@ -284,12 +290,21 @@ class RimParams:
                 "null_mm",
                 "stop_z",
             ),
-            within={"max_deg": "(0, 180]"},
+            within={
+                "max_deg": "(0, 180]",
+                "max_slope_deg": "(0, 90]",
+                "max_flatten_deg": "(0, 180]",
+            },
         )
         for name in ("radius_mm", "outside_mm"):
             lo, hi = getattr(self, name)
             if not hi > lo:
                 raise BoneUSReconError(f"RimParams.{name} must be increasing, got {(lo, hi)!r}")
+        if self.edge_mm > self.outside_mm[1]:
+            raise BoneUSReconError(
+                f"RimParams.edge_mm must not exceed outside_mm[1] ({self.outside_mm[1]}), "
+                f"got {self.edge_mm!r}"
+            )
 
 
 @dataclass(frozen=True)
