@@ -106,6 +106,10 @@ class BoneCandidate:
     guided : bool
         Found by the search guided by the bone track (:mod:`.recovery`), not by the
         frame's own passes.
+    rim_ends : (int, int)
+        Points :mod:`.rim` added before the first and after the last of the contour it
+        was given (the least certain: a trace following the outline round on its own
+        frame's evidence).
     """
 
     points_px: np.ndarray
@@ -116,6 +120,20 @@ class BoneCandidate:
     reverberation: bool = False
     echo_beneath: bool = False
     guided: bool = False
+    rim_ends: tuple[int, int] = (0, 0)
+
+    @property
+    def core_px(self) -> np.ndarray:
+        """``points_px`` without the rim's points: what the sweep-level steps compare.
+
+        The track's links and the recovery's priors measure how far apart two frames'
+        contours lie; a rim trace that ran from a look-alike's end down onto the bone's
+        flank (a false echo over the bone) would make the look-alike link to its
+        neighbours, and one that ran on past the bone in a neighbour would bend a
+        recovery's prior. The rim's points join the contour the track chose.
+        """
+        a, b = self.rim_ends
+        return self.points_px[a : self.points_px.shape[0] - b] if a or b else self.points_px
 
 
 @dataclass(frozen=True, eq=False)

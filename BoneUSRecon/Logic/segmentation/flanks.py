@@ -62,6 +62,7 @@ accuracy, speed) are in ``Testing/benchmarks/README.md`` ("Flanks").
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
@@ -383,5 +384,20 @@ def extend_candidates(
         # ``rim.candidates`` only (candidates come strongest first: the bone is among
         # them, and each trace costs ~1 ms at 480x640).
         ends = [(q < rim.candidates,) * 2 for q in range(len(new))]
-        new = follow_rims(image, ev, new, ends, spacing, rim)
+        traced = follow_rims(image, ev, new, ends, spacing, rim)
+        added = [_added(a, b) for a, b in zip(new, traced, strict=True)]
+        cands = with_points(image, cands, which, traced)
+        for n, ab in zip(which, added, strict=True):
+            if ab != (0, 0):
+                cands[n] = dataclasses.replace(cands[n], rim_ends=ab)
+        return cands
     return with_points(image, cands, which, new)
+
+
+def _added(before: np.ndarray, after: np.ndarray) -> tuple[int, int]:
+    """Points :func:`.rim.follow_rims` put before and after ``before`` in ``after``."""
+    if after is before:
+        return (0, 0)
+    extra = after.shape[0] - before.shape[0]
+    lead = int(np.flatnonzero((after[: extra + 1] == before[0]).all(axis=1))[0])
+    return (lead, extra - lead)

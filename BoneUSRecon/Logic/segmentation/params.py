@@ -255,8 +255,8 @@ class RimParams:
     """Longest trace, mm of arc at the end's radius (the L14 forearm's right flank: 10-20 mm from the shoulder; bounds the work on a flat fit's large radius)."""
     max_deg: float = 80.0
     """Furthest direction followed, degrees from the beam's up direction about the fitted circle (past the bone's widest point a beam from above sees nothing, and the shadow's edge there runs straight down; ours: the flanks to 70 degrees that issue 10 asks for, with a margin for a circle fitted to a crest; at 95 the edge measure followed the shadow's side below the widest point on the hard simulated sweeps)."""
-    max_slope_deg: float = 80.0
-    """The trace ends before its first point descending steeper than this over ``slope_mm``, degrees (past the bone's widest point the edge of its shadow runs straight down; ours: issue 10's 70 degrees with a margin; 90: no limit)."""
+    max_slope_deg: float = 75.0
+    """The trace ends before its first point descending steeper than this over ``slope_mm``, degrees (past the bone's widest point the edge of its shadow runs straight down; ours: issue 10's 70 degrees with a margin; at 80 the traces ran on down the shadow's side past the widest point on the standard simulated radius, seed 1, 1-2 mm off the bone; 90: no limit)."""
     max_flatten_deg: float = 20.0
     """The trace ends before its first point flatter by this than the steepest it has been (with the contour's end), degrees (a convex outline only steepens; a layer running off the shoulder is flatter than the flank it leaves; ours: above the descent's spread over ``slope_mm`` on a traced flank)."""
     slope_mm: float = 1.2

@@ -172,7 +172,7 @@ def track_prior(
     prior: Prior = []
     for g in near:
         cand = frames[g].candidates[int(choice.chosen[g])]
-        ref = pixels_to_reference(poses[g], _sampled(cand.points_px, frames[g].spacing))
+        ref = pixels_to_reference(poses[g], _sampled(cand.core_px, frames[g].spacing))
         a = _project(ref, origin[0], axes[0], normal[0])
         o = np.argsort(a[:, 0], kind="stable")
         prior.append((a[o, 0], a[o, 1], median1d(a[:, 2])))
@@ -282,7 +282,7 @@ def guided_candidate(
         median1d(ev.shadow_z[rows, g]),
         guided=True,
     )
-    return extend_candidates(img, ev, [cand], spc, sp.flanks)[0]
+    return extend_candidates(img, ev, [cand], spc, sp.flanks, sp.rim)[0]
 
 
 def recover_frames(
@@ -381,7 +381,7 @@ def stray(
     :func:`guided_candidate` makes them, so 1 is the band's edge. NaN when the prior
     covers fewer than two of its points.
     """
-    xy = _sampled(cand.points_px, spacing) * np.asarray(spacing, dtype=float)
+    xy = _sampled(cand.core_px, spacing) * np.asarray(spacing, dtype=float)
     x = xy[:, 0]
     num, den, tol = np.zeros(x.size), np.zeros(x.size), np.full(x.size, np.inf)
     for lat, depth, z in prior:

@@ -85,7 +85,9 @@ _BAD = -1e3
 _MIN_LEVEL = 0.05
 
 
-def _edge(cs_out: np.ndarray, cs_in: np.ndarray, centre: int, k: int, n: int) -> np.ndarray:
+def _edge(
+    cs_out: np.ndarray, cs_in: np.ndarray, centre: int, k: int, n: int, floor: float
+) -> np.ndarray:
     """Log ratio of the mean of ``k`` samples outward to ``k`` inward of each of ``n`` samples.
 
     ``cs_out`` and ``cs_in`` are cumulative sums (a leading 0) along the last axis of
@@ -96,10 +98,12 @@ def _edge(cs_out: np.ndarray, cs_in: np.ndarray, centre: int, k: int, n: int) ->
         cs_out[..., centre + 1 + k : centre + 1 + k + n] - cs_out[..., centre + 1 : centre + 1 + n]
     )
     inn = cs_in[..., centre : centre + n] - cs_in[..., centre - k : centre - k + n]
-    return np.log(out / k + _EPS) - np.log(inn / k + _EPS)
+    return np.log(out / k + floor) - np.log(inn / k + floor)
 
 
-def _beam_edge(ev: EvidenceMaps, wi: np.ndarray, wj: np.ndarray, rows: float) -> np.ndarray:
+def _beam_edge(
+    ev: EvidenceMaps, wi: np.ndarray, wj: np.ndarray, rows: float, floor: float
+) -> np.ndarray:
     """Log ratio of the mean grey over ``rows`` working rows above each point (capped
     at the tissue level) to the mean as far below, on the point's nearest column."""
     k = max(1, int(round(rows)))
@@ -115,7 +119,7 @@ def _beam_edge(ev: EvidenceMaps, wi: np.ndarray, wj: np.ndarray, rows: float) ->
     b0, b1 = np.minimum(row + 1, h), np.minimum(row + 1 + k, h)
     above = (cu[a1, col] - cu[a0, col]) / np.maximum(a1 - a0, 1)
     below = (cw[b1, col] - cw[b0, col]) / np.maximum(b1 - b0, 1)
-    return np.log(above + _EPS) - np.log(below + _EPS)
+    return np.log(above + floor) - np.log(below + floor)
 
 
 def _capped(values: np.ndarray, rows: np.ndarray, tissue: np.ndarray) -> np.ndarray:
@@ -151,9 +155,10 @@ def _outline_prefix(
     seq = np.concatenate([tail, piece * (sx, sy)])
     # Centred differences over slope_mm of arc (points are ~step_mm apart on the trace).
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(seq, axis=0).T))])
-    lo = np.searchsorted(s, s - 0.5 * p.slope_mm)
-    hi = np.minimum(np.searchsorted(s, s + 0.5 * p.slope_mm, side="right") - 1, s.size - 1)
-    ok = (s - s[lo] >= 0.4 * p.slope_mm) & (s[hi] - s >= 0.4 * p.slope_mm)
+    half = 0.5 * p.slope_mm
+    lo = np.maximum(np.searchsorted(s, s - half, side="right") - 1, 0)
+    hi = np.minimum(np.searchsorted(s, s + half), s.size - 1)
+    ok = (s - s[lo] >= 0.8 * half) & (s[hi] - s >= 0.8 * half)
     deg = np.degrees(np.arctan2(seq[hi, 1] - seq[lo, 1], side * (seq[hi, 0] - seq[lo, 0])))
     deg = np.where(ok, deg, np.nan)
     steepest = np.fmax.accumulate(np.where(np.isnan(deg), -np.inf, deg))
@@ -262,6 +267,10 @@ def follow_rims(
     # as the edge between the tissue beside the bone and its shadow (beyond the line:
     # the windows outside_mm out, capped at the tissue level, and as far in).
     ke = int(round(p.edge_mm / p.offset_mm))
+    # The edge's ratios are of means over a few speckle grains, which can be near black
+    # in a dark shadow: both sides get a tenth of the frame's typical tissue grey (a
+    # level of this recording) so a grain of black is no edge.
+    dark = 0.1 * median1d(ev.tissue)
     win = p.offset_mm * np.arange(k0, k1 + 1)
     nw = win.size
     own_line, own_edge = np.empty(n_t), np.zeros(n_t)
@@ -280,7 +289,7 @@ def follow_rims(
         own_line[q] = median1d(own)
         if ke:
             capped = _capped(s[:, 1 : 1 + nw], qj[:, 1 : 1 + nw], ev.tissue).mean(axis=1)
-            own_edge[q] = median1d(np.log(capped + _EPS) - np.log(in_mean + _EPS))
+            own_edge[q] = median1d(np.log(capped + dark) - np.log(in_mean + dark))
     # Both measures in units of the contour's own (the stop level is then ``keep`` for
     # either); a contour with no shadow under it (a bone that passes sound, the L14
     # forearm) gets no edge measure.
@@ -310,14 +319,16 @@ def follow_rims(
         # the outward window holds the line, which is no tissue beside a shadow.
         cap = np.zeros_like(cs)
         np.cumsum(_capped(g, gj, ev.tissue), axis=-1, out=cap[..., 1:])
-        edge = _edge(cap, cs, k1, ke, ne)
+        edge = _edge(cap, cs, k1, ke, ne, dark)
         # ... and along the beam: a point of the outline is seen from above, tissue over
         # it and the shadow under it. Past the bone's widest point the edge of its shadow
         # has the bone's shadow over it too: no outline there (on the hard simulated
         # radius, seed 43, a trace ran on down the shadow's side 5 mm off the bone).
         np.minimum(
             edge,
-            _beam_edge(ev, gi[..., k1 : k1 + ne], gj[..., k1 : k1 + ne], p.edge_mm * 1.0 / ev.dy),
+            _beam_edge(
+                ev, gi[..., k1 : k1 + ne], gj[..., k1 : k1 + ne], p.edge_mm * 1.0 / ev.dy, dark
+            ),
             out=edge,
         )
         edge = np.where(use_edge, edge / edge_unit, _BAD)
@@ -330,6 +341,7 @@ def follow_rims(
     bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
     e[bad | ~live[:, :, None]] = _BAD
     e = np.concatenate([e[..., :nb], e[..., shift : shift + nb]])  # traces, then nulls
+    own_e = e[:n_t].copy()  # each step's own value, before the average along the trace
     run = max(1, int(round(p.run_mm / p.step_mm)))
     if run > 1:
         ce = np.zeros((2 * n_t, n_step + 1, nb))
@@ -376,7 +388,10 @@ def follow_rims(
     cb[:, n_step + 1 :] = cb[:, n_step : n_step + 1] + np.arange(1, gap + 1)
     first = (cb[:, gap:] - cb[:, :-gap] == gap).argmax(axis=1)
     steps = np.arange(n_step)
-    last = np.where(good & (steps < first[:, None]) & (steps > 0), steps, -1).max(axis=1)
+    # The average along the trace carries a ridge ``run_mm / 2`` past its end: the trace
+    # ends at its last step whose own value holds too.
+    held = good & (own_e[tt[:, None], steps, path] >= max(p.keep, floor))
+    last = np.where(held & (steps < first[:, None]) & (steps > 0), steps, -1).max(axis=1)
     # Points (step 0 is the end itself), refined along the ray on the full image.
     t_i, k_i = np.nonzero((steps >= 1) & (steps <= last[:, None]))
     if t_i.size == 0:

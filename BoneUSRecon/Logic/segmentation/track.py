@@ -227,7 +227,7 @@ def _node_points(
     """A node's sampled contour: reference mm, (lateral, depth) mm in its plane, and its
     bounding box there (most pairs, a fascia and the bone mm apart in depth, are ruled
     out on the boxes without the point-to-contour distances)."""
-    pts = _sampled(cand.points_px, spacing)
+    pts = _sampled(cand.core_px, spacing)
     b = pts * np.asarray(spacing, dtype=float)
     box = (float(b[:, 0].min()), float(b[:, 0].max()), float(b[:, 1].min()), float(b[:, 1].max()))
     return pixels_to_reference(pose, pts), b, box
@@ -416,10 +416,10 @@ def _finish(
                 detail[f] = details[key]
                 continue
             g_ref = pixels_to_reference(
-                poses[g], _sampled(frames[g].candidates[chosen[g]].points_px, frames[g].spacing)
+                poses[g], _sampled(frames[g].candidates[chosen[g]].core_px, frames[g].spacing)
             )
             devs = [
-                _deviation(g_ref, _sampled(c.points_px, fc.spacing), poses[f], fc.spacing)[0]
+                _deviation(g_ref, _sampled(c.core_px, fc.spacing), poses[f], fc.spacing)[0]
                 for c in fc.usable
             ]
             dmin = min(devs)
