@@ -110,11 +110,12 @@ def _window_means(cs: np.ndarray, centre: int, k: int, n: int) -> tuple[np.ndarr
 
 
 def _beam_edge(
-    ev: EvidenceMaps, wi: np.ndarray, wj: np.ndarray, rows: float, dark: float
+    ev: EvidenceMaps, wi: np.ndarray, wj: np.ndarray, rows: float, dark: float, gap: float = 0.0
 ) -> np.ndarray:
     """:func:`_edge_ratio` along the beam: ``rows`` working rows above each point against
-    as many below, on the point's nearest column."""
+    as many below, ``gap`` rows clear of it either side, on the point's nearest column."""
     k = max(1, int(round(rows)))
+    o = int(round(gap))
     h, w = ev.work.shape
     col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
     row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
@@ -122,8 +123,8 @@ def _beam_edge(
     np.cumsum(np.minimum(ev.work, ev.tissue_beside[:, None]), axis=0, out=cu[1:])
     cw = np.zeros((h + 1, w))
     np.cumsum(ev.work, axis=0, out=cw[1:])
-    a0, a1 = np.clip(row - k, 0, h), row
-    b0, b1 = np.minimum(row + 1, h), np.minimum(row + 1 + k, h)
+    a0, a1 = np.clip(row - o - k, 0, h), np.clip(row - o, 0, h)
+    b0, b1 = np.minimum(row + 1 + o, h), np.minimum(row + 1 + o + k, h)
     na, nb = np.maximum(a1 - a0, 1), np.maximum(b1 - b0, 1)
     cap = (cu[a1, col] - cu[a0, col]) / na
     raw = (cw[a1, col] - cw[a0, col]) / na
@@ -342,7 +343,16 @@ def follow_rims(
         # line counts in full only over at least half its own shadow's contrast along
         # the beam (on the standard simulated radius, seed 1, traces ran on along such
         # fasciae 1-2 mm off the bone).
-        shade = np.clip(2.0 * beam / edge_unit, 0.0, 1.0)
+        # (Its windows clear of the line, as the contour's own shadow contrast was measured.)
+        across = _beam_edge(
+            ev,
+            gi[..., k1 : k1 + ne],
+            gj[..., k1 : k1 + ne],
+            (p.outside_mm[1] - p.outside_mm[0]) / ev.dy,
+            dark,
+            p.outside_mm[0] / ev.dy,
+        )
+        shade = np.clip(2.0 * across / edge_unit, 0.0, 1.0)
         e = np.where(use_edge, np.minimum(e, e * shade), e)
         edge = np.where(use_edge, edge / edge_unit, _BAD)
         edge_won = edge[..., :nb] > e[..., :nb]
