@@ -15,6 +15,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import median_filter
 
+from BoneUSRecon.Logic.segmentation import track
 from BoneUSRecon.Logic.segmentation.candidates import (
     _optimal_path,
     _optimal_paths,
@@ -29,7 +30,14 @@ from BoneUSRecon.Logic.segmentation.features import (
     sorted_row_medians,
     sorted_row_percentiles,
 )
-from BoneUSRecon.Logic.segmentation.track import _in_plane_deviation, _stepped
+from BoneUSRecon.Logic.segmentation.params import RejectionParams
+from BoneUSRecon.Logic.segmentation.track import (
+    _in_plane_deviation,
+    _links,
+    _links_many,
+    _project,
+    _stepped,
+)
 from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.sweep import pixel_spacing
 
@@ -236,6 +244,68 @@ def test_track_pair_shortcuts_match_plain() -> None:
             assert _stepped(a, b, step, a_x=a_x, a_sorted=(a[o, 0], a[o, 1])) == want, trial
             hits += want
     assert hits >= 50  # the trials exercise stepped pairs too
+
+
+def _plain_links(a_ref, plane, b_nodes, p):  # type: ignore[no-untyped-def]
+    """track._links as it was before branch ``speed``'s session 24: pair by pair."""
+    a = _project(a_ref, *plane)
+    out = []
+    for i, (b, _) in enumerate(b_nodes):
+        d, share, z = _in_plane_deviation(a, b)
+        if share < p.min_overlap_share or not np.isfinite(d):
+            continue
+        tol = p.tolerance_mm + p.tolerance_per_mm * z
+        if d > p.max_deviation * tol:
+            continue
+        if _plain_stepped(a, b, p.max_step_mm + p.step_per_mm * z):
+            continue
+        out.append((i, d / tol))
+    return out
+
+
+def test_links_of_many_contours_match_pair_by_pair() -> None:
+    # _links_many measures all pairs of contours together (padded, masked medians):
+    # the same edges, in the same order, with the same deviations as one pair at a time,
+    # on contours of different sizes that overlap partly, lie a step under one another,
+    # lie apart, have even and odd numbers of points beside each other, repeated
+    # lateral positions; also in chunks smaller than the pairs (the memory bound).
+    rng = np.random.default_rng(12)
+    p = RejectionParams()
+    edges = stepped = 0
+    for trial in range(150):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        plane = (rng.normal(0, 5, 3), q[:, :2].copy(), q[:, 2].copy())
+        b_nodes = []
+        for _ in range(int(rng.integers(1, 6))):
+            kb = int(rng.integers(1, 40))
+            bx = np.sort(rng.uniform(0, 20, kb))
+            b = np.column_stack([bx, rng.normal(10 + rng.choice([0.0, 1.0, 5.0]), 0.3, kb)])
+            box = (float(bx.min()), float(bx.max()), float(b[:, 1].min()), float(b[:, 1].max()))
+            b_nodes.append((b, box))
+        a_refs = []
+        for _ in range(int(rng.integers(0, 7))):
+            ka = int(rng.integers(1, 40))
+            ax = rng.uniform(-5, 25, ka) if trial % 3 else np.round(rng.uniform(0, 20, ka))
+            loc = np.column_stack([ax, rng.normal(10 + rng.choice([0.0, 4.0]), 0.3, ka)])
+            # Back to reference mm through the plane, a little out of it.
+            off = rng.uniform(0, 3, ka)
+            a_refs.append(plane[0] + loc @ plane[1].T + off[:, None] * plane[2])
+        want = [_plain_links(a, plane, b_nodes, p) for a in a_refs]
+        assert _links_many(a_refs, plane, b_nodes, p) == want, trial
+        assert [_links(a, plane, b_nodes, p) for a in a_refs] == want, trial
+        if trial % 10 == 0:
+            old, track._PAIR_CHUNK = track._PAIR_CHUNK, 40 * 40 * 2
+            try:
+                assert _links_many(a_refs, plane, b_nodes, p) == want, trial
+            finally:
+                track._PAIR_CHUNK = old
+        edges += sum(len(w) for w in want)
+        stepped += sum(
+            _plain_stepped(_project(a, *plane), b, p.max_step_mm)
+            for a in a_refs
+            for b, _ in b_nodes
+        )
+    assert edges >= 100 and stepped >= 20  # both outcomes exercised
 
 
 def test_sorted_row_statistics_match_numpy() -> None:
