@@ -58,6 +58,7 @@ its own evidence and the strongest kept; pieces lying over one shadow (a line fl
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
@@ -232,21 +233,27 @@ def _optimal_paths(
     ws = [g.shape[1] for g in gains]
     hmax, wmax = max(hs), max(ws)
     # score[c, i, d + j]: best path of gain i ending at row j of column c.
-    score = np.full((wmax, m, hmax + 2 * d), -np.inf)
+    hp = hmax + 2 * d
+    score = np.full((wmax, m, hp), -np.inf)
     for i, g in enumerate(gains):
         score[: ws[i], i, d : d + hs[i]] = g.T
-    # Shift-major layout (shift, gain, row): the reduction over shifts runs over whole
-    # contiguous (gain, row) planes, and at this size a subtract straight from the
-    # window view beats a copy then a subtract (unlike one gain's, see _optimal_path).
-    win = sliding_window_view(score, n, axis=2).transpose(0, 3, 1, 2)  # (w, shift, m, row)
-    inner = score[:, :, d : d + hmax]
-    cand = np.empty((n + 1, m, hmax))
+    # Each column's scores as one contiguous run of the gains' padded rows (gain after
+    # gain, d rows of -inf between them): shift s of every row of every gain is one slice
+    # of the run, so each numpy call runs over one long contiguous row. (Laid out as
+    # (shift, gain, row) views, numpy's loops restart at every one of the m x n short
+    # rows: 2-4x the time per element at 24 gains.) The d padding rows between two gains
+    # are computed too (2 d per gain): their gain is -inf, so they stay -inf, and a
+    # shift reaches at most d rows: a gain's rows never read another gain's.
+    run = m * hp - 2 * d  # positions d .. m hp - d of a column's run
+    flat = score.reshape(wmax, m * hp)
+    inner = flat[:, d : d + run]
+    win = sliding_window_view(flat, run, axis=1)  # win[c, s] = flat[c, s : s + run]
+    cand = np.empty((n + 1, run))
     shifts = cand[:n]
     from_null = cand[n]
-    cost = np.empty((n, m, hmax))
-    for i, ci in enumerate(costs):
-        cost[:, i, :] = ci[:, None]
-    best = np.empty((m, hmax))
+    # Each position's cost per shift and no-bone score are its gain's.
+    cost = np.repeat(np.stack(costs, axis=1), hp, axis=1)[:, d : d + run]
+    best = np.empty(run)
     top = np.empty(m)
     null = np.zeros(m)
     null_before = np.zeros((wmax + 1, m))  # row c: each no-bone score before column c
@@ -255,8 +262,7 @@ def _optimal_paths(
     subtract, reduce_max = np.subtract, np.maximum.reduce
     for c in range(1, wmax):
         null_before[c] = null
-        prev = inner[c - 1]
-        reduce_max(prev, axis=1, out=top)
+        reduce_max(score[c - 1], axis=1, out=top)
         subtract(win[c - 1], cost, out=shifts)
         reduce_max(cand, axis=0, out=best)
         inner[c] += best
@@ -264,7 +270,7 @@ def _optimal_paths(
         if up.any():
             np.copyto(null, top - switch, where=up)
             rose[c] = up
-            from_null[...] = (null - switch)[:, None]
+            from_null[...] = (null - switch).repeat(hp)[d : d + run]
     null_before[wmax] = null
     # Backtrack each gain as _optimal_path does (the same comparisons on the same doubles).
     paths = []
@@ -274,22 +280,35 @@ def _optimal_paths(
         sc = score[:, i]
         shift_cost = costs[i]
         nb = null_before[:, i].tolist()
-        ro = rose[:, i].tolist()
+        # Columns where the no-bone score rose, ascending (the only ones a no-bone
+        # stretch can have been entered from).
+        rose_at = np.flatnonzero(rose[:w, i]).tolist()
         path = np.full(w, -1, dtype=np.intp)
         last = sc[w - 1, d : d + h]
         jb = int(last.argmax())
         state = jb if last[jb] > nb[w] else -1
-        for c in range(w - 1, -1, -1):
-            path[c] = state
-            if c == 0:
-                break
+        c = w - 1
+        while c > 0:
             if state >= 0:
+                path[c] = state
                 np.subtract(sc[c - 1, state : state + n], shift_cost, out=v)
                 k = int(v.argmax())
                 state = -1 if nb[c] - switch > v.item(k) else state + k - d
+                c -= 1
             else:
-                # Left no-bone here only if its score rose here: from the previous best row.
-                state = int(sc[c - 1, d : d + h].argmax()) if ro[c] else -1
+                # No bone from column c back to the last column at or before it where
+                # the no-bone score rose (path stays -1 there): left from the previous
+                # column's best row; none such, no bone down to column 0. (The same
+                # states as stepping column by column: the no-bone state stays where
+                # its score did not rise.)
+                q = bisect_right(rose_at, c) - 1
+                if q < 0:
+                    break
+                c = rose_at[q]
+                state = int(sc[c - 1, d : d + h].argmax())
+                c -= 1
+        if c == 0:
+            path[0] = state
         paths.append(path)
     return paths
 
