@@ -31,6 +31,7 @@ from BoneUSRecon.Logic.segmentation.features import (
     sorted_row_percentiles,
 )
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
+from BoneUSRecon.Logic.segmentation.rim import _radius_paths
 from BoneUSRecon.Logic.segmentation.track import (
     _in_plane_deviation,
     _links,
@@ -306,6 +307,43 @@ def test_links_of_many_contours_match_pair_by_pair() -> None:
             for b, _ in b_nodes
         )
     assert edges >= 100 and stepped >= 20  # both outcomes exercised
+
+
+def _plain_radius_paths(e: np.ndarray, start: int, ms: int) -> np.ndarray:
+    """rim's Viterbi as it was before branch ``speed``'s session 24 (stacked views)."""
+    n_tr, n_step, nb = e.shape
+    acc = np.full((n_tr, nb + 2 * ms), -np.inf)
+    acc[:, ms + start] = e[:, 0, start]
+    back = np.zeros((n_step, n_tr, nb), np.int8)
+    rows_, cols_ = np.arange(n_tr)[:, None], np.arange(nb)[None, :]
+    for t in range(1, n_step):
+        views = np.stack([acc[:, ms + k : ms + k + nb] for k in range(-ms, ms + 1)])
+        k = views.argmax(axis=0)
+        new = views[k, rows_, cols_]
+        new += e[:, t]
+        acc[:, ms : ms + nb] = new
+        back[t] = k - ms
+    path = np.empty((n_tr, n_step), np.intp)
+    path[:, -1] = acc[:, ms : ms + nb].argmax(axis=1)
+    tt = np.arange(n_tr)
+    for t in range(n_step - 1, 0, -1):
+        path[:, t - 1] = path[:, t] + back[t, tt, path[:, t]]
+    return path
+
+
+def test_rim_radius_paths_match_stacked_views() -> None:
+    # Coarse scores (ties between moves) and the rim's "outside" value -1e3 in runs.
+    rng = np.random.default_rng(13)
+    for trial in range(200):
+        n_tr, n_step, nb = (
+            int(rng.integers(1, 9)),
+            int(rng.integers(1, 40)),
+            int(rng.integers(1, 50)),
+        )
+        e = np.round(rng.normal(0, 1, (n_tr, n_step, nb)) * 2) / 2
+        e[rng.random(e.shape) < 0.1] = -1e3
+        ms, start = int(rng.integers(1, 4)), int(rng.integers(0, nb))
+        assert np.array_equal(_radius_paths(e, start, ms), _plain_radius_paths(e, start, ms)), trial
 
 
 def test_sorted_row_statistics_match_numpy() -> None:
