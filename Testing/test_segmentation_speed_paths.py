@@ -346,6 +346,23 @@ def test_rim_radius_paths_match_stacked_views() -> None:
         assert np.array_equal(_radius_paths(e, start, ms), _plain_radius_paths(e, start, ms)), trial
 
 
+def test_one_sorted_row_percentile_matches_numpy_1d() -> None:
+    # candidates._is_copy reads its 90th percentile (float64) from one sorted row:
+    # np.percentile's 1-D value. (Not float32: 1-D np.percentile interpolates a float32
+    # array in float32, the rows' version in float64; the evidence baseline, float32,
+    # keeps np.percentile.)
+    rng = np.random.default_rng(14)
+    for trial in range(400):
+        n = int(rng.integers(1, 200))
+        x = rng.gamma(2.0, 0.3, n)
+        if trial % 3 == 0:
+            x = np.round(x * 4) / 4
+        for q in (75.0, 90.0):
+            want = np.percentile(x, q)
+            got = sorted_row_percentiles(np.sort(x)[None, :], (q,))[0, 0]
+            assert got.dtype == want.dtype and got == want, (trial, q)
+
+
 def test_sorted_row_statistics_match_numpy() -> None:
     # The tissue level's percentiles and the baseline's row medians, read from rows
     # sorted once, against numpy on the same sorted rows (both dtypes, ties, the ends).

@@ -68,7 +68,7 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, mi
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
-from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
+from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px, sorted_row_percentiles
 from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 from BoneUSRecon.Logic.segmentation.settle import settle_candidates
@@ -421,7 +421,11 @@ def _is_copy(deep: np.ndarray, shallow: np.ndarray, depth0: float, tol: float) -
     ratio = (deep - depth0) / np.maximum(shallow - depth0, 1e-6)
     # Column by column, not on average: an arc that happens to lie at about twice the
     # depth of a flat fascia on the whole is no copy of it.
-    return bool(np.percentile(np.abs(ratio - 2.0), 90) <= 2.0 * tol)
+    # np.percentile's value read from the sorted values (sorted_row_percentiles: the
+    # same operations, without np.percentile's ~150 us of checks per call).
+    dev = np.abs(ratio - 2.0)
+    dev.sort()
+    return bool(sorted_row_percentiles(dev[None, :], (90.0,))[0, 0] <= 2.0 * tol)
 
 
 def _clip_rows(rows: np.ndarray, lo: int, hi: int) -> np.ndarray:
@@ -639,7 +643,7 @@ def _series(
         cover = cover[cover > -10.0]
         if cover.size == 0:
             return False
-        lid = float(np.median(cover))
+        lid = median1d(cover)
         if mean_trough >= lid + dark or max(troughs) >= lid:
             return False
         if troughs[0] >= dark:
