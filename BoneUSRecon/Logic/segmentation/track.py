@@ -276,22 +276,30 @@ def _links_many(
     if not b_nodes:
         return out
     projected: list[tuple[np.ndarray, float, float]] = []  # a, its lateral min and max
-    pairs: list[tuple[int, int]] = []
+    a_box = np.empty((len(a_refs), 5))  # x0, x1, y0, y1, z1 of each a in b's plane
     for ia, a_ref in enumerate(a_refs):
         # Contour a in the later frame's plane, once for all of its candidates.
         a = _project(a_ref, *plane)
         # Column minima and maxima in two reductions (the same values as five).
         (x0, y0, _), (x1, y1, z1) = a.min(axis=0).tolist(), a.max(axis=0).tolist()
         projected.append((a, x0, x1))
-        reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * z1)
-        for ib, (_, bb) in enumerate(b_nodes):
-            if bb[0] > x1 + 1.0 or bb[1] < x0 - 1.0 or bb[2] > y1 + reach or bb[3] < y0 - reach:
-                continue
-            # The share first, from the boxes (the same value _in_plane_deviation gives):
-            # about one pair in eight is ruled out on it without the point distances.
-            if _overlap_share((x0, x1), bb[:2]) < p.min_overlap_share:
-                continue
-            pairs.append((ia, ib))
+        a_box[ia] = x0, x1, y0, y1, z1
+    if not a_refs:
+        return out
+    # The pairs whose boxes may link, every a against every b at once (the same float
+    # operations as the tests pair by pair). A box apart (laterally, or in depth by
+    # more than a's reach) rules a pair out, and so does the lateral overlap share
+    # (:func:`_overlap_share`, from the boxes: the value _in_plane_deviation gives;
+    # about one pair in eight is ruled out on it without the point distances).
+    b_box = np.array([bb for _, bb in b_nodes])
+    x0, x1, y0, y1, z1 = (a_box[:, k : k + 1] for k in range(5))
+    reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * z1)
+    bx0, bx1, by0, by1 = b_box.T
+    near_box = (bx0 <= x1 + 1.0) & (bx1 >= x0 - 1.0) & (by0 <= y1 + reach) & (by1 >= y0 - reach)
+    lo, hi = x0 - 1.0, x1 + 1.0
+    overlap = np.maximum(0.0, np.minimum(hi, bx1) - np.maximum(lo, bx0))
+    share = overlap / np.maximum(np.minimum(hi - lo, (bx1 - bx0) + 2.0), 1e-6)
+    pairs = np.argwhere(near_box & (share >= p.min_overlap_share)).tolist()
     if not pairs:
         return out
     ka = max(a.shape[0] for a, _, _ in projected)
