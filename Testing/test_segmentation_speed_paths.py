@@ -126,7 +126,7 @@ def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
     rng = np.random.default_rng(11)
     steps = np.arange(-2, 3)
     with_bone = 0
-    for trial in range(40):
+    for trial in range(60):
         switch = float(rng.choice([0.5, 1.0, 2.0]))
         gains, costs = [], []
         for _ in range(int(rng.integers(2, 7))):
@@ -134,9 +134,11 @@ def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
             gain = np.round(rng.normal(-0.4, 1.0, (h, w)) * 4) / 4
             gain[:, rng.random(w) < 0.4] = -1.0
             gains.append(gain.astype(np.float32))
-            # Costs far apart (other paths) or a hair apart (the same spacing from poses).
+            # Costs far apart (other paths) or a hair apart (the same spacing from poses);
+            # every third trial, of different sizes (3, 5 or 7 shifts).
             scale = rng.uniform(0.5, 2.0) if trial % 2 else 1.0 + 1e-15 * rng.integers(0, 3)
-            costs.append(0.05 * (steps * scale) ** 2 * 0.3)
+            st = np.arange(-(k := int(rng.integers(1, 4))), k + 1) if trial % 3 == 0 else steps
+            costs.append(0.05 * (st * scale) ** 2 * 0.3)
         batch = _optimal_paths([g.copy() for g in gains], costs, switch)
         for g, c, path in zip(gains, costs, batch, strict=True):
             assert np.array_equal(path, _plain_optimal_path(g.copy(), c, switch)), trial

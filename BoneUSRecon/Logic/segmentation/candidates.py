@@ -209,8 +209,10 @@ def _optimal_paths(
 ) -> list[np.ndarray]:
     """:func:`_optimal_path` of several gains at once (the same paths), one column loop for all.
 
-    ``shift_cost``: one for all gains, or one per gain (all of the same size: each gain's
-    path is the one :func:`_optimal_path` finds with its own).
+    ``shift_cost``: one for all gains, or one per gain (each of odd size, shifts ``-d ..
+    d``; each gain's path is the one :func:`_optimal_path` finds with its own). Costs of
+    fewer shifts are padded to the most with ``+inf`` (a shift it cannot take scores
+    ``-inf``, never the maximum: the same maxima).
 
     The column loop of one ~150-row gain is bound by its ~6 numpy calls per column, not
     by the arithmetic; stacking the gains of several frames makes each call do the work
@@ -227,8 +229,10 @@ def _optimal_paths(
         if isinstance(shift_cost, np.ndarray)
         else [np.asarray(c, dtype=float) for c in shift_cost]
     )
-    n = costs[0].size
+    n = max(c.size for c in costs)
     d = n // 2
+    own = costs  # each gain's own costs (the backtrack's)
+    costs = [np.pad(c, (n - c.size) // 2, constant_values=np.inf) for c in costs]
     hs = [g.shape[0] for g in gains]
     ws = [g.shape[1] for g in gains]
     hmax, wmax = max(hs), max(ws)
@@ -274,11 +278,13 @@ def _optimal_paths(
     null_before[wmax] = null
     # Backtrack each gain as _optimal_path does (the same comparisons on the same doubles).
     paths = []
-    v = np.empty(n)
     for i in range(m):
         w, h = ws[i], hs[i]
         sc = score[:, i]
-        shift_cost = costs[i]
+        shift_cost = own[i]
+        v = np.empty(shift_cost.size)
+        # The gain's own window: its d_i shifts either side, inside the d rows of padding.
+        lo = d - shift_cost.size // 2
         nb = null_before[:, i].tolist()
         # Columns where the no-bone score rose, ascending (the only ones a no-bone
         # stretch can have been entered from).
@@ -291,9 +297,9 @@ def _optimal_paths(
         while c > 0:
             if state >= 0:
                 path[c] = state
-                np.subtract(sc[c - 1, state : state + n], shift_cost, out=v)
+                np.subtract(sc[c - 1, lo + state : lo + state + v.size], shift_cost, out=v)
                 k = int(v.argmax())
-                state = -1 if nb[c] - switch > v.item(k) else state + k - d
+                state = -1 if nb[c] - switch > v.item(k) else state + k - (d - lo)
                 c -= 1
             else:
                 # No bone from column c back to the last column at or before it where
@@ -1107,12 +1113,14 @@ def frame_candidates_many(
         advance(i, None)
     while pending:
         asked, pending = pending, {}
-        # Paths are solved together when their costs have the same size and switch, each
-        # with its own costs: frames' spacings (from their poses) differ in the last bits,
-        # and grouping by equal costs split a 30-frame batch into 5-10 column loops.
-        groups: dict[tuple[int, float], list[int]] = {}
-        for i, (_, cost, switch) in asked.items():
-            groups.setdefault((cost.size, switch), []).append(i)
+        # Paths are solved together when their switch is the same, each with its own
+        # costs: frames' spacings (from their poses) differ in the last bits, and
+        # grouping by equal costs split a 30-frame batch into 5-10 column loops; by the
+        # costs' size, into two (a slope limit of 3.000...01 rows or 2.999...9 rounds
+        # up to 4 or 3 shifts), the smaller loop costing nearly as much as the larger.
+        groups: dict[float, list[int]] = {}
+        for i, (_, _, switch) in asked.items():
+            groups.setdefault(switch, []).append(i)
         for idx in groups.values():
             switch = asked[idx[0]][2]
             gains = [asked[i][0] for i in idx]
