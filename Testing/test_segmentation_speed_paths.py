@@ -126,6 +126,7 @@ def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
     rng = np.random.default_rng(11)
     steps = np.arange(-2, 3)
     with_bone = 0
+    scratch: dict = {}
     for trial in range(60):
         switch = float(rng.choice([0.5, 1.0, 2.0]))
         gains, costs = [], []
@@ -139,7 +140,8 @@ def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
             scale = rng.uniform(0.5, 2.0) if trial % 2 else 1.0 + 1e-15 * rng.integers(0, 3)
             st = np.arange(-(k := int(rng.integers(1, 4))), k + 1) if trial % 3 == 0 else steps
             costs.append(0.05 * (st * scale) ** 2 * 0.3)
-        batch = _optimal_paths([g.copy() for g in gains], costs, switch)
+        # One scratch for all trials: its scores' array reused, larger or smaller.
+        batch = _optimal_paths([g.copy() for g in gains], costs, switch, scratch)
         for g, c, path in zip(gains, costs, batch, strict=True):
             assert np.array_equal(path, _plain_optimal_path(g.copy(), c, switch)), trial
             assert np.array_equal(path, _optimal_path(g.copy(), c, switch)), trial

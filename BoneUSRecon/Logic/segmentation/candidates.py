@@ -205,7 +205,10 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
 
 
 def _optimal_paths(
-    gains: Sequence[np.ndarray], shift_cost: np.ndarray | Sequence[np.ndarray], switch: float
+    gains: Sequence[np.ndarray],
+    shift_cost: np.ndarray | Sequence[np.ndarray],
+    switch: float,
+    scratch: dict | None = None,
 ) -> list[np.ndarray]:
     """:func:`_optimal_path` of several gains at once (the same paths), one column loop for all.
 
@@ -222,6 +225,11 @@ def _optimal_paths(
     its own last column. The column shortcut of :func:`_optimal_path` is not taken: it
     gives exactly what the full step gives (every shift scores below leaving no-bone,
     so the maximum is the no-bone score, and the no-bone score does not rise).
+
+    ``scratch``: a dict the caller keeps between calls (e.g. the passes of one batch);
+    the scores' array (~19 MB for 30 480x640 frames) is kept in it and reused when large
+    enough: a fresh one costs its page faults at every call, as much as a fifth of the
+    column loop.
     """
     m = len(gains)
     costs = (
@@ -232,13 +240,22 @@ def _optimal_paths(
     n = max(c.size for c in costs)
     d = n // 2
     own = costs  # each gain's own costs (the backtrack's)
-    costs = [np.pad(c, (n - c.size) // 2, constant_values=np.inf) for c in costs]
+    padded = np.full((n, m), np.inf)
+    for i, c in enumerate(costs):
+        padded[(n - c.size) // 2 : (n + c.size) // 2, i] = c
     hs = [g.shape[0] for g in gains]
     ws = [g.shape[1] for g in gains]
     hmax, wmax = max(hs), max(ws)
     # score[c, i, d + j]: best path of gain i ending at row j of column c.
     hp = hmax + 2 * d
-    score = np.full((wmax, m, hp), -np.inf)
+    size = wmax * m * hp
+    kept = scratch.get("score") if scratch is not None else None
+    if kept is None or kept.size < size:
+        kept = np.empty(size)
+        if scratch is not None:
+            scratch["score"] = kept
+    score = kept[:size].reshape(wmax, m, hp)
+    score.fill(-np.inf)
     for i, g in enumerate(gains):
         score[: ws[i], i, d : d + hs[i]] = g.T
     # Each column's scores as one contiguous run of the gains' padded rows (gain after
@@ -256,7 +273,7 @@ def _optimal_paths(
     shifts = cand[:n]
     from_null = cand[n]
     # Each position's cost per shift and no-bone score are its gain's.
-    cost = np.repeat(np.stack(costs, axis=1), hp, axis=1)[:, d : d + run]
+    cost = np.repeat(padded, hp, axis=1)[:, d : d + run]
     best = np.empty(run)
     top = np.empty(m)
     null = np.zeros(m)
@@ -1102,6 +1119,7 @@ def frame_candidates_many(
     ]
     out: list[FrameCandidates | None] = [None] * len(gens)
     pending: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+    scratch: dict = {}  # the passes' optimal paths reuse one scores' array
 
     def advance(i: int, path: np.ndarray | None) -> None:
         try:
@@ -1127,7 +1145,7 @@ def frame_candidates_many(
             if len(idx) == 1:
                 paths = [_optimal_path(gains[0], asked[idx[0]][1], switch)]
             else:
-                paths = _optimal_paths(gains, [asked[i][1] for i in idx], switch)
+                paths = _optimal_paths(gains, [asked[i][1] for i in idx], switch, scratch)
             for i, path in zip(idx, paths, strict=True):
                 advance(i, path)
     assert all(fc is not None for fc in out)  # every frame's steps ran to their end
