@@ -299,7 +299,7 @@ def _optimal_paths(
         w, h = ws[i], hs[i]
         sc = score[:, i]
         shift_cost = own[i]
-        v = np.empty(shift_cost.size)
+        nv, cl = shift_cost.size, shift_cost.tolist()
         # The gain's own window: its d_i shifts either side, inside the d rows of padding.
         lo = d - shift_cost.size // 2
         nb = null_before[:, i].tolist()
@@ -314,9 +314,16 @@ def _optimal_paths(
         while c > 0:
             if state >= 0:
                 path[c] = state
-                np.subtract(sc[c - 1, lo + state : lo + state + v.size], shift_cost, out=v)
-                k = int(v.argmax())
-                state = -1 if nb[c] - switch > v.item(k) else state + k - (d - lo)
+                # The best predecessor on Python floats (the same double subtractions;
+                # the first of equal values, as argmax): cheaper than three numpy calls
+                # on a handful of values.
+                row = sc[c - 1, lo + state : lo + state + nv].tolist()
+                k, top = 0, row[0] - cl[0]
+                for q in range(1, nv):
+                    val = row[q] - cl[q]
+                    if val > top:
+                        k, top = q, val
+                state = -1 if nb[c] - switch > top else state + k - (d - lo)
                 c -= 1
             else:
                 # No bone from column c back to the last column at or before it where
