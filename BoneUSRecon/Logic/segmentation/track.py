@@ -253,6 +253,11 @@ def _links(
 #: 480x640 frame's ~60 pairs of ~14-35 sampled points take ~20,000-70,000).
 _PAIR_CHUNK = 2**20
 
+#: :func:`_links_many` tests the boxes of up to this many pairs of contours in a plain
+#: loop, and measures up to a quarter as many pairs one at a time with the pair
+#: functions (for so few, fewer numpy calls than the arrays for all at once).
+_FEW_PAIRS = 12
+
 
 def _links_many(
     a_refs: Sequence[np.ndarray],
@@ -286,21 +291,44 @@ def _links_many(
         a_box[ia] = x0, x1, y0, y1, z1
     if not a_refs:
         return out
-    # The pairs whose boxes may link, every a against every b at once (the same float
-    # operations as the tests pair by pair). A box apart (laterally, or in depth by
-    # more than a's reach) rules a pair out, and so does the lateral overlap share
+    # The pairs whose boxes may link. A box apart (laterally, or in depth by more than
+    # a's reach) rules a pair out, and so does the lateral overlap share
     # (:func:`_overlap_share`, from the boxes: the value _in_plane_deviation gives;
     # about one pair in eight is ruled out on it without the point distances).
-    b_box = np.array([bb for _, bb in b_nodes])
-    x0, x1, y0, y1, z1 = (a_box[:, k : k + 1] for k in range(5))
-    reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * z1)
-    bx0, bx1, by0, by1 = b_box.T
-    near_box = (bx0 <= x1 + 1.0) & (bx1 >= x0 - 1.0) & (by0 <= y1 + reach) & (by1 >= y0 - reach)
-    lo, hi = x0 - 1.0, x1 + 1.0
-    overlap = np.maximum(0.0, np.minimum(hi, bx1) - np.maximum(lo, bx0))
-    share = overlap / np.maximum(np.minimum(hi - lo, (bx1 - bx0) + 2.0), 1e-6)
-    pairs = np.argwhere(near_box & (share >= p.min_overlap_share)).tolist()
-    if not pairs:
+    if len(a_refs) * len(b_nodes) <= _FEW_PAIRS:
+        pairs = []
+        for ia, (x0, x1, y0, y1, z1) in enumerate(a_box.tolist()):
+            reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * z1)
+            for ib, (_, bb) in enumerate(b_nodes):
+                if bb[0] > x1 + 1.0 or bb[1] < x0 - 1.0 or bb[2] > y1 + reach or bb[3] < y0 - reach:
+                    continue
+                if _overlap_share((x0, x1), bb[:2]) >= p.min_overlap_share:
+                    pairs.append([ia, ib])
+    else:
+        # Every a against every b at once (the same float operations as pair by pair).
+        b_box = np.array([bb for _, bb in b_nodes])
+        x0, x1, y0, y1, z1 = (a_box[:, k : k + 1] for k in range(5))
+        reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * z1)
+        bx0, bx1, by0, by1 = b_box.T
+        near_box = (bx0 <= x1 + 1.0) & (bx1 >= x0 - 1.0) & (by0 <= y1 + reach) & (by1 >= y0 - reach)
+        lo, hi = x0 - 1.0, x1 + 1.0
+        overlap = np.maximum(0.0, np.minimum(hi, bx1) - np.maximum(lo, bx0))
+        share = overlap / np.maximum(np.minimum(hi - lo, (bx1 - bx0) + 2.0), 1e-6)
+        pairs = np.argwhere(near_box & (share >= p.min_overlap_share)).tolist()
+    if len(pairs) <= _FEW_PAIRS // 4:
+        # A pair or two (e.g. a guided candidate against one frame's nodes): one at a
+        # time, by the pair functions themselves (fewer numpy calls than the padding).
+        for ia, ib in pairs:
+            a, ax0, ax1 = projected[ia]
+            b, bb = b_nodes[ib]
+            d, _, z = _in_plane_deviation(a, b, a_x=(ax0, ax1), b_x=bb[:2])
+            if not np.isfinite(d):
+                continue
+            tol = p.tolerance_mm + p.tolerance_per_mm * z
+            if d > p.max_deviation * tol:
+                continue
+            if not _stepped(a, b, p.max_step_mm + p.step_per_mm * z, a_x=(ax0, ax1)):
+                out[ia].append((ib, d / tol))
         return out
     ka = max(a.shape[0] for a, _, _ in projected)
     kb = max(b.shape[0] for b, _ in b_nodes)
@@ -333,8 +361,9 @@ def _links_many(
         near = d2.argmin(axis=2)
         d = np.sqrt(np.take_along_axis(d2, near[:, :, None], axis=2)[:, :, 0])
         z = np.take_along_axis(az, near, axis=1)
-        d_med = _masked_medians(d, inside)
-        z_med = _masked_medians(z, inside)
+        # Both medians from one sort (the rows of d, then those of z).
+        meds = _masked_medians(np.concatenate((d, z)), np.concatenate((inside, inside)))
+        d_med, z_med = meds[: len(chunk)], meds[len(chunk) :]
         near_enough = []  # (ia, ib, d, tol, z) of the pairs within the deviation
         for (ia, ib), dv, zv in zip(chunk, d_med, z_med, strict=True):
             if not np.isfinite(dv):  # no point of b beside a

@@ -270,8 +270,8 @@ class IncrementalTrack:
                 assert eb.b_node is not None
                 got = [
                     (ia, dev)
-                    for ia, a_ref in enumerate(a.ref)
-                    for _, dev in _links(a_ref, b.plane, [eb.b_node], p)
+                    for ia, links in enumerate(_links_many(a.ref, b.plane, [eb.b_node], p))
+                    for _, dev in links
                 ]
                 eb.into[a.uid] = got
             into = got
