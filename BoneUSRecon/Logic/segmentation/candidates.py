@@ -241,8 +241,8 @@ def _optimal_paths(
     d = n // 2
     own = costs  # each gain's own costs (the backtrack's)
     padded = np.full((n, m), np.inf)
-    for i, c in enumerate(costs):
-        padded[(n - c.size) // 2 : (n + c.size) // 2, i] = c
+    for i, ci in enumerate(costs):
+        padded[(n - ci.size) // 2 : (n + ci.size) // 2, i] = ci
     hs = [g.shape[0] for g in gains]
     ws = [g.shape[1] for g in gains]
     hmax, wmax = max(hs), max(ws)
@@ -318,12 +318,12 @@ def _optimal_paths(
                 # the first of equal values, as argmax): cheaper than three numpy calls
                 # on a handful of values.
                 row = sc[c - 1, lo + state : lo + state + nv].tolist()
-                k, top = 0, row[0] - cl[0]
+                k, peak = 0, row[0] - cl[0]
                 for q in range(1, nv):
                     val = row[q] - cl[q]
-                    if val > top:
-                        k, top = q, val
-                state = -1 if nb[c] - switch > top else state + k - (d - lo)
+                    if val > peak:
+                        k, peak = q, val
+                state = -1 if nb[c] - switch > peak else state + k - (d - lo)
                 c -= 1
             else:
                 # No bone from column c back to the last column at or before it where

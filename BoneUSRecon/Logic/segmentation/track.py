@@ -307,13 +307,14 @@ def _links_many(
     else:
         # Every a against every b at once (the same float operations as pair by pair).
         b_box = np.array([bb for _, bb in b_nodes])
-        x0, x1, y0, y1, z1 = (a_box[:, k : k + 1] for k in range(5))
-        reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * z1)
+        v_x0, v_x1, v_y0, v_y1, v_z1 = (a_box[:, k : k + 1] for k in range(5))
+        v_reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * v_z1)
         bx0, bx1, by0, by1 = b_box.T
-        near_box = (bx0 <= x1 + 1.0) & (bx1 >= x0 - 1.0) & (by0 <= y1 + reach) & (by1 >= y0 - reach)
-        lo, hi = x0 - 1.0, x1 + 1.0
-        overlap = np.maximum(0.0, np.minimum(hi, bx1) - np.maximum(lo, bx0))
-        share = overlap / np.maximum(np.minimum(hi - lo, (bx1 - bx0) + 2.0), 1e-6)
+        near_box = (bx0 <= v_x1 + 1.0) & (bx1 >= v_x0 - 1.0)
+        near_box &= (by0 <= v_y1 + v_reach) & (by1 >= v_y0 - v_reach)
+        v_lo, v_hi = v_x0 - 1.0, v_x1 + 1.0
+        overlap = np.maximum(0.0, np.minimum(v_hi, bx1) - np.maximum(v_lo, bx0))
+        share = overlap / np.maximum(np.minimum(v_hi - v_lo, (bx1 - bx0) + 2.0), 1e-6)
         pairs = np.argwhere(near_box & (share >= p.min_overlap_share)).tolist()
     if len(pairs) <= _FEW_PAIRS // 4:
         # A pair or two (e.g. a guided candidate against one frame's nodes): one at a
@@ -321,14 +322,14 @@ def _links_many(
         for ia, ib in pairs:
             a, ax0, ax1 = projected[ia]
             b, bb = b_nodes[ib]
-            d, _, z = _in_plane_deviation(a, b, a_x=(ax0, ax1), b_x=bb[:2])
-            if not np.isfinite(d):
+            dev, _, zo = _in_plane_deviation(a, b, a_x=(ax0, ax1), b_x=bb[:2])
+            if not np.isfinite(dev):
                 continue
-            tol = p.tolerance_mm + p.tolerance_per_mm * z
-            if d > p.max_deviation * tol:
+            tol = p.tolerance_mm + p.tolerance_per_mm * zo
+            if dev > p.max_deviation * tol:
                 continue
-            if not _stepped(a, b, p.max_step_mm + p.step_per_mm * z, a_x=(ax0, ax1)):
-                out[ia].append((ib, d / tol))
+            if not _stepped(a, b, p.max_step_mm + p.step_per_mm * zo, a_x=(ax0, ax1)):
+                out[ia].append((ib, dev / tol))
         return out
     ka = max(a.shape[0] for a, _, _ in projected)
     kb = max(b.shape[0] for b, _ in b_nodes)
@@ -351,8 +352,8 @@ def _links_many(
         ax, ay, az = a_pad[ia_c, :, 0], a_pad[ia_c, :, 1], a_pad[ia_c, :, 2]
         bx, by = b_pad[ib_c, :, 0], b_pad[ib_c, :, 1]
         # _in_plane_deviation of each pair: b's points within a's lateral extent +- 1 mm.
-        x0, x1 = lateral[ia_c, 0:1], lateral[ia_c, 1:2]
-        inside = b_real[ib_c] & (bx >= x0 - 1.0) & (bx <= x1 + 1.0)
+        a_lo, a_hi = lateral[ia_c, 0:1], lateral[ia_c, 1:2]
+        inside = b_real[ib_c] & (bx >= a_lo - 1.0) & (bx <= a_hi + 1.0)
         d2 = bx[:, :, None] - ax[:, None, :]
         d2 *= d2
         dy = by[:, :, None] - ay[:, None, :]
