@@ -15,6 +15,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import median_filter
 
+from BoneUSRecon.Logic.segmentation import track
 from BoneUSRecon.Logic.segmentation.candidates import (
     _optimal_path,
     _optimal_paths,
@@ -29,7 +30,15 @@ from BoneUSRecon.Logic.segmentation.features import (
     sorted_row_medians,
     sorted_row_percentiles,
 )
-from BoneUSRecon.Logic.segmentation.track import _in_plane_deviation, _stepped
+from BoneUSRecon.Logic.segmentation.params import RejectionParams
+from BoneUSRecon.Logic.segmentation.rim import _radius_paths
+from BoneUSRecon.Logic.segmentation.track import (
+    _in_plane_deviation,
+    _links,
+    _links_many,
+    _project,
+    _stepped,
+)
 from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.sweep import pixel_spacing
 
@@ -117,7 +126,8 @@ def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
     rng = np.random.default_rng(11)
     steps = np.arange(-2, 3)
     with_bone = 0
-    for trial in range(40):
+    scratch: dict = {}
+    for trial in range(60):
         switch = float(rng.choice([0.5, 1.0, 2.0]))
         gains, costs = [], []
         for _ in range(int(rng.integers(2, 7))):
@@ -125,10 +135,13 @@ def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
             gain = np.round(rng.normal(-0.4, 1.0, (h, w)) * 4) / 4
             gain[:, rng.random(w) < 0.4] = -1.0
             gains.append(gain.astype(np.float32))
-            # Costs far apart (other paths) or a hair apart (the same spacing from poses).
+            # Costs far apart (other paths) or a hair apart (the same spacing from poses);
+            # every third trial, of different sizes (3, 5 or 7 shifts).
             scale = rng.uniform(0.5, 2.0) if trial % 2 else 1.0 + 1e-15 * rng.integers(0, 3)
-            costs.append(0.05 * (steps * scale) ** 2 * 0.3)
-        batch = _optimal_paths([g.copy() for g in gains], costs, switch)
+            st = np.arange(-(k := int(rng.integers(1, 4))), k + 1) if trial % 3 == 0 else steps
+            costs.append(0.05 * (st * scale) ** 2 * 0.3)
+        # One scratch for all trials: its scores' array reused, larger or smaller.
+        batch = _optimal_paths([g.copy() for g in gains], costs, switch, scratch)
         for g, c, path in zip(gains, costs, batch, strict=True):
             assert np.array_equal(path, _plain_optimal_path(g.copy(), c, switch)), trial
             assert np.array_equal(path, _optimal_path(g.copy(), c, switch)), trial
@@ -236,6 +249,122 @@ def test_track_pair_shortcuts_match_plain() -> None:
             assert _stepped(a, b, step, a_x=a_x, a_sorted=(a[o, 0], a[o, 1])) == want, trial
             hits += want
     assert hits >= 50  # the trials exercise stepped pairs too
+
+
+def _plain_links(a_ref, plane, b_nodes, p):  # type: ignore[no-untyped-def]
+    """track._links as it was before branch ``speed``'s session 24: pair by pair."""
+    a = _project(a_ref, *plane)
+    out = []
+    for i, (b, _) in enumerate(b_nodes):
+        d, share, z = _in_plane_deviation(a, b)
+        if share < p.min_overlap_share or not np.isfinite(d):
+            continue
+        tol = p.tolerance_mm + p.tolerance_per_mm * z
+        if d > p.max_deviation * tol:
+            continue
+        if _plain_stepped(a, b, p.max_step_mm + p.step_per_mm * z):
+            continue
+        out.append((i, d / tol))
+    return out
+
+
+def test_links_of_many_contours_match_pair_by_pair() -> None:
+    # _links_many measures all pairs of contours together (padded, masked medians):
+    # the same edges, in the same order, with the same deviations as one pair at a time,
+    # on contours of different sizes that overlap partly, lie a step under one another,
+    # lie apart, have even and odd numbers of points beside each other, repeated
+    # lateral positions; also in chunks smaller than the pairs (the memory bound).
+    rng = np.random.default_rng(12)
+    p = RejectionParams()
+    edges = stepped = 0
+    for trial in range(150):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        plane = (rng.normal(0, 5, 3), q[:, :2].copy(), q[:, 2].copy())
+        b_nodes = []
+        for _ in range(int(rng.integers(1, 6))):
+            kb = int(rng.integers(1, 40))
+            bx = np.sort(rng.uniform(0, 20, kb))
+            b = np.column_stack([bx, rng.normal(10 + rng.choice([0.0, 1.0, 5.0]), 0.3, kb)])
+            box = (float(bx.min()), float(bx.max()), float(b[:, 1].min()), float(b[:, 1].max()))
+            b_nodes.append((b, box))
+        a_refs = []
+        for _ in range(int(rng.integers(0, 7))):
+            ka = int(rng.integers(1, 40))
+            ax = rng.uniform(-5, 25, ka) if trial % 3 else np.round(rng.uniform(0, 20, ka))
+            loc = np.column_stack([ax, rng.normal(10 + rng.choice([0.0, 4.0]), 0.3, ka)])
+            # Back to reference mm through the plane, a little out of it.
+            off = rng.uniform(0, 3, ka)
+            a_refs.append(plane[0] + loc @ plane[1].T + off[:, None] * plane[2])
+        want = [_plain_links(a, plane, b_nodes, p) for a in a_refs]
+        assert _links_many(a_refs, plane, b_nodes, p) == want, trial
+        assert [_links(a, plane, b_nodes, p) for a in a_refs] == want, trial
+        if trial % 10 == 0:
+            old, track._PAIR_CHUNK = track._PAIR_CHUNK, 40 * 40 * 2
+            try:
+                assert _links_many(a_refs, plane, b_nodes, p) == want, trial
+            finally:
+                track._PAIR_CHUNK = old
+        edges += sum(len(w) for w in want)
+        stepped += sum(
+            _plain_stepped(_project(a, *plane), b, p.max_step_mm)
+            for a in a_refs
+            for b, _ in b_nodes
+        )
+    assert edges >= 100 and stepped >= 20  # both outcomes exercised
+
+
+def _plain_radius_paths(e: np.ndarray, start: int, ms: int) -> np.ndarray:
+    """rim's Viterbi as it was before branch ``speed``'s session 24 (stacked views)."""
+    n_tr, n_step, nb = e.shape
+    acc = np.full((n_tr, nb + 2 * ms), -np.inf)
+    acc[:, ms + start] = e[:, 0, start]
+    back = np.zeros((n_step, n_tr, nb), np.int8)
+    rows_, cols_ = np.arange(n_tr)[:, None], np.arange(nb)[None, :]
+    for t in range(1, n_step):
+        views = np.stack([acc[:, ms + k : ms + k + nb] for k in range(-ms, ms + 1)])
+        k = views.argmax(axis=0)
+        new = views[k, rows_, cols_]
+        new += e[:, t]
+        acc[:, ms : ms + nb] = new
+        back[t] = k - ms
+    path = np.empty((n_tr, n_step), np.intp)
+    path[:, -1] = acc[:, ms : ms + nb].argmax(axis=1)
+    tt = np.arange(n_tr)
+    for t in range(n_step - 1, 0, -1):
+        path[:, t - 1] = path[:, t] + back[t, tt, path[:, t]]
+    return path
+
+
+def test_rim_radius_paths_match_stacked_views() -> None:
+    # Coarse scores (ties between moves) and the rim's "outside" value -1e3 in runs.
+    rng = np.random.default_rng(13)
+    for trial in range(200):
+        n_tr, n_step, nb = (
+            int(rng.integers(1, 9)),
+            int(rng.integers(1, 40)),
+            int(rng.integers(1, 50)),
+        )
+        e = np.round(rng.normal(0, 1, (n_tr, n_step, nb)) * 2) / 2
+        e[rng.random(e.shape) < 0.1] = -1e3
+        ms, start = int(rng.integers(1, 4)), int(rng.integers(0, nb))
+        assert np.array_equal(_radius_paths(e, start, ms), _plain_radius_paths(e, start, ms)), trial
+
+
+def test_one_sorted_row_percentile_matches_numpy_1d() -> None:
+    # candidates._is_copy reads its 90th percentile (float64) from one sorted row:
+    # np.percentile's 1-D value. (Not float32: 1-D np.percentile interpolates a float32
+    # array in float32, the rows' version in float64; the evidence baseline, float32,
+    # keeps np.percentile.)
+    rng = np.random.default_rng(14)
+    for trial in range(400):
+        n = int(rng.integers(1, 200))
+        x = rng.gamma(2.0, 0.3, n)
+        if trial % 3 == 0:
+            x = np.round(x * 4) / 4
+        for q in (75.0, 90.0):
+            want = np.percentile(x, q)
+            got = sorted_row_percentiles(np.sort(x)[None, :], (q,))[0, 0]
+            assert got.dtype == want.dtype and got == want, (trial, q)
 
 
 def test_sorted_row_statistics_match_numpy() -> None:

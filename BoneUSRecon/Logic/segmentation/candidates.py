@@ -58,6 +58,7 @@ its own evidence and the strongest kept; pieces lying over one shadow (a line fl
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
@@ -67,7 +68,7 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, mi
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
-from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
+from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px, sorted_row_percentiles
 from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 from BoneUSRecon.Logic.segmentation.settle import settle_candidates
@@ -222,12 +223,17 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
 
 
 def _optimal_paths(
-    gains: Sequence[np.ndarray], shift_cost: np.ndarray | Sequence[np.ndarray], switch: float
+    gains: Sequence[np.ndarray],
+    shift_cost: np.ndarray | Sequence[np.ndarray],
+    switch: float,
+    scratch: dict | None = None,
 ) -> list[np.ndarray]:
     """:func:`_optimal_path` of several gains at once (the same paths), one column loop for all.
 
-    ``shift_cost``: one for all gains, or one per gain (all of the same size: each gain's
-    path is the one :func:`_optimal_path` finds with its own).
+    ``shift_cost``: one for all gains, or one per gain (each of odd size, shifts ``-d ..
+    d``; each gain's path is the one :func:`_optimal_path` finds with its own). Costs of
+    fewer shifts are padded to the most with ``+inf`` (a shift it cannot take scores
+    ``-inf``, never the maximum: the same maxima).
 
     The column loop of one ~150-row gain is bound by its ~6 numpy calls per column, not
     by the arithmetic; stacking the gains of several frames makes each call do the work
@@ -237,6 +243,11 @@ def _optimal_paths(
     its own last column. The column shortcut of :func:`_optimal_path` is not taken: it
     gives exactly what the full step gives (every shift scores below leaving no-bone,
     so the maximum is the no-bone score, and the no-bone score does not rise).
+
+    ``scratch``: a dict the caller keeps between calls (e.g. the passes of one batch);
+    the scores' array (~19 MB for 30 480x640 frames) is kept in it and reused when large
+    enough: a fresh one costs its page faults at every call, as much as a fifth of the
+    column loop.
     """
     m = len(gains)
     costs = (
@@ -244,27 +255,44 @@ def _optimal_paths(
         if isinstance(shift_cost, np.ndarray)
         else [np.asarray(c, dtype=float) for c in shift_cost]
     )
-    n = costs[0].size
+    n = max(c.size for c in costs)
     d = n // 2
+    own = costs  # each gain's own costs (the backtrack's)
+    padded = np.full((n, m), np.inf)
+    for i, ci in enumerate(costs):
+        padded[(n - ci.size) // 2 : (n + ci.size) // 2, i] = ci
     hs = [g.shape[0] for g in gains]
     ws = [g.shape[1] for g in gains]
     hmax, wmax = max(hs), max(ws)
     # score[c, i, d + j]: best path of gain i ending at row j of column c.
-    score = np.full((wmax, m, hmax + 2 * d), -np.inf)
+    hp = hmax + 2 * d
+    size = wmax * m * hp
+    kept = scratch.get("score") if scratch is not None else None
+    if kept is None or kept.size < size:
+        kept = np.empty(size)
+        if scratch is not None:
+            scratch["score"] = kept
+    score = kept[:size].reshape(wmax, m, hp)
+    score.fill(-np.inf)
     for i, g in enumerate(gains):
         score[: ws[i], i, d : d + hs[i]] = g.T
-    # Shift-major layout (shift, gain, row): the reduction over shifts runs over whole
-    # contiguous (gain, row) planes, and at this size a subtract straight from the
-    # window view beats a copy then a subtract (unlike one gain's, see _optimal_path).
-    win = sliding_window_view(score, n, axis=2).transpose(0, 3, 1, 2)  # (w, shift, m, row)
-    inner = score[:, :, d : d + hmax]
-    cand = np.empty((n + 1, m, hmax))
+    # Each column's scores as one contiguous run of the gains' padded rows (gain after
+    # gain, d rows of -inf between them): shift s of every row of every gain is one slice
+    # of the run, so each numpy call runs over one long contiguous row. (Laid out as
+    # (shift, gain, row) views, numpy's loops restart at every one of the m x n short
+    # rows: 2-4x the time per element at 24 gains.) The d padding rows between two gains
+    # are computed too (2 d per gain): their gain is -inf, so they stay -inf, and a
+    # shift reaches at most d rows: a gain's rows never read another gain's.
+    run = m * hp - 2 * d  # positions d .. m hp - d of a column's run
+    flat = score.reshape(wmax, m * hp)
+    inner = flat[:, d : d + run]
+    win = sliding_window_view(flat, run, axis=1)  # win[c, s] = flat[c, s : s + run]
+    cand = np.empty((n + 1, run))
     shifts = cand[:n]
     from_null = cand[n]
-    cost = np.empty((n, m, hmax))
-    for i, ci in enumerate(costs):
-        cost[:, i, :] = ci[:, None]
-    best = np.empty((m, hmax))
+    # Each position's cost per shift and no-bone score are its gain's.
+    cost = np.repeat(padded, hp, axis=1)[:, d : d + run]
+    best = np.empty(run)
     top = np.empty(m)
     null = np.zeros(m)
     null_before = np.zeros((wmax + 1, m))  # row c: each no-bone score before column c
@@ -273,8 +301,7 @@ def _optimal_paths(
     subtract, reduce_max = np.subtract, np.maximum.reduce
     for c in range(1, wmax):
         null_before[c] = null
-        prev = inner[c - 1]
-        reduce_max(prev, axis=1, out=top)
+        reduce_max(score[c - 1], axis=1, out=top)
         subtract(win[c - 1], cost, out=shifts)
         reduce_max(cand, axis=0, out=best)
         inner[c] += best
@@ -282,32 +309,54 @@ def _optimal_paths(
         if up.any():
             np.copyto(null, top - switch, where=up)
             rose[c] = up
-            from_null[...] = (null - switch)[:, None]
+            from_null[...] = (null - switch).repeat(hp)[d : d + run]
     null_before[wmax] = null
     # Backtrack each gain as _optimal_path does (the same comparisons on the same doubles).
     paths = []
-    v = np.empty(n)
     for i in range(m):
         w, h = ws[i], hs[i]
         sc = score[:, i]
-        shift_cost = costs[i]
+        shift_cost = own[i]
+        nv, cl = shift_cost.size, shift_cost.tolist()
+        # The gain's own window: its d_i shifts either side, inside the d rows of padding.
+        lo = d - shift_cost.size // 2
         nb = null_before[:, i].tolist()
-        ro = rose[:, i].tolist()
+        # Columns where the no-bone score rose, ascending (the only ones a no-bone
+        # stretch can have been entered from).
+        rose_at = np.flatnonzero(rose[:w, i]).tolist()
         path = np.full(w, -1, dtype=np.intp)
         last = sc[w - 1, d : d + h]
         jb = int(last.argmax())
         state = jb if last[jb] > nb[w] else -1
-        for c in range(w - 1, -1, -1):
-            path[c] = state
-            if c == 0:
-                break
+        c = w - 1
+        while c > 0:
             if state >= 0:
-                np.subtract(sc[c - 1, state : state + n], shift_cost, out=v)
-                k = int(v.argmax())
-                state = -1 if nb[c] - switch > v.item(k) else state + k - d
+                path[c] = state
+                # The best predecessor on Python floats (the same double subtractions;
+                # the first of equal values, as argmax): cheaper than three numpy calls
+                # on a handful of values.
+                row = sc[c - 1, lo + state : lo + state + nv].tolist()
+                k, peak = 0, row[0] - cl[0]
+                for q in range(1, nv):
+                    val = row[q] - cl[q]
+                    if val > peak:
+                        k, peak = q, val
+                state = -1 if nb[c] - switch > peak else state + k - (d - lo)
+                c -= 1
             else:
-                # Left no-bone here only if its score rose here: from the previous best row.
-                state = int(sc[c - 1, d : d + h].argmax()) if ro[c] else -1
+                # No bone from column c back to the last column at or before it where
+                # the no-bone score rose (path stays -1 there): left from the previous
+                # column's best row; none such, no bone down to column 0. (The same
+                # states as stepping column by column: the no-bone state stays where
+                # its score did not rise.)
+                q = bisect_right(rose_at, c) - 1
+                if q < 0:
+                    break
+                c = rose_at[q]
+                state = int(sc[c - 1, d : d + h].argmax())
+                c -= 1
+        if c == 0:
+            path[0] = state
         paths.append(path)
     return paths
 
@@ -420,7 +469,11 @@ def _is_copy(deep: np.ndarray, shallow: np.ndarray, depth0: float, tol: float) -
     ratio = (deep - depth0) / np.maximum(shallow - depth0, 1e-6)
     # Column by column, not on average: an arc that happens to lie at about twice the
     # depth of a flat fascia on the whole is no copy of it.
-    return bool(np.percentile(np.abs(ratio - 2.0), 90) <= 2.0 * tol)
+    # np.percentile's value read from the sorted values (sorted_row_percentiles: the
+    # same operations, without np.percentile's ~150 us of checks per call).
+    dev = np.abs(ratio - 2.0)
+    dev.sort()
+    return bool(sorted_row_percentiles(dev[None, :], (90.0,))[0, 0] <= 2.0 * tol)
 
 
 def _clip_rows(rows: np.ndarray, lo: int, hi: int) -> np.ndarray:
@@ -638,7 +691,7 @@ def _series(
         cover = cover[cover > -10.0]
         if cover.size == 0:
             return False
-        lid = float(np.median(cover))
+        lid = median1d(cover)
         if mean_trough >= lid + dark or max(troughs) >= lid:
             return False
         if troughs[0] >= dark:
@@ -1091,6 +1144,7 @@ def frame_candidates_many(
     ]
     out: list[FrameCandidates | None] = [None] * len(gens)
     pending: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+    scratch: dict = {}  # the passes' optimal paths reuse one scores' array
 
     def advance(i: int, path: np.ndarray | None) -> None:
         try:
@@ -1102,19 +1156,21 @@ def frame_candidates_many(
         advance(i, None)
     while pending:
         asked, pending = pending, {}
-        # Paths are solved together when their costs have the same size and switch, each
-        # with its own costs: frames' spacings (from their poses) differ in the last bits,
-        # and grouping by equal costs split a 30-frame batch into 5-10 column loops.
-        groups: dict[tuple[int, float], list[int]] = {}
-        for i, (_, cost, switch) in asked.items():
-            groups.setdefault((cost.size, switch), []).append(i)
+        # Paths are solved together when their switch is the same, each with its own
+        # costs: frames' spacings (from their poses) differ in the last bits, and
+        # grouping by equal costs split a 30-frame batch into 5-10 column loops; by the
+        # costs' size, into two (a slope limit of 3.000...01 rows or 2.999...9 rounds
+        # up to 4 or 3 shifts), the smaller loop costing nearly as much as the larger.
+        groups: dict[float, list[int]] = {}
+        for i, (_, _, switch) in asked.items():
+            groups.setdefault(switch, []).append(i)
         for idx in groups.values():
             switch = asked[idx[0]][2]
             gains = [asked[i][0] for i in idx]
             if len(idx) == 1:
                 paths = [_optimal_path(gains[0], asked[idx[0]][1], switch)]
             else:
-                paths = _optimal_paths(gains, [asked[i][1] for i in idx], switch)
+                paths = _optimal_paths(gains, [asked[i][1] for i in idx], switch, scratch)
             for i, path in zip(idx, paths, strict=True):
                 advance(i, path)
     assert all(fc is not None for fc in out)  # every frame's steps ran to their end

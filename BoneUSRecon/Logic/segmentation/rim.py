@@ -70,6 +70,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d
@@ -181,6 +182,38 @@ def kasa_circle(x: np.ndarray, z: np.ndarray) -> tuple[float, float, float]:
     c = np.linalg.lstsq(a, x * x + z * z, rcond=None)[0]
     cx, cz = 0.5 * c[0], 0.5 * c[1]
     return float(cx), float(cz), float(np.sqrt(max(c[2] + cx * cx + cz * cz, 0.0)))
+
+
+def _radius_paths(e: np.ndarray, start: int, ms: int) -> np.ndarray:
+    """Viterbi over the steps of each trace: the radius index per step, ``(T, S)``.
+
+    ``e`` (T, S, B): the score of radius index b at step s; every path starts at
+    ``start`` and moves at most ``ms`` indices per step, the best total wins (the first
+    of equal scores: the smaller move, as ``argmax`` over the moves -ms .. ms).
+    """
+    n_tr, n_step, nb = e.shape
+    acc = np.full((n_tr, nb + 2 * ms), -np.inf)  # padded by ms each side
+    acc[:, ms + start] = e[:, 0, start]
+    back = np.zeros((n_step, n_tr, nb), np.int8)  # the move taken, -ms .. ms
+    # Predecessor of state b at b + k, k = -ms .. ms: window k + ms of state b (a view
+    # of acc, so it follows acc's updates). The chosen predecessor's score is read at
+    # its flat index (fewer numpy calls per step than a stack of shifted views: the
+    # arrays are small, the calls are the cost).
+    win = sliding_window_view(acc, 2 * ms + 1, axis=1)  # (T, B, 2 ms + 1)
+    mid = acc[:, ms : ms + nb]
+    at = np.arange(n_tr)[:, None] * acc.shape[1] + np.arange(nb)[None, :]
+    acc_flat = acc.reshape(-1)  # a view: acc is contiguous
+    for t in range(1, n_step):
+        k = win.argmax(axis=2)
+        np.add(acc_flat[at + k], e[:, t], out=mid)
+        back[t] = k
+    back[1:] -= ms
+    path = np.empty((n_tr, n_step), np.intp)
+    path[:, -1] = mid.argmax(axis=1)
+    tt = np.arange(n_tr)
+    for t in range(n_step - 1, 0, -1):
+        path[:, t - 1] = path[:, t] + back[t, tt, path[:, t]]
+    return path
 
 
 def follow_rims(
@@ -375,24 +408,8 @@ def follow_rims(
         e = (ce[:, hi] - ce[:, lo]) / (hi - lo)[None, :, None]
     # The path: Viterbi over the steps, the radius moving at most max_step per step.
     ms = max(1, int(round(p.max_step_mm / p.offset_mm)))
-    acc = np.full((2 * n_t, nb + 2 * ms), -np.inf)  # padded by ms each side
-    acc[:, ms + m] = e[:, 0, m]
-    back = np.zeros((n_step, 2 * n_t, nb), np.int8)  # the move taken, -ms .. ms
-    rows_ = np.arange(2 * n_t)[:, None]
-    cols_ = np.arange(nb)[None, :]
-    for t in range(1, n_step):
-        # Predecessor of state b at b + k, k = -ms .. ms (a view per k, no copies).
-        views = np.stack([acc[:, ms + k : ms + k + nb] for k in range(-ms, ms + 1)])
-        k = views.argmax(axis=0)
-        new = views[k, rows_, cols_]
-        new += e[:, t]
-        acc[:, ms : ms + nb] = new
-        back[t] = k - ms
-    path = np.empty((2 * n_t, n_step), np.intp)
-    path[:, -1] = acc[:, ms : ms + nb].argmax(axis=1)
+    path = _radius_paths(e, m, ms)
     tt = np.arange(2 * n_t)
-    for t in range(n_step - 1, 0, -1):
-        path[:, t - 1] = path[:, t] + back[t, tt, path[:, t]]
     vals = e[tt[:, None], np.arange(n_step), path]
     ridge, null, path = vals[:n_t], vals[n_t:], path[:n_t]
     tt = tt[:n_t]

@@ -245,41 +245,189 @@ def _links(
     ``(lateral-depth mm, box)`` (:func:`_node_points`). Returns ``(index into b_nodes,
     deviation d / tol)`` for each node that may follow a; the edge costs ``dev ** 2``.
     """
-    out: list[tuple[int, float]] = []
-    # Contour a in the later frame's plane, once for all of its candidates.
-    a = _project(a_ref, *plane)
-    # Column minima and maxima in two reductions (the same values as five).
-    (x0, y0, _), (x1, y1, z1) = a.min(axis=0).tolist(), a.max(axis=0).tolist()
-    reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * z1)
-    a_box = (x0, x1, y0, y1)
-    a_x = (x0, x1)
-    a_sorted = None  # a ordered laterally, for _stepped: made once, at the first pair
-    for i, (b, bb) in enumerate(b_nodes):
-        if (
-            bb[0] > a_box[1] + 1.0
-            or bb[1] < a_box[0] - 1.0
-            or bb[2] > a_box[3] + reach
-            or bb[3] < a_box[2] - reach
+    return _links_many([a_ref], plane, b_nodes, p)[0]
+
+
+#: Pairs of contours whose point distances :func:`_links_many` computes in one go are
+#: taken in chunks of at most this many (b point, a point) distances (memory bound; a
+#: 480x640 frame's ~60 pairs of ~14-35 sampled points take ~20,000-70,000).
+_PAIR_CHUNK = 2**20
+
+#: :func:`_links_many` tests the boxes of up to this many pairs of contours in a plain
+#: loop, and measures up to a quarter as many pairs one at a time with the pair
+#: functions (for so few, fewer numpy calls than the arrays for all at once).
+_FEW_PAIRS = 12
+
+
+def _links_many(
+    a_refs: Sequence[np.ndarray],
+    plane: tuple[np.ndarray, np.ndarray, np.ndarray],
+    b_nodes: Sequence[tuple[np.ndarray, tuple[float, float, float, float]]],
+    p: RejectionParams,
+) -> list[list[tuple[int, float]]]:
+    """``[_links(a, plane, b_nodes, p) for a in a_refs]``: every contour ``a`` of earlier
+    frames against one later frame's nodes, the same edges in the same order.
+
+    The pairs that pass the boxes' tests are measured together: the contours hold a few
+    tens of sampled points, so a pair's :func:`_in_plane_deviation` and :func:`_stepped`
+    were bound by their ~40 numpy calls, not by the arithmetic (~60 pairs per frame of a
+    hard 480x640 sweep). Here the pairs' points are padded to common sizes (a's with an
+    infinite lateral, never the nearest; b's masked) and each quantity is one array
+    operation over all pairs, elementwise the same operations as the functions' on one
+    pair; the medians are order statistics of sorted rows (NaN, past the masked points,
+    sorts last), :func:`~.features.median1d`'s values. Only ``np.interp`` stays per pair.
+    """
+    out: list[list[tuple[int, float]]] = [[] for _ in a_refs]
+    if not b_nodes:
+        return out
+    projected: list[tuple[np.ndarray, float, float]] = []  # a, its lateral min and max
+    a_box = np.empty((len(a_refs), 5))  # x0, x1, y0, y1, z1 of each a in b's plane
+    for ia, a_ref in enumerate(a_refs):
+        # Contour a in the later frame's plane, once for all of its candidates.
+        a = _project(a_ref, *plane)
+        # Column minima and maxima in two reductions (the same values as five).
+        (x0, y0, _), (x1, y1, z1) = a.min(axis=0).tolist(), a.max(axis=0).tolist()
+        projected.append((a, x0, x1))
+        a_box[ia] = x0, x1, y0, y1, z1
+    if not a_refs:
+        return out
+    # The pairs whose boxes may link. A box apart (laterally, or in depth by more than
+    # a's reach) rules a pair out, and so does the lateral overlap share
+    # (:func:`_overlap_share`, from the boxes: the value _in_plane_deviation gives;
+    # about one pair in eight is ruled out on it without the point distances).
+    if len(a_refs) * len(b_nodes) <= _FEW_PAIRS:
+        pairs = []
+        for ia, (x0, x1, y0, y1, z1) in enumerate(a_box.tolist()):
+            reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * z1)
+            for ib, (_, bb) in enumerate(b_nodes):
+                if bb[0] > x1 + 1.0 or bb[1] < x0 - 1.0 or bb[2] > y1 + reach or bb[3] < y0 - reach:
+                    continue
+                if _overlap_share((x0, x1), bb[:2]) >= p.min_overlap_share:
+                    pairs.append([ia, ib])
+    else:
+        # Every a against every b at once (the same float operations as pair by pair).
+        b_box = np.array([bb for _, bb in b_nodes])
+        v_x0, v_x1, v_y0, v_y1, v_z1 = (a_box[:, k : k + 1] for k in range(5))
+        v_reach = p.max_deviation * (p.tolerance_mm + p.tolerance_per_mm * v_z1)
+        bx0, bx1, by0, by1 = b_box.T
+        near_box = (bx0 <= v_x1 + 1.0) & (bx1 >= v_x0 - 1.0)
+        near_box &= (by0 <= v_y1 + v_reach) & (by1 >= v_y0 - v_reach)
+        v_lo, v_hi = v_x0 - 1.0, v_x1 + 1.0
+        overlap = np.maximum(0.0, np.minimum(v_hi, bx1) - np.maximum(v_lo, bx0))
+        share = overlap / np.maximum(np.minimum(v_hi - v_lo, (bx1 - bx0) + 2.0), 1e-6)
+        pairs = np.argwhere(near_box & (share >= p.min_overlap_share)).tolist()
+    if len(pairs) <= _FEW_PAIRS // 4:
+        # A pair or two (e.g. a guided candidate against one frame's nodes): one at a
+        # time, by the pair functions themselves (fewer numpy calls than the padding).
+        for ia, ib in pairs:
+            a, ax0, ax1 = projected[ia]
+            b, bb = b_nodes[ib]
+            dev, _, zo = _in_plane_deviation(a, b, a_x=(ax0, ax1), b_x=bb[:2])
+            if not np.isfinite(dev):
+                continue
+            tol = p.tolerance_mm + p.tolerance_per_mm * zo
+            if dev > p.max_deviation * tol:
+                continue
+            if not _stepped(a, b, p.max_step_mm + p.step_per_mm * zo, a_x=(ax0, ax1)):
+                out[ia].append((ib, dev / tol))
+        return out
+    ka = max(a.shape[0] for a, _, _ in projected)
+    kb = max(b.shape[0] for b, _ in b_nodes)
+    a_pad = np.zeros((len(projected), ka, 3))
+    a_pad[:, :, 0] = np.inf  # a padding point is infinitely far: never the nearest
+    for ia, (a, _, _) in enumerate(projected):
+        a_pad[ia, : a.shape[0]] = a
+    b_pad = np.zeros((len(b_nodes), kb, 2))
+    b_real = np.zeros((len(b_nodes), kb), dtype=bool)
+    for ib, (b, _) in enumerate(b_nodes):
+        b_pad[ib, : b.shape[0]] = b
+        b_real[ib, : b.shape[0]] = True
+    lateral = np.array([(x0, x1) for _, x0, x1 in projected])
+    a_sorted: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # made once per contour a
+    per_chunk = max(1, _PAIR_CHUNK // (ka * kb))
+    for s0 in range(0, len(pairs), per_chunk):
+        chunk = pairs[s0 : s0 + per_chunk]
+        ia_c = np.array([q[0] for q in chunk], dtype=np.intp)
+        ib_c = np.array([q[1] for q in chunk], dtype=np.intp)
+        ax, ay, az = a_pad[ia_c, :, 0], a_pad[ia_c, :, 1], a_pad[ia_c, :, 2]
+        bx, by = b_pad[ib_c, :, 0], b_pad[ib_c, :, 1]
+        # _in_plane_deviation of each pair: b's points within a's lateral extent +- 1 mm.
+        a_lo, a_hi = lateral[ia_c, 0:1], lateral[ia_c, 1:2]
+        inside = b_real[ib_c] & (bx >= a_lo - 1.0) & (bx <= a_hi + 1.0)
+        d2 = bx[:, :, None] - ax[:, None, :]
+        d2 *= d2
+        dy = by[:, :, None] - ay[:, None, :]
+        dy *= dy
+        d2 += dy
+        near = d2.argmin(axis=2)
+        d = np.sqrt(np.take_along_axis(d2, near[:, :, None], axis=2)[:, :, 0])
+        z = np.take_along_axis(az, near, axis=1)
+        # Both medians from one sort (the rows of d, then those of z).
+        meds = _masked_medians(np.concatenate((d, z)), np.concatenate((inside, inside)))
+        d_med, z_med = meds[: len(chunk)], meds[len(chunk) :]
+        near_enough = []  # (ia, ib, d, tol, z) of the pairs within the deviation
+        for (ia, ib), dv, zv in zip(chunk, d_med, z_med, strict=True):
+            if not np.isfinite(dv):  # no point of b beside a
+                continue
+            tol = p.tolerance_mm + p.tolerance_per_mm * zv
+            if dv > p.max_deviation * tol:
+                continue  # tested before the step (either rules the pair out)
+            near_enough.append((ia, ib, dv, tol, zv))
+        if not near_enough:
+            continue
+        # _stepped of those pairs: b's depth less a's at the same lateral position, over
+        # b's points within a's lateral extent. np.interp per pair, on those points only
+        # (it computes slopes one of two ways depending on how many points it is given).
+        bx_n = b_pad[[q[1] for q in near_enough], :, 0]
+        lo_hi = lateral[[q[0] for q in near_enough]]
+        within = b_real[[q[1] for q in near_enough]]
+        within &= (bx_n >= lo_hi[:, 0:1]) & (bx_n <= lo_hi[:, 1:2])
+        step = np.zeros((len(near_enough), kb))
+        for r, ((ia, ib, _, _, _), w) in enumerate(zip(near_enough, within, strict=True)):
+            if ia not in a_sorted:
+                a = projected[ia][0]
+                o = np.argsort(a[:, 0])
+                a_sorted[ia] = (a[o, 0], a[o, 1])
+            b = b_nodes[ib][0]
+            sel = b[w[: b.shape[0]]]
+            step[r, w] = sel[:, 1] - np.interp(sel[:, 0], *a_sorted[ia])
+        common = within
+        s_med = _masked_medians(step, common)
+        n_up = np.count_nonzero((step > 0) & common, axis=1).tolist()
+        n_down = np.count_nonzero((step < 0) & common, axis=1).tolist()
+        n_all = np.count_nonzero(common, axis=1).tolist()
+        for (ia, ib, dv, tol, zv), sm, up, down, nc in zip(
+            near_enough, s_med, n_up, n_down, n_all, strict=True
         ):
-            continue
-        # The share first, from the boxes (the same value _in_plane_deviation gives):
-        # about one pair in eight is ruled out on it without the point distances.
-        if _overlap_share(a_x, bb[:2]) < p.min_overlap_share:
-            continue
-        # The boxes' lateral extents are the contours' own min and max (same values).
-        d, share, z = _in_plane_deviation(a, b, a_x=a_x, b_x=bb[:2])
-        if share < p.min_overlap_share or not np.isfinite(d):
-            continue
-        tol = p.tolerance_mm + p.tolerance_per_mm * z
-        if d > p.max_deviation * tol:
-            continue  # tested before the step (either rules the pair out)
-        if a_sorted is None:
-            o = np.argsort(a[:, 0])
-            a_sorted = (a[o, 0], a[o, 1])
-        if _stepped(a, b, p.max_step_mm + p.step_per_mm * z, a_x=a_x, a_sorted=a_sorted):
-            continue
-        out.append((i, d / tol))
+            # As _stepped: no common point, or the median step within the allowed one,
+            # or under nine in ten of one sign: not stepped (shares as counts / size).
+            stepped = (
+                nc > 0
+                and abs(sm) > p.max_step_mm + p.step_per_mm * zv
+                and max(up / nc, down / nc) >= 0.9
+            )
+            if not stepped:
+                out[ia].append((ib, dv / tol))
     return out
+
+
+def _masked_medians(values: np.ndarray, mask: np.ndarray) -> list[float]:
+    """Per row, :func:`~.features.median1d` of ``values[row][mask[row]]`` (inf where none).
+
+    The masked values set to NaN sort last: the order statistics of each row's own
+    values, and the two middle ones of an even count averaged in float64, as
+    :func:`~.features.median1d` does.
+    """
+    v = np.where(mask, values, np.nan)
+    v.sort(axis=1)
+    cnt = mask.sum(axis=1)
+    k = cnt // 2
+    rows = np.arange(v.shape[0])
+    hi = v[rows, k]
+    lo = v[rows, np.maximum(k - 1, 0)]
+    med = np.where(cnt % 2 == 1, hi, (lo + hi) / 2)
+    med[cnt == 0] = np.inf
+    return med.tolist()
 
 
 def select_bone_track(
@@ -336,13 +484,17 @@ def select_bone_track(
     for g in sorted(by_frame):
         ks = by_frame[g]
         b_nodes = [geometry[kb][1:] for kb in ks]
-        for f in range(max(0, g - p.max_skip - 1), g):
-            for ka in by_frame.get(f, ()):
-                for i, dev in _links(ref[ka], (origin[g], axes[g], normal[g]), b_nodes, p):
-                    kb = ks[i]
-                    s = score[ka] - dev**2 - p.miss_cost * (g - f - 1) + value[kb]
-                    if s > score[kb]:
-                        score[kb], back[kb], link_dev[kb] = s, ka, dev
+        # Every node of the frames before g that may link to it, in frame order: their
+        # links to g's nodes made together (_links_many), then visited in that order.
+        kas = [ka for f in range(max(0, g - p.max_skip - 1), g) for ka in by_frame.get(f, ())]
+        edges = _links_many([ref[ka] for ka in kas], (origin[g], axes[g], normal[g]), b_nodes, p)
+        for ka, links in zip(kas, edges, strict=True):
+            f = nodes[ka][0]
+            for i, dev in links:
+                kb = ks[i]
+                s = score[ka] - dev**2 - p.miss_cost * (g - f - 1) + value[kb]
+                if s > score[kb]:
+                    score[kb], back[kb], link_dev[kb] = s, ka, dev
     return _finish(frames, poses, nodes, value, score, back, link_dev, reason, p)
 
 

@@ -44,6 +44,7 @@ from BoneUSRecon.Logic.segmentation.track import (
     _frame_reason,
     _is_node,
     _links,
+    _links_many,
     _node_points,
     _node_value,
     _typical_strength,
@@ -167,18 +168,20 @@ class IncrementalTrack:
         self._next_uid += 1
         self._frames.append(fr)
         g = len(self._frames) - 1
-        for f in range(max(0, g - self.params.max_skip - 1), g):
-            self._link(self._frames[f], fr)
+        self._link(self._frames[max(0, g - self.params.max_skip - 1) : g], fr)
 
-    def _link(self, a: _TrackFrame, b: _TrackFrame) -> None:
-        """Store the links from frame a's nodes to the later frame b's (none if either has none)."""
-        out: list[tuple[int, int, float]] = []
-        if a.nodes and b.nodes:
-            for ia, a_ref in enumerate(a.ref):
-                out.extend(
-                    (ia, ib, dev) for ib, dev in _links(a_ref, b.plane, b.b_nodes, self.params)
-                )
-        b.links[a.uid] = out
+    def _link(self, preds: list[_TrackFrame], b: _TrackFrame) -> None:
+        """Store the links from each earlier frame's nodes to frame b's (none if either
+        has none), all made together (:func:`~.track._links_many`)."""
+        linked = [a for a in preds if a.nodes] if b.nodes else []
+        refs = [a_ref for a in linked for a_ref in a.ref]
+        edges = iter(_links_many(refs, b.plane, b.b_nodes, self.params))
+        for a in preds:
+            out: list[tuple[int, int, float]] = []
+            if a.nodes and b.nodes:
+                for ia in range(len(a.ref)):
+                    out.extend((ia, ib, dev) for ib, dev in next(edges))
+            b.links[a.uid] = out
 
     def keep(self, positions: Iterable[int]) -> None:
         """Keep only the frames at these positions (ascending); the others are forgotten.
@@ -220,7 +223,7 @@ class IncrementalTrack:
             g_uid, f_uid = self._owed.pop()
             g, f = by_uid.get(g_uid), by_uid.get(f_uid)
             if g is not None and f is not None and f_uid not in g.links:
-                self._link(f, g)
+                self._link([f], g)
             done += 1
         return done
 
@@ -267,8 +270,8 @@ class IncrementalTrack:
                 assert eb.b_node is not None
                 got = [
                     (ia, dev)
-                    for ia, a_ref in enumerate(a.ref)
-                    for _, dev in _links(a_ref, b.plane, [eb.b_node], p)
+                    for ia, links in enumerate(_links_many(a.ref, b.plane, [eb.b_node], p))
+                    for _, dev in links
                 ]
                 eb.into[a.uid] = got
             into = got
