@@ -19,7 +19,7 @@ from scipy.ndimage import gaussian_filter
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import frame_candidates
-from BoneUSRecon.Logic.segmentation.params import FlankParams, ShadowPathParams
+from BoneUSRecon.Logic.segmentation.params import FlankParams, RimParams, ShadowPathParams
 
 SPACING = 0.1  # mm per pixel
 RADIUS, DEPTH = 7.0, 12.0  # the bone: a circle of 7 mm radius, centre 12 mm deep
@@ -60,7 +60,8 @@ def round_bone_frame(
 
 
 def chosen_points_mm(image: np.ndarray, enabled: bool = True) -> np.ndarray:
-    params = ShadowPathParams(flanks=FlankParams(enabled=enabled))
+    # ``enabled=False``: the path alone, the rim (which follows every end on) off too.
+    params = ShadowPathParams(flanks=FlankParams(enabled=enabled), rim=RimParams(enabled=enabled))
     fc = frame_candidates(image, (SPACING, SPACING), params)
     assert fc.usable, "no candidate"
     return fc.usable[0].points_px * SPACING

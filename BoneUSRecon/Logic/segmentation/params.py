@@ -225,6 +225,10 @@ class RimParams:
     """Only the strongest this many candidates of a frame (not reverberation copies) are followed (ours: the bone is among them on the L14 recording, its copies and the hard simulated sweeps, and each trace costs ~1 ms at 480x640)."""
     min_points: int = 12
     """Contours with fewer points are not followed (a circle fit needs an arc)."""
+    max_start_deg: float = 20.0
+    """Of a contour with a bright echo over a shadow (the echo stronger than the shadow's contrast), only ends whose last ``fit_mm`` descends outward less steeply than this are followed, degrees (ours: ``FlankParams.min_start_deg``: an end that descends is the arc tracer's, and its stop rule ended it; following those on too took fasciae touching the flank on the standard simulated sweeps). A faint echo's ends all are, and those of a contour with no shadow."""
+    fit_mm: float = 2.0
+    """Length of contour at an end over which its slope is measured, mm (as ``FlankParams.fit_mm``)."""
     radius_mm: tuple[float, float] = (2.0, 40.0)
     """Radii of the fitted circle accepted, mm (a clavicle's 5 mm to a tibia's broad face; a flatter fit is a layer)."""
     step_mm: float = 0.3
