@@ -176,12 +176,12 @@ def test_l14_recording_flank_followed():
     assert o1 <= 0.08, rows
 
 
-def test_rim_adds_few_points_off_the_bone_where_a_fascia_runs_off_it():
-    # Hard simulated tibia with a fascia running off the bone at its level: what the rim
-    # adds lies on the bone (the fascia's own inside is the bone's echo: not a line;
-    # tissue on both sides: no edge). Measured: 132 points added, 12.9 % more than
-    # 0.5 mm off, 8.3 % over 1 mm: one piece along the fascia from a contour end
-    # already on it (the rim follows on from an end, wherever the path left it).
+def test_rim_adds_no_point_off_the_bone_where_a_fascia_runs_off_it():
+    # Hard simulated tibia with a fascia running off the bone at its level (its echo
+    # bright over its shadow: flat ends only are followed): what the rim adds lies on
+    # the bone (the fascia's own inside is the bone's echo: not a line). Measured: 31
+    # points added, none farther than 0.5 mm. (Following every end on here added 419
+    # points, 15 % over 0.5 mm: the rule for bright echoes.)
     sim = small_simulation(
         bone="tibia", n_frames=20, seed=5, realism="hard", hard_conditions=("fascia",)
     )
@@ -190,12 +190,8 @@ def test_rim_adds_few_points_off_the_bone_where_a_fascia_runs_off_it():
         base, shadowpath=dataclasses.replace(base.shadowpath, rim=RimParams(enabled=False))
     )
     d = added_distances(sim, segment_sweep(sim.sweep, base), segment_sweep(sim.sweep, off))
-    assert d.size >= 100  # the rim did follow the flanks here
-    assert np.mean(d > 0.5) <= 0.2 and np.mean(d > 1.0) <= 0.1, (
-        d.size,
-        np.mean(d > 0.5),
-        np.mean(d > 1.0),
-    )
+    assert d.size >= 20  # the rim did follow flanks here
+    assert np.mean(d > 0.5) <= 0.05 and d.max() <= 1.0, (d.size, np.mean(d > 0.5), d.max())
 
 
 @pytest.mark.parametrize(
