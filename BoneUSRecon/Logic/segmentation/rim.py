@@ -110,20 +110,34 @@ def _window_means(cs: np.ndarray, centre: int, k: int, n: int) -> tuple[np.ndarr
     return out / k, inn / k
 
 
-def _beam_edge(
-    ev: EvidenceMaps, wi: np.ndarray, wj: np.ndarray, rows: float, dark: float, gap: float = 0.0
-) -> np.ndarray:
-    """:func:`_edge_ratio` along the beam: ``rows`` working rows above each point against
-    as many below, ``gap`` rows clear of it either side, on the point's nearest column."""
-    k = max(1, int(round(rows)))
-    o = int(round(gap))
+def _column_sums(ev: EvidenceMaps) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative sums down the columns (a leading row of 0) of the working image capped
+    at the tissue level and as it is: the windows of :func:`_beam_edge`, once a frame."""
     h, w = ev.work.shape
-    col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
-    row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
     cu = np.zeros((h + 1, w))
     np.cumsum(np.minimum(ev.work, ev.tissue_beside[:, None]), axis=0, out=cu[1:])
     cw = np.zeros((h + 1, w))
     np.cumsum(ev.work, axis=0, out=cw[1:])
+    return cu, cw
+
+
+def _beam_edge(
+    sums: tuple[np.ndarray, np.ndarray],
+    wi: np.ndarray,
+    wj: np.ndarray,
+    rows: float,
+    dark: float,
+    gap: float = 0.0,
+) -> np.ndarray:
+    """:func:`_edge_ratio` along the beam: ``rows`` working rows above each point against
+    as many below, ``gap`` rows clear of it either side, on the point's nearest column
+    (``sums``: :func:`_column_sums` of the frame)."""
+    cu, cw = sums
+    k = max(1, int(round(rows)))
+    o = int(round(gap))
+    h, w = cu.shape[0] - 1, cu.shape[1]
+    col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
+    row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
     a0, a1 = np.clip(row - o - k, 0, h), np.clip(row - o, 0, h)
     b0, b1 = np.minimum(row + 1 + o, h), np.minimum(row + 1 + o + k, h)
     na, nb = np.maximum(a1 - a0, 1), np.maximum(b1 - b0, 1)
@@ -397,9 +411,9 @@ def follow_rims(
         # it and the shadow under it. Past the bone's widest point the edge of its shadow
         # has the bone's shadow over it too: no outline there (on the hard simulated
         # radius, seed 43, a trace ran on down the shadow's side 5 mm off the bone).
-        beam = _beam_edge(
-            ev, gi[..., k1 : k1 + ne], gj[..., k1 : k1 + ne], p.edge_mm * 1.0 / ev.dy, dark
-        )
+        sums = _column_sums(ev)
+        bi, bj = gi[..., k1 : k1 + ne], gj[..., k1 : k1 + ne]
+        beam = _beam_edge(sums, bi, bj, p.edge_mm / ev.dy, dark)
         np.minimum(edge, beam, out=edge)
         # A bone that casts a shadow casts it under its flank's echo too; a fascia
         # running off the flank has tissue under it. Where the contour has a shadow, its
@@ -408,12 +422,7 @@ def follow_rims(
         # fasciae 1-2 mm off the bone).
         # (Its windows clear of the line, as the contour's own shadow contrast was measured.)
         across = _beam_edge(
-            ev,
-            gi[..., k1 : k1 + ne],
-            gj[..., k1 : k1 + ne],
-            (p.outside_mm[1] - p.outside_mm[0]) / ev.dy,
-            dark,
-            p.outside_mm[0] / ev.dy,
+            sums, bi, bj, (p.outside_mm[1] - p.outside_mm[0]) / ev.dy, dark, p.outside_mm[0] / ev.dy
         )
         shade = np.clip(2.0 * across / edge_unit, 0.0, 1.0)
         e = np.where(use_edge, np.minimum(e, e * shade), e)
