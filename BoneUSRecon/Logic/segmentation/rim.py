@@ -12,10 +12,14 @@ simulated sweeps two thirds of the true contour steeper than 60 degrees had no p
 near it.
 
 A bone's cross-section is convex, so seen from a point inside it its outline is one
-radius per direction. Every end, flat or already followed by the arc tracer, is
-followed on in polar coordinates about the centre of the circle fitted to the whole
-contour (Kasa's algebraic fit: for a round bone the centre of the
-cross-section, for a crest a point inside it):
+radius per direction. Ends are followed on in polar coordinates about the centre of the
+circle fitted to the whole contour: every end of a contour with a faint echo (weaker
+than its own shadow's contrast, as the cadaver's) or with no shadow (the L14 forearm),
+flat or already followed by the arc tracer; of a bright echo over a shadow only the
+flat ends (``max_start_deg``: followed on from the arc tracer's ends, its line took
+fasciae touching the flank on the standard simulated sweeps). The circle is Kasa's
+algebraic fit (for a round bone the centre of the cross-section, for a crest a point
+inside it):
 
 1. **Band.** For directions from the end's outward, every ``step_mm`` of arc, up to
    ``max_deg`` from the beam's up direction (past the bone's widest point a beam from
@@ -34,10 +38,13 @@ cross-section, for a crest a point inside it):
    only on the side facing the probe") and the outline is the edge between the tissue
    beside the bone and its shadow. A layer has tissue on both sides (no edge); a bone
    that passes sound is brighter inside (a negative edge, the line alone decides, as on
-   the L14 recording). With it, on the hard simulated sweeps (seeds 5 and 7, 160 x 128)
-   the true contour steeper than 45 degrees covered within 0.5 mm went from 0.57 to
-   0.70 of its points, steeper than 60 from 0.33 to 0.42, and the surface's mean
-   distance to the true contours from 0.30 to 0.24 mm.
+   the L14 recording); used for a faint echo only (a bright one stays a line down the
+   flank, and an edge beside it is more often a shadow's side widened by the beam).
+   With the ends followed on and the edge, on the hard simulated sweeps (seeds 5 and 7,
+   160 x 128) the true contour steeper than 45 degrees covered within 0.5 mm went from
+   0.57 to 0.68 of its points, steeper than 60 from 0.33 to 0.38, and the surface's
+   mean distance to the true contours from 0.30 to 0.24 mm (figures:
+   ``Testing/benchmarks/README.md``, "The rim follows the ends on").
    Averaged over ``run_mm`` of arc.
 3. **Path.** The best path through the band, the radius changing by at most
    ``max_step_mm`` per step (the outline may depart from the circle, but a layer
@@ -318,9 +325,8 @@ def follow_rims(
         if p.inside:
             own = np.minimum(own, c0 - np.log(in_mean + _EPS))
         own_line[q] = median1d(own)
-        if ke:
-            capped = _capped(s[:, 1 : 1 + nw], qj[:, 1 : 1 + nw], ev.tissue_beside).mean(axis=1)
-            own_edge[q] = median1d(_edge_ratio(out_mean, capped, in_mean, dark))
+        capped = _capped(s[:, 1 : 1 + nw], qj[:, 1 : 1 + nw], ev.tissue_beside).mean(axis=1)
+        own_edge[q] = median1d(_edge_ratio(out_mean, capped, in_mean, dark))
     # Both measures in units of the contour's own (the stop level is then ``keep`` for
     # either). The edge is for a faint echo, one weaker than the contour's own shadow
     # contrast (the cadaver's 1.35x the tissue over a shadow 0.65 of it; the hard
@@ -347,7 +353,7 @@ def follow_rims(
         own_line, own_edge, faint = own_line[use], own_edge[use], faint[use]
     n_t = len(rows)
     line_unit = np.maximum(own_line, _MIN_LEVEL)[:, None, None]
-    use_edge = faint[:, None, None]
+    use_edge = (faint & (ke > 0))[:, None, None]  # edge_mm 0: the line alone
     edge_unit = np.where(use_edge, own_edge[:, None, None], 1.0)
     side = np.array([r[1] for r in rows])[:, None, None]
     cx = np.array([r[2] for r in rows])[:, None, None]
