@@ -108,13 +108,13 @@ def _edge_ratio(
     return 2.0 * c - np.log(raw_out + dark) - np.log(inn + dark)
 
 
-def _window_means(cs: np.ndarray, centre: int, k: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Means of the ``k`` samples outward and inward of each of ``n`` samples, from the
-    cumulative sum ``cs`` (a leading 0) along the last axis of samples on a grid running
-    outward; sample ``b`` sits at grid index ``b + centre``."""
-    out = cs[..., centre + 1 + k : centre + 1 + k + n] - cs[..., centre + 1 : centre + 1 + n]
-    inn = cs[..., centre : centre + n] - cs[..., centre - k : centre - k + n]
-    return out / k, inn / k
+def _window_mean(cs: np.ndarray, centre: int, near: int, far: int, n: int, side: int) -> np.ndarray:
+    """Mean of the samples ``near`` .. ``far`` grid steps outward (``side`` 1) or inward
+    (-1) of each of ``n`` samples, from the cumulative sum ``cs`` (a leading 0) along the
+    last axis of samples on a grid running outward; sample ``b`` sits at grid index
+    ``b + centre``."""
+    lo, hi = (centre + near, centre + far + 1) if side > 0 else (centre - far, centre - near + 1)
+    return (cs[..., hi : hi + n] - cs[..., lo : lo + n]) / (far - near + 1)
 
 
 def _column_sums(ev: EvidenceMaps) -> tuple[np.ndarray, np.ndarray]:
@@ -311,11 +311,14 @@ def follow_rims(
     dark = 0.1 * median1d(ev.tissue)
     win = p.offset_mm * np.arange(k0, k1 + 1)
     nw = win.size
-    own_line, own_edge = np.empty(len(rows)), np.zeros(len(rows))
-    for q, (_, sd, ccx, ccz, _, _, x, z) in enumerate(rows):
-        ph = np.arctan2(sd * (x - ccx), ccz - z)
+    # Once per contour (both its ends' rows share its rays).
+    levels: dict[int, tuple[float, float]] = {}
+    for n, _, ccx, ccz, _, _, x, z in rows:
+        if n in levels:
+            continue
+        ph = np.arctan2(x - ccx, ccz - z)
         ri = np.hypot(x - ccx, z - ccz)[:, None] + np.r_[0.0, win, -win]
-        qi = (ccx + sd * np.sin(ph)[:, None] * ri) / fx + (0.5 / ev.fx - 0.5)
+        qi = (ccx + np.sin(ph)[:, None] * ri) / fx + (0.5 / ev.fx - 0.5)
         qj = (ccz - np.cos(ph)[:, None] * ri) / fy + (0.5 / ev.fy - 0.5)
         s = bilinear_at(ev.work, qi, qj)
         c0 = np.log(s[:, 0] + _EPS)
@@ -324,9 +327,10 @@ def follow_rims(
         own = c0 - np.log(out_mean + _EPS)
         if p.inside:
             own = np.minimum(own, c0 - np.log(in_mean + _EPS))
-        own_line[q] = median1d(own)
         capped = _capped(s[:, 1 : 1 + nw], qj[:, 1 : 1 + nw], ev.tissue_beside).mean(axis=1)
-        own_edge[q] = median1d(_edge_ratio(out_mean, capped, in_mean, dark))
+        levels[n] = (median1d(own), median1d(_edge_ratio(out_mean, capped, in_mean, dark)))
+    own_line = np.array([levels[r[0]][0] for r in rows])
+    own_edge = np.array([levels[r[0]][1] for r in rows])
     # Both measures in units of the contour's own (the stop level is then ``keep`` for
     # either). The edge is for a faint echo, one weaker than the contour's own shadow
     # contrast (the cadaver's 1.35x the tissue over a shadow 0.65 of it; the hard
@@ -387,11 +391,9 @@ def follow_rims(
     g = bilinear_at(ev.work, gi, gj)
     cs = np.zeros(g.shape[:2] + (g.shape[2] + 1,))
     np.cumsum(g, axis=-1, out=cs[..., 1:])
-    # Sample b of the band is grid index b + k1; outward window b + k1 + k0 .. b + 2 k1,
-    # inward window b .. b + k1 - k0.
-    w = k1 - k0 + 1
-    outside = (cs[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - cs[..., k1 + k0 : k1 + k0 + ne]) / w
-    inside = (cs[..., w : w + ne] - cs[..., :ne]) / w
+    # Sample b of the band is grid index b + k1; its windows k0 .. k1 samples out and in.
+    outside = _window_mean(cs, k1, k0, k1, ne, 1)
+    inside = _window_mean(cs, k1, k0, k1, ne, -1)
     centre = np.log(g[..., k1 : k1 + ne] + _EPS)
     e = centre - np.log(outside + _EPS)
     if p.inside:
@@ -410,9 +412,12 @@ def follow_rims(
         # the outward window holds the line, which is no tissue beside a shadow.
         cap = np.zeros_like(cs)
         np.cumsum(_capped(g, gj, ev.tissue_beside), axis=-1, out=cap[..., 1:])
-        cap_out, _ = _window_means(cap, k1, ke, ne)
-        raw_out, inn = _window_means(cs, k1, ke, ne)
-        edge = _edge_ratio(raw_out, cap_out, inn, dark)
+        edge = _edge_ratio(
+            _window_mean(cs, k1, 1, ke, ne, 1),
+            _window_mean(cap, k1, 1, ke, ne, 1),
+            _window_mean(cs, k1, 1, ke, ne, -1),
+            dark,
+        )
         # ... and along the beam: a point of the outline is seen from above, tissue over
         # it and the shadow under it. Past the bone's widest point the edge of its shadow
         # has the bone's shadow over it too: no outline there (on the hard simulated
