@@ -228,7 +228,9 @@ class RimParams:
     max_start_deg: float = 20.0
     """Of a contour with a bright echo over a shadow (the echo stronger than the shadow's contrast), only ends whose last ``fit_mm`` descends outward less steeply than this are followed, degrees (ours: ``FlankParams.min_start_deg``: an end that descends is the arc tracer's, and its stop rule ended it; following those on too took fasciae touching the flank on the standard simulated sweeps). A faint echo's ends all are, and those of a contour with no shadow."""
     fit_mm: float = 2.0
-    """Length of contour at an end over which its slope is measured, mm (as ``FlankParams.fit_mm``)."""
+    """Length of contour at an end over which its slope is measured, mm (as ``FlankParams.fit_mm``); an end with less contour than this before the contour's first break (``join_mm``) is not followed."""
+    join_mm: float = 2.0
+    """Consecutive contour points farther apart than this are not joined, mm (the paper's posterior choice: 10 reference pixels, 1 mm). An end cut off from the contour by such a break is a piece apart (a layer beside the bone that the path stepped onto: on the standard simulated clavicle, seed 0, frame 9, a trace from such a piece ran on along the layer 3 mm off the bone), and its own direction is no outline's."""
     radius_mm: tuple[float, float] = (2.0, 40.0)
     """Radii of the fitted circle accepted, mm (a clavicle's 5 mm to a tibia's broad face; a flatter fit is a layer)."""
     step_mm: float = 0.3
@@ -237,8 +239,10 @@ class RimParams:
     """Half-width of the radial band searched about the end's radius, mm (a crest departs from its fitted circle by a few mm)."""
     offset_mm: float = 0.1
     """Spacing of the radial samples, mm."""
-    max_step_mm: float = 0.1
-    """Largest change of radius per step, mm (an outline departing from the circle by at most ~18 degrees per step; a layer leaving the bone flat needs more)."""
+    max_step_mm: float = 0.2
+    """Largest change of radius per step, mm: the outline may depart from the fitted circle's tangent by up to ~34 degrees (a crest's or a humerus's flank runs straight on where a circle fitted to its top turns down: at 0.1, ~18 degrees, the traces stopped a few mm down such flanks; ours, with ``max_deg`` 110 and ``min_descent_deg`` 10, on the hard simulated humerus, tibia and radius of seeds 53 and 59 at 475 x 405 the true contour steeper than 60 degrees covered within 0.5 mm went from 0.39 / 0.42 to 0.48 / 0.54, the surface's mean gold distance from 0.66 / 0.55 to 0.45 / 0.42 mm, the share of kept points over 1 mm from the bone (3D) 3.1 / 2.8 % -> 3.0 / 2.7 %)."""
+    min_descent_deg: float = 10.0
+    """Where the radius grows faster than one radial sample per step (the outline running flatter than the fitted circle), the outline so implied must still descend at least this, degrees below the horizontal (a bone's outline descends outward from its apex; a fascia leaving it at its level runs on nearly level: on the hard simulated tibia with fascia, seed 5, ``max_step_mm`` 0.2 without this limit followed flat ends on along the fascia, 37 % of the added points over 0.5 mm from the bone, up to 4.8 mm; with it at 10 to 30 degrees 15 %, up to 0.62 mm; ours: 10, at 20 the hard sweeps of seed 59 were 0.06 mm further from their gold, the L14 recording 0.03 mm from its reference)."""
     outside_mm: tuple[float, float] = (0.75, 1.75)
     """Window out along the ray that a sample's echo is compared with, mm (as ``FlankParams.outside_mm``)."""
     run_mm: float = 1.5
@@ -257,8 +261,8 @@ class RimParams:
     """The trace's echo must also beat the null's median by this many of its robust spreads (pooled over the frame's traces: what speckle and the tissue's layers give with the same search)."""
     max_mm: float = 15.0
     """Longest trace, mm of arc at the end's radius (the L14 forearm's right flank: 10-20 mm from the shoulder; bounds the work on a flat fit's large radius)."""
-    max_deg: float = 80.0
-    """Furthest direction followed, degrees from the beam's up direction about the fitted circle (past the bone's widest point a beam from above sees nothing, and the shadow's edge there runs straight down; ours: the flanks to 70 degrees that issue 10 asks for, with a margin for a circle fitted to a crest; at 95 the edge measure followed the shadow's side below the widest point on the hard simulated sweeps)."""
+    max_deg: float = 110.0
+    """Furthest direction followed, degrees from the beam's up direction about the fitted circle. It bounds the search, not the outline's slope (``max_slope_deg``, ``edge_slope_deg`` end the trace by its own descent): a circle fitted to a bone's top lies inside the bone and is smaller than it where the flanks run straight (a crest, a humerus's section narrowing upward), so the flank's points lie at directions past 90 degrees from its centre (ours: at 80, before the slope limits existed the guard against following the shadow's side below the widest point, traces on the hard simulated humerus stopped at 70 degrees about a 5.7 mm circle with 6 mm of flank to go; see ``max_step_mm`` for the figures)."""
     max_slope_deg: float = 85.0
     """The trace ends before its first point descending steeper than this over ``slope_mm``, degrees (past the bone's widest point a beam from above sees nothing; ours: the L14 forearm's echo band runs to ~80 degrees; on the standard simulated clavicle, seed 0, traces ran on down the ring's side past the widest point, 1-2 mm off the bone; 90: no limit)."""
     edge_slope_deg: float = 75.0
@@ -283,6 +287,7 @@ class RimParams:
                 "run_mm",
                 "refine_mm",
                 "slope_mm",
+                "join_mm",
             ),
             non_negative=(
                 "keep",
@@ -294,7 +299,12 @@ class RimParams:
                 "null_mm",
                 "stop_z",
             ),
-            within={"max_deg": "(0, 180]", "max_slope_deg": "(0, 90]", "edge_slope_deg": "(0, 90]"},
+            within={
+                "max_deg": "(0, 180]",
+                "max_slope_deg": "(0, 90]",
+                "edge_slope_deg": "(0, 90]",
+                "min_descent_deg": "[0, 90)",
+            },
         )
         for name in ("radius_mm", "outside_mm"):
             lo, hi = getattr(self, name)

@@ -22,9 +22,10 @@ algebraic fit (for a round bone the centre of the cross-section, for a crest a p
 inside it):
 
 1. **Band.** For directions from the end's outward, every ``step_mm`` of arc, up to
-   ``max_deg`` from the beam's up direction (past the bone's widest point a beam from
-   above sees nothing), the working image is sampled along the ray over the end's radius
-   +-``band_mm``.
+   ``max_deg`` from the beam's up direction about the circle's centre (a bound on the
+   search: a flank straighter than the circle lies past 90 degrees from it; step 6
+   limits the outline's slope), the working image is sampled along the ray over the
+   end's radius +-``band_mm``.
 2. **A line or an edge across the outline.** A sample's echo is the smaller of its log
    ratios to the mean of the samples ``outside_mm`` further out along the ray (the
    tissue beside the bone) and as far in (``inside``): a line, not a step. A layer lying over the bone
@@ -46,10 +47,19 @@ inside it):
    mean distance to the true contours from 0.30 to 0.24 mm (figures:
    ``Testing/benchmarks/README.md``, "The rim follows the ends on").
    Averaged over ``run_mm`` of arc.
-3. **Path.** The best path through the band, the radius changing by at most
-   ``max_step_mm`` per step (the outline may depart from the circle, but a layer
-   leaving the bone nearly flat needs the radius to grow as the tangent of the
-   direction: it is left at ~18 degrees), starting at the end's own radius.
+3. **Path.** The best path through the band, starting at the end's own radius, the
+   radius changing by at most ``max_step_mm`` per step: the outline may depart from
+   the circle by ~34 degrees, as a crest's or a humerus's straight flank does from a
+   circle fitted to its top (it lies outside the circle, at directions past 90 degrees
+   from its centre: hence ``max_deg`` 110; the outline's own slope ends the trace, step
+   6). Outward faster than one radial sample per step only where the outline so
+   implied still descends ``min_descent_deg``: a fascia leaving the bone at its level
+   runs nearly flat, and a flat end's trace otherwise ran on along it. With these, on
+   the hard simulated humerus, tibia and radius (seeds 53 and 59, 475 x 405) the true
+   contour steeper than 60 degrees covered within 0.5 mm went from 0.39 / 0.42 to
+   0.48 / 0.54 and the surface's mean gold distance from 0.66 / 0.55 to 0.45 / 0.42 mm
+   (the humerus of seed 53: 1.15 -> 0.54 mm); over the benchmark's 24 sweeps of those
+   seeds, 0.45 -> 0.38 mm.
 4. **Stop.** The trace continues while its echo is at least ``keep`` of the contour's
    own (measured the same way along its own rays: this bone's echo in this frame) and
    above what the same search gives in the tissue ``null_mm`` further out (median of the
@@ -63,6 +73,8 @@ inside it):
    reference against 1.9 mm with the median alone).
 5. **Points.** Each step's point is refined on the full-resolution image along its ray
    (:func:`.sampling.refine_across`) and appended to the contour's end.
+6. **Slope.** The trace ends before its outline descends steeper than a beam from
+   above can see (:func:`_outline_prefix`).
 
 Only contours of at least ``min_points`` points with a good circle fit (centre below the
 contour's deepest point, radius within ``radius_mm``) are followed, after the arc
@@ -208,12 +220,13 @@ def kasa_circle(x: np.ndarray, z: np.ndarray) -> tuple[float, float, float]:
     return float(cx), float(cz), float(np.sqrt(max(c[2] + cx * cx + cz * cz, 0.0)))
 
 
-def _radius_paths(e: np.ndarray, start: int, ms: int) -> np.ndarray:
+def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = None) -> np.ndarray:
     """Viterbi over the steps of each trace: the radius index per step, ``(T, S)``.
 
     ``e`` (T, S, B): the score of radius index b at step s; every path starts at
     ``start`` and moves at most ``ms`` indices per step, the best total wins (the first
-    of equal scores: the smaller move, as ``argmax`` over the moves -ms .. ms).
+    of equal scores: the smaller move, as ``argmax`` over the moves -ms .. ms). ``up``
+    (T, S), if given: at most this many indices outward (increasing) into step s.
     """
     n_tr, n_step, nb = e.shape
     acc = np.full((n_tr, nb + 2 * ms), -np.inf)  # padded by ms each side
@@ -227,9 +240,18 @@ def _radius_paths(e: np.ndarray, start: int, ms: int) -> np.ndarray:
     mid = acc[:, ms : ms + nb]
     at = np.arange(n_tr)[:, None] * acc.shape[1] + np.arange(nb)[None, :]
     acc_flat = acc.reshape(-1)  # a view: acc is contiguous
+    # Window index k holds the predecessor k - ms indices away: the move into b is
+    # ms - k, outward when positive; moves over ``up`` are barred.
+    kk = np.arange(2 * ms + 1)
     for t in range(1, n_step):
-        k = win.argmax(axis=2)
-        np.add(acc_flat[at + k], e[:, t], out=mid)
+        if up is None:
+            k = win.argmax(axis=2)
+            np.add(acc_flat[at + k], e[:, t], out=mid)
+        else:
+            barred = kk[None, :] < (ms - up[:, t])[:, None]
+            wt = np.where(barred[:, None, :], -np.inf, win)
+            k = wt.argmax(axis=2)
+            np.add(np.take_along_axis(wt, k[..., None], axis=2)[..., 0], e[:, t], out=mid)
         back[t] = k
     back[1:] -= ms
     path = np.empty((n_tr, n_step), np.intp)
@@ -281,8 +303,16 @@ def follow_rims(
         cx, cz, rad = kasa_circle(x, z)
         if not (cz > z.max() and p.radius_mm[0] <= rad <= p.radius_mm[1]):
             continue
-        for side, want in ((-1.0, lo), (1.0, hi)):
-            if not want:
+        # Arc length from each end to the contour's first break (consecutive points
+        # over join_mm apart): an end cut off by one is a piece apart, not the outline's.
+        seg = np.hypot(np.diff(x), np.diff(z))
+        brk = np.flatnonzero(seg > p.join_mm)
+        runs = (
+            seg[: brk[0]].sum() if brk.size else seg.sum(),
+            seg[brk[-1] + 1 :].sum() if brk.size else seg.sum(),
+        )
+        for side, want, run in ((-1.0, lo, runs[0]), (1.0, hi, runs[1])):
+            if not want or run < p.fit_mm:
                 continue
             k = 0 if side < 0 else -1
             r0 = float(np.hypot(x[k] - cx, z[k] - cz))
@@ -458,7 +488,12 @@ def follow_rims(
         e = (ce[:, hi] - ce[:, lo]) / (hi - lo)[None, :, None]
     # The path: Viterbi over the steps, the radius moving at most max_step per step.
     ms = max(1, int(round(p.max_step_mm / p.offset_mm)))
-    path = _radius_paths(e, m, ms)
+    # Outward, faster than one radial sample per step, only where the outline so implied
+    # still descends at least min_descent_deg: the radius grows by g over a step of
+    # step_mm where the outline runs atan(g / step_mm) flatter than the circle.
+    grow = p.step_mm * np.tan(np.maximum(phi - np.radians(p.min_descent_deg), 0.0))
+    up = np.clip(np.floor(grow / p.offset_mm + 1e-9), 1, ms).astype(np.intp)
+    path = _radius_paths(e, m, ms, None if (up >= ms).all() else np.concatenate([up, up]))
     tt = np.arange(2 * n_t)
     vals = e[tt[:, None], np.arange(n_step), path]
     ridge, null, path = vals[:n_t], vals[n_t:], path[:n_t]
