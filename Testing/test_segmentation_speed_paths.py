@@ -22,7 +22,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     frame_candidates,
     frame_candidates_many,
 )
-from BoneUSRecon.Logic.segmentation.evidence import _window_mean
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, _window_mean
 from BoneUSRecon.Logic.segmentation.features import (
     _ONE_KTH_FROM,
     column_window_mean,
@@ -31,7 +31,14 @@ from BoneUSRecon.Logic.segmentation.features import (
     sorted_row_percentiles,
 )
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
-from BoneUSRecon.Logic.segmentation.rim import _radius_paths
+from BoneUSRecon.Logic.segmentation.rim import (
+    _beam_edge,
+    _beam_pixels,
+    _beam_rows,
+    _column_sums,
+    _edge_ratio,
+    _radius_paths,
+)
 from BoneUSRecon.Logic.segmentation.track import (
     _in_plane_deviation,
     _links,
@@ -348,6 +355,52 @@ def test_rim_radius_paths_match_stacked_views() -> None:
         e[rng.random(e.shape) < 0.1] = -1e3
         ms, start = int(rng.integers(1, 4)), int(rng.integers(0, nb))
         assert np.array_equal(_radius_paths(e, start, ms), _plain_radius_paths(e, start, ms)), trial
+
+
+def _plain_beam_edge(work, level, wi, wj, rows, dark, gap=0.0):  # type: ignore[no-untyped-def]
+    """rim's edge along the beam as it was before branch ``speed2`` (session 25): the
+    column sums of the whole working image, every point on its own."""
+    h, w = work.shape
+    cu = np.zeros((h + 1, w))
+    np.cumsum(np.minimum(work, level[:, None]), axis=0, out=cu[1:])
+    cw = np.zeros((h + 1, w))
+    np.cumsum(work, axis=0, out=cw[1:])
+    k, o = max(1, int(round(rows))), int(round(gap))
+    col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
+    row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
+    a0, a1 = np.clip(row - o - k, 0, h), np.clip(row - o, 0, h)
+    b0, b1 = np.minimum(row + 1 + o, h), np.minimum(row + 1 + o + k, h)
+    na, nb = np.maximum(a1 - a0, 1), np.maximum(b1 - b0, 1)
+    cap = (cu[a1, col] - cu[a0, col]) / na
+    raw = (cw[a1, col] - cw[a0, col]) / na
+    below = (cw[b1, col] - cw[b0, col]) / nb
+    return _edge_ratio(raw, cap, below, dark)
+
+
+def test_rim_beam_edge_per_pixel_matches_every_point() -> None:
+    # Points inside, on and outside the image (clipped to its edge), many on one pixel;
+    # windows clipped at the top and bottom; the sums cut at the deepest window.
+    rng = np.random.default_rng(25)
+    for trial in range(60):
+        h, w = int(rng.integers(8, 90)), int(rng.integers(3, 120))
+        work = rng.gamma(2.0, 0.1, (h, w)).astype(np.float32)
+        work[rng.random((h, w)) < 0.05] = 0.0
+        level = np.float32(rng.uniform(0.1, 0.4, h))
+        ev = EvidenceMaps(
+            work, work, 2, 2, 0.3, 0.3, np.ones(w, bool), level, work, work, work, level, 0.0
+        )
+        shape = tuple(int(v) for v in rng.integers(1, 12, 3))
+        wi = rng.uniform(-3, w + 2, shape)
+        wj = rng.uniform(-3, rng.uniform(0, h + 2), shape)
+        row, col, at = _beam_pixels((h, w), wi, wj)
+        assert row.size == np.unique(row * w + col).size
+        windows = [(float(rng.uniform(0, 6)), float(rng.uniform(0, 4))) for _ in range(2)]
+        reach = max(sum(_beam_rows(*win)) for win in windows)
+        sums, at_col = _column_sums(ev, col, min(h, int(row.max()) + 1 + reach))
+        for rows, gap in windows:
+            fast = _beam_edge(sums, row, at_col, h, rows, 0.02, gap)[at]
+            plain = _plain_beam_edge(work, level, wi, wj, rows, 0.02, gap)
+            assert fast.shape == shape and np.array_equal(fast, plain), trial
 
 
 def test_one_sorted_row_percentile_matches_numpy_1d() -> None:

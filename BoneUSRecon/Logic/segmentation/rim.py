@@ -117,34 +117,70 @@ def _window_mean(cs: np.ndarray, centre: int, near: int, far: int, n: int, side:
     return (cs[..., hi : hi + n] - cs[..., lo : lo + n]) / (far - near + 1)
 
 
-def _column_sums(ev: EvidenceMaps) -> tuple[np.ndarray, np.ndarray]:
-    """Cumulative sums down the columns (a leading row of 0) of the working image capped
-    at the tissue level and as it is: the windows of :func:`_beam_edge`, once a frame."""
-    h, w = ev.work.shape
-    cu = np.zeros((h + 1, w))
-    np.cumsum(np.minimum(ev.work, ev.tissue_beside[:, None]), axis=0, out=cu[1:])
-    cw = np.zeros((h + 1, w))
-    np.cumsum(ev.work, axis=0, out=cw[1:])
-    return cu, cw
+def _beam_pixels(
+    shape: tuple[int, int], wi: np.ndarray, wj: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The working pixels nearest to points ``(wi, wj)`` (working columns, rows) on an
+    image of ``shape``: their rows and columns, each pixel once, and per point the index
+    of its pixel in them.
+
+    Along the beam a point is read at its nearest pixel (:func:`_beam_edge`): the
+    measures once per pixel, not once per point (the grid of :func:`follow_rims`
+    samples every 0.1 mm along its rays, three points a working pixel at 480x640).
+    """
+    h, w = shape
+    col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
+    row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
+    flat = row * w + col
+    seen = np.zeros(h * w, bool)
+    seen[flat] = True
+    pix = np.flatnonzero(seen)
+    at = np.empty(h * w, np.intp)
+    at[pix] = np.arange(pix.size)
+    return pix // w, pix % w, at[flat]
+
+
+def _beam_rows(rows: float, gap: float) -> tuple[int, int]:
+    """The rows of a window of :func:`_beam_edge` (at least 1) and its gap, whole rows."""
+    return max(1, int(round(rows))), int(round(gap))
+
+
+def _column_sums(
+    ev: EvidenceMaps, col: np.ndarray, depth: int
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """Cumulative sums down the working image's columns ``col`` (each once, a leading
+    row of 0, rows ``0 .. depth - 1``) capped at the tissue level and as it is: the
+    windows of :func:`_beam_edge`, once a frame; and the index of each of ``col`` in
+    them.
+
+    Only the columns and depths the windows read: the same sums, each summed down its
+    column in the same order as over the whole image.
+    """
+    seen = np.zeros(ev.work.shape[1], bool)
+    seen[col] = True
+    cols = np.flatnonzero(seen)
+    sub = ev.work[:depth, cols]
+    cu = np.zeros((depth + 1, cols.size))
+    np.cumsum(np.minimum(sub, ev.tissue_beside[:depth, None]), axis=0, out=cu[1:])
+    cw = np.zeros((depth + 1, cols.size))
+    np.cumsum(sub, axis=0, out=cw[1:])
+    return (cu, cw), (np.cumsum(seen) - 1)[col]
 
 
 def _beam_edge(
     sums: tuple[np.ndarray, np.ndarray],
-    wi: np.ndarray,
-    wj: np.ndarray,
+    row: np.ndarray,
+    col: np.ndarray,
+    h: int,
     rows: float,
     dark: float,
     gap: float = 0.0,
 ) -> np.ndarray:
-    """:func:`_edge_ratio` along the beam: ``rows`` working rows above each point against
-    as many below, ``gap`` rows clear of it either side, on the point's nearest column
-    (``sums``: :func:`_column_sums` of the frame)."""
+    """:func:`_edge_ratio` along the beam: ``rows`` working rows above each pixel against
+    as many below, ``gap`` rows clear of it either side, on an image of ``h`` rows
+    (``sums``: :func:`_column_sums` of the frame, ``col`` the pixels' columns in it)."""
     cu, cw = sums
-    k = max(1, int(round(rows)))
-    o = int(round(gap))
-    h, w = cu.shape[0] - 1, cu.shape[1]
-    col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
-    row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
+    k, o = _beam_rows(rows, gap)
     a0, a1 = np.clip(row - o - k, 0, h), np.clip(row - o, 0, h)
     b0, b1 = np.minimum(row + 1 + o, h), np.minimum(row + 1 + o + k, h)
     na, nb = np.maximum(a1 - a0, 1), np.maximum(b1 - b0, 1)
@@ -422,9 +458,13 @@ def follow_rims(
         # it and the shadow under it. Past the bone's widest point the edge of its shadow
         # has the bone's shadow over it too: no outline there (on the hard simulated
         # radius, seed 43, a trace ran on down the shadow's side 5 mm off the bone).
-        sums = _column_sums(ev)
-        bi, bj = gi[..., k1 : k1 + ne], gj[..., k1 : k1 + ne]
-        beam = _beam_edge(sums, bi, bj, p.edge_mm / ev.dy, dark)
+        # (Each point on its nearest working pixel: the measures once per pixel, on the
+        # sums of the pixels' columns down to the deepest window.)
+        row, col, at = _beam_pixels((hw, ww), gi[..., k1 : k1 + ne], gj[..., k1 : k1 + ne])
+        k_across = (p.outside_mm[1] - p.outside_mm[0]) / ev.dy, p.outside_mm[0] / ev.dy
+        reach = max(sum(_beam_rows(p.edge_mm / ev.dy, 0.0)), sum(_beam_rows(*k_across)))
+        sums, col = _column_sums(ev, col, min(hw, int(row.max()) + 1 + reach))
+        beam = _beam_edge(sums, row, col, hw, p.edge_mm / ev.dy, dark)[at]
         np.minimum(edge, beam, out=edge)
         # A bone that casts a shadow casts it under its flank's echo too; a fascia
         # running off the flank has tissue under it. Where the contour has a shadow, its
@@ -432,9 +472,7 @@ def follow_rims(
         # the beam (on the standard simulated radius, seed 1, traces ran on along such
         # fasciae 1-2 mm off the bone).
         # (Its windows clear of the line, as the contour's own shadow contrast was measured.)
-        across = _beam_edge(
-            sums, bi, bj, (p.outside_mm[1] - p.outside_mm[0]) / ev.dy, dark, p.outside_mm[0] / ev.dy
-        )
+        across = _beam_edge(sums, row, col, hw, k_across[0], dark, k_across[1])[at]
         shade = np.clip(2.0 * across / edge_unit, 0.0, 1.0)
         e = np.where(use_edge, np.minimum(e, e * shade), e)
         edge = np.where(use_edge, edge / edge_unit, _BAD)
