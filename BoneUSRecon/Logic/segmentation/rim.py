@@ -392,12 +392,9 @@ def follow_rims(
         rows = [r for r, u in zip(rows, use, strict=True) if u]
         own_line, own_edge, faint = own_line[use], own_edge[use], faint[use]
     n_t = len(rows)
-    line_unit = np.maximum(own_line, _MIN_LEVEL)[:, None, None]
-    use_edge = (faint & (ke > 0))[:, None, None]  # edge_mm 0: the line alone
-    edge_unit = np.where(use_edge, own_edge[:, None, None], 1.0)
-    side = np.array([r[1] for r in rows])[:, None, None]
-    cx = np.array([r[2] for r in rows])[:, None, None]
-    cz = np.array([r[3] for r in rows])[:, None, None]
+    side = np.array([r[1] for r in rows])[:, None]
+    cx = np.array([r[2] for r in rows])[:, None]
+    cz = np.array([r[3] for r in rows])[:, None]
     r0 = np.array([r[4] for r in rows])
     phi0 = np.array([r[5] for r in rows])
     dphi = p.step_mm / r0
@@ -405,9 +402,16 @@ def follow_rims(
     n_step = min(n_step, int(np.ceil(p.max_mm / p.step_mm)) + 1)
     phi = phi0[:, None] + dphi[:, None] * np.arange(n_step)
     live = phi <= np.radians(p.max_deg)
+    # Only the live steps are sampled and measured, one row each (a step past max_deg
+    # scores _BAD whatever it measures; a quarter of the steps on the hard simulated
+    # sweeps): every measure is along its step's ray alone.
+    tr, st = np.nonzero(live)
+    line_unit = np.maximum(own_line, _MIN_LEVEL)[tr, None]
+    use_edge = (faint & (ke > 0))[tr, None]  # edge_mm 0: the line alone
+    edge_unit = np.where(use_edge, own_edge[tr, None], 1.0)
     m = int(round(p.band_mm / p.offset_mm))
     off = p.offset_mm * np.arange(-m, m + 1)
-    sin, cos = np.sin(phi)[:, :, None], np.cos(phi)[:, :, None]
+    sin, cos = np.sin(phi)[tr, st, None], np.cos(phi)[tr, st, None]
     hw, ww = ev.work.shape
     nb = off.size
     # Outward window of band sample b: radii off[b] + outs, i.e. indices b + k0 .. b + k1
@@ -418,14 +422,14 @@ def follow_rims(
     ne = nb + shift
     # ... and k1 samples further in, for the window inward of each sample.
     grid = off[0] + p.offset_mm * np.arange(-k1, ne + k1 + 1)
-    gx = cx + side * sin * (r0[:, None, None] + grid)
-    gz = cz - cos * (r0[:, None, None] + grid)
+    gx = cx[tr] + side[tr] * sin * (r0[tr, None] + grid)
+    gz = cz[tr] - cos * (r0[tr, None] + grid)
     gi = gx / fx + (0.5 / ev.fx - 0.5)
     gj = gz / fy + (0.5 / ev.fy - 0.5)
     gvalid = (gi >= 0) & (gi <= ww - 1) & (gj >= 0) & (gj <= hw - 1)
     gvalid &= ev.usable[np.rint(np.clip(gi, 0, ww - 1)).astype(np.intp)]
     g = bilinear_at(ev.work, gi, gj)
-    cs = np.zeros(g.shape[:2] + (g.shape[2] + 1,))
+    cs = np.zeros((g.shape[0], g.shape[1] + 1))
     np.cumsum(g, axis=-1, out=cs[..., 1:])
     # Sample b of the band is grid index b + k1; its windows k0 .. k1 samples out and in.
     outside = _window_mean(cs, k1, k0, k1, ne, 1)
@@ -476,14 +480,17 @@ def follow_rims(
         shade = np.clip(2.0 * across / edge_unit, 0.0, 1.0)
         e = np.where(use_edge, np.minimum(e, e * shade), e)
         edge = np.where(use_edge, edge / edge_unit, _BAD)
-        edge_won = edge[..., :nb] > e[..., :nb]
+        edge_won = np.zeros((n_t, n_step, nb), bool)
+        edge_won[tr, st] = edge[..., :nb] > e[..., :nb]
         np.maximum(e, edge, out=e)
     else:
         edge_won = None
-    nbad = np.zeros(g.shape[:2] + (g.shape[2] + 1,), np.int32)
+    nbad = np.zeros((g.shape[0], g.shape[1] + 1), np.int32)
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
     bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
-    e[bad | ~live[:, :, None]] = _BAD
+    e[bad] = _BAD
+    e_live, e = e, np.full((n_t, n_step, ne), _BAD)
+    e[tr, st] = e_live
     e = np.concatenate([e[..., :nb], e[..., shift : shift + nb]])  # traces, then nulls
     own_e = e[:n_t].copy()  # each step's own value, before the average along the trace
     run = max(1, int(round(p.run_mm / p.step_mm)))
@@ -526,9 +533,9 @@ def follow_rims(
         return out
     rad = r0[t_i] + off[path[t_i, k_i]]
     ph = phi[t_i, k_i]
-    sd = side[t_i, 0, 0]
+    sd = side[t_i, 0]
     nx, nz = sd * np.sin(ph), -np.cos(ph)
-    px, pz = cx[t_i, 0, 0] + nx * rad, cz[t_i, 0, 0] + nz * rad
+    px, pz = cx[t_i, 0] + nx * rad, cz[t_i, 0] + nz * rad
     rx, rz = refine_across(image, px, pz, nx, nz, sx, sy, p.refine_mm)
     won = np.zeros(t_i.size, bool)
     if edge_won is not None:
