@@ -77,7 +77,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d
@@ -250,29 +249,39 @@ def _radius_paths(e: np.ndarray, start: int, ms: int) -> np.ndarray:
     ``e`` (T, S, B): the score of radius index b at step s; every path starts at
     ``start`` and moves at most ``ms`` indices per step, the best total wins (the first
     of equal scores: the smaller move, as ``argmax`` over the moves -ms .. ms).
+
+    The loop over the steps is bound by its numpy calls (the arrays are small): the
+    traces' states lie in one contiguous run, ``ms`` states of -inf between two traces
+    (as the padding at the run's ends: a move reaches at most ``ms`` states, so no
+    trace reads another's), and each step is ``2 ms`` maxima of shifted slices and one
+    sum. No moves are stored: the backtrack takes, per step, the ``argmax`` of the
+    state's predecessors among the stored scores (the same comparisons of the same
+    doubles as a forward ``argmax``, so the same path).
     """
     n_tr, n_step, nb = e.shape
-    acc = np.full((n_tr, nb + 2 * ms), -np.inf)  # padded by ms each side
-    acc[:, ms + start] = e[:, 0, start]
-    back = np.zeros((n_step, n_tr, nb), np.int8)  # the move taken, -ms .. ms
-    # Predecessor of state b at b + k, k = -ms .. ms: window k + ms of state b (a view
-    # of acc, so it follows acc's updates). The chosen predecessor's score is read at
-    # its flat index (fewer numpy calls per step than a stack of shifted views: the
-    # arrays are small, the calls are the cost).
-    win = sliding_window_view(acc, 2 * ms + 1, axis=1)  # (T, B, 2 ms + 1)
-    mid = acc[:, ms : ms + nb]
-    at = np.arange(n_tr)[:, None] * acc.shape[1] + np.arange(nb)[None, :]
-    acc_flat = acc.reshape(-1)  # a view: acc is contiguous
+    wp = nb + 2 * ms  # a trace's states and its padding
+    run = n_tr * wp - 2 * ms  # positions ms .. n_tr wp - ms of a step's scores
+    acc = np.full((n_step, n_tr * wp), -np.inf)
+    base = np.arange(n_tr) * wp  # trace i's state b at base[i] + ms + b
+    acc[0, base + ms + start] = e[:, 0, start]
+    # The scores in the same layout, -inf in the padding (which then stays -inf).
+    ep = np.full((n_step, n_tr, wp), -np.inf)
+    ep[:, :, ms : ms + nb] = e.transpose(1, 0, 2)
+    ep = ep.reshape(n_step, -1)
+    best = np.empty(run)
+    maximum, add = np.maximum, np.add
     for t in range(1, n_step):
-        k = win.argmax(axis=2)
-        np.add(acc_flat[at + k], e[:, t], out=mid)
-        back[t] = k
-    back[1:] -= ms
+        prev = acc[t - 1]  # predecessors of position q: prev[q - ms .. q + ms]
+        maximum(prev[:run], prev[1 : 1 + run], out=best)
+        for j in range(2, 2 * ms + 1):
+            maximum(best, prev[j : j + run], out=best)
+        add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
     path = np.empty((n_tr, n_step), np.intp)
-    path[:, -1] = mid.argmax(axis=1)
-    tt = np.arange(n_tr)
+    path[:, -1] = acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
+    moves = np.arange(2 * ms + 1)
     for t in range(n_step - 1, 0, -1):
-        path[:, t - 1] = path[:, t] + back[t, tt, path[:, t]]
+        at = (base + path[:, t])[:, None] + moves  # the predecessors, moves -ms .. ms
+        path[:, t - 1] = path[:, t] + acc[t - 1, at].argmax(axis=1) - ms
     return path
 
 
