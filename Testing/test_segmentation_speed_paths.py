@@ -22,7 +22,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     frame_candidates,
     frame_candidates_many,
 )
-from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, _window_mean
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, _window_mean, bone_evidence
 from BoneUSRecon.Logic.segmentation.features import (
     _ONE_KTH_FROM,
     column_window_mean,
@@ -30,7 +30,7 @@ from BoneUSRecon.Logic.segmentation.features import (
     sorted_row_medians,
     sorted_row_percentiles,
 )
-from BoneUSRecon.Logic.segmentation.params import RejectionParams
+from BoneUSRecon.Logic.segmentation.params import RejectionParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.rim import (
     _beam_edge,
     _beam_pixels,
@@ -39,6 +39,7 @@ from BoneUSRecon.Logic.segmentation.rim import (
     _edge_ratio,
     _radius_paths,
 )
+from BoneUSRecon.Logic.segmentation.settle import onset_z
 from BoneUSRecon.Logic.segmentation.track import (
     _in_plane_deviation,
     _links,
@@ -403,6 +404,22 @@ def test_rim_beam_edge_per_pixel_matches_every_point() -> None:
             fast = _beam_edge(sums, row, at_col, h, rows, 0.02, gap)[at]
             plain = _plain_beam_edge(work, level, wi, wj, rows, 0.02, gap)
             assert fast.shape == shape and np.array_equal(fast, plain), trial
+
+
+def test_onset_on_some_columns_matches_the_whole_width() -> None:
+    # settle's onset on the points' columns only (branch speed2, session 25): the column
+    # sums of those and of the scale's sample only; the same values as over every column.
+    sim = simulate(SimulationParams(bone="tibia", seed=3, realism="hard", n_frames=2))
+    rng = np.random.default_rng(4)
+    for image in sim.sweep.frames:
+        ev = bone_evidence(np.asarray(image), (0.3, 0.3), ShadowPathParams())
+        assert ev is not None
+        h, w = ev.work.shape
+        for rows in ((0, h), (5, 40), (h - 9, h + 3)):
+            whole = onset_z(ev, (0.3, 1.2), rows)
+            for size in (1, 7, w):
+                cols = np.sort(rng.choice(w, size, replace=False))
+                assert np.array_equal(onset_z(ev, (0.3, 1.2), rows, cols=cols), whole[:, cols])
 
 
 def test_one_sorted_row_percentile_matches_numpy_1d() -> None:
