@@ -459,12 +459,17 @@ def follow_rims(
         # has tissue on both sides. Outward samples count at most at the tissue level of
         # their depth: under a bright line (a thick echo band's lower side, a fascia's)
         # the outward window holds the line, which is no tissue beside a shadow.
-        cap = np.zeros_like(cs)
-        np.cumsum(_capped(g, gj, ev.tissue_beside), axis=-1, out=cap[..., 1:])
+        # (Measured on the faint traces' steps only, ``f``: the others' scores are the
+        # line's alone; half the steps on the hard simulated sweeps.)
+        f = np.flatnonzero(use_edge[:, 0])
+        f = slice(None) if f.size == use_edge.shape[0] else f
+        cs_f, gi_f, gj_f = cs[f], gi[f], gj[f]
+        cap = np.zeros_like(cs_f)
+        np.cumsum(_capped(g[f], gj_f, ev.tissue_beside), axis=-1, out=cap[..., 1:])
         edge = _edge_ratio(
-            _window_mean(cs, k1, 1, ke, ne, 1),
+            _window_mean(cs_f, k1, 1, ke, ne, 1),
             _window_mean(cap, k1, 1, ke, ne, 1),
-            _window_mean(cs, k1, 1, ke, ne, -1),
+            _window_mean(cs_f, k1, 1, ke, ne, -1),
             dark,
         )
         # ... and along the beam: a point of the outline is seen from above, tissue over
@@ -473,7 +478,7 @@ def follow_rims(
         # radius, seed 43, a trace ran on down the shadow's side 5 mm off the bone).
         # (Each point on its nearest working pixel: the measures once per pixel, on the
         # sums of the pixels' columns down to the deepest window.)
-        row, col, at = _beam_pixels((hw, ww), gi[..., k1 : k1 + ne], gj[..., k1 : k1 + ne])
+        row, col, at = _beam_pixels((hw, ww), gi_f[..., k1 : k1 + ne], gj_f[..., k1 : k1 + ne])
         k_across = (p.outside_mm[1] - p.outside_mm[0]) / ev.dy, p.outside_mm[0] / ev.dy
         reach = max(sum(_beam_rows(p.edge_mm / ev.dy, 0.0)), sum(_beam_rows(*k_across)))
         sums, col = _column_sums(ev, col, min(hw, int(row.max()) + 1 + reach))
@@ -486,12 +491,13 @@ def follow_rims(
         # fasciae 1-2 mm off the bone).
         # (Its windows clear of the line, as the contour's own shadow contrast was measured.)
         across = _beam_edge(sums, row, col, hw, k_across[0], dark, k_across[1])[at]
-        shade = np.clip(2.0 * across / edge_unit, 0.0, 1.0)
-        e = np.where(use_edge, np.minimum(e, e * shade), e)
-        edge = np.where(use_edge, edge / edge_unit, _BAD)
+        shade = np.clip(2.0 * across / edge_unit[f], 0.0, 1.0)
+        e_f = e[f]
+        e_f = np.minimum(e_f, e_f * shade)
+        edge /= edge_unit[f]
         edge_won = np.zeros((n_t, n_step, nb), bool)
-        edge_won[tr, st] = edge[..., :nb] > e[..., :nb]
-        np.maximum(e, edge, out=e)
+        edge_won[tr[f], st[f]] = edge[..., :nb] > e_f[..., :nb]
+        e[f] = np.maximum(e_f, edge)
     else:
         edge_won = None
     nbad = np.zeros((g.shape[0], g.shape[1] + 1), np.int32)
