@@ -19,6 +19,7 @@ from BoneUSRecon.Logic.segmentation import track
 from BoneUSRecon.Logic.segmentation.candidates import (
     _optimal_path,
     _optimal_paths,
+    convex_part,
     frame_candidates,
     frame_candidates_many,
 )
@@ -420,6 +421,53 @@ def test_onset_on_some_columns_matches_the_whole_width() -> None:
             for size in (1, 7, w):
                 cols = np.sort(rng.choice(w, size, replace=False))
                 assert np.array_equal(onset_z(ev, (0.3, 1.2), rows, cols=cols), whole[:, cols])
+
+
+def _plain_convex_part(points_px, spacing, p):  # type: ignore[no-untyped-def]
+    """candidates.convex_part as it was before branch ``speed2`` (session 25): index
+    arrays for each side, every quantity gathered by them."""
+    n = points_px.shape[0]
+    keep = np.ones(n, bool)
+    if n < 6:
+        return keep
+    x = points_px[:, 0] * float(spacing[0])
+    z = points_px[:, 1] * float(spacing[1])
+    span = x.max() - x.min()
+    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
+    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+    for side in (-1, 1):
+        idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
+        if idx.size < 4:
+            continue
+        xo, zo = np.abs(x[idx] - x[top]), z[idx]
+        k = np.arange(1, xo.size - 1)
+        lo = np.searchsorted(xo, xo[k] - p.kink_mm, side="left")
+        hi = np.searchsorted(xo, xo[k] + p.kink_mm, side="right") - 1
+        s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
+        s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
+        ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * p.kink_mm)
+        cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
+        if cut.size:
+            keep[idx[k[cut[0]] + 1 :]] = False
+    return keep
+
+
+def test_convex_part_matches_index_arrays() -> None:
+    # Domes, walks and short contours; most are cut on one side or both.
+    rng = np.random.default_rng(25)
+    p = ShadowPathParams()
+    cut = 0
+    for trial in range(1500):
+        n = int(rng.integers(1, 150))
+        cols = np.sort(rng.choice(400, n, replace=False)).astype(float)
+        rows = 100 + np.cumsum(rng.normal(0, rng.uniform(0.5, 8), n))
+        if trial % 3 == 0:
+            rows = 100 + 0.02 * (cols - cols.mean()) ** 2 + rng.normal(0, 1, n)
+        pts = np.column_stack([cols, rows])
+        fast = convex_part(pts, (0.15, 0.12), p)
+        assert np.array_equal(fast, _plain_convex_part(pts, (0.15, 0.12), p)), trial
+        cut += not fast.all()
+    assert cut > 500
 
 
 def test_one_sorted_row_percentile_matches_numpy_1d() -> None:
