@@ -19,10 +19,11 @@ from BoneUSRecon.Logic.segmentation import track
 from BoneUSRecon.Logic.segmentation.candidates import (
     _optimal_path,
     _optimal_paths,
+    convex_part,
     frame_candidates,
     frame_candidates_many,
 )
-from BoneUSRecon.Logic.segmentation.evidence import _window_mean
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, _window_mean, bone_evidence
 from BoneUSRecon.Logic.segmentation.features import (
     _ONE_KTH_FROM,
     column_window_mean,
@@ -30,8 +31,16 @@ from BoneUSRecon.Logic.segmentation.features import (
     sorted_row_medians,
     sorted_row_percentiles,
 )
-from BoneUSRecon.Logic.segmentation.params import RejectionParams
-from BoneUSRecon.Logic.segmentation.rim import _radius_paths
+from BoneUSRecon.Logic.segmentation.params import RejectionParams, ShadowPathParams
+from BoneUSRecon.Logic.segmentation.rim import (
+    _beam_edge,
+    _beam_pixels,
+    _beam_rows,
+    _column_sums,
+    _edge_ratio,
+    _radius_paths,
+)
+from BoneUSRecon.Logic.segmentation.settle import onset_z
 from BoneUSRecon.Logic.segmentation.track import (
     _in_plane_deviation,
     _links,
@@ -337,8 +346,9 @@ def _plain_radius_paths(e: np.ndarray, start: int, ms: int) -> np.ndarray:
 
 def test_rim_radius_paths_match_stacked_views() -> None:
     # Coarse scores (ties between moves) and the rim's "outside" value -1e3 in runs.
+    # (Branch speed2, session 25: the traces in one run, no moves stored.)
     rng = np.random.default_rng(13)
-    for trial in range(200):
+    for trial in range(600):
         n_tr, n_step, nb = (
             int(rng.integers(1, 9)),
             int(rng.integers(1, 40)),
@@ -346,8 +356,118 @@ def test_rim_radius_paths_match_stacked_views() -> None:
         )
         e = np.round(rng.normal(0, 1, (n_tr, n_step, nb)) * 2) / 2
         e[rng.random(e.shape) < 0.1] = -1e3
+        e[rng.random(e.shape) < 0.05] = -0.0  # ties of signed zeros
         ms, start = int(rng.integers(1, 4)), int(rng.integers(0, nb))
         assert np.array_equal(_radius_paths(e, start, ms), _plain_radius_paths(e, start, ms)), trial
+
+
+def _plain_beam_edge(work, level, wi, wj, rows, dark, gap=0.0):  # type: ignore[no-untyped-def]
+    """rim's edge along the beam as it was before branch ``speed2`` (session 25): the
+    column sums of the whole working image, every point on its own."""
+    h, w = work.shape
+    cu = np.zeros((h + 1, w))
+    np.cumsum(np.minimum(work, level[:, None]), axis=0, out=cu[1:])
+    cw = np.zeros((h + 1, w))
+    np.cumsum(work, axis=0, out=cw[1:])
+    k, o = max(1, int(round(rows))), int(round(gap))
+    col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
+    row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
+    a0, a1 = np.clip(row - o - k, 0, h), np.clip(row - o, 0, h)
+    b0, b1 = np.minimum(row + 1 + o, h), np.minimum(row + 1 + o + k, h)
+    na, nb = np.maximum(a1 - a0, 1), np.maximum(b1 - b0, 1)
+    cap = (cu[a1, col] - cu[a0, col]) / na
+    raw = (cw[a1, col] - cw[a0, col]) / na
+    below = (cw[b1, col] - cw[b0, col]) / nb
+    return _edge_ratio(raw, cap, below, dark)
+
+
+def test_rim_beam_edge_per_pixel_matches_every_point() -> None:
+    # Points inside, on and outside the image (clipped to its edge), many on one pixel;
+    # windows clipped at the top and bottom; the sums cut at the deepest window.
+    rng = np.random.default_rng(25)
+    for trial in range(60):
+        h, w = int(rng.integers(8, 90)), int(rng.integers(3, 120))
+        work = rng.gamma(2.0, 0.1, (h, w)).astype(np.float32)
+        work[rng.random((h, w)) < 0.05] = 0.0
+        level = np.float32(rng.uniform(0.1, 0.4, h))
+        ev = EvidenceMaps(
+            work, work, 2, 2, 0.3, 0.3, np.ones(w, bool), level, work, work, work, level, 0.0
+        )
+        shape = tuple(int(v) for v in rng.integers(1, 12, 3))
+        wi = rng.uniform(-3, w + 2, shape)
+        wj = rng.uniform(-3, rng.uniform(0, h + 2), shape)
+        row, col, at = _beam_pixels((h, w), wi, wj)
+        assert row.size == np.unique(row * w + col).size
+        windows = [(float(rng.uniform(0, 6)), float(rng.uniform(0, 4))) for _ in range(2)]
+        reach = max(sum(_beam_rows(*win)) for win in windows)
+        sums, at_col = _column_sums(ev, col, min(h, int(row.max()) + 1 + reach))
+        for rows, gap in windows:
+            fast = _beam_edge(sums, row, at_col, h, rows, 0.02, gap)[at]
+            plain = _plain_beam_edge(work, level, wi, wj, rows, 0.02, gap)
+            assert fast.shape == shape and np.array_equal(fast, plain), trial
+
+
+def test_onset_on_some_columns_matches_the_whole_width() -> None:
+    # settle's onset on the points' columns only (branch speed2, session 25): the column
+    # sums of those and of the scale's sample only; the same values as over every column.
+    sim = simulate(SimulationParams(bone="tibia", seed=3, realism="hard", n_frames=2))
+    rng = np.random.default_rng(4)
+    for image in sim.sweep.frames:
+        ev = bone_evidence(np.asarray(image), (0.3, 0.3), ShadowPathParams())
+        assert ev is not None
+        h, w = ev.work.shape
+        for rows in ((0, h), (5, 40), (h - 9, h + 3)):
+            whole = onset_z(ev, (0.3, 1.2), rows)
+            for size in (1, 7, w):
+                cols = np.sort(rng.choice(w, size, replace=False))
+                assert np.array_equal(onset_z(ev, (0.3, 1.2), rows, cols=cols), whole[:, cols])
+
+
+def _plain_convex_part(points_px, spacing, p):  # type: ignore[no-untyped-def]
+    """candidates.convex_part as it was before branch ``speed2`` (session 25): index
+    arrays for each side, every quantity gathered by them."""
+    n = points_px.shape[0]
+    keep = np.ones(n, bool)
+    if n < 6:
+        return keep
+    x = points_px[:, 0] * float(spacing[0])
+    z = points_px[:, 1] * float(spacing[1])
+    span = x.max() - x.min()
+    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
+    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+    for side in (-1, 1):
+        idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
+        if idx.size < 4:
+            continue
+        xo, zo = np.abs(x[idx] - x[top]), z[idx]
+        k = np.arange(1, xo.size - 1)
+        lo = np.searchsorted(xo, xo[k] - p.kink_mm, side="left")
+        hi = np.searchsorted(xo, xo[k] + p.kink_mm, side="right") - 1
+        s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
+        s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
+        ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * p.kink_mm)
+        cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
+        if cut.size:
+            keep[idx[k[cut[0]] + 1 :]] = False
+    return keep
+
+
+def test_convex_part_matches_index_arrays() -> None:
+    # Domes, walks and short contours; most are cut on one side or both.
+    rng = np.random.default_rng(25)
+    p = ShadowPathParams()
+    cut = 0
+    for trial in range(1500):
+        n = int(rng.integers(1, 150))
+        cols = np.sort(rng.choice(400, n, replace=False)).astype(float)
+        rows = 100 + np.cumsum(rng.normal(0, rng.uniform(0.5, 8), n))
+        if trial % 3 == 0:
+            rows = 100 + 0.02 * (cols - cols.mean()) ** 2 + rng.normal(0, 1, n)
+        pts = np.column_stack([cols, rows])
+        fast = convex_part(pts, (0.15, 0.12), p)
+        assert np.array_equal(fast, _plain_convex_part(pts, (0.15, 0.12), p)), trial
+        cut += not fast.all()
+    assert cut > 500
 
 
 def test_one_sorted_row_percentile_matches_numpy_1d() -> None:

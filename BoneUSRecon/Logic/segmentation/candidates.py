@@ -1039,8 +1039,9 @@ def _apex(x: np.ndarray, z: np.ndarray) -> int:
     """Index of a contour's apex: its shallowest point away from the ends (the middle
     60 % of its lateral span), so a contour that climbs onto a layer at one end does not
     have its apex there. ``x`` lateral and ``z`` depth, in mm."""
-    span = x.max() - x.min()
-    mid = (x >= x.min() + 0.2 * span) & (x <= x.max() - 0.2 * span)
+    x0, x1 = x.min(), x.max()
+    span = x1 - x0
+    mid = (x >= x0 + 0.2 * span) & (x <= x1 - 0.2 * span)
     return int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
 
 
@@ -1057,11 +1058,14 @@ def _outward_slopes(
     outer one spans at least half of ``w_out``.
     """
     k = np.arange(1, xo.size - 1)
-    lo = np.searchsorted(xo, xo[k] - w_in, side="left")
-    hi = np.searchsorted(xo, xo[k] + w_out, side="right") - 1
-    s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
-    s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
-    ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * w_out)
+    xk, zk = xo[1:-1], zo[1:-1]  # xo[k], zo[k] (slices: fewer numpy calls per contour)
+    lo = np.searchsorted(xo, xk - w_in, side="left")
+    hi = np.searchsorted(xo, xk + w_out, side="right")
+    hi -= 1
+    d_out = xo[hi] - xk
+    s_in = (zk - zo[lo]) / np.maximum(xk - xo[lo], 1e-6)
+    s_out = (zo[hi] - zk) / np.maximum(d_out, 1e-6)
+    ok = (k - lo >= 1) & (hi - k >= 1) & (d_out >= 0.5 * w_out)
     return k, lo, s_in, s_out, ok
 
 
@@ -1087,13 +1091,19 @@ def convex_part(
     top = _apex(x, z)
     win = p.kink_mm
     for side in (-1, 1):
-        idx = np.arange(top, -1, -1) if side < 0 else np.arange(top, n)
-        if idx.size < 4:
+        # The side's points outward from the apex (slices: no index arrays).
+        xs, zs = (x[top::-1], z[top::-1]) if side < 0 else (x[top:], z[top:])
+        if xs.size < 4:
             continue
-        k, _, s_in, s_out, ok = _outward_slopes(np.abs(x[idx] - x[top]), z[idx], win, win)
+        k, _, s_in, s_out, ok = _outward_slopes(np.abs(xs - x[top]), zs, win, win)
         cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
         if cut.size:
-            keep[idx[k[cut[0]] + 1 :]] = False
+            # The points past the turn: side index k + 1 on, i.e. top -+ (k + 1) on.
+            j = int(k[cut[0]]) + 1
+            if side < 0:
+                keep[: top - j + 1] = False
+            else:
+                keep[top + j :] = False
     return keep
 
 

@@ -89,7 +89,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d
@@ -129,34 +128,70 @@ def _window_mean(cs: np.ndarray, centre: int, near: int, far: int, n: int, side:
     return (cs[..., hi : hi + n] - cs[..., lo : lo + n]) / (far - near + 1)
 
 
-def _column_sums(ev: EvidenceMaps) -> tuple[np.ndarray, np.ndarray]:
-    """Cumulative sums down the columns (a leading row of 0) of the working image capped
-    at the tissue level and as it is: the windows of :func:`_beam_edge`, once a frame."""
-    h, w = ev.work.shape
-    cu = np.zeros((h + 1, w))
-    np.cumsum(np.minimum(ev.work, ev.tissue_beside[:, None]), axis=0, out=cu[1:])
-    cw = np.zeros((h + 1, w))
-    np.cumsum(ev.work, axis=0, out=cw[1:])
-    return cu, cw
+def _beam_pixels(
+    shape: tuple[int, int], wi: np.ndarray, wj: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The working pixels nearest to points ``(wi, wj)`` (working columns, rows) on an
+    image of ``shape``: their rows and columns, each pixel once, and per point the index
+    of its pixel in them.
+
+    Along the beam a point is read at its nearest pixel (:func:`_beam_edge`): the
+    measures once per pixel, not once per point (the grid of :func:`follow_rims`
+    samples every 0.1 mm along its rays, three points a working pixel at 480x640).
+    """
+    h, w = shape
+    col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
+    row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
+    flat = row * w + col
+    seen = np.zeros(h * w, bool)
+    seen[flat] = True
+    pix = np.flatnonzero(seen)
+    at = np.empty(h * w, np.intp)
+    at[pix] = np.arange(pix.size)
+    return pix // w, pix % w, at[flat]
+
+
+def _beam_rows(rows: float, gap: float) -> tuple[int, int]:
+    """The rows of a window of :func:`_beam_edge` (at least 1) and its gap, whole rows."""
+    return max(1, int(round(rows))), int(round(gap))
+
+
+def _column_sums(
+    ev: EvidenceMaps, col: np.ndarray, depth: int
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """Cumulative sums down the working image's columns ``col`` (each once, a leading
+    row of 0, rows ``0 .. depth - 1``) capped at the tissue level and as it is: the
+    windows of :func:`_beam_edge`, once a frame; and the index of each of ``col`` in
+    them.
+
+    Only the columns and depths the windows read: the same sums, each summed down its
+    column in the same order as over the whole image.
+    """
+    seen = np.zeros(ev.work.shape[1], bool)
+    seen[col] = True
+    cols = np.flatnonzero(seen)
+    sub = ev.work[:depth, cols]
+    cu = np.zeros((depth + 1, cols.size))
+    np.cumsum(np.minimum(sub, ev.tissue_beside[:depth, None]), axis=0, out=cu[1:])
+    cw = np.zeros((depth + 1, cols.size))
+    np.cumsum(sub, axis=0, out=cw[1:])
+    return (cu, cw), (np.cumsum(seen) - 1)[col]
 
 
 def _beam_edge(
     sums: tuple[np.ndarray, np.ndarray],
-    wi: np.ndarray,
-    wj: np.ndarray,
+    row: np.ndarray,
+    col: np.ndarray,
+    h: int,
     rows: float,
     dark: float,
     gap: float = 0.0,
 ) -> np.ndarray:
-    """:func:`_edge_ratio` along the beam: ``rows`` working rows above each point against
-    as many below, ``gap`` rows clear of it either side, on the point's nearest column
-    (``sums``: :func:`_column_sums` of the frame)."""
+    """:func:`_edge_ratio` along the beam: ``rows`` working rows above each pixel against
+    as many below, ``gap`` rows clear of it either side, on an image of ``h`` rows
+    (``sums``: :func:`_column_sums` of the frame, ``col`` the pixels' columns in it)."""
     cu, cw = sums
-    k = max(1, int(round(rows)))
-    o = int(round(gap))
-    h, w = cu.shape[0] - 1, cu.shape[1]
-    col = np.rint(np.clip(wi, 0, w - 1)).astype(np.intp)
-    row = np.rint(np.clip(wj, 0, h - 1)).astype(np.intp)
+    k, o = _beam_rows(rows, gap)
     a0, a1 = np.clip(row - o - k, 0, h), np.clip(row - o, 0, h)
     b0, b1 = np.minimum(row + 1 + o, h), np.minimum(row + 1 + o + k, h)
     na, nb = np.maximum(a1 - a0, 1), np.maximum(b1 - b0, 1)
@@ -227,38 +262,52 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
     ``start`` and moves at most ``ms`` indices per step, the best total wins (the first
     of equal scores: the smaller move, as ``argmax`` over the moves -ms .. ms). ``up``
     (T, S), if given: at most this many indices outward (increasing) into step s.
+
+    The loop over the steps is bound by its numpy calls (the arrays are small): the
+    traces' states lie in one contiguous run, ``ms`` states of -inf between two traces
+    (as the padding at the run's ends: a move reaches at most ``ms`` states, so no
+    trace reads another's), and each step is ``2 ms`` maxima of shifted slices and one
+    sum. No moves are stored: the backtrack takes, per step, the ``argmax`` of the
+    state's predecessors among the stored scores (the same comparisons of the same
+    doubles as a forward ``argmax``, so the same path).
     """
     n_tr, n_step, nb = e.shape
-    acc = np.full((n_tr, nb + 2 * ms), -np.inf)  # padded by ms each side
-    acc[:, ms + start] = e[:, 0, start]
-    back = np.zeros((n_step, n_tr, nb), np.int8)  # the move taken, -ms .. ms
-    # Predecessor of state b at b + k, k = -ms .. ms: window k + ms of state b (a view
-    # of acc, so it follows acc's updates). The chosen predecessor's score is read at
-    # its flat index (fewer numpy calls per step than a stack of shifted views: the
-    # arrays are small, the calls are the cost).
-    win = sliding_window_view(acc, 2 * ms + 1, axis=1)  # (T, B, 2 ms + 1)
-    mid = acc[:, ms : ms + nb]
-    at = np.arange(n_tr)[:, None] * acc.shape[1] + np.arange(nb)[None, :]
-    acc_flat = acc.reshape(-1)  # a view: acc is contiguous
-    # Window index k holds the predecessor k - ms indices away: the move into b is
-    # ms - k, outward when positive; moves over ``up`` are barred.
-    kk = np.arange(2 * ms + 1)
+    wp = nb + 2 * ms  # a trace's states and its padding
+    run = n_tr * wp - 2 * ms  # positions ms .. n_tr wp - ms of a step's scores
+    acc = np.full((n_step, n_tr * wp), -np.inf)
+    base = np.arange(n_tr) * wp  # trace i's state b at base[i] + ms + b
+    acc[0, base + ms + start] = e[:, 0, start]
+    # The scores in the same layout, -inf in the padding (which then stays -inf).
+    ep = np.full((n_step, n_tr, wp), -np.inf)
+    ep[:, :, ms : ms + nb] = e.transpose(1, 0, 2)
+    ep = ep.reshape(n_step, -1)
+    best = np.empty(run)
+    maximum, add = np.maximum, np.add
+    if up is not None:
+        # Predecessor prev[q + j - ms] moves into q by ms - j (outward when positive):
+        # barred where j < ms - up. Per position of the run, per step.
+        lim = np.repeat(ms - up.T, wp, axis=1)[:, ms : ms + run]  # (S, run)
     for t in range(1, n_step):
+        prev = acc[t - 1]  # predecessors of position q: prev[q - ms .. q + ms]
         if up is None:
-            k = win.argmax(axis=2)
-            np.add(acc_flat[at + k], e[:, t], out=mid)
+            maximum(prev[:run], prev[1 : 1 + run], out=best)
+            for j in range(2, 2 * ms + 1):
+                maximum(best, prev[j : j + run], out=best)
         else:
-            barred = kk[None, :] < (ms - up[:, t])[:, None]
-            wt = np.where(barred[:, None, :], -np.inf, win)
-            k = wt.argmax(axis=2)
-            np.add(np.take_along_axis(wt, k[..., None], axis=2)[..., 0], e[:, t], out=mid)
-        back[t] = k
-    back[1:] -= ms
+            best.fill(-np.inf)
+            for j in range(2 * ms + 1):
+                cand = prev[j : j + run]
+                maximum(best, np.where(j < lim[t], -np.inf, cand) if j < ms else cand, out=best)
+        add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
     path = np.empty((n_tr, n_step), np.intp)
-    path[:, -1] = mid.argmax(axis=1)
-    tt = np.arange(n_tr)
+    path[:, -1] = acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
+    moves = np.arange(2 * ms + 1)
     for t in range(n_step - 1, 0, -1):
-        path[:, t - 1] = path[:, t] + back[t, tt, path[:, t]]
+        at = (base + path[:, t])[:, None] + moves  # the predecessors, moves -ms .. ms
+        cand = acc[t - 1, at]
+        if up is not None:
+            cand = np.where(moves[None, :] < (ms - up[:, t])[:, None], -np.inf, cand)
+        path[:, t - 1] = path[:, t] + cand.argmax(axis=1) - ms
     return path
 
 
@@ -386,12 +435,9 @@ def follow_rims(
         rows = [r for r, u in zip(rows, use, strict=True) if u]
         own_line, own_edge, faint = own_line[use], own_edge[use], faint[use]
     n_t = len(rows)
-    line_unit = np.maximum(own_line, _MIN_LEVEL)[:, None, None]
-    use_edge = (faint & (ke > 0))[:, None, None]  # edge_mm 0: the line alone
-    edge_unit = np.where(use_edge, own_edge[:, None, None], 1.0)
-    side = np.array([r[1] for r in rows])[:, None, None]
-    cx = np.array([r[2] for r in rows])[:, None, None]
-    cz = np.array([r[3] for r in rows])[:, None, None]
+    side = np.array([r[1] for r in rows])[:, None]
+    cx = np.array([r[2] for r in rows])[:, None]
+    cz = np.array([r[3] for r in rows])[:, None]
     r0 = np.array([r[4] for r in rows])
     phi0 = np.array([r[5] for r in rows])
     dphi = p.step_mm / r0
@@ -399,9 +445,16 @@ def follow_rims(
     n_step = min(n_step, int(np.ceil(p.max_mm / p.step_mm)) + 1)
     phi = phi0[:, None] + dphi[:, None] * np.arange(n_step)
     live = phi <= np.radians(p.max_deg)
+    # Only the live steps are sampled and measured, one row each (a step past max_deg
+    # scores _BAD whatever it measures; a quarter of the steps on the hard simulated
+    # sweeps): every measure is along its step's ray alone.
+    tr, st = np.nonzero(live)
+    line_unit = np.maximum(own_line, _MIN_LEVEL)[tr, None]
+    use_edge = (faint & (ke > 0))[tr, None]  # edge_mm 0: the line alone
+    edge_unit = np.where(use_edge, own_edge[tr, None], 1.0)
     m = int(round(p.band_mm / p.offset_mm))
     off = p.offset_mm * np.arange(-m, m + 1)
-    sin, cos = np.sin(phi)[:, :, None], np.cos(phi)[:, :, None]
+    sin, cos = np.sin(phi)[tr, st, None], np.cos(phi)[tr, st, None]
     hw, ww = ev.work.shape
     nb = off.size
     # Outward window of band sample b: radii off[b] + outs, i.e. indices b + k0 .. b + k1
@@ -412,14 +465,14 @@ def follow_rims(
     ne = nb + shift
     # ... and k1 samples further in, for the window inward of each sample.
     grid = off[0] + p.offset_mm * np.arange(-k1, ne + k1 + 1)
-    gx = cx + side * sin * (r0[:, None, None] + grid)
-    gz = cz - cos * (r0[:, None, None] + grid)
+    gx = cx[tr] + side[tr] * sin * (r0[tr, None] + grid)
+    gz = cz[tr] - cos * (r0[tr, None] + grid)
     gi = gx / fx + (0.5 / ev.fx - 0.5)
     gj = gz / fy + (0.5 / ev.fy - 0.5)
     gvalid = (gi >= 0) & (gi <= ww - 1) & (gj >= 0) & (gj <= hw - 1)
     gvalid &= ev.usable[np.rint(np.clip(gi, 0, ww - 1)).astype(np.intp)]
     g = bilinear_at(ev.work, gi, gj)
-    cs = np.zeros(g.shape[:2] + (g.shape[2] + 1,))
+    cs = np.zeros((g.shape[0], g.shape[1] + 1))
     np.cumsum(g, axis=-1, out=cs[..., 1:])
     # Sample b of the band is grid index b + k1; its windows k0 .. k1 samples out and in.
     outside = _window_mean(cs, k1, k0, k1, ne, 1)
@@ -440,21 +493,30 @@ def follow_rims(
         # has tissue on both sides. Outward samples count at most at the tissue level of
         # their depth: under a bright line (a thick echo band's lower side, a fascia's)
         # the outward window holds the line, which is no tissue beside a shadow.
-        cap = np.zeros_like(cs)
-        np.cumsum(_capped(g, gj, ev.tissue_beside), axis=-1, out=cap[..., 1:])
+        # (Measured on the faint traces' steps only, ``f``: the others' scores are the
+        # line's alone; half the steps on the hard simulated sweeps.)
+        f = np.flatnonzero(use_edge[:, 0])
+        f = slice(None) if f.size == use_edge.shape[0] else f
+        cs_f, gi_f, gj_f = cs[f], gi[f], gj[f]
+        cap = np.zeros_like(cs_f)
+        np.cumsum(_capped(g[f], gj_f, ev.tissue_beside), axis=-1, out=cap[..., 1:])
         edge = _edge_ratio(
-            _window_mean(cs, k1, 1, ke, ne, 1),
+            _window_mean(cs_f, k1, 1, ke, ne, 1),
             _window_mean(cap, k1, 1, ke, ne, 1),
-            _window_mean(cs, k1, 1, ke, ne, -1),
+            _window_mean(cs_f, k1, 1, ke, ne, -1),
             dark,
         )
         # ... and along the beam: a point of the outline is seen from above, tissue over
         # it and the shadow under it. Past the bone's widest point the edge of its shadow
         # has the bone's shadow over it too: no outline there (on the hard simulated
         # radius, seed 43, a trace ran on down the shadow's side 5 mm off the bone).
-        sums = _column_sums(ev)
-        bi, bj = gi[..., k1 : k1 + ne], gj[..., k1 : k1 + ne]
-        beam = _beam_edge(sums, bi, bj, p.edge_mm / ev.dy, dark)
+        # (Each point on its nearest working pixel: the measures once per pixel, on the
+        # sums of the pixels' columns down to the deepest window.)
+        row, col, at = _beam_pixels((hw, ww), gi_f[..., k1 : k1 + ne], gj_f[..., k1 : k1 + ne])
+        k_across = (p.outside_mm[1] - p.outside_mm[0]) / ev.dy, p.outside_mm[0] / ev.dy
+        reach = max(sum(_beam_rows(p.edge_mm / ev.dy, 0.0)), sum(_beam_rows(*k_across)))
+        sums, col = _column_sums(ev, col, min(hw, int(row.max()) + 1 + reach))
+        beam = _beam_edge(sums, row, col, hw, p.edge_mm / ev.dy, dark)[at]
         np.minimum(edge, beam, out=edge)
         # A bone that casts a shadow casts it under its flank's echo too; a fascia
         # running off the flank has tissue under it. Where the contour has a shadow, its
@@ -462,20 +524,22 @@ def follow_rims(
         # the beam (on the standard simulated radius, seed 1, traces ran on along such
         # fasciae 1-2 mm off the bone).
         # (Its windows clear of the line, as the contour's own shadow contrast was measured.)
-        across = _beam_edge(
-            sums, bi, bj, (p.outside_mm[1] - p.outside_mm[0]) / ev.dy, dark, p.outside_mm[0] / ev.dy
-        )
-        shade = np.clip(2.0 * across / edge_unit, 0.0, 1.0)
-        e = np.where(use_edge, np.minimum(e, e * shade), e)
-        edge = np.where(use_edge, edge / edge_unit, _BAD)
-        edge_won = edge[..., :nb] > e[..., :nb]
-        np.maximum(e, edge, out=e)
+        across = _beam_edge(sums, row, col, hw, k_across[0], dark, k_across[1])[at]
+        shade = np.clip(2.0 * across / edge_unit[f], 0.0, 1.0)
+        e_f = e[f]
+        e_f = np.minimum(e_f, e_f * shade)
+        edge /= edge_unit[f]
+        edge_won = np.zeros((n_t, n_step, nb), bool)
+        edge_won[tr[f], st[f]] = edge[..., :nb] > e_f[..., :nb]
+        e[f] = np.maximum(e_f, edge)
     else:
         edge_won = None
-    nbad = np.zeros(g.shape[:2] + (g.shape[2] + 1,), np.int32)
+    nbad = np.zeros((g.shape[0], g.shape[1] + 1), np.int32)
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
     bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
-    e[bad | ~live[:, :, None]] = _BAD
+    e[bad] = _BAD
+    e_live, e = e, np.full((n_t, n_step, ne), _BAD)
+    e[tr, st] = e_live
     e = np.concatenate([e[..., :nb], e[..., shift : shift + nb]])  # traces, then nulls
     own_e = e[:n_t].copy()  # each step's own value, before the average along the trace
     run = max(1, int(round(p.run_mm / p.step_mm)))
@@ -523,9 +587,9 @@ def follow_rims(
         return out
     rad = r0[t_i] + off[path[t_i, k_i]]
     ph = phi[t_i, k_i]
-    sd = side[t_i, 0, 0]
+    sd = side[t_i, 0]
     nx, nz = sd * np.sin(ph), -np.cos(ph)
-    px, pz = cx[t_i, 0, 0] + nx * rad, cz[t_i, 0, 0] + nz * rad
+    px, pz = cx[t_i, 0] + nx * rad, cz[t_i, 0] + nz * rad
     rx, rz = refine_across(image, px, pz, nx, nz, sx, sy, p.refine_mm)
     won = np.zeros(t_i.size, bool)
     if edge_won is not None:

@@ -67,6 +67,7 @@ def onset_z(
     window_mm: tuple[float, float],
     rows: tuple[int, int] | None = None,
     rel: np.ndarray | None = None,
+    cols: np.ndarray | None = None,
 ) -> np.ndarray:
     """Robust z-score of the shadow onset along the beam per working pixel.
 
@@ -84,17 +85,33 @@ def onset_z(
         Only these working rows (the z-scale still comes from the whole field).
     rel : ndarray, optional
         ``ev.work / ev.tissue[:, None]`` when already computed.
+    cols : ndarray of int, optional
+        Only these working columns, in this order (the z-scale still comes from the
+        whole field).
 
     Returns
     -------
-    ndarray, shape (end - first, w)
+    ndarray, shape (end - first, w) or (end - first, len(cols))
     """
     a = mm_to_px(window_mm[0], ev.dy)
     b = max(a + 1, mm_to_px(window_mm[1], ev.dy))
     w = ev.work / ev.tissue[:, None] if rel is None else rel
     h = w.shape[0]
-    cs = np.zeros((h + 1, w.shape[1]), np.float32)
-    np.cumsum(w, axis=0, out=cs[1:])
+    # The sums down the columns read only: every third usable one (the scale's sample)
+    # and those asked for (each column's sum in the same order as over the whole image).
+    scale_cols = np.flatnonzero(ev.usable)[::3]
+    if cols is None:
+        need, c_out, c_scale = slice(None), slice(None), scale_cols
+    else:
+        seen = np.zeros(w.shape[1], bool)
+        seen[scale_cols] = True
+        seen[cols] = True
+        need = np.flatnonzero(seen)
+        at = np.cumsum(seen) - 1
+        c_out, c_scale = at[cols], at[scale_cols]
+    sub = w[:, need]
+    cs = np.zeros((h + 1, sub.shape[1]), np.float32)
+    np.cumsum(sub, axis=0, out=cs[1:])
 
     def onset(r: np.ndarray, c: slice | np.ndarray) -> np.ndarray:
         above = cs[np.clip(r - a + 1, 0, h)][:, c] - cs[np.clip(r - b, 0, h)][:, c]
@@ -111,16 +128,17 @@ def onset_z(
 
     lo, hi = (0, h) if rows is None else (max(0, rows[0]), min(h, rows[1]))
     r = np.arange(lo, hi)
-    out = onset(r, slice(None)) if hi > lo else np.zeros((0, w.shape[1]), np.float32)
+    usable = ev.usable if cols is None else ev.usable[cols]
+    out = onset(r, c_out) if hi > lo else np.zeros((0, usable.size), np.float32)
     sample = np.arange(b, h - b, 3)
-    v = onset(sample, np.flatnonzero(ev.usable)[::3]).ravel() if sample.size else sample
+    v = onset(sample, c_scale).ravel() if sample.size else sample
     if v.size < 10:
         return np.zeros_like(out)
     med = median1d(v)
     out -= med
     out *= 1.0 / max(1.4826 * median1d(np.abs(v - med)), 1e-3)
     out[(r - b < 0) | (r + b >= h)] = 0.0
-    out[:, ~ev.usable] = 0.0
+    out[:, ~usable] = 0.0
     return out
 
 
@@ -173,11 +191,14 @@ def settle_points(
     rr = r0[:, None] + d
     inside = (rr >= 0) & (rr < h)
     rc = np.clip(rr, 0, h - 1)
-    # The onset only on the rows the points reach (its scale from the whole field).
+    # The onset only on the rows and columns the points reach (its scale from the
+    # whole field).
     rel = ev.work / ev.tissue[:, None]
     top, bottom = int(rc.min()), int(rc.max()) + 1
-    oz = onset_z(ev, p.window_mm, (top, bottom), rel)
-    g = np.where(inside, oz[rc - top, col[:, None]], _BAD)
+    seen = np.zeros(w, bool)
+    seen[col] = True
+    oz = onset_z(ev, p.window_mm, (top, bottom), rel, np.flatnonzero(seen))
+    g = np.where(inside, oz[rc - top, (np.cumsum(seen) - 1)[col][:, None]], _BAD)
     # Every test is averaged along its own contour over run_mm (windows clipped to the
     # contour: all contours in one set of calls).
     cut = np.cumsum(np.r_[0, sizes])
