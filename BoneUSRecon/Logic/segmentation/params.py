@@ -221,8 +221,8 @@ class RimParams:
 
     enabled: bool = True
     """Follow the contours' ends on from where :mod:`.flanks` left them (off: they stay)."""
-    candidates: int = 2
-    """Only the strongest this many candidates of a frame (not reverberation copies) are followed (ours: the bone is among them on the L14 recording, its copies and the hard simulated sweeps, and each trace costs ~1 ms at 480x640)."""
+    candidates: int = 3
+    """Only the strongest this many candidates of a frame (not reverberation copies) are followed (ours: on the hard simulated humerus and tibia, seed 53 at 475 x 405, the kept contour was the third to fifth strongest in 18 of 80 frames, the third in 12: layers over a faint bone are stronger; with 3, on the humerus, tibia and radius of that seed the true contour steeper than 60 degrees covered within 0.5 mm went from 0.48 to 0.58, the surface's gold distance 0.45 -> 0.40 mm; each candidate more costs ~1-1.5 ms per frame at 480 x 640)."""
     min_points: int = 12
     """Contours with fewer points are not followed (a circle fit needs an arc)."""
     max_start_deg: float = 20.0
@@ -253,8 +253,8 @@ class RimParams:
     """Windows either side of a sample for the edge measure, mm: the log ratio of the mean grey over this length outward to the mean as far inward, taken where it beats the line's (a steep flank whose echo has faded is the edge between the tissue and the bone's shadow; ours: about the echo's own thickness plus a speckle grain, so the edge is located within it). 0: the line alone."""
     keep: float = 0.3
     """The trace continues while its echo is at least this share of the contour's own (log ratios; ours: on the L14 forearm the flank's echo is 0.5-1.0 of the top's)."""
-    gap_mm: float = 0.9
-    """A shorter dropout under the level is bridged, mm (as ``FlankParams.gap_mm``)."""
+    gap_mm: float = 1.2
+    """A shorter dropout under the level is bridged, mm (``FlankParams.gap_mm`` is 0.9; ours: where the path stopped on a faded stretch the trace's first steps are that stretch: on the L14 recording's cadaver-level copy, frame 18, the right end's first 0.9 mm was under the level and 10 mm of flank over it followed; at 1.2 mm the recording's reconstruction went from 0.352 to 0.333 mm from its reference, the hard simulated sweeps' unchanged within 0.01 mm)."""
     null_mm: float = 8.0
     """The null band: the same search this far out along the rays (past the band and its outside windows), in the tissue beside the bone, mm."""
     stop_z: float = 0.0
