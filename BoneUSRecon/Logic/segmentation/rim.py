@@ -285,8 +285,10 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
     maximum, add = np.maximum, np.add
     if up is not None:
         # Predecessor prev[q + j - ms] moves into q by ms - j (outward when positive):
-        # barred where j < ms - up. Per position of the run, per step.
+        # allowed where j >= ms - up, per position of the run and step (j < ms only;
+        # inward moves are never barred), as ``where=`` masks of the maxima.
         lim = np.repeat(ms - up.T, wp, axis=1)[:, ms : ms + run]  # (S, run)
+        allowed = np.arange(ms)[:, None, None] >= lim[None]  # (ms, S, run)
     for t in range(1, n_step):
         prev = acc[t - 1]  # predecessors of position q: prev[q - ms .. q + ms]
         if up is None:
@@ -294,10 +296,13 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
             for j in range(2, 2 * ms + 1):
                 maximum(best, prev[j : j + run], out=best)
         else:
-            best.fill(-np.inf)
-            for j in range(2 * ms + 1):
-                cand = prev[j : j + run]
-                maximum(best, np.where(j < lim[t], -np.inf, cand) if j < ms else cand, out=best)
+            # The inward and straight moves first (never barred), then the outward ones
+            # where allowed: the same maxima, so the same scores.
+            maximum(prev[ms : ms + run], prev[ms + 1 : ms + 1 + run], out=best)
+            for j in range(ms + 2, 2 * ms + 1):
+                maximum(best, prev[j : j + run], out=best)
+            for j in range(ms):
+                maximum(best, prev[j : j + run], out=best, where=allowed[j, t])
         add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
     path = np.empty((n_tr, n_step), np.intp)
     path[:, -1] = acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
