@@ -274,12 +274,15 @@ def test_track_stays_on_the_bone_past_a_layer_off_its_shoulder() -> None:
     recovered along its neighbours), nothing kept on a wrong structure.
 
     Frame 32 holds the fascia over part of its length too (median 0.41 mm from the bone
-    before the rim's ``max_step_mm`` 0.2): the rim now follows that fascia's end on down
-    the no-contact reverberations at the image's edge, 1.2 mm (recall 0.95 -> 0.925)."""
+    before the rim's ``max_step_mm`` 0.2): the rim followed that fascia's end on down
+    the no-contact reverberations at the image's edge, 1.2 mm (recall 0.95 -> 0.925).
+    With the shoulder cut on guided candidates too (:mod:`.recovery`, branch fascia)
+    frames 32 and 33 lie on the bone (in-plane medians 0.33 and 0.24 mm; 33 recovered)
+    and 34, a fascia 1.5 mm off, is left out: recall 0.975."""
     sim = small_simulation(bone="radius", seed=43, realism="hard")
     sc = score_simulation(segment_sweep(sim.sweep), sim)
     s = sc.summary()
-    assert s["wrong_share"] == 0.0 and s["recall"] >= 0.925, (s["recall"], s["wrong_share"])
+    assert s["wrong_share"] == 0.0 and s["recall"] >= 0.95, (s["recall"], s["wrong_share"])
     late = {f.frame: f.median_mm for f in sc.frames if f.frame >= 35 and f.kept}
     assert len(late) == 5 and max(late.values()) < 0.5, late
 
