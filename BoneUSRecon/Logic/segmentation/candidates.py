@@ -1302,9 +1302,14 @@ def _frame_candidates_steps(
                 pts[m], sp, lambda cols=cols, rows=rows: _underside_step(lr, cols, rows, ev.dy), p
             )
             if sk.sum() >= min_cols and not sk.all():
-                m = np.flatnonzero(m)[sk]
+                m_before, m = m, np.flatnonzero(m)[sk]
                 cols, rows = cols[sk], rows[sk]
-                strength = float((ev.score[rows, cols] - p.null_z).sum() * ev.dx)
+                # A short layer cut off keeps the candidate's strength: its windows hold
+                # the bone's own shadow (why the path ran on along it), and recomputed
+                # the hard tibia's bone candidates fell under their far cortex's (seed 5,
+                # frame 35: 3.4 -> 0.4 score x mm).
+                if _cut_mm(pts[m_before], sk, sp[0]) >= p.shoulder_min_mm:
+                    strength = float((ev.score[rows, cols] - p.null_z).sum() * ev.dx)
         # A reverberation series' top carries the evidence of its copies.
         strength = max(strength, c.get("inherit", -np.inf))
         out.append(
@@ -1366,6 +1371,13 @@ def _underside_step(lr: np.ndarray, cols: np.ndarray, rows: np.ndarray, dy: floa
     return above - below
 
 
+def _cut_mm(pts: np.ndarray, keep: np.ndarray, sx: float) -> float:
+    """Lateral extent (mm) of the longest run cut off either end of ``pts`` by ``keep``."""
+    k = np.flatnonzero(keep)
+    runs = [pts[: k[0]], pts[k[-1] + 1 :]]
+    return max((float(np.ptp(r[:, 0])) * sx for r in runs if len(r) > 1), default=0.0)
+
+
 def _shoulder_cut(
     pts: np.ndarray,
     spacing: tuple[float, float],
@@ -1410,6 +1422,28 @@ def _shoulder_cut(
     at, and all of it is the contour's own shape and the ratio of its own underside
     steps: no grey level and no new constant.
 
+    **A shorter layer** (``shoulder_short_mm`` up to ``shoulder_min_mm`` beyond the turn,
+    off the apex's sides only) is cut as well where the bone's shadow is clear under the
+    part inside (its median step at least ``shoulder_short_step``, a log ratio of the
+    frame's grey levels) and the underside ratio holds, when the part kept is at least
+    ``shoulder_min_mm`` wide and the part beyond never rises over the turn by more
+    than the least descent the turn asks of the wall (``shoulder_slope`` over
+    ``kink_mm``): a fascia leaving the crest at the bone's level runs level or falls
+    away, and the path follows it 4-7 mm before its windows leave the bone's shadow
+    (hard tibia, seed 5, frames 24-35: 148 of 941 kept points over 1 mm from the bone,
+    38 of 1001 with the cut). A shorter part kept leaves the track's links and the
+    recovery's band (both on the contour without the rim's points) too little to go on:
+    cut to 5 mm, the same tibia's frame 35 gave its neighbours a 3 mm band, their faint
+    tops were not found and frames 36-39 were lost (recall 0.975 -> 0.9); a layer
+    climbing over the turn is :func:`convex_part`'s and the excursions'.
+    ``shoulder_min_mm`` stays the floor where the shadow is
+    faint or absent: a bone that passes sound (the L14 forearm, whose 5-7 mm plateau
+    before its flank that floor was set for) has no step under its dome (0.02-0.25 on
+    most of its turns), and there a gentle stretch beyond a turn may be its own relief.
+    It generalises for the reasons above: the contour's shape, and the underside steps
+    as ratios of the frame's own grey levels (a shadow at most ~0.74 of the tissue over
+    it; the cadaver's 0.65 passes); no absolute grey level.
+
     Lengths and slopes in mm, so the rule holds at any pixel size. The first such turn
     from the apex on each side is cut; the cut end is followed down the wall by
     :mod:`.flanks` where its echo holds. ``step`` is the step per point, or a function
@@ -1432,15 +1466,24 @@ def _shoulder_cut(
         sides.append((end, -1 if end > top else 1))
     for start, side in sides:
         idx = np.arange(start, -1, -1) if side < 0 else np.arange(start, n)
-        if idx.size < 6 or abs(x[idx[-1]] - x[start]) < p.shoulder_min_mm + 0.5 * w_in:
+        # A short layer (under shoulder_min_mm) only off the apex's sides (see above).
+        least = min(p.shoulder_min_mm, p.shoulder_short_mm) if start == top else p.shoulder_min_mm
+        if idx.size < 6 or abs(x[idx[-1]] - x[start]) < least + 0.5 * w_in:
             continue  # too short a side to hold a turn and a layer beyond it
         xo = np.abs(x[idx] - x[start])
         k, lo, s_in, s_out, ok = _outward_slopes(xo, z[idx], w_in, w_out)
         ok &= xo[k] - xo[lo] >= 0.5 * w_in
-        ok &= xo[-1] - xo[k] >= p.shoulder_min_mm
+        ok &= xo[-1] - xo[k] >= least
         for kk in k[ok & (s_in >= p.shoulder_slope) & (s_out < 0.5 * s_in)]:
             if callable(step):
                 step = step()
+            beyond = xo[-1] - xo[kk]
+            if beyond < p.shoulder_min_mm and (
+                median1d(step[idx[: kk + 1]]) < p.shoulder_short_step
+                or abs(x[idx[kk]] - x[n - 1 if side < 0 else 0]) < p.shoulder_min_mm
+                or z[idx[kk + 1 :]].min() < z[idx[kk]] - p.shoulder_slope * w_in
+            ):
+                continue
             if start != top:
                 # A layer falling away from the wall's foot: wholly under the foot, and
                 # never rising back by the least descent the turn asks of the wall.

@@ -485,6 +485,10 @@ class ShadowPathParams:
     """Least outward descent (depth mm per lateral mm, ~8.5 degrees) over ``kink_mm`` inside a point from which a turn to less than half of it over ``2 kink_mm`` outward, with less of a shadow step under the part beyond, is a layer leaving the bone's shoulder (see candidates._shoulder_cut)."""
     shoulder_min_mm: float = 8.0
     """Least lateral extent of the part beyond a shoulder turn for it to be cut as a layer, mm (a fascia running off the bone runs on for many mm; a shorter gentle stretch beyond a turn may be the bone's own relief, or a layer the flank trace cannot yet follow the wall under. Measured: at 0 / 3 / 5 / 8 mm, real L14 flank coverage 0.56 / 0.58 / 0.60 / 0.61 (0.61 without the cut: the radius' 5-7 mm plateau before its flank was cut); hard sweeps seeds 5, 7, 29: kept 1-3 mm off 6 / 7 / 12 / 13 frames (18 without); reconstruction gold mean, seeds 5 and 7, 0.3 mm / 0.108 mm, with the first form of the excursion rule: 0.880 / 0.951 mm at 5, 0.818 / 0.907 at 8, 0.835 / 0.925 without the cut; see Testing/benchmarks/README.md, branch shoulder)."""
+    shoulder_short_mm: float = 3.0
+    """Least lateral extent of a shorter layer (under ``shoulder_min_mm``) beyond a shoulder turn off the apex's sides for it to be cut, mm, where the bone's shadow is clear under the part inside (``shoulder_short_step``), the part kept is at least ``shoulder_min_mm`` wide and the part beyond never rises over the turn by ``shoulder_slope`` over ``kink_mm`` (ours: twice ``kink_mm``, the turn's own outward window; see candidates._shoulder_cut. Measured, hard sweeps, seeds 5 and 7 at 0.3 mm / seed 53 at 0.108 mm, humerus, tibia, radius: kept points over 1 mm from the bone in 3D 0.046 -> 0.032 / 0.030 -> 0.028, flank coverage kept; see Testing/benchmarks/README.md, branch fascia)."""
+    shoulder_short_step: float = 0.3
+    """Least median underside step (candidates._underside_step: the log ratio of the grey over the contour to that under it, each relative to the tissue at its depth) under the part inside a turn for a shorter layer beyond it to be cut (0.3: the bone's shadow at most ~0.74 of the tissue over it, the cadaver's 0.65 passes; a bone that passes sound, the L14 forearm, has 0.02-0.25 under most of its turns and keeps ``shoulder_min_mm``. Measured at 0.2 / 0.3 / 0.45: L14 reconstruction 0.359 / 0.352 / 0.352 mm from the reference, kept points over 1 mm from the bone on the hard 0.3 mm sweeps, seeds 5 and 7, 0.032 / 0.032 / 0.034)."""
     shoulder_step_ratio: float = 0.25
     """The part beyond such a turn is a layer when the step from the tissue over it to what lies under it (candidates._underside_step) is, on median, under this fraction of the step under the part inside (a ratio of the contour's own values: shadow under the bone's wall, tissue or the bone's echo under a layer; ours: hard sweeps seeds 5, 7, 29, both geometries, kept 1-3 mm off 18 -> 10 / 6 / 6 frames at 0 / 0.25 / 0.5, flank coverage 0.794 -> 0.796 / 0.787 / 0.779)."""
     valley_mm: float = 0.5
@@ -552,6 +556,8 @@ class ShadowPathParams:
                 "beneath_ratio",
                 "shoulder_step_ratio",
                 "shoulder_min_mm",
+                "shoulder_short_mm",
+                "shoulder_short_step",
                 "reverb_tolerance",
                 "refine_sigma_mm",
                 "cover_min_mm",
