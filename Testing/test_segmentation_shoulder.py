@@ -149,6 +149,24 @@ def test_a_short_layer_off_a_shadowed_shoulder_is_cut() -> None:
     assert _shoulder_cut(pts, SP, step, old).all()
 
 
+def test_a_short_descending_part_beyond_a_turn_is_not_cut() -> None:
+    """A wall flattening to a part that still descends (0.3 mm per mm, 17 degrees, over
+    5 mm) is no level layer: the short cut leaves it, however clear the shadow inside
+    (hard tibia, seed 5 with its first quarter bone-free, frame 24: the left flank near a
+    vessel, descending 23 degrees, was cut as a short layer and the track then kept the
+    fascia alone in frames 25, 28, 29). The same part running level is cut."""
+    rng = np.random.default_rng(3)
+    xd = np.arange(-6.0, 5.0 + 1e-9, SP[0])
+    xl = np.arange(5.0 + SP[0], 10.0 + 1e-9, SP[0])
+    step = np.r_[np.full(xd.size, 0.5), np.full(xl.size, 0.0)] + rng.normal(
+        0, 0.1, xd.size + xl.size
+    )
+    for slope, cut in ((0.3, False), (0.02, True)):
+        z = np.r_[_dome(xd), _dome(5.0) + slope * (xl - 5.0)]
+        keep = _shoulder_cut(_px(np.r_[xd, xl], z), SP, step, ShadowPathParams())
+        assert (not keep[xd.size + 1 :].any()) if cut else keep.all(), (slope, keep.sum())
+
+
 def test_a_plain_dome_is_not_cut() -> None:
     x = np.arange(-6.0, 6.0 + 1e-9, SP[0])
     step = np.full(x.size, 0.5)

@@ -1428,8 +1428,12 @@ def _shoulder_cut(
     frame's grey levels) and the underside ratio holds, when the part kept is at least
     ``shoulder_min_mm`` wide and the part beyond never rises over the turn by more
     than the least descent the turn asks of the wall (``shoulder_slope`` over
-    ``kink_mm``): a fascia leaving the crest at the bone's level runs level or falls
-    away, and the path follows it 4-7 mm before its windows leave the bone's shadow
+    ``kink_mm``), nor descends over its whole extent by more than ``shoulder_slope`` per
+    mm (a wall flattening to a part that still descends is the bone's flank: hard tibia,
+    seed 5 with its first quarter bone-free, frame 24, a left flank near a vessel
+    descending 23 degrees was cut, and the track then kept the fascia alone in frames
+    25, 28 and 29, 2.6-3.4 mm off): a fascia leaving the crest at the bone's level runs
+    level or falls away gently, and the path follows it 4-7 mm before its windows leave the bone's shadow
     (hard tibia, seed 5, frames 24-35: 148 of 941 kept points over 1 mm from the bone,
     38 of 1001 with the cut). A shorter part kept leaves the track's links and the
     recovery's band (both on the contour without the rim's points) too little to go on:
@@ -1482,6 +1486,7 @@ def _shoulder_cut(
                 median1d(step[idx[: kk + 1]]) < p.shoulder_short_step
                 or abs(x[idx[kk]] - x[n - 1 if side < 0 else 0]) < p.shoulder_min_mm
                 or z[idx[kk + 1 :]].min() < z[idx[kk]] - p.shoulder_slope * w_in
+                or z[idx[-1]] - z[idx[kk]] > p.shoulder_slope * beyond
             ):
                 continue
             if start != top:
