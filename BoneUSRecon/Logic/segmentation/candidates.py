@@ -1298,18 +1298,20 @@ def _frame_candidates_steps(
         # A layer running off the bone's shoulder is cut off (see _shoulder_cut); the
         # flanks are then followed from the cut end like any other (:mod:`.flanks`).
         if not c.get("reverb"):
-            sk = _shoulder_cut(
-                pts[m], sp, lambda cols=cols, rows=rows: _underside_step(lr, cols, rows, ev.dy), p
+            sk, strength = _cut_at_shoulder(
+                pts[m],
+                cols,
+                rows,
+                strength,
+                ev,
+                lambda cols=cols, rows=rows: _underside_step(lr, cols, rows, ev.dy),
+                sp,
+                p,
+                min_cols,
             )
-            if sk.sum() >= min_cols and not sk.all():
-                m_before, m = m, np.flatnonzero(m)[sk]
+            if sk is not None:
+                m = np.flatnonzero(m)[sk]
                 cols, rows = cols[sk], rows[sk]
-                # A short layer cut off keeps the candidate's strength: its windows hold
-                # the bone's own shadow (why the path ran on along it), and recomputed
-                # the hard tibia's bone candidates fell under their far cortex's (seed 5,
-                # frame 35: 3.4 -> 0.4 score x mm).
-                if _cut_mm(pts[m_before], sk, sp[0]) >= p.shoulder_min_mm:
-                    strength = float((ev.score[rows, cols] - p.null_z).sum() * ev.dx)
         # A reverberation series' top carries the evidence of its copies.
         strength = max(strength, c.get("inherit", -np.inf))
         out.append(
@@ -1369,6 +1371,37 @@ def _underside_step(lr: np.ndarray, cols: np.ndarray, rows: np.ndarray, dy: floa
     below = lr[_clip_rows(rows[:, None] + k, 0, h - 1), cols[:, None]].mean(axis=1)
     above = lr[_clip_rows(rows[:, None] - k, 0, h - 1), cols[:, None]].mean(axis=1)
     return above - below
+
+
+def _cut_at_shoulder(
+    pts: np.ndarray,
+    cols: np.ndarray,
+    rows: np.ndarray,
+    strength: float,
+    ev: EvidenceMaps,
+    step: Callable[[], np.ndarray],
+    spacing: tuple[float, float],
+    p: ShadowPathParams,
+    min_cols: int,
+) -> tuple[np.ndarray | None, float]:
+    """A candidate's points (``pts``, on working ``cols``, ``rows``) with a layer running
+    off the bone's shoulder cut off (:func:`_shoulder_cut`; ``step``: its underside
+    steps, computed only when a turn is found): the mask of the points kept, or None when
+    nothing is cut or too little (under ``min_cols``) would be left, and the strength.
+
+    A long layer cut off takes its evidence with it (the strength is recomputed over the
+    points kept); a short one leaves the candidate's strength as it was: its windows
+    hold the bone's own shadow (why the path ran on along it), and recomputed the hard
+    tibia's bone candidates fell under their far cortex's (seed 5, frame 35: 3.4 -> 0.4
+    score x mm). One rule for the frame's own passes and the guided search
+    (:mod:`.recovery`).
+    """
+    keep = _shoulder_cut(pts, spacing, step, p)
+    if keep.sum() < min_cols or keep.all():
+        return None, strength
+    if _cut_mm(pts, keep, spacing[0]) >= p.shoulder_min_mm:
+        strength = float((ev.score[rows[keep], cols[keep]] - p.null_z).sum() * ev.dx)
+    return keep, strength
 
 
 def _cut_mm(pts: np.ndarray, keep: np.ndarray, sx: float) -> float:

@@ -58,13 +58,12 @@ import numpy as np
 from BoneUSRecon.Logic.segmentation.candidates import (
     BoneCandidate,
     FrameCandidates,
-    _cut_mm,
+    _cut_at_shoulder,
     _groups,
     _log_ratio,
     _optimal_path,
     _path_steps,
     _refine,
-    _shoulder_cut,
     _underside_step,
 )
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
@@ -283,12 +282,19 @@ def guided_candidate(
     # neighbours' contours, and where one ran on along such a layer the guided path
     # runs on along it (radius, hard, seed 43, frame 34: 30 of 51 points on a fascia
     # 1.5 mm off the bone; cut, 3 of 71 after the rim).
-    keep = _shoulder_cut(pts, spc, lambda: _underside_step(_log_ratio(ev), g, rows, ev.dy), sp)
-    if keep.sum() >= min_cols and not keep.all():
-        long_cut = _cut_mm(pts, keep, spc[0]) >= sp.shoulder_min_mm
+    keep, strength = _cut_at_shoulder(
+        pts,
+        g,
+        rows,
+        strength,
+        ev,
+        lambda: _underside_step(_log_ratio(ev), g, rows, ev.dy),
+        spc,
+        sp,
+        min_cols,
+    )
+    if keep is not None:
         g, rows, pts = g[keep], rows[keep], pts[keep]
-        if long_cut:
-            strength = float((ev.score[rows, g] - sp.null_z).sum() * ev.dx)
     cand = BoneCandidate(
         pts,
         sample_bilinear(img, pts),
