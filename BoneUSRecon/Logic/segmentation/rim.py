@@ -560,8 +560,10 @@ def follow_rims(
     # Outward, faster than one radial sample per step, only where the outline so implied
     # still descends at least min_descent_deg: the radius grows by g over a step of
     # step_mm where the outline runs atan(g / step_mm) flatter than the circle.
-    grow = p.step_mm * np.tan(np.maximum(phi - np.radians(p.min_descent_deg), 0.0))
-    up = np.clip(np.floor(grow / p.offset_mm + 1e-9), 1, ms).astype(np.intp)
+    # Past 90 degrees + min_descent_deg about the centre any outward move keeps that
+    # descent (tan would turn negative there: clipped just under a right angle).
+    lean = np.clip(phi - np.radians(p.min_descent_deg), 0.0, np.radians(89.0))
+    up = np.clip(np.floor(p.step_mm * np.tan(lean) / p.offset_mm + 1e-9), 1, ms).astype(np.intp)
     path = _radius_paths(e, m, ms, None if (up >= ms).all() else np.concatenate([up, up]))
     tt = np.arange(2 * n_t)
     vals = e[tt[:, None], np.arange(n_step), path]
