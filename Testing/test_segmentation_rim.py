@@ -203,14 +203,17 @@ def test_rim_adds_no_point_off_the_bone_where_a_fascia_runs_off_it():
     d = added_distances(sim, segment_sweep(sim.sweep, base), without)
     assert d.size >= 20  # the rim did follow flanks here
     assert np.mean(d > 0.5) <= 0.2 and d.max() <= 1.2, (d.size, np.mean(d > 0.5), d.max())
-    # Where the path runs on along the fascia (the short layer not cut), the descent
-    # limit is what keeps the traces off it.
+    # Where the path runs on along the fascia (the short layer not cut) and without the
+    # descent limit, the shadow along the beam keeps the traces off it: the fascia has
+    # tissue under it (measured: farthest added point 0.62 mm; when only faint contours'
+    # lines were weighed by their shadow, 2-4.8 mm, this bright one's traces ran on along
+    # the fascia).
     level = added_distances(
         sim,
         segment_sweep(sim.sweep, with_rim(True, min_descent_deg=0.0)),
         segment_sweep(sim.sweep, with_rim(True, enabled=False)),
     )
-    assert level.max() >= 2.0, level.max()
+    assert level.size and level.max() <= 1.2, level.max()
 
 
 def test_an_end_cut_off_by_a_break_is_not_followed(sim_small):
@@ -228,9 +231,12 @@ def test_an_end_cut_off_by_a_break_is_not_followed(sim_small):
         return sim_small.distance_to_truth(c.points_mm(sim_small.sweep))
 
     kept, joined = frame9(), frame9(join_mm=100.0)
-    assert joined.size > kept.size and np.sort(joined)[-3] >= 2.5, np.sort(joined)[-3:]
     # What remains off the bone is the path's own piece on the layer (4 points).
     assert np.sum(kept > 1.0) <= 4, np.sort(kept)[-6:]
+    # With the piece joined, the layer's tissue under it (no shadow along the beam) stops
+    # the trace too: when only faint contours' lines were weighed by their shadow, this
+    # bright contour's trace ran on along the layer 2.8-3.2 mm off the bone.
+    assert np.sum(joined > 1.0) <= 4, np.sort(joined)[-6:]
 
 
 def _plain_radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray) -> np.ndarray:

@@ -456,7 +456,6 @@ def follow_rims(
     tr, st = np.nonzero(live)
     line_unit = np.maximum(own_line, _MIN_LEVEL)[tr, None]
     use_edge = (faint & (ke > 0))[tr, None]  # edge_mm 0: the line alone
-    edge_unit = np.where(use_edge, own_edge[tr, None], 1.0)
     m = int(round(p.band_mm / p.offset_mm))
     off = p.offset_mm * np.arange(-m, m + 1)
     sin, cos = np.sin(phi)[tr, st, None], np.cos(phi)[tr, st, None]
@@ -490,55 +489,68 @@ def follow_rims(
         # passes sound, its fainter inside).
         np.minimum(e, centre - np.log(inside + _EPS), out=e)
     e /= line_unit
-    if ke and use_edge.any():
-        # Or an edge: the tissue outward brighter than the inside over ``edge_mm`` either
-        # side (grid indices b + k1 + 1 .. b + k1 + ke and b + k1 - ke .. b + k1 - 1). On
-        # a steep flank the echo fades (specular reflection goes away from the probe)
-        # and the outline is where the tissue beside the bone meets its shadow; a layer
-        # has tissue on both sides. Outward samples count at most at the tissue level of
-        # their depth: under a bright line (a thick echo band's lower side, a fascia's)
-        # the outward window holds the line, which is no tissue beside a shadow.
-        # (Measured on the faint traces' steps only, ``f``: the others' scores are the
-        # line's alone; half the steps on the hard simulated sweeps.)
-        f = np.flatnonzero(use_edge[:, 0])
-        f = slice(None) if f.size == use_edge.shape[0] else f
-        cs_f, gi_f, gj_f = cs[f], gi[f], gj[f]
-        cap = np.zeros_like(cs_f)
-        np.cumsum(_capped(g[f], gj_f, ev.tissue_beside), axis=-1, out=cap[..., 1:])
-        edge = _edge_ratio(
-            _window_mean(cs_f, k1, 1, ke, ne, 1),
-            _window_mean(cap, k1, 1, ke, ne, 1),
-            _window_mean(cs_f, k1, 1, ke, ne, -1),
-            dark,
-        )
-        # ... and along the beam: a point of the outline is seen from above, tissue over
-        # it and the shadow under it. Past the bone's widest point the edge of its shadow
-        # has the bone's shadow over it too: no outline there (on the hard simulated
-        # radius, seed 43, a trace ran on down the shadow's side 5 mm off the bone).
-        # (Each point on its nearest working pixel: the measures once per pixel, on the
-        # sums of the pixels' columns down to the deepest window.)
-        row, col, at = _beam_pixels((hw, ww), gi_f[..., k1 : k1 + ne], gj_f[..., k1 : k1 + ne])
+    # Traces whose contour casts a shadow: their line is weighed by the shadow along the
+    # beam (below), and the faint ones among them may also follow an edge.
+    shaded = (own_edge > _MIN_LEVEL)[tr]
+    edge_won = None
+    if shaded.any():
+        s_ = np.flatnonzero(shaded)
+        s_ = slice(None) if s_.size == shaded.size else s_
+        gi_s, gj_s = gi[s_], gj[s_]
+        # Along the beam: each point on its nearest working pixel (the measures once
+        # per pixel, on the sums of the pixels' columns down to the deepest window).
+        row, col, at = _beam_pixels((hw, ww), gi_s[..., k1 : k1 + ne], gj_s[..., k1 : k1 + ne])
         k_across = (p.outside_mm[1] - p.outside_mm[0]) / ev.dy, p.outside_mm[0] / ev.dy
         reach = max(sum(_beam_rows(p.edge_mm / ev.dy, 0.0)), sum(_beam_rows(*k_across)))
         sums, col = _column_sums(ev, col, min(hw, int(row.max()) + 1 + reach))
-        beam = _beam_edge(sums, row, col, hw, p.edge_mm / ev.dy, dark)[at]
-        np.minimum(edge, beam, out=edge)
         # A bone that casts a shadow casts it under its flank's echo too; a fascia
-        # running off the flank has tissue under it. Where the contour has a shadow, its
-        # line counts in full only over at least half its own shadow's contrast along
-        # the beam (on the standard simulated radius, seed 1, traces ran on along such
-        # fasciae 1-2 mm off the bone).
+        # running off the flank has tissue under it, and a ring inside the shadow (a far
+        # cortex, a reverberation) has the shadow over it. Where the contour has a
+        # shadow, a line counts in full only over at least half its own shadow's
+        # contrast along the beam (on the standard simulated radius, seed 1, traces ran
+        # on along such fasciae 1-2 mm off the bone; on the hard simulated tibia, seed 5,
+        # frame 35, a trace from a bright contour's end ran 3 mm down a ring inside the
+        # shadow when only faint contours' lines were weighed so).
         # (Its windows clear of the line, as the contour's own shadow contrast was measured.)
         across = _beam_edge(sums, row, col, hw, k_across[0], dark, k_across[1])[at]
-        shade = np.clip(2.0 * across / edge_unit[f], 0.0, 1.0)
-        e_f = e[f]
-        e_f = np.minimum(e_f, e_f * shade)
-        edge /= edge_unit[f]
-        edge_won = np.zeros((n_t, n_step, nb), bool)
-        edge_won[tr[f], st[f]] = edge[..., :nb] > e_f[..., :nb]
-        e[f] = np.maximum(e_f, edge)
-    else:
-        edge_won = None
+        shade = np.clip(2.0 * across / own_edge[tr[s_], None], 0.0, 1.0)
+        e_s = e[s_]
+        e_s = np.minimum(e_s, e_s * shade)
+        if ke and use_edge.any():
+            # Or an edge: the tissue outward brighter than the inside over ``edge_mm``
+            # either side (grid indices b + k1 + 1 .. b + k1 + ke and b + k1 - ke ..
+            # b + k1 - 1). On a steep flank the echo fades (specular reflection goes away
+            # from the probe) and the outline is where the tissue beside the bone meets
+            # its shadow; a layer has tissue on both sides. Outward samples count at most
+            # at the tissue level of their depth: under a bright line (a thick echo
+            # band's lower side, a fascia's) the outward window holds the line, which is
+            # no tissue beside a shadow. (Measured on the faint traces' steps only, ``f``
+            # among the shaded: the others' scores are the line's alone.)
+            f = np.flatnonzero(use_edge[shaded, 0])
+            f = slice(None) if f.size == e_s.shape[0] else f
+            cs_f, gj_f = cs[s_][f], gj_s[f]
+            cap = np.zeros_like(cs_f)
+            np.cumsum(_capped(g[s_][f], gj_f, ev.tissue_beside), axis=-1, out=cap[..., 1:])
+            edge = _edge_ratio(
+                _window_mean(cs_f, k1, 1, ke, ne, 1),
+                _window_mean(cap, k1, 1, ke, ne, 1),
+                _window_mean(cs_f, k1, 1, ke, ne, -1),
+                dark,
+            )
+            # ... and along the beam: a point of the outline is seen from above, tissue
+            # over it and the shadow under it. Past the bone's widest point the edge of
+            # its shadow has the bone's shadow over it too: no outline there (on the hard
+            # simulated radius, seed 43, a trace ran on down the shadow's side 5 mm off
+            # the bone).
+            beam = _beam_edge(sums, row, col, hw, p.edge_mm / ev.dy, dark)[at][f]
+            np.minimum(edge, beam, out=edge)
+            edge /= own_edge[tr[s_][f], None]
+            e_f = e_s[f]
+            edge_won = np.zeros((n_t, n_step, nb), bool)
+            tf, sf = tr[s_][f], st[s_][f]
+            edge_won[tf, sf] = edge[..., :nb] > e_f[..., :nb]
+            e_s[f] = np.maximum(e_f, edge)
+        e[s_] = e_s
     nbad = np.zeros((g.shape[0], g.shape[1] + 1), np.int32)
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
     bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
