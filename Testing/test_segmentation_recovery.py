@@ -53,12 +53,13 @@ def test_recovery_raises_recall_on_the_bone(bone, seed):
     s0, s1 = score_simulation(before, sim), score_simulation(after, sim)
     # Measured: ulna 31 0.875 -> 1.00 (5 frames recovered), tibia 11 0.900 -> 1.00 (4);
     # 0.925 -> 1.00 (3) since flat ends are followed round the outline (rim.py): one
-    # more frame is on the first track.
-    assert s1.recall >= s0.recall + 0.075
+    # more frame is on the first track; 0.95 -> 1.00 (2) since the shadow's z-score is
+    # centred on the tissue (evidence._shadow_scale): another.
+    assert s1.recall >= s0.recall + 0.05
     assert s1.recall >= 0.95
     assert s1.wrong_share == 0.0
     medians = _recovered_medians(sim, after)
-    assert len(medians) >= 3
+    assert len(medians) >= 2
     # Each on the bone (the recall criterion, mm); most within a few tenths (a frame
     # next to a track frame that is itself partly off inherits some of its error:
     # measured max 0.53 and 0.15 mm, medians 0.44 and 0.06 mm; ulna 31's was 0.15 mm

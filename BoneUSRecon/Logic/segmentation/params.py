@@ -427,6 +427,8 @@ class ShadowPathParams:
     """Shadow z-score at which the shadow gate is fully open, robust z units (ours: one spread darker than the tissue beside it; a grey shadow 0.65 of the tissue, or the L14 bone whose interior is barely darker, still opens it partly and the echo carries the score)."""
     shadow_percentile: float = 80.0
     """Percentile over the columns giving the tissue level the shadow windows are compared with (ours: tissue beside a bone whose shadow covers up to 80 % of the width)."""
+    shadow_null_tolerance: float = 0.25
+    """The shadow z-score's centre is the frame's median unless that lies more than this many spreads above the centre of the lower tail (the tissue's; :func:`.evidence._shadow_scale`), robust z units (ours: clean frames lie within 0.03-0.1 spreads of it, frames whose bone's shadow fills half the image 0.4-0.6; at 0.25 the lead's harness, seeds 53, 59, 71 and 73, changed in 3 sweeps of 78, all for the better: hard radius seed 71 at 160 x 128 recall 0.85 -> 0.97; at 0 in 18, two of them with a wrong frame; at 0.5 the radius was not helped)."""
     null_z: float = 0.8
     """Score (robust z units) a column needs to pay off over "no bone" in the path (ours: 1.5 x the speckle spread; see :mod:`.evidence`)."""
     max_z: float = 8.0
@@ -547,6 +549,7 @@ class ShadowPathParams:
                 "shadow_gap_mm",
                 "cover_gap_mm",
                 "cover_ratio",
+                "shadow_null_tolerance",
                 "null_z",
                 "slope_penalty",
                 "near_field_mm",
