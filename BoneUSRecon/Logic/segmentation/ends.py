@@ -57,10 +57,10 @@ that the track's choice in the frames kept not be bought with frames the same sw
 evidence judged to show no bone ("one decision over the sweep", :mod:`.track`, made
 with what that decision already knows). Once: a second choice could erode a weak end
 of the bone against a track grown more bone-like (the cut is relative to the track's
-median); the new track's ends are cut as before. Offline the first track is cut and
-chosen again too, before recovery searches the frames off it (:mod:`.recovery`): the
-guided search takes its band from the track's contours next to a frame, and those
-should not lead into frames judged bone-free.
+median); the new track's ends are cut as before. The first track is cut and chosen
+again too (offline and live), before recovery searches the frames off it
+(:mod:`.recovery`): the guided search takes its band from the track's contours next to
+a frame, and those should not lead into frames judged bone-free.
 """
 
 from __future__ import annotations
