@@ -160,3 +160,27 @@ def test_incremental_track_with_extra_after_dropping_frames(sim_factory):
     _assert_same(track.solve(), select_bone_track(kept, poses[keep]))
     with pytest.raises(IndexError):
         track.solve(extra={len(track): guided[next(iter(guided))]})
+
+
+@pytest.mark.parametrize("params", EXTRA_CASES, ids=["tibia-hard", "humerus-hard"])
+def test_incremental_track_with_frames_excluded(sim_factory, params):
+    """solve(exclude=...) is the batch track with the same frames ruled out (the ends
+    cut's choice again, :func:`~.ends.cut_ends_and_choose_again`), with and without
+    extra candidates: the frames excluded are off the track with the reason and detail
+    given, and the stored state is unchanged."""
+    frames, poses, guided = _guided(sim_factory(**params))
+    track = IncrementalTrack()
+    for fc, m in zip(frames, poses, strict=True):
+        track.add(fc, m)
+    plain = track.solve()
+    on = np.flatnonzero(plain.chosen >= 0)
+    # The track's last frames and one inside it (a guided frame among them if any).
+    ex = {int(f): ("no bone shadow under it (sweep end)", f"step {f}") for f in on[-4:]}
+    ex[int(on[len(on) // 2])] = ("r", "d")
+    ex.update({f: ("g", "") for f in list(guided)[:1]})
+    for extra in ({}, guided):
+        got = track.solve(extra=extra, exclude=ex)
+        _assert_same(got, select_bone_track(_appended(frames, extra), poses, exclude=ex))
+        assert all(got.chosen[f] < 0 and (got.reason[f], got.detail[f]) == ex[f] for f in ex)
+        assert (got.chosen >= 0).sum() >= len(on) // 2  # the rest still a track
+    _assert_same(track.solve(), plain)

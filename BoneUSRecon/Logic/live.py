@@ -17,7 +17,8 @@ guiding, as offline); the track again with the guided candidates (only their lin
 are made, once per candidate); its bone-free ends cut back
 (:mod:`~BoneUSRecon.Logic.segmentation.ends`) from the shadow step under each
 candidate, measured once when the candidate was made, while the frame's pixels were
-at hand; the track frames whose contour strays from their neighbours' searched again
+at hand, and the track chosen again without the frames cut (the first track's too,
+before the search); the track frames whose contour strays from their neighbours' searched again
 and replaced where the search agrees with them (cached as the search of frames off
 the track is); then resampling, fit and mesh. Every refit therefore equals an offline
 :func:`~BoneUSRecon.Logic.pipeline.reconstruct` of the frames so far, except where a
@@ -70,7 +71,11 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     frame_candidates_many,
 )
 from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_candidates_for
-from BoneUSRecon.Logic.segmentation.ends import candidate_steps, cut_ends_at_steps, shadow_step
+from BoneUSRecon.Logic.segmentation.ends import (
+    candidate_steps,
+    cut_ends_and_choose_again,
+    shadow_step,
+)
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import (
@@ -351,16 +356,26 @@ def _select(
     again: dict[int, BoneCandidate] = {}  # track contours replaced (_rechecked)
     first: TrackChoice | None = None
     if recovery_applies(params):
-        # The first track's choice only (its rejection details would be replaced).
+        # The first track's choice only (its rejection details would be replaced),
+        # its bone-free ends cut and the track chosen again without them, as offline.
         first = track.solve(explain=False)
+        if params.ends.choose_again:
+            first = cut_ends_and_choose_again(
+                first,
+                lambda ex: track.solve(explain=False, exclude=ex),
+                lambda ch: _track_steps(frames, ch),
+                params.ends,
+            )
         extra = _guided(frames, first, params, counts)
-        choice = track.solve(extra=extra)
-    else:
-        choice = track.solve()
     # The track's bone-free ends cut back as offline (:mod:`~BoneUSRecon.Logic.
-    # segmentation.ends`), from the steps measured when each candidate was made.
-    if params.ends.enabled:
-        choice = cut_ends_at_steps(choice, _track_steps(frames, choice), params.ends)
+    # segmentation.ends`), from the steps measured when each candidate was made, and
+    # the track chosen again without the frames cut.
+    choice = cut_ends_and_choose_again(
+        track.solve(extra=extra),
+        lambda ex: track.solve(extra=extra, exclude=ex),
+        lambda ch: _track_steps(frames, ch),
+        params.ends,
+    )
     fcs = [
         with_candidate(fr.candidates, extra[n]) if n in extra else fr.candidates
         for n, fr in enumerate(frames)

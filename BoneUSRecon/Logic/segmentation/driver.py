@@ -11,6 +11,8 @@ Between the two, offline, frames off the track are searched again inside the ban
 track allows (:mod:`.recovery`; shadowpath only), and the track is chosen once more;
 after the ends cut, track frames whose contour strays from their neighbours' are
 searched the same way and their contour replaced where the search agrees with them.
+The ends cut (:mod:`.ends`) has the track chosen again without the frames it cut, the
+first track's (before recovery) and the final one's alike.
 
 :func:`segment_sweep` runs both over a sweep and packs the result.
 """
@@ -25,13 +27,14 @@ import numpy as np
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.progress import ProgressCallback, report
 from BoneUSRecon.Logic.segmentation.candidates import (
+    BoneCandidate,
     FrameCandidates,
     candidates_from_points,
     frame_candidates,
     frame_candidates_many,
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
-from BoneUSRecon.Logic.segmentation.ends import cut_bone_free_ends
+from BoneUSRecon.Logic.segmentation.ends import cut_ends_and_choose_again, shadow_step
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
@@ -248,11 +251,34 @@ def segment_sweep(
     track = IncrementalTrack(params.rejection)
     for fc, pose in zip(frames, poses, strict=True):
         track.add(fc, pose)
+    steps: dict[BoneCandidate, float] = {}  # shadow steps measured (:mod:`.ends`)
+
+    def track_steps(fcs: list[FrameCandidates], choice: TrackChoice) -> np.ndarray:
+        """The shadow step of each track frame's chosen candidate (each measured once)."""
+        on = np.flatnonzero(choice.chosen >= 0)
+        cands = [fcs[n].candidates[int(choice.chosen[n])] for n in on.tolist()]
+        todo = [i for i, c in enumerate(cands) if c not in steps]
+        images = (image for _, image in sweep.iter_frames(idx[on[todo]]))
+        for i, image in zip(todo, images, strict=True):
+            sp = fcs[int(on[i])].spacing
+            steps[cands[i]] = shadow_step(image, cands[i].points_px, sp, params.ends)
+        return np.array([steps[c] for c in cands], dtype=float)
+
     if recovery_applies(params):
         # Frames off the track searched again inside the band the track allows, then
         # one track over all frames again (:mod:`.recovery`); past the track's ends too
-        # (one side guiding) when the ends cut below judges what is found there.
+        # (one side guiding) when the ends cut below judges what is found there. The
+        # first track's bone-free ends are cut first, the track chosen again without
+        # them (:func:`.ends.cut_ends_and_choose_again`): the band of a frame next to
+        # them is not to lead into frames judged to show no bone.
         first = track.solve(explain=False)  # its rejection details would be replaced
+        if params.ends.choose_again:
+            first = cut_ends_and_choose_again(
+                first,
+                lambda ex: track.solve(explain=False, exclude=ex),
+                lambda ch, fcs=frames: track_steps(fcs, ch),
+                params.ends,
+            )
         frames, searched = recover_frames(
             frames,
             first,
@@ -264,14 +290,15 @@ def segment_sweep(
             kept.get,
         )
         # The guided candidate is its frame's last (recovery.with_candidate).
-        choice = track.solve(extra={f: frames[f].candidates[-1] for f in searched})
+        extra = {f: frames[f].candidates[-1] for f in searched}
     else:
-        choice = track.solve()
-    # The track's ends cut back where its frames cast no bone shadow (:mod:`.ends`).
-    choice = cut_bone_free_ends(
-        frames,
-        choice,
-        lambda ns: (image for _, image in sweep.iter_frames(idx[ns])),
+        extra = {}
+    # The track's ends cut back where its frames cast no bone shadow, and the track
+    # chosen again without the frames cut (:mod:`.ends`).
+    choice = cut_ends_and_choose_again(
+        track.solve(extra=extra),
+        lambda ex: track.solve(extra=extra, exclude=ex),
+        lambda ch, fcs=frames: track_steps(fcs, ch),
         params.ends,
     )
     if recovery_applies(params):

@@ -713,6 +713,8 @@ class EndsParams:
     """With the cut on, the track-guided recovery (:mod:`.recovery`, offline and live) also searches the frames past the track's ends, guided by one side (as ``RecoveryParams.both_sides`` False): the cut judges what it finds there (ours: on 96 hard sweeps with 3 or 10 bone-free frames at an end, mean recall 0.941 -> 0.962, bone-free frames kept 1 of 624 either way; without the cut the one-sided search kept bone-free frames in 7 of 24 sweeps)."""
     max_cut_share: float = 0.5
     """Never cut more than this share of the track's frames: the typical step is the track's median, so it stands for the bone only while most of the track is on it."""
+    choose_again: bool = True
+    """Once frames are cut, choose the track again with them ruled out, then cut the new track's ends (:func:`.ends.cut_ends_and_choose_again`; offline and live, the first track before recovery too). Ours: the track's choice in the frames kept is not to be bought with frames judged bone-free (hard tibia, seed 5, last 10 frames bone-free: recall 0.93 -> 1.00, wrong share 0.025 -> 0; see Testing/benchmarks/README.md, branch track5)."""
 
     def __post_init__(self) -> None:
         check_fields(

@@ -22,6 +22,9 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   its far cortex or a reverberation band in its shadow;
 * each skipped frame costs ``miss_cost``.
 
+A caller may rule frames out beforehand (``exclude``: the frames :mod:`.ends` judged
+bone-free): their candidates are no nodes, and they keep the reason given.
+
 One decision over the whole sweep: no prior chained from an earlier frame, no rounds
 of rejection. Frames whose candidates are all off the track are rejected as "jump from
 neighbouring frames" (the distance to the track is in the frame's ``detail``).
@@ -29,7 +32,7 @@ neighbouring frames" (the distance to the track is in the frame's ``detail``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -434,6 +437,7 @@ def select_bone_track(
     frames: Sequence[FrameCandidates],
     image_to_reference: np.ndarray,
     params: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+    exclude: Mapping[int, tuple[str, str]] | None = None,
 ) -> TrackChoice:
     """Choose one candidate (or none) per frame: one continuous bone track.
 
@@ -446,6 +450,11 @@ def select_bone_track(
     image_to_reference : ndarray, shape (N, 4, 4)
         The frames' poses, in the same order.
     params : RejectionParams
+    exclude : mapping of int to (str, str), optional
+        Frames that may not be on the track (their candidates are no nodes), each with
+        the rejection reason and detail it keeps (:func:`.ends.cut_ends_and_choose_again`:
+        the frames the ends cut judged bone-free). The sweep's typical strength is
+        still taken over all frames.
 
     Returns
     -------
@@ -456,13 +465,16 @@ def select_bone_track(
     poses = np.asarray(image_to_reference, dtype=float).reshape(n, 4, 4)
     reason = [_frame_reason(fc) for fc in frames]
     detail = [""] * n
+    exclude = exclude or {}
+    for f, (r, d) in exclude.items():
+        reason[f], detail[f] = r, d
     chosen = np.full(n, -1, dtype=np.intp)
     conf = np.zeros(n)
     nodes = [
         (f, c)
         for f, fc in enumerate(frames)
         for c, cand in enumerate(fc.candidates)
-        if _is_node(cand)
+        if _is_node(cand) and f not in exclude
     ]
     if not nodes:
         return TrackChoice(chosen, conf, reason, detail)
@@ -495,7 +507,7 @@ def select_bone_track(
                 s = score[ka] - dev**2 - p.miss_cost * (g - f - 1) + value[kb]
                 if s > score[kb]:
                     score[kb], back[kb], link_dev[kb] = s, ka, dev
-    return _finish(frames, poses, nodes, value, score, back, link_dev, reason, p)
+    return _finish(frames, poses, nodes, value, score, back, link_dev, reason, p, detail=detail)
 
 
 def _finish(
@@ -511,6 +523,7 @@ def _finish(
     keys: Sequence[int] | None = None,
     details: dict[tuple[int, int, int, int], str] | None = None,
     explain: bool = True,
+    detail: list[str] | None = None,
 ) -> TrackChoice:
     """The track from the dynamic programme's scores and back-pointers (``nodes`` in
     frame order), and why each frame off it is off it.
@@ -519,13 +532,14 @@ def _finish(
     caller that solves again and again (live) keep the rejection details between
     solves: a detail depends only on the frame, its nearest frame on the track, that
     frame's choice and position. ``explain`` False leaves the details empty (a caller
-    that only needs the choice).
+    that only needs the choice). ``detail``: the details of the frames given a reason
+    beforehand (ruled out of the track; "" elsewhere).
     """
     n, m = len(frames), len(nodes)
     chosen = np.full(n, -1, dtype=np.intp)
     conf = np.zeros(n)
     reason = list(reason)
-    detail = [""] * n
+    detail = list(detail) if detail is not None else [""] * n
     by_frame: dict[int, list[int]] = {}
     for k, (f, _) in enumerate(nodes):
         by_frame.setdefault(f, []).append(k)

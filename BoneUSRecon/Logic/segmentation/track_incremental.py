@@ -292,7 +292,10 @@ class IncrementalTrack:
         return into, out, both
 
     def solve(
-        self, extra: Mapping[int, BoneCandidate] | None = None, explain: bool = True
+        self,
+        extra: Mapping[int, BoneCandidate] | None = None,
+        explain: bool = True,
+        exclude: Mapping[int, tuple[str, str]] | None = None,
     ) -> TrackChoice:
         """The track over the frames kept, as :func:`~.track.select_bone_track` chooses it.
 
@@ -309,6 +312,10 @@ class IncrementalTrack:
             False: the choice only, without the rejection details (the distance from
             each frame off the track to it, the slow part of a solve on a sweep with
             many such frames); live recovery needs only the choice of its first solve.
+        exclude : mapping of int to (str, str), optional
+            Positions of kept frames that may not be on the track, each with the
+            rejection reason and detail it keeps, as :func:`~.track.select_bone_track`'s
+            ``exclude`` (the frames the ends cut judged bone-free).
 
         Returns
         -------
@@ -323,15 +330,22 @@ class IncrementalTrack:
             fr.candidates if e is None else e.candidates for fr, e in zip(frames, ext, strict=True)
         ]
         reason = [fr.reason if e is None else e.reason for fr, e in zip(frames, ext, strict=True)]
-        # Each frame's nodes: its own, then its extra candidate (its last candidate).
-        n_base = [len(fr.nodes) for fr in frames]
+        detail = [""] * n
+        exclude = exclude or {}
+        for f, (r, d) in exclude.items():
+            reason[f], detail[f] = r, d
+        # Each frame's nodes: its own, then its extra candidate (its last candidate);
+        # none for an excluded frame.
+        n_base = [0 if f in exclude else len(fr.nodes) for f, fr in enumerate(frames)]
+        has_extra = [e is not None and e.node and f not in exclude for f, e in enumerate(ext)]
         nodes = [
             (f, c)
             for f, (fr, e) in enumerate(zip(frames, ext, strict=True))
-            for c in (fr.nodes + [len(fr.candidates.candidates)] if e and e.node else fr.nodes)
+            if f not in exclude
+            for c in (fr.nodes + [len(fr.candidates.candidates)] if has_extra[f] else fr.nodes)
         ]
         if not nodes:
-            return TrackChoice(np.full(n, -1, dtype=np.intp), np.zeros(n), reason, [""] * n)
+            return TrackChoice(np.full(n, -1, dtype=np.intp), np.zeros(n), reason, detail)
         if len(self._details) > 8 * n:
             self._details.clear()  # choices that changed long ago
         typical = _typical_strength(fcs)
@@ -342,15 +356,15 @@ class IncrementalTrack:
         score = list(value)
         back = [-1] * len(nodes)
         link_dev = [0.0] * len(nodes)
-        count = [
-            nb + (1 if e is not None and e.node else 0) for nb, e in zip(n_base, ext, strict=True)
-        ]
+        count = [nb + (1 if x else 0) for nb, x in zip(n_base, has_extra, strict=True)]
         base = np.cumsum([0] + count).tolist()
         for g, fr in enumerate(frames):
             if not count[g]:
                 continue
             bg, eg = base[g], ext[g]
             for f in range(max(0, g - p.max_skip - 1), g):
+                if not count[f]:
+                    continue  # no nodes (its stored links, if any, name none)
                 fa, ef = frames[f], ext[f]
                 bf = base[f]
                 gap_cost = p.miss_cost * (g - f - 1)
@@ -390,6 +404,7 @@ class IncrementalTrack:
             keys=[fr.uid if e is None else e.key for fr, e in zip(frames, ext, strict=True)],
             details=self._details,
             explain=explain,
+            detail=detail,
         )
 
     def memory_bytes(self) -> int:
