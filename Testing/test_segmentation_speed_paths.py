@@ -12,6 +12,7 @@ stretches).
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import median_filter
 
@@ -156,6 +157,35 @@ def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
             assert np.array_equal(path, _optimal_path(g.copy(), c, switch)), trial
             with_bone += bool((path >= 0).any() and (path < 0).any())
     assert with_bone >= 40
+
+
+def test_optimal_paths_shifts_in_pairs_match_plain_loop() -> None:
+    # Branch speed3 (session 26): each column takes the better of shifts -k and +k, then
+    # subtracts their one cost. As in a batch of the pipeline: 9 and 7 shifts mixed
+    # (one shift count padded with +inf), many exact ties (quarter steps), exact zeros
+    # of both signs in the gains, long no-bone stretches, and one scratch for all trials.
+    rng = np.random.default_rng(17)
+    scratch: dict = {}
+    with_bone = 0
+    for trial in range(40):
+        switch = float(rng.choice([0.5, 1.0]))
+        gains, costs = [], []
+        for _ in range(int(rng.integers(3, 9))):
+            h, w = int(rng.integers(2, 30)), int(rng.integers(2, 50))
+            gain = np.round(rng.normal(-0.3, 1.0, (h, w)) * 4) / 4
+            gain[:, rng.random(w) < 0.3] = -1.0
+            gain[rng.random((h, w)) < 0.05] = -0.0
+            gains.append(gain.astype(np.float32))
+            k = int(rng.choice([3, 4]))
+            costs.append(0.015 * np.arange(-k, k + 1) ** 2.0)
+        batch = _optimal_paths([g.copy() for g in gains], costs, switch, scratch)
+        for g, c, path in zip(gains, costs, batch, strict=True):
+            assert np.array_equal(path, _plain_optimal_path(g.copy(), c, switch)), trial
+            with_bone += bool((path >= 0).any() and (path < 0).any())
+    assert with_bone >= 60
+    # Costs that differ between -k and +k cannot be paired: refused.
+    with pytest.raises(ValueError, match="symmetric"):
+        _optimal_paths([np.zeros((3, 4), np.float32)] * 2, np.array([0.1, 0.0, 0.2]), 1.0)
 
 
 def test_frame_candidates_many_matches_one_by_one() -> None:

@@ -231,7 +231,8 @@ def _optimal_paths(
     """:func:`_optimal_path` of several gains at once (the same paths), one column loop for all.
 
     ``shift_cost``: one for all gains, or one per gain (each of odd size, shifts ``-d ..
-    d``; each gain's path is the one :func:`_optimal_path` finds with its own). Costs of
+    d``, symmetric as :func:`_path_steps` makes them; each gain's path is the one
+    :func:`_optimal_path` finds with its own). Costs of
     fewer shifts are padded to the most with ``+inf`` (a shift it cannot take scores
     ``-inf``, never the maximum: the same maxima).
 
@@ -255,6 +256,8 @@ def _optimal_paths(
         if isinstance(shift_cost, np.ndarray)
         else [np.asarray(c, dtype=float) for c in shift_cost]
     )
+    if not all(np.array_equal(c, c[::-1]) for c in costs):
+        raise ValueError("shift costs must be symmetric (the same cost for -k and +k rows)")
     n = max(c.size for c in costs)
     d = n // 2
     own = costs  # each gain's own costs (the backtrack's)
@@ -286,23 +289,32 @@ def _optimal_paths(
     run = m * hp - 2 * d  # positions d .. m hp - d of a column's run
     flat = score.reshape(wmax, m * hp)
     inner = flat[:, d : d + run]
-    win = sliding_window_view(flat, run, axis=1)  # win[c, s] = flat[c, s : s + run]
-    cand = np.empty((n + 1, run))
-    shifts = cand[:n]
-    from_null = cand[n]
+    # The shifts in pairs: -k and +k cost the same, and the larger of two scores less a
+    # cost is the larger score less the cost (rounding keeps order): the maxima of
+    # shifts 0 .. d, each the better of its pair, less their costs, are the same
+    # maxima (a third less arithmetic than every shift less its cost).
+    # cand[k]: shift 0 (k = 0) or the better of shifts -k, +k, less its cost; cand[d + 1]:
+    # from no-bone.
+    cand = np.empty((d + 2, run))
+    shifts = cand[: d + 1]
+    from_null = cand[d + 1]
     # Each position's cost per shift and no-bone score are its gain's.
-    cost = np.repeat(padded, hp, axis=1)[:, d : d + run]
+    cost = np.repeat(padded[d:], hp, axis=1)[:, d : d + run]
     best = np.empty(run)
     top = np.empty(m)
     null = np.zeros(m)
     null_before = np.zeros((wmax + 1, m))  # row c: each no-bone score before column c
     rose = np.zeros((wmax, m), dtype=bool)  # the no-bone score rose at column c
     from_null.fill(-switch)
-    subtract, reduce_max = np.subtract, np.maximum.reduce
+    subtract, reduce_max, maximum = np.subtract, np.maximum.reduce, np.maximum
     for c in range(1, wmax):
         null_before[c] = null
         reduce_max(score[c - 1], axis=1, out=top)
-        subtract(win[c - 1], cost, out=shifts)
+        prev = flat[c - 1]  # shift s of position q reads prev[q + d + s]
+        shifts[0] = prev[d : d + run]
+        for k in range(1, d + 1):
+            maximum(prev[d - k : d - k + run], prev[d + k : d + k + run], out=shifts[k])
+        subtract(shifts, cost, out=shifts)
         reduce_max(cand, axis=0, out=best)
         inner[c] += best
         up = top - switch > null

@@ -283,36 +283,47 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
     ep = ep.reshape(n_step, -1)
     best = np.empty(run)
     maximum, add = np.maximum, np.add
+    # barred[t][j]: the outward move by ms - j (j < ms) into step t is over some trace's
+    # limit there (most steps have none: a plain maximum).
+    barred = [[False] * ms for _ in range(n_step)]
     if up is not None:
         # Predecessor prev[q + j - ms] moves into q by ms - j (outward when positive):
         # allowed where j >= ms - up, per position of the run and step (j < ms only;
         # inward moves are never barred), as ``where=`` masks of the maxima.
         lim = np.repeat(ms - up.T, wp, axis=1)[:, ms : ms + run]  # (S, run)
         allowed = np.arange(ms)[:, None, None] >= lim[None]  # (ms, S, run)
+        barred = (np.arange(ms) < (ms - up).max(axis=0)[:, None]).tolist()
     for t in range(1, n_step):
         prev = acc[t - 1]  # predecessors of position q: prev[q - ms .. q + ms]
-        if up is None:
-            maximum(prev[:run], prev[1 : 1 + run], out=best)
-            for j in range(2, 2 * ms + 1):
-                maximum(best, prev[j : j + run], out=best)
-        else:
-            # The inward and straight moves first (never barred), then the outward ones
-            # where allowed: the same maxima, so the same scores.
-            maximum(prev[ms : ms + run], prev[ms + 1 : ms + 1 + run], out=best)
-            for j in range(ms + 2, 2 * ms + 1):
-                maximum(best, prev[j : j + run], out=best)
-            for j in range(ms):
+        # The inward and straight moves first (never barred), then the outward ones
+        # (where allowed): the same maxima, so the same scores.
+        maximum(prev[ms : ms + run], prev[ms + 1 : ms + 1 + run], out=best)
+        for j in range(ms + 2, 2 * ms + 1):
+            maximum(best, prev[j : j + run], out=best)
+        for j in range(ms):
+            if barred[t][j]:
                 maximum(best, prev[j : j + run], out=best, where=allowed[j, t])
+            else:
+                maximum(best, prev[j : j + run], out=best)
         add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
-    path = np.empty((n_tr, n_step), np.intp)
-    path[:, -1] = acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
-    moves = np.arange(2 * ms + 1)
+    # The backtrack: each trace's state as its position in a step's row of ``acc``; its
+    # predecessors at moves -ms .. ms, those over the step's outward limit at -inf.
+    pos = base + ms + acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
+    at_step = np.empty((n_step, n_tr), np.intp)
+    at_step[-1] = pos
+    moves = np.arange(-ms, ms + 1)
+    if up is not None:
+        over = np.where(moves < -up.T[:, :, None], -np.inf, 0.0)  # (S, T, moves)
+    at = np.empty((n_tr, moves.size), np.intp)
+    cand = np.empty((n_tr, moves.size))
     for t in range(n_step - 1, 0, -1):
-        at = (base + path[:, t])[:, None] + moves  # the predecessors, moves -ms .. ms
-        cand = acc[t - 1, at]
-        if up is not None:
-            cand = np.where(moves[None, :] < (ms - up[:, t])[:, None], -np.inf, cand)
-        path[:, t - 1] = path[:, t] + cand.argmax(axis=1) - ms
+        add(pos[:, None], moves, out=at)
+        np.take(acc[t - 1], at, out=cand)
+        if any(barred[t]):
+            cand += over[t]
+        pos = pos + cand.argmax(axis=1) - ms
+        at_step[t - 1] = pos
+    path = (at_step - (base + ms)).T
     return path
 
 
