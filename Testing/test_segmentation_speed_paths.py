@@ -20,6 +20,7 @@ from BoneUSRecon.Logic.segmentation import track
 from BoneUSRecon.Logic.segmentation.candidates import (
     _optimal_path,
     _optimal_paths,
+    _underside_profile,
     convex_part,
     frame_candidates,
     frame_candidates_many,
@@ -186,6 +187,36 @@ def test_optimal_paths_shifts_in_pairs_match_plain_loop() -> None:
     # Costs that differ between -k and +k cannot be paired: refused.
     with pytest.raises(ValueError, match="symmetric"):
         _optimal_paths([np.zeros((3, 4), np.float32)] * 2, np.array([0.1, 0.0, 0.2]), 1.0)
+
+
+def test_underside_profile_matches_plain_median() -> None:
+    # Branch speed3 (session 26): the shifted contour's values gathered by flat index.
+    # Against the plain 2-D index and np.median, on contours running off the image's
+    # top and bottom (clipped rows, NaN where most columns are outside), with and
+    # without ``only``, over and under 48 columns (every n-th column).
+    rng = np.random.default_rng(26)
+    for trial in range(200):
+        h, w = int(rng.integers(5, 60)), int(rng.integers(3, 120))
+        lr = rng.normal(size=(h, w)).astype(np.float32)
+        cols = np.sort(rng.choice(w, int(rng.integers(1, w + 1)), replace=False))
+        rows = rng.integers(-3, h + 3, cols.size).clip(0, h - 1)
+        reach = int(rng.integers(1, 12))
+        only = rng.choice(w, int(rng.integers(1, w + 1)), replace=False) if trial % 2 else None
+        c = {"cols": cols, "rows": rows}
+        fast = _underside_profile(lr, c, reach, only)
+        # Plain: the same columns, each shifted row read by a 2-D index, np.median.
+        m = np.isin(cols, only) if only is not None else np.ones(cols.size, bool)
+        pc, pr = cols[m], rows[m]
+        if pc.size > 48:
+            step = int(np.ceil(pc.size / 48))
+            pc, pr = pc[::step], pr[::step]
+        plain = np.full(2 * reach + 1, np.nan)
+        for i, k in enumerate(range(-reach, reach + 1)):
+            if pc.size and 2 * ((pr + k >= 0) & (pr + k < h)).sum() >= pc.size:
+                vals = lr[np.clip(pr + k, 0, h - 1), pc]
+                # The upper median of the sorted values, as the partition at size // 2.
+                plain[i] = float(np.sort(vals)[pc.size // 2])
+        assert np.array_equal(fast, plain, equal_nan=True), trial
 
 
 def test_frame_candidates_many_matches_one_by_one() -> None:

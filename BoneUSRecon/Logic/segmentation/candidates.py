@@ -592,7 +592,8 @@ def _underside_profile(
     k = np.arange(-reach, reach + 1)
     rr = rows[None, :] + k[:, None]
     # Rows past the image repeat its edge; the median is NaN where most of them are.
-    lw = lr[_clip_rows(rr, 0, h - 1), cols[None, :]]
+    # (Gathered by flat index: half the time of the 2-D fancy index, the same values.)
+    lw = np.ravel(lr).take(_clip_rows(rr, 0, h - 1) * lr.shape[1] + cols)
     mid = cols.size // 2
     lw.partition(mid, axis=1)  # a fresh gather: partitioned in place (no wrapper, no copy)
     prof = lw[:, mid].astype(float)

@@ -190,14 +190,18 @@ def _beam_edge(
     """:func:`_edge_ratio` along the beam: ``rows`` working rows above each pixel against
     as many below, ``gap`` rows clear of it either side, on an image of ``h`` rows
     (``sums``: :func:`_column_sums` of the frame, ``col`` the pixels' columns in it)."""
-    cu, cw = sums
     k, o = _beam_rows(rows, gap)
     a0, a1 = np.clip(row - o - k, 0, h), np.clip(row - o, 0, h)
     b0, b1 = np.minimum(row + 1 + o, h), np.minimum(row + 1 + o + k, h)
     na, nb = np.maximum(a1 - a0, 1), np.maximum(b1 - b0, 1)
-    cap = (cu[a1, col] - cu[a0, col]) / na
-    raw = (cw[a1, col] - cw[a0, col]) / na
-    below = (cw[b1, col] - cw[b0, col]) / nb
+    # The window ends as flat indices into the sums (a gather by flat index costs a
+    # third of a 2-D fancy index's; the same values), each shared by both sums.
+    n = sums[0].shape[1]
+    cu, cw = sums[0].ravel(), sums[1].ravel()
+    a0, a1, b0, b1 = (r * n + col for r in (a0, a1, b0, b1))
+    cap = (cu.take(a1) - cu.take(a0)) / na
+    raw = (cw.take(a1) - cw.take(a0)) / na
+    below = (cw.take(b1) - cw.take(b0)) / nb
     return _edge_ratio(raw, cap, below, dark)
 
 
@@ -481,10 +485,13 @@ def follow_rims(
     ne = nb + shift
     # ... and k1 samples further in, for the window inward of each sample.
     grid = off[0] + p.offset_mm * np.arange(-k1, ne + k1 + 1)
-    gx = cx[tr] + side[tr] * sin * (r0[tr, None] + grid)
-    gz = cz[tr] - cos * (r0[tr, None] + grid)
-    gi = gx / fx + (0.5 / ev.fx - 0.5)
-    gj = gz / fy + (0.5 / ev.fy - 0.5)
+    radius = r0[tr, None] + grid
+    gi = cx[tr] + side[tr] * sin * radius
+    gi /= fx
+    gi += 0.5 / ev.fx - 0.5
+    gj = cz[tr] - cos * radius
+    gj /= fy
+    gj += 0.5 / ev.fy - 0.5
     gvalid = (gi >= 0) & (gi <= ww - 1) & (gj >= 0) & (gj <= hw - 1)
     gvalid &= ev.usable[np.rint(np.clip(gi, 0, ww - 1)).astype(np.intp)]
     g = bilinear_at(ev.work, gi, gj)
@@ -554,9 +561,9 @@ def follow_rims(
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
     bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
     e[bad] = _BAD
-    e_live, e = e, np.full((n_t, n_step, ne), _BAD)
-    e[tr, st] = e_live
-    e = np.concatenate([e[..., :nb], e[..., shift : shift + nb]])  # traces, then nulls
+    e_live, e = e, np.full((2 * n_t, n_step, nb), _BAD)  # traces, then nulls
+    e[tr, st] = e_live[:, :nb]
+    e[n_t + tr, st] = e_live[:, shift : shift + nb]
     own_e = e[:n_t].copy()  # each step's own value, before the average along the trace
     run = max(1, int(round(p.run_mm / p.step_mm)))
     if run > 1:
