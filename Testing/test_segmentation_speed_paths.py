@@ -184,9 +184,11 @@ def test_optimal_paths_shifts_in_pairs_match_plain_loop() -> None:
             assert np.array_equal(path, _plain_optimal_path(g.copy(), c, switch)), trial
             with_bone += bool((path >= 0).any() and (path < 0).any())
     assert with_bone >= 60
-    # Costs that differ between -k and +k cannot be paired: refused.
-    with pytest.raises(ValueError, match="symmetric"):
-        _optimal_paths([np.zeros((3, 4), np.float32)] * 2, np.array([0.1, 0.0, 0.2]), 1.0)
+    # Costs that differ between -k and +k cannot be paired, and no shift is taken at its
+    # score itself: other costs are refused.
+    for cost in ([0.1, 0.0, 0.2], [0.1, 0.05, 0.1]):
+        with pytest.raises(ValueError, match="symmetric"):
+            _optimal_paths([np.zeros((3, 4), np.float32)] * 2, np.array(cost), 1.0)
 
 
 def test_underside_profile_matches_plain_median() -> None:

@@ -231,10 +231,10 @@ def _optimal_paths(
     """:func:`_optimal_path` of several gains at once (the same paths), one column loop for all.
 
     ``shift_cost``: one for all gains, or one per gain (each of odd size, shifts ``-d ..
-    d``, symmetric as :func:`_path_steps` makes them; each gain's path is the one
-    :func:`_optimal_path` finds with its own). Costs of
-    fewer shifts are padded to the most with ``+inf`` (a shift it cannot take scores
-    ``-inf``, never the maximum: the same maxima).
+    d``, symmetric and 0 for no shift, as :func:`_path_steps` makes them; each gain's
+    path is the one :func:`_optimal_path` finds with its own). Costs of fewer shifts
+    are padded to the most with ``+inf`` (a shift it cannot take scores ``-inf``, never
+    the maximum: the same maxima).
 
     The column loop of one ~150-row gain is bound by its ~6 numpy calls per column, not
     by the arithmetic; stacking the gains of several frames makes each call do the work
@@ -256,8 +256,8 @@ def _optimal_paths(
         if isinstance(shift_cost, np.ndarray)
         else [np.asarray(c, dtype=float) for c in shift_cost]
     )
-    if not all(np.array_equal(c, c[::-1]) for c in costs):
-        raise ValueError("shift costs must be symmetric (the same cost for -k and +k rows)")
+    if not all(np.array_equal(c, c[::-1]) and c[c.size // 2] == 0 for c in costs):
+        raise ValueError("shift costs must be symmetric (-k as +k rows) and 0 for no shift")
     n = max(c.size for c in costs)
     d = n // 2
     own = costs  # each gain's own costs (the backtrack's)
@@ -290,16 +290,16 @@ def _optimal_paths(
     flat = score.reshape(wmax, m * hp)
     inner = flat[:, d : d + run]
     # The shifts in pairs: -k and +k cost the same, and the larger of two scores less a
-    # cost is the larger score less the cost (rounding keeps order): the maxima of
-    # shifts 0 .. d, each the better of its pair, less their costs, are the same
-    # maxima (a third less arithmetic than every shift less its cost).
-    # cand[k]: shift 0 (k = 0) or the better of shifts -k, +k, less its cost; cand[d + 1]:
+    # cost is the larger score less the cost (rounding keeps order): the maxima of the
+    # better of each pair less its cost, of no shift (no cost: the score itself) and of
+    # leaving no-bone are the same maxima (a third less arithmetic than every shift
+    # less its cost). cand[k - 1]: the better of shifts -k, +k less its cost; cand[d]:
     # from no-bone.
-    cand = np.empty((d + 2, run))
-    shifts = cand[: d + 1]
-    from_null = cand[d + 1]
+    cand = np.empty((d + 1, run))
+    shifts = cand[:d]
+    from_null = cand[d]
     # Each position's cost per shift and no-bone score are its gain's.
-    cost = np.repeat(padded[d:], hp, axis=1)[:, d : d + run]
+    cost = np.repeat(padded[d + 1 :], hp, axis=1)[:, d : d + run]
     best = np.empty(run)
     top = np.empty(m)
     null = np.zeros(m)
@@ -311,11 +311,11 @@ def _optimal_paths(
         null_before[c] = null
         reduce_max(score[c - 1], axis=1, out=top)
         prev = flat[c - 1]  # shift s of position q reads prev[q + d + s]
-        shifts[0] = prev[d : d + run]
         for k in range(1, d + 1):
-            maximum(prev[d - k : d - k + run], prev[d + k : d + k + run], out=shifts[k])
+            maximum(prev[d - k : d - k + run], prev[d + k : d + k + run], out=shifts[k - 1])
         subtract(shifts, cost, out=shifts)
         reduce_max(cand, axis=0, out=best)
+        maximum(best, prev[d : d + run], out=best)
         inner[c] += best
         up = top - switch > null
         if up.any():

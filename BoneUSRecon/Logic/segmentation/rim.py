@@ -312,21 +312,20 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
         add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
     # The backtrack: each trace's state as its position in a step's row of ``acc``; its
     # predecessors at moves -ms .. ms, those over the step's outward limit at -inf.
-    pos = base + ms + acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
     at_step = np.empty((n_step, n_tr), np.intp)
-    at_step[-1] = pos
+    at_step[-1] = base + ms + acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
     moves = np.arange(-ms, ms + 1)
     if up is not None:
         over = np.where(moves < -up.T[:, :, None], -np.inf, 0.0)  # (S, T, moves)
     at = np.empty((n_tr, moves.size), np.intp)
     cand = np.empty((n_tr, moves.size))
     for t in range(n_step - 1, 0, -1):
-        add(pos[:, None], moves, out=at)
+        add(at_step[t, :, None], moves, out=at)
         np.take(acc[t - 1], at, out=cand)
         if any(barred[t]):
             cand += over[t]
-        pos = pos + cand.argmax(axis=1) - ms
-        at_step[t - 1] = pos
+        add(at_step[t], cand.argmax(axis=1), out=at_step[t - 1])
+        at_step[t - 1] -= ms
     path = (at_step - (base + ms)).T
     return path
 
