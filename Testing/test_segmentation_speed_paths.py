@@ -42,6 +42,7 @@ from BoneUSRecon.Logic.segmentation.rim import (
     _edge_ratio,
     _radius_paths,
 )
+from BoneUSRecon.Logic.segmentation.sampling import bilinear_at
 from BoneUSRecon.Logic.segmentation.settle import onset_z
 from BoneUSRecon.Logic.segmentation.track import (
     _in_plane_deviation,
@@ -219,6 +220,48 @@ def test_underside_profile_matches_plain_median() -> None:
                 # The upper median of the sorted values, as the partition at size // 2.
                 plain[i] = float(np.sort(vals)[pc.size // 2])
         assert np.array_equal(fast, plain, equal_nan=True), trial
+
+
+def _plain_bilinear_at(a: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """sampling.bilinear_at as it was before branch speed3 (each neighbour by indexing)."""
+    h, w = a.shape
+    x = np.clip(x, 0, w - 1.000001)
+    y = np.clip(y, 0, h - 1.000001)
+    x0, y0 = x.astype(np.intp), y.astype(np.intp)
+    x -= x0
+    y -= y0
+    i = y0 * w + x0
+    flat = a.ravel()
+    v00, v01, v10, v11 = flat[i], flat[i + 1], flat[i + w], flat[i + w + 1]
+    if flat.dtype.kind != "f":
+        v00, v01, v10, v11 = (c.astype(np.float32) for c in (v00, v01, v10, v11))
+    top = v01 - v00
+    top *= x
+    top += v00
+    bot = v11 - v10
+    bot *= x
+    bot += v10
+    bot -= top
+    bot *= y
+    bot += top
+    return bot
+
+
+def test_bilinear_at_matches_plain_indexing() -> None:
+    # Grey (uint8) and float images, points inside, on the last row and column and
+    # outside (clamped), of 1-D and 2-D shapes.
+    rng = np.random.default_rng(6)
+    for trial in range(100):
+        h, w = int(rng.integers(2, 30)), int(rng.integers(2, 30))
+        a = rng.integers(0, 256, (h, w)).astype(np.uint8)
+        a = a if trial % 2 else (a / 255.0).astype(np.float32)
+        shape = (int(rng.integers(1, 40)),) if trial % 3 else (5, int(rng.integers(1, 9)))
+        x = rng.uniform(-2.0, w + 1.0, shape)
+        y = rng.uniform(-2.0, h + 1.0, shape)
+        x.flat[0], y.flat[0] = w - 1.0, h - 1.0
+        fast = bilinear_at(a, x.copy(), y.copy())
+        assert fast.dtype == np.float32
+        assert np.array_equal(fast, _plain_bilinear_at(a, x.copy(), y.copy())), trial
 
 
 def test_frame_candidates_many_matches_one_by_one() -> None:
