@@ -276,6 +276,26 @@ def test_radius_paths_bar_outward_moves_over_the_limit(seed):
     assert np.array_equal(_radius_paths(e, 4, 2), _plain_radius_paths(e, 4, 2, np.full_like(up, 2)))
 
 
+def test_radius_paths_with_few_barred_steps_match_plain_loops():
+    # As in the rim: the limit is the full move (ms) at most steps, one sample fewer at
+    # a few of them for some traces (branch speed3, session 26: only those steps take
+    # the masked maxima and the masked backtrack). Ties (half steps), signed zeros and
+    # the rim's outside value; the same best paths as the loops above.
+    rng = np.random.default_rng(26)
+    for trial in range(60):
+        n_tr, n_step, nb, ms = 2 + trial % 5, 6 + trial % 13, 5 + trial % 9, 1 + trial % 3
+        e = np.round(rng.normal(size=(n_tr, n_step, nb)) * 2) / 2
+        e[rng.random(e.shape) < 0.05] = -0.0
+        e[rng.random(e.shape) < 0.05] = -1e3
+        up = np.full((n_tr, n_step), ms)
+        few = rng.random((n_tr, n_step)) < 0.1
+        up[few] = rng.integers(0, ms, few.sum())
+        start = int(rng.integers(0, nb))
+        path = _radius_paths(e, start, ms, up)
+        assert np.array_equal(path, _plain_radius_paths(e, start, ms, up)), trial
+        assert (np.diff(path, axis=1) <= up[:, 1:]).all()
+
+
 def bullet_frame(seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A bone narrower at its top than below: an arc of 3 mm radius to 60 degrees each
     side, then straight flanks at 60 degrees for 9 mm (a humerus's or a crest's section;

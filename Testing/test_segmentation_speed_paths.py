@@ -12,6 +12,7 @@ stretches).
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import median_filter
 
@@ -19,6 +20,7 @@ from BoneUSRecon.Logic.segmentation import track
 from BoneUSRecon.Logic.segmentation.candidates import (
     _optimal_path,
     _optimal_paths,
+    _underside_profile,
     convex_part,
     frame_candidates,
     frame_candidates_many,
@@ -40,6 +42,7 @@ from BoneUSRecon.Logic.segmentation.rim import (
     _edge_ratio,
     _radius_paths,
 )
+from BoneUSRecon.Logic.segmentation.sampling import bilinear_at
 from BoneUSRecon.Logic.segmentation.settle import onset_z
 from BoneUSRecon.Logic.segmentation.track import (
     _in_plane_deviation,
@@ -156,6 +159,109 @@ def test_optimal_paths_with_own_costs_match_plain_loop() -> None:
             assert np.array_equal(path, _optimal_path(g.copy(), c, switch)), trial
             with_bone += bool((path >= 0).any() and (path < 0).any())
     assert with_bone >= 40
+
+
+def test_optimal_paths_shifts_in_pairs_match_plain_loop() -> None:
+    # Branch speed3 (session 26): each column takes the better of shifts -k and +k, then
+    # subtracts their one cost. As in a batch of the pipeline: 9 and 7 shifts mixed
+    # (one shift count padded with +inf), many exact ties (quarter steps), exact zeros
+    # of both signs in the gains, long no-bone stretches, and one scratch for all trials.
+    rng = np.random.default_rng(17)
+    scratch: dict = {}
+    with_bone = 0
+    for trial in range(40):
+        switch = float(rng.choice([0.5, 1.0]))
+        gains, costs = [], []
+        for _ in range(int(rng.integers(3, 9))):
+            h, w = int(rng.integers(2, 30)), int(rng.integers(2, 50))
+            gain = np.round(rng.normal(-0.3, 1.0, (h, w)) * 4) / 4
+            gain[:, rng.random(w) < 0.3] = -1.0
+            gain[rng.random((h, w)) < 0.05] = -0.0
+            gains.append(gain.astype(np.float32))
+            k = int(rng.choice([3, 4]))
+            costs.append(0.015 * np.arange(-k, k + 1) ** 2.0)
+        batch = _optimal_paths([g.copy() for g in gains], costs, switch, scratch)
+        for g, c, path in zip(gains, costs, batch, strict=True):
+            assert np.array_equal(path, _plain_optimal_path(g.copy(), c, switch)), trial
+            with_bone += bool((path >= 0).any() and (path < 0).any())
+    assert with_bone >= 60
+    # Costs that differ between -k and +k cannot be paired, and no shift is taken at its
+    # score itself: other costs are refused.
+    for cost in ([0.1, 0.0, 0.2], [0.1, 0.05, 0.1]):
+        with pytest.raises(ValueError, match="symmetric"):
+            _optimal_paths([np.zeros((3, 4), np.float32)] * 2, np.array(cost), 1.0)
+
+
+def test_underside_profile_matches_plain_median() -> None:
+    # Branch speed3 (session 26): the shifted contour's values gathered by flat index.
+    # Against the plain 2-D index and np.median, on contours running off the image's
+    # top and bottom (clipped rows, NaN where most columns are outside), with and
+    # without ``only``, over and under 48 columns (every n-th column).
+    rng = np.random.default_rng(26)
+    for trial in range(200):
+        h, w = int(rng.integers(5, 60)), int(rng.integers(3, 120))
+        lr = rng.normal(size=(h, w)).astype(np.float32)
+        cols = np.sort(rng.choice(w, int(rng.integers(1, w + 1)), replace=False))
+        rows = rng.integers(-3, h + 3, cols.size).clip(0, h - 1)
+        reach = int(rng.integers(1, 12))
+        only = rng.choice(w, int(rng.integers(1, w + 1)), replace=False) if trial % 2 else None
+        c = {"cols": cols, "rows": rows}
+        fast = _underside_profile(lr, c, reach, only)
+        # Plain: the same columns, each shifted row read by a 2-D index, np.median.
+        m = np.isin(cols, only) if only is not None else np.ones(cols.size, bool)
+        pc, pr = cols[m], rows[m]
+        if pc.size > 48:
+            step = int(np.ceil(pc.size / 48))
+            pc, pr = pc[::step], pr[::step]
+        plain = np.full(2 * reach + 1, np.nan)
+        for i, k in enumerate(range(-reach, reach + 1)):
+            if pc.size and 2 * ((pr + k >= 0) & (pr + k < h)).sum() >= pc.size:
+                vals = lr[np.clip(pr + k, 0, h - 1), pc]
+                # The upper median of the sorted values, as the partition at size // 2.
+                plain[i] = float(np.sort(vals)[pc.size // 2])
+        assert np.array_equal(fast, plain, equal_nan=True), trial
+
+
+def _plain_bilinear_at(a: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """sampling.bilinear_at as it was before branch speed3 (each neighbour by indexing)."""
+    h, w = a.shape
+    x = np.clip(x, 0, w - 1.000001)
+    y = np.clip(y, 0, h - 1.000001)
+    x0, y0 = x.astype(np.intp), y.astype(np.intp)
+    x -= x0
+    y -= y0
+    i = y0 * w + x0
+    flat = a.ravel()
+    v00, v01, v10, v11 = flat[i], flat[i + 1], flat[i + w], flat[i + w + 1]
+    if flat.dtype.kind != "f":
+        v00, v01, v10, v11 = (c.astype(np.float32) for c in (v00, v01, v10, v11))
+    top = v01 - v00
+    top *= x
+    top += v00
+    bot = v11 - v10
+    bot *= x
+    bot += v10
+    bot -= top
+    bot *= y
+    bot += top
+    return bot
+
+
+def test_bilinear_at_matches_plain_indexing() -> None:
+    # Grey (uint8) and float images, points inside, on the last row and column and
+    # outside (clamped), of 1-D and 2-D shapes.
+    rng = np.random.default_rng(6)
+    for trial in range(100):
+        h, w = int(rng.integers(2, 30)), int(rng.integers(2, 30))
+        a = rng.integers(0, 256, (h, w)).astype(np.uint8)
+        a = a if trial % 2 else (a / 255.0).astype(np.float32)
+        shape = (int(rng.integers(1, 40)),) if trial % 3 else (5, int(rng.integers(1, 9)))
+        x = rng.uniform(-2.0, w + 1.0, shape)
+        y = rng.uniform(-2.0, h + 1.0, shape)
+        x.flat[0], y.flat[0] = w - 1.0, h - 1.0
+        fast = bilinear_at(a, x.copy(), y.copy())
+        assert fast.dtype == np.float32
+        assert np.array_equal(fast, _plain_bilinear_at(a, x.copy(), y.copy())), trial
 
 
 def test_frame_candidates_many_matches_one_by_one() -> None:

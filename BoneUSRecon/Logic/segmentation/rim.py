@@ -190,14 +190,18 @@ def _beam_edge(
     """:func:`_edge_ratio` along the beam: ``rows`` working rows above each pixel against
     as many below, ``gap`` rows clear of it either side, on an image of ``h`` rows
     (``sums``: :func:`_column_sums` of the frame, ``col`` the pixels' columns in it)."""
-    cu, cw = sums
     k, o = _beam_rows(rows, gap)
     a0, a1 = np.clip(row - o - k, 0, h), np.clip(row - o, 0, h)
     b0, b1 = np.minimum(row + 1 + o, h), np.minimum(row + 1 + o + k, h)
     na, nb = np.maximum(a1 - a0, 1), np.maximum(b1 - b0, 1)
-    cap = (cu[a1, col] - cu[a0, col]) / na
-    raw = (cw[a1, col] - cw[a0, col]) / na
-    below = (cw[b1, col] - cw[b0, col]) / nb
+    # The window ends as flat indices into the sums (a gather by flat index costs a
+    # third of a 2-D fancy index's; the same values), each shared by both sums.
+    n = sums[0].shape[1]
+    cu, cw = sums[0].ravel(), sums[1].ravel()
+    a0, a1, b0, b1 = (r * n + col for r in (a0, a1, b0, b1))
+    cap = (cu.take(a1) - cu.take(a0)) / na
+    raw = (cw.take(a1) - cw.take(a0)) / na
+    below = (cw.take(b1) - cw.take(b0)) / nb
     return _edge_ratio(raw, cap, below, dark)
 
 
@@ -283,36 +287,46 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
     ep = ep.reshape(n_step, -1)
     best = np.empty(run)
     maximum, add = np.maximum, np.add
+    # barred[t][j]: the outward move by ms - j (j < ms) into step t is over some trace's
+    # limit there (most steps have none: a plain maximum).
+    barred = [[False] * ms for _ in range(n_step)]
     if up is not None:
         # Predecessor prev[q + j - ms] moves into q by ms - j (outward when positive):
         # allowed where j >= ms - up, per position of the run and step (j < ms only;
         # inward moves are never barred), as ``where=`` masks of the maxima.
         lim = np.repeat(ms - up.T, wp, axis=1)[:, ms : ms + run]  # (S, run)
         allowed = np.arange(ms)[:, None, None] >= lim[None]  # (ms, S, run)
+        barred = (np.arange(ms) < (ms - up).max(axis=0)[:, None]).tolist()
     for t in range(1, n_step):
         prev = acc[t - 1]  # predecessors of position q: prev[q - ms .. q + ms]
-        if up is None:
-            maximum(prev[:run], prev[1 : 1 + run], out=best)
-            for j in range(2, 2 * ms + 1):
-                maximum(best, prev[j : j + run], out=best)
-        else:
-            # The inward and straight moves first (never barred), then the outward ones
-            # where allowed: the same maxima, so the same scores.
-            maximum(prev[ms : ms + run], prev[ms + 1 : ms + 1 + run], out=best)
-            for j in range(ms + 2, 2 * ms + 1):
-                maximum(best, prev[j : j + run], out=best)
-            for j in range(ms):
+        # The inward and straight moves first (never barred), then the outward ones
+        # (where allowed): the same maxima, so the same scores.
+        maximum(prev[ms : ms + run], prev[ms + 1 : ms + 1 + run], out=best)
+        for j in range(ms + 2, 2 * ms + 1):
+            maximum(best, prev[j : j + run], out=best)
+        for j in range(ms):
+            if barred[t][j]:
                 maximum(best, prev[j : j + run], out=best, where=allowed[j, t])
+            else:
+                maximum(best, prev[j : j + run], out=best)
         add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
-    path = np.empty((n_tr, n_step), np.intp)
-    path[:, -1] = acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
-    moves = np.arange(2 * ms + 1)
+    # The backtrack: each trace's state as its position in a step's row of ``acc``; its
+    # predecessors at moves -ms .. ms, those over the step's outward limit at -inf.
+    at_step = np.empty((n_step, n_tr), np.intp)
+    at_step[-1] = base + ms + acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
+    moves = np.arange(-ms, ms + 1)
+    if up is not None:
+        over = np.where(moves < -up.T[:, :, None], -np.inf, 0.0)  # (S, T, moves)
+    at = np.empty((n_tr, moves.size), np.intp)
+    cand = np.empty((n_tr, moves.size))
     for t in range(n_step - 1, 0, -1):
-        at = (base + path[:, t])[:, None] + moves  # the predecessors, moves -ms .. ms
-        cand = acc[t - 1, at]
-        if up is not None:
-            cand = np.where(moves[None, :] < (ms - up[:, t])[:, None], -np.inf, cand)
-        path[:, t - 1] = path[:, t] + cand.argmax(axis=1) - ms
+        add(at_step[t, :, None], moves, out=at)
+        np.take(acc[t - 1], at, out=cand)
+        if any(barred[t]):
+            cand += over[t]
+        add(at_step[t], cand.argmax(axis=1), out=at_step[t - 1])
+        at_step[t - 1] -= ms
+    path = (at_step - (base + ms)).T
     return path
 
 
@@ -469,10 +483,13 @@ def follow_rims(
     ne = nb + shift
     # ... and k1 samples further in, for the window inward of each sample.
     grid = off[0] + p.offset_mm * np.arange(-k1, ne + k1 + 1)
-    gx = cx[tr] + side[tr] * sin * (r0[tr, None] + grid)
-    gz = cz[tr] - cos * (r0[tr, None] + grid)
-    gi = gx / fx + (0.5 / ev.fx - 0.5)
-    gj = gz / fy + (0.5 / ev.fy - 0.5)
+    radius = r0[tr, None] + grid
+    gi = cx[tr] + side[tr] * sin * radius
+    gi /= fx
+    gi += 0.5 / ev.fx - 0.5
+    gj = cz[tr] - cos * radius
+    gj /= fy
+    gj += 0.5 / ev.fy - 0.5
     gvalid = (gi >= 0) & (gi <= ww - 1) & (gj >= 0) & (gj <= hw - 1)
     gvalid &= ev.usable[np.rint(np.clip(gi, 0, ww - 1)).astype(np.intp)]
     g = bilinear_at(ev.work, gi, gj)
@@ -559,9 +576,9 @@ def follow_rims(
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
     bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
     e[bad] = _BAD
-    e_live, e = e, np.full((n_t, n_step, ne), _BAD)
-    e[tr, st] = e_live
-    e = np.concatenate([e[..., :nb], e[..., shift : shift + nb]])  # traces, then nulls
+    e_live, e = e, np.full((2 * n_t, n_step, nb), _BAD)  # traces, then nulls
+    e[tr, st] = e_live[:, :nb]
+    e[n_t + tr, st] = e_live[:, shift : shift + nb]
     own_e = e[:n_t].copy()  # each step's own value, before the average along the trace
     run = max(1, int(round(p.run_mm / p.step_mm)))
     if run > 1:
