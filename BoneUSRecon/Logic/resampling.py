@@ -15,9 +15,10 @@ slices (0.2-2 mm, up to 20 mm in the paper), so they are put on a regular grid f
    direction). A straight line, as in the paper, cannot follow the S-shaped clavicle
    (its axis bends by several millimetres over the sweep), so rays from a line would
    start off-centre and hit the contour at inconsistent angles; the spline follows
-   the bend while its bandwidth (``axis_bandwidth_mm``, 5 mm) keeps it
+   the bend while its bandwidth (``axis_bandwidth_mm``, 10 mm) keeps it
    smooth. Frames whose centres come from false contours are down-weighted by
-   iteratively reweighted fitting (Huber, then Tukey) so they do not pull the axis.
+   iteratively reweighted fitting (Huber, then Tukey; gross outliers from the running
+   median of their neighbours left out of the first fit) so they do not pull the axis.
 3. ``c(i)`` is **updated** to where the axis crosses slice ``i``'s plane (Newton on
    the spline parameter, all slices at once).
 4. **Rays**: ``n`` rays in the slice plane from ``c(i)`` at regular angles. Angles
@@ -39,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import BSpline
+from scipy.ndimage import median_filter
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.params_check import check_fields
@@ -92,9 +94,13 @@ class ResamplingParams:
         ``"line"`` (robust straight line, the paper's choice).
     axis_bandwidth_mm : float
         Smoothing bandwidth of the spline axis (mm along the sweep): bends shorter than
-        this are smoothed out. 5 mm: bones bend over several centimetres (a 3 mm bend
-        over 60 mm is followed to 0.1 mm), while centre noise and false contours change
-        from one frame to the next (our choice).
+        this are smoothed out. 10 mm: bones bend over several centimetres, while centre
+        noise and false contours change from one frame to the next (our choice; the
+        circle centres of faint or crest-shaped contours scatter by several mm from
+        frame to frame on the hard simulated sweeps, and at 5 mm the axis followed
+        them: over the lead's harness sweeps the surface's gold distance went 0.334 ->
+        0.313 mm (seeds 53, 59) and 0.264 -> 0.256 mm (61, 67) from 5 to 10 mm, the
+        L14 recording's 0.333 -> 0.337 mm and its cadaver-level copy's 1.648 -> 1.619).
     min_radius_mm, max_radius_mm : float
         Accepted range of the circle fit's radius (mm); outside it the chord fallback
         is used. 1-40 mm spans the cross-sections of the long bones in question.
@@ -110,7 +116,7 @@ class ResamplingParams:
     auto_span_quantile: float = 0.0
     rays: str = "fixed"
     axis: str = "spline"
-    axis_bandwidth_mm: float = 5.0
+    axis_bandwidth_mm: float = 10.0
     min_radius_mm: float = 1.0
     max_radius_mm: float = 40.0
     max_gap_mm: float = 3.0
@@ -266,7 +272,18 @@ def _fit_axis(
     Returns a callable ``f(t, nu=0) -> (m, 3)`` and the final per-slice weights.
     """
     m = t.size
-    w = np.ones(m)
+    # Gross outliers left out of the first fit: centres farther from the running median
+    # of their neighbours (5 slices) than Tukey's cut-off (4.685 robust spreads). With
+    # knots every bandwidth and a slice every few mm the spline has nearly a degree of
+    # freedom per centre, so an unweighted first fit follows an outlying centre, its
+    # neighbours take the residual, and the robust weights then reject the good centres
+    # beside it (standard clavicle, seed 53: one frame's contour 7 points shorter and
+    # the axis bent to a centre 9 mm off; the surface's gold distance 0.18 -> 0.43 mm).
+    # Only gross ones: down-weighting the others too (Huber) changed clean sweeps' fits.
+    r0 = np.linalg.norm(c - median_filter(c, size=(min(5, m), 1), mode="nearest"), axis=1)
+    w = (r0 < 4.685 * mad_scale(r0, floor=0.3, empty=1.0)).astype(float)
+    if (w > 0).sum() < max(3, m // 4):
+        w = np.ones(m)
     length = max(float(t[-1] - t[0]), 1e-6)
     use_line = params.axis == "line" or m < 5
     if not use_line:
