@@ -184,3 +184,40 @@ def test_recover_frames_searches_only_between_track_frames():
         frames, choice, sw.image_to_reference, image_of, params=RecoveryParams(enabled=False)
     )
     assert none == [] and calls == [] and all(a is b for a, b in zip(same, frames, strict=True))
+
+
+def _grey(bone: str, seed: int):
+    return small_simulation(bone=bone, seed=seed, realism="hard", hard_conditions=("grey_shadow",))
+
+
+def test_guided_search_between_track_frames_finds_a_top_over_reverberation_bands():
+    """Radius under the grey shadow, seed 71 (unseen; the lead's harness, session 26):
+    in frames 2, 3, 6, 7, 14 and 37 the per-frame step offers only the first
+    reverberation copy (2.2-2.4 mm under the top) and the far cortex, and the guided
+    search found no run: over the dome the shadow windows hold the bands, the shadow
+    z-score reads the tissue level and the score stays under ``null_z``. Searched again
+    with the gate open from the tissue level on where both sides vouch and the frame's
+    own score holds no run (:func:`.recovery.vouched_evidence`), they are recovered on
+    the bone: recall 0.85 -> 1.00, no wrong frame (measured medians 0.02-0.03 mm)."""
+    sim = _grey("radius", 71)
+    result = segment_sweep(sim.sweep)
+    score = score_simulation(result, sim)
+    assert score.recall >= 0.95  # measured 1.00 (0.85 before)
+    assert score.wrong_share == 0.0
+    by_frame = {f.frame: f for f in score.frames}
+    for k in (2, 3, 6, 7, 14, 37):
+        assert by_frame[k].on_bone, k
+    # Frame 14 alone: the track's neighbours (13 and 15) vouch, the guided contour lies
+    # on the true top (measured 0.03 mm; the frame's own candidate, the far cortex, 8.6).
+    frames, choice = _first_track(sim)
+    assert choice.chosen[14] < 0
+    prior = track_prior(frames, choice, sim.sweep.image_to_reference, 14, 9)
+    assert prior is not None and len(prior) == 2
+    cand = guided_candidate(sim.sweep.frames[14], sim.sweep.spacing_mm, prior)
+    assert cand is not None
+    d = sim.distance_to_truth(sim.sweep.to_reference(14, cand.points_px))
+    assert np.median(d) < 0.3
+    # The same prior 4 mm up, in the soft tissue, still finds nothing: the gate opens
+    # at the tissue level, and speckle holds no run over half the band.
+    moved = [(lat, depth - 4.0, z) for lat, depth, z in prior]
+    assert guided_candidate(sim.sweep.frames[14], sim.sweep.spacing_mm, moved) is None

@@ -21,6 +21,11 @@ the guided contour is linked, valued and judged like any other: it joins the tra
 only if it links within tolerance to both sides and carries evidence above the null
 level along at least ``min_share`` of the band.
 
+Between two track frames the frame's own shadow is not asked to prove the bone anew
+where the search on its score finds nothing: a second search opens the shadow gate
+from the tissue level on (:func:`vouched_evidence`), for a top over a grey shadow whose
+reverberation bands read at the tissue level under it.
+
 Why it generalises: nothing here reads a grey level. The band is the track's own
 continuity tolerance, the evidence is the frame's robust z-scores (:mod:`.evidence`),
 and the share is of the columns the neighbours' bone spans in this frame. Between
@@ -85,6 +90,7 @@ __all__ = [
     "prior_frames",
     "track_prior",
     "guided_candidate",
+    "vouched_evidence",
     "recover_frame",
     "recover_frames",
     "stray",
@@ -218,6 +224,11 @@ def guided_candidate(
     0.5 mm of it (0.40 and 0.15 mm with the nearer band). No grey level and no new
     constant: the band is the nearer link's own tolerance.
 
+    Where the frame's own score holds no such run and a track frame on each side
+    vouches for the bone, the band is searched again on :func:`vouched_evidence` (the
+    shadow gate open from the tissue level on): a top over a grey shadow whose
+    reverberation bands fill the shadow windows (see there).
+
     ``evidence``: the frame's :func:`.evidence.bone_evidence` with ``shadowpath``, if
     the caller kept it (the same result; None: computed here).
     """
@@ -227,6 +238,32 @@ def guided_candidate(
     ev = bone_evidence(img, spc, sp) if evidence is None else evidence
     if ev is None:
         return None
+    found = _guided_in_band(img, spc, ev, prior, sp, rp, min_share, max_offset)
+    if found is None and len(prior) > 1:
+        # Nothing on the frame's own score, and a track frame on each side vouches for
+        # the bone's shadow: searched again asking only that the frame's shadow not
+        # refute it (:func:`vouched_evidence`). What that search finds counts only if
+        # the gate is what hid it: its shadow, on median, short of the gate's full
+        # opening (over a shadow the frame proves, the echo alone did not pay off).
+        found = _guided_in_band(
+            img, spc, vouched_evidence(ev, sp), prior, sp, rp, min_share, max_offset
+        )
+        if found is not None and not found.shadow_z < sp.shadow_z_full:
+            found = None
+    return found
+
+
+def _guided_in_band(
+    img: np.ndarray,
+    spc: tuple[float, float],
+    ev: EvidenceMaps,
+    prior: Prior,
+    sp: ShadowPathParams,
+    rp: RejectionParams,
+    min_share: float,
+    max_offset: float,
+) -> BoneCandidate | None:
+    """:func:`guided_candidate`'s search on the evidence maps ``ev`` (its score read)."""
     h, w = ev.score.shape
     # Working-grid centres in mm (the same mapping as :func:`.candidates._refine`).
     xw = ((np.arange(w) + 0.5) * ev.fx - 0.5) * spc[0]
@@ -304,6 +341,52 @@ def guided_candidate(
         guided=True,
     )
     return extend_candidates(img, ev, [cand], spc, sp.flanks, sp.rim)[0]
+
+
+def vouched_evidence(ev: EvidenceMaps, shadowpath: ShadowPathParams) -> EvidenceMaps:
+    """``ev`` with its score's shadow gate fully open from the tissue level on.
+
+    The per-frame score is the echo z-score times a shadow gate rising from 0 at
+    ``shadow_z_zero`` (brighter than the tissue beside: tissue under a layer) to 1 at
+    ``shadow_z_full`` (darker: a shadow proven in the frame itself). Here the gate
+    rises over the lower half of that range only, to 1 at the shadow's null centre
+    (z = 0, the tissue at that depth): darker-than-tissue is no longer asked of the
+    frame, brighter-than-tissue still closes the gate as before.
+
+    Used by :func:`guided_candidate`, where a track frame on each side vouches for the
+    bone and the search on the frame's own score found nothing: the neighbours'
+    contours were chosen on their own frames' shadow, and what is left to ask of this
+    frame is where its echo runs in the band and that no layer with tissue beneath it
+    takes its place. A contour so found is kept only if its median shadow z-score is
+    under ``shadow_z_full`` (the gate is what hid it; over a shadow the frame proves,
+    the echo alone did not pay off: a prior moved 2-4 mm up into the tissue over the
+    hard tibia, seed 7, found such a run 2-3 mm off the bone, shadow z 1.5-1.8, echo
+    z 0.8-1.0; the tops found over the grey shadow had shadow z -0.34..0.46 and echo
+    z 1.26-1.62, 17 frames of 6 sweeps). Why the frame's own shadow cannot be asked
+    for more: under a grey shadow (0.65 of the tissue beside, filled with equally spaced
+    reverberation bands and the far cortex's echo), a specular top sends its
+    reverberation copies down the columns right under it, so the shadow windows under
+    the top read at the tissue level. Measured on the lead's harness, S radius grey
+    seed 71 and S clavicle grey seed 73 (160 x 128): along the true top of the frames
+    the track skipped the shadow z-score was -0.7..0.3 over the dome (median -0.1 to
+    0.1), the echo z-score 1.3-1.9, so the score (0.3-0.7) stayed under ``null_z``
+    and the guided search found no run, though the track's interpolated contour lay
+    within 0.04-0.07 mm (median) of the true top; the frame's own candidates were the
+    first reverberation copy (2.2-2.4 mm under the top) and the far cortex. No grey
+    level and no new constant: the gate's own ends and the null's centre.
+    """
+    lo = float(shadowpath.shadow_z_zero)
+    hi = float(shadowpath.shadow_z_full)
+    if not lo < 0.0 < hi:  # the tissue level is not inside the gate's ramp
+        return ev
+    sz = ev.shadow_z
+    gate = np.clip((sz - np.float32(lo)) / np.float32(hi - lo), 0, 1)
+    vouched = np.clip((sz - np.float32(lo)) / np.float32(-lo), 0, 1)
+    # The score divided by its gate and multiplied by the vouched one (score is 0 where
+    # the gate is: both gates close at the same z), capped as the score is.
+    score = np.divide(ev.score * vouched, gate, out=np.zeros_like(ev.score), where=gate > 0)
+    np.minimum(score, np.float32(shadowpath.max_z), out=score)
+    return replace(ev, score=score.astype(np.float32, copy=False))
 
 
 def recover_frames(
