@@ -259,7 +259,11 @@ def _robust_scale(x: np.ndarray, valid: np.ndarray) -> tuple[float, float] | Non
     """Median of ``x`` over ``valid`` and 1.4826 x its median absolute deviation (the
     spread, at least 1e-3); None when fewer than 10 pixels are sampled."""
     # Every 3rd valid pixel is plenty for a median (and 3x faster on the hot path).
-    v = x[valid][::3]
+    return _scale_of(x[valid][::3])
+
+
+def _scale_of(v: np.ndarray) -> tuple[float, float] | None:
+    """:func:`_robust_scale` of an already gathered sample ``v``."""
     if v.size < 10:
         return None
     med = median1d(v)
@@ -280,11 +284,12 @@ def _shadow_scale(
     much as it lies over ``tolerance`` spreads above the centre of a normal fitted to
     the lower tail (the 10th and 25th percentiles), where no shadow reaches.
     """
-    ms = _robust_scale(log_s, valid)
+    v = log_s[valid][::3]  # the sample _robust_scale takes
+    ms = _scale_of(v)
     if ms is None:
         return None
     med, spread = ms
-    q10, q25 = np.percentile(log_s[valid][::3], (10.0, 25.0))
+    q10, q25 = np.percentile(v, (10.0, 25.0))
     sigma = (q25 - q10) / (_Z25 - _Z10)
     centre = float(q25 - _Z25 * sigma)
     return med - max(0.0, med - centre - tolerance * spread), spread
