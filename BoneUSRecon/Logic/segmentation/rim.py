@@ -511,8 +511,8 @@ def follow_rims(
     shaded = (own_edge > _MIN_LEVEL)[tr]
     edge_won = None
     if shaded.any():
-        s_ = np.flatnonzero(shaded)
-        s_ = slice(None) if s_.size == shaded.size else s_
+        s_idx = np.flatnonzero(shaded)
+        s_ = slice(None) if s_idx.size == shaded.size else s_idx
         gi_s, gj_s = gi[s_], gj[s_]
         # Along the beam: each point on its nearest working pixel (the measures once
         # per pixel, on the sums of the pixels' columns down to the deepest window).
@@ -549,9 +549,11 @@ def follow_rims(
             # among the shaded: the others' scores are the line's alone.)
             f = np.flatnonzero(use_edge[shaded, 0])
             f = slice(None) if f.size == e_s.shape[0] else f
-            cs_f, gj_f = cs[s_][f], gj_s[f]
+            # The faint steps among all live steps (f: among the shaded ones).
+            fi = s_ if isinstance(f, slice) else s_idx[f]
+            cs_f, gj_f = cs[fi], gj[fi]
             cap = np.zeros_like(cs_f)
-            np.cumsum(_capped(g[s_][f], gj_f, ev.tissue_beside), axis=-1, out=cap[..., 1:])
+            np.cumsum(_capped(g[fi], gj_f, ev.tissue_beside), axis=-1, out=cap[..., 1:])
             edge = _edge_ratio(
                 _window_mean(cs_f, k1, 1, ke, ne, 1),
                 _window_mean(cap, k1, 1, ke, ne, 1),
@@ -563,12 +565,12 @@ def follow_rims(
             # its shadow has the bone's shadow over it too: no outline there (on the hard
             # simulated radius, seed 43, a trace ran on down the shadow's side 5 mm off
             # the bone).
-            beam = _beam_edge(sums, row, col, hw, p.edge_mm / ev.dy, dark)[at][f]
+            beam = _beam_edge(sums, row, col, hw, p.edge_mm / ev.dy, dark)[at[f]]
             np.minimum(edge, beam, out=edge)
-            edge /= own_edge[tr[s_][f], None]
+            tf, sf = tr[fi], st[fi]
+            edge /= own_edge[tf, None]
             e_f = e_s[f]
             edge_won = np.zeros((n_t, n_step, nb), bool)
-            tf, sf = tr[s_][f], st[s_][f]
             edge_won[tf, sf] = edge[..., :nb] > e_f[..., :nb]
             e_s[f] = np.maximum(e_f, edge)
         e[s_] = e_s
