@@ -429,6 +429,16 @@ def _withhold_gap_shade(
     shadow_z[rows[:, None], gc[None, :]] -= shade.astype(shadow_z.dtype)
 
 
+def shadow_gate(shadow_z: np.ndarray, zero: float, full: float) -> np.ndarray:
+    """The shadow gate: 0 at or under the shadow z-score ``zero``, rising linearly to 1
+    at ``full`` and over (float32, as the score)."""
+    lo, hi = np.float32(zero), np.float32(full)
+    gate = shadow_z - lo
+    gate /= hi - lo
+    np.clip(gate, 0, 1, out=gate)
+    return gate
+
+
 def bone_evidence(
     image: np.ndarray,
     spacing: tuple[float, float],
@@ -538,10 +548,7 @@ def bone_evidence(
     covered = (m_cov >= p.cover_ratio * t_cov) | ~judged
     # Shadow gate: 0 where the region below is brighter than the tissue at its depth
     # (tissue, not shadow, under a fascia), 1 where it is clearly darker.
-    lo, hi = np.float32(p.shadow_z_zero), np.float32(p.shadow_z_full)
-    gate = shadow_z - lo
-    gate /= hi - lo
-    np.clip(gate, 0, 1, out=gate)
+    gate = shadow_gate(shadow_z, p.shadow_z_zero, p.shadow_z_full)
     score = np.maximum(echo_z, 0)
     score *= gate
     if p.phase_weight > 0:

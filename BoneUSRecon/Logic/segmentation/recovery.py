@@ -72,7 +72,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     _underside_step,
 )
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
-from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
+from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence, shadow_gate
 from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import (
@@ -379,9 +379,8 @@ def vouched_evidence(ev: EvidenceMaps, shadowpath: ShadowPathParams) -> Evidence
     hi = float(shadowpath.shadow_z_full)
     if not lo < 0.0 < hi:  # the tissue level is not inside the gate's ramp
         return ev
-    sz = ev.shadow_z
-    gate = np.clip((sz - np.float32(lo)) / np.float32(hi - lo), 0, 1)
-    vouched = np.clip((sz - np.float32(lo)) / np.float32(-lo), 0, 1)
+    gate = shadow_gate(ev.shadow_z, lo, hi)
+    vouched = shadow_gate(ev.shadow_z, lo, 0.0)
     # The score divided by its gate and multiplied by the vouched one (score is 0 where
     # the gate is: both gates close at the same z), capped as the score is.
     score = np.divide(ev.score * vouched, gate, out=np.zeros_like(ev.score), where=gate > 0)
