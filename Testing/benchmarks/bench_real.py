@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.evaluation import evaluate_surface
 from BoneUSRecon.Logic.pipeline import ReconstructionParams, reconstruction_from_segmentation
 from BoneUSRecon.Logic.segmentation import segment_frame, segment_sweep
@@ -123,7 +124,11 @@ def reconstruction_against_reference(sw: Sweep, r: SegmentationResult) -> None:
         return edit
 
     def row(name: str, sweep: Sweep, seg: SegmentationResult) -> None:
-        rec = reconstruction_from_segmentation(sweep, seg, ReconstructionParams())
+        try:
+            rec = reconstruction_from_segmentation(sweep, seg, ReconstructionParams())
+        except BoneUSReconError as e:
+            print(f"{name:34} no surface: {e.message.split(': ')[-1][:60]}")
+            return
         e = evaluate_surface(rec.surface, gold)
         d = np.asarray(e.distances)
         print(f"{name:34} {e.mean:6.3f} {e.median:6.3f} {e.p95:6.2f} {100 * np.mean(d <= 1):6.1f}")

@@ -270,6 +270,30 @@ def _scale_of(v: np.ndarray) -> tuple[float, float] | None:
     return med, max(median1d(np.abs(v - med)) * 1.4826, 1e-3)
 
 
+def _null_pixels(valid: np.ndarray, dark: np.ndarray | None, min_share: float) -> np.ndarray:
+    """The pixels the z-scores' nulls are estimated on: ``valid`` ones not ``dark``.
+
+    The null is what speckle in tissue gives. Near the display's floor (a shadow with
+    little electronic noise, a low gain) the grey is a small number and its log ratios
+    fluctuate the more, the darker it is, so a null taken over the whole frame widens
+    as the shadow darkens: on hard simulated sweeps with less electronic noise (the
+    shadow 0.54 of the tissue beside it instead of 0.65) or a display 9 dB darker, the
+    echo and shadow spreads grew 1.6-2x, every z-score in the frame shrank by as much,
+    and a near cortex 5-8 mm deep fell under the path's null level: recall 0.82 and
+    0.81 (475 x 405 and 160 x 128), the easier image read worse than the preset's.
+    ``dark`` marks pixels whose band or the window above it is under
+    ``null_dark_fraction`` of the tissue beside at their depth: a quarter, so that a
+    grey shadow (the cadaver's 0.65) stays in the null and the preset's frames keep
+    99.9 % of their pixels (the L14 recording, dark speckle, 87-91 %). Both levels are
+    the frame's own, so no grey level decides. When fewer than ``min_share`` of the
+    valid pixels remain (a frame mostly black), all are used.
+    """
+    if dark is None:
+        return valid
+    null = valid & ~dark
+    return null if null.sum() >= min_share * valid.sum() else valid
+
+
 #: Standard normal quantiles of the shadow null's lower tail (10th and 25th percentiles).
 _Z10, _Z25 = -1.2815516, -0.6744898
 
@@ -487,6 +511,12 @@ def bone_evidence(
     bot = j + b0
     m_mid = _window_mean(csum, t0, b0)
     m_up = _window_mean(csum, t0 - up, t0)
+    # Pixels near the display's floor (band or the tissue above it far darker than the
+    # tissue beside at their depth): left out of the z-scores' nulls (_null_pixels).
+    dark = None
+    if p.null_dark_fraction > 0:
+        lvl = np.float32(p.null_dark_fraction) * t_shadow[:, None]
+        dark = (m_mid < lvl) | (m_up < lvl)
     m_far = _window_mean(csum, b0 + gap, b0 + far)
     cov_top = top - cov_b
     m_cov = _window_mean(csum, t0 - cov_b, t0 - cov_a)
@@ -524,8 +554,10 @@ def bone_evidence(
     nf = mm_to_px(p.near_field_mm, dy, minimum=0)
     rows_ok = (inside >= 0.5) & (top - up >= 0) & (j >= nf)
     valid = rows_ok[:, None] & usable[None, :]
-    echo_z = _robust_z(log_e, valid)
-    shadow_ms = _shadow_scale(log_s, valid, p.shadow_null_tolerance)
+    # Both z-scores' nulls over the tissue's pixels, not the black ones (_null_pixels).
+    null = _null_pixels(valid, dark, p.null_min_share)
+    echo_z = _robust_z(log_e, valid, _robust_scale(log_e, null))
+    shadow_ms = _shadow_scale(log_s, null, p.shadow_null_tolerance)
     shadow_z = _robust_z(log_s, valid, shadow_ms)
     gap_cols = _edge_gap(work, tissue, usable, dx, dy, p)
     if gap_cols.any() and (ms := shadow_ms) is not None:

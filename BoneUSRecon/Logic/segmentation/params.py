@@ -427,6 +427,10 @@ class ShadowPathParams:
     """Shadow z-score at which the shadow gate is fully open, robust z units (ours: one spread darker than the tissue beside it; a grey shadow 0.65 of the tissue, or the L14 bone whose interior is barely darker, still opens it partly and the echo carries the score)."""
     shadow_percentile: float = 80.0
     """Percentile over the columns giving the tissue level the shadow windows are compared with (ours: tissue beside a bone whose shadow covers up to 80 % of the width)."""
+    null_dark_fraction: float = 0.25
+    """A pixel whose band or the window above it is darker than this fraction of the tissue level beside at its depth (``shadow_percentile``) lies near the display's floor and is left out of the echo and shadow z-scores' nulls (:func:`.evidence._null_pixels`; 0: every valid pixel). Ours: a quarter keeps a grey shadow (the cadaver's 0.65 of the tissue beside) in the null and the hard preset's frames unchanged (99.9 % of their pixels kept); 0.5 left a third of the L14 recording's dark speckle out and moved the harness's surfaces 0.313 -> 0.351 mm; measured in ``Testing/benchmarks/README.md`` (session 27)."""
+    null_min_share: float = 0.3
+    """Least share of the valid pixels the nulls are estimated on; below it (a frame mostly shadow) every valid pixel is used (ours)."""
     shadow_null_tolerance: float = 0.25
     """The shadow z-score's centre is the frame's median unless that lies more than this many spreads above the centre of the lower tail (the tissue's; :func:`.evidence._shadow_scale`), robust z units (ours: clean frames lie within 0.03-0.1 spreads of it, frames whose bone's shadow fills half the image 0.4-0.6; at 0.25 the lead's harness, seeds 53, 59, 71 and 73, changed in 3 sweeps of 78, all for the better: hard radius seed 71 at 160 x 128 recall 0.85 -> 0.97; at 0 in 18, two of them with a wrong frame; at 0.5 the radius was not helped)."""
     null_z: float = 0.8
@@ -574,6 +578,8 @@ class ShadowPathParams:
                 "tissue_percentile": "(0, 100)",
                 "shadow_percentile": "(0, 100)",
                 "contact_dark_fraction": "[0, 1]",
+                "null_dark_fraction": "[0, 1)",
+                "null_min_share": "[0, 1]",
                 "gap_dark_fraction": "(0, 1]",
                 "phase_weight": "[0, 1]",
                 "confidence_weight": "[0, 1]",
