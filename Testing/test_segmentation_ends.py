@@ -109,7 +109,14 @@ def test_track_ends_cut_where_the_frames_show_no_bone(bone, seed):
     assert s1.recall >= s0.recall >= 0.85
     assert np.median(s1.distances) < 0.3
     cut = {c.frame for c in after.contours if c.reason == REASONS["noshadow"]}
-    assert len(cut) >= len(kept_before) - 1
+    # Each bone-free frame the plain track kept is cut, or left off the track chosen
+    # again without the frames cut (rejected as a jump). Measured: tibia 9 cut and
+    # frame 30 a jump, humerus 6 cut; since the skin gap is found whole
+    # (evidence._edge_gap), the fascia over its shade links less well: tibia 0 cut and
+    # 9 jumps and 1 no bone found, humerus 6 cut, 3 jumps and 1 no bone found; no
+    # bone-free frame kept either way.
+    jumps = {c.frame for c in after.contours if c.reason == REASONS["jump"]}
+    assert len((cut | jumps) & kept_before) >= len(kept_before) - 1
     # Only frames past the bone's end, and frames kept off the bone, are cut.
     for k in cut - free:
         c = before.contours[k]

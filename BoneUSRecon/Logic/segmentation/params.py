@@ -458,7 +458,7 @@ class ShadowPathParams:
     gap_probe_mm: float = 3.0
     """Depth below the near field over which a column is judged to lie under a gap, mm (ours: the gel or air wedge under a skin curving away from the probe; deeper than the skin line's own blur)."""
     gap_dark_fraction: float = 0.3
-    """A column is under a gap when at least this share of those rows is darker than half the tissue level at their depth (ours: the contact rule's criterion, for a column only partly uncoupled; an uncoupled column, more than ``contact_dark_fraction`` dark, has no contact at all)."""
+    """A column is under a gap when the share of those rows darker than half the tissue level at their depth exceeds the frame's typical column's share (median over the usable columns) by at least this (ours: the contact rule's criterion, for a column only partly uncoupled; an uncoupled column, more than ``contact_dark_fraction`` dark, has no contact at all; measured against the typical column since speckle and a hypoechoic layer under the skin darken every column's rows, see :func:`.evidence._edge_gap`)."""
     gap_min_mm: float = 1.0
     """Least width of a run of such columns from an edge of the usable field, mm (ours: four working pixels; narrower runs are dark speckle, as on the L14 recording)."""
     gap_margin_mm: float = 3.0
