@@ -503,12 +503,16 @@ def test_a_handful_of_scattered_frames_is_judged_frame_by_frame(sim_factory, n) 
     candidates do not link, but two speckle pieces of two frames did, so no path
     linked ``min_track_frames`` frames and every frame was rejected as a jump (the
     demo's "too few frames to fit" stopped at "no bone contour found"). Each frame
-    is judged alone: every one kept on the bone."""
+    is judged alone: every one kept on the bone. (The chance link appears with the
+    nulls over the tissue's pixels, ``null_dark_fraction``: the speckle pieces become
+    candidates.)"""
+    from BoneUSRecon.Logic.segmentation import ShadowPathParams
     from BoneUSRecon.Logic.simulation import DEFAULT_BONE, DEFAULT_SEED
     from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
     sim = sim_factory(
         bone=DEFAULT_BONE, seed=DEFAULT_SEED, n_frames=n, width=80, height=64, spacing_mm=0.6
     )
-    s = score_simulation(segment_sweep(sim.sweep), sim)
+    p = SegmentationParams(shadowpath=ShadowPathParams(null_dark_fraction=0.25))
+    s = score_simulation(segment_sweep(sim.sweep, p), sim)
     assert s.recall == 1.0 and s.wrong_share == 0.0

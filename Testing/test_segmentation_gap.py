@@ -106,14 +106,12 @@ def test_fascia_under_a_skin_gap_is_not_the_bone(monkeypatch: pytest.MonkeyPatch
     assert full["recall"] >= 0.95 and full["wrong_share"] == 0.0
     assert full["recall"] >= run(gap_shade=False)["recall"]
     # The gap rule alone: the shoulder cut off by its least extent, the excursion
-    # rule by a no-op, and the z-scores' nulls over every pixel as when the rule was
-    # made (with the tissue's nulls, ``evidence._null_pixels``, this sweep holds
-    # without the gap rule too: recall 0.95, wrong 0.025).
+    # rule by a no-op.
     monkeypatch.setattr(
         cand_mod, "_fill_excursions", lambda pts, sp, p: (np.ones(len(pts), bool), pts)
     )
-    on = run(shoulder_min_mm=1e6, null_dark_fraction=0.0)
-    off = run(shoulder_min_mm=1e6, gap_shade=False, null_dark_fraction=0.0)
+    on = run(shoulder_min_mm=1e6)
+    off = run(shoulder_min_mm=1e6, gap_shade=False)
     assert off["wrong_share"] >= 0.1  # the failure the rule is for
     assert on["wrong_share"] <= 0.05
     assert on["recall"] >= 0.9 and on["recall"] >= off["recall"] + 0.1

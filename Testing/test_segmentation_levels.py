@@ -1,7 +1,8 @@
 """The segmenter where the hard preset's imaging levels move (issue 10; ``bench_levels.py``).
 
 A darker, cleaner shadow is the easier case for a reader, and must be for the
-segmenter too: the z-scores' nulls are the tissue's speckle, not the black shadow's
+segmenter too: with ``null_dark_fraction`` (off by default, see its docstring) the
+z-scores' nulls are the tissue's speckle, not the black shadow's
 (:func:`BoneUSRecon.Logic.segmentation.evidence._null_pixels`).
 """
 
@@ -14,9 +15,12 @@ import pytest
 
 from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.evidence import bone_evidence
-from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+from BoneUSRecon.Logic.segmentation.params import SegmentationParams, ShadowPathParams
 from BoneUSRecon.Logic.simulation import ImagingParams
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
+
+#: The nulls over the tissue's pixels (``evidence._null_pixels``).
+TISSUE_NULL = ShadowPathParams(null_dark_fraction=0.25)
 
 #: Less electronic noise than the preset (0.15): the shadow 0.54 of the tissue beside
 #: it instead of 0.65.
@@ -51,7 +55,7 @@ def test_a_darker_shadow_does_not_weaken_the_bone(radius_pair) -> None:
     preset's 0.95)."""
     preset, clean = radius_pair
     frames = range(26, 40, 3)
-    p = ShadowPathParams()
+    p = TISSUE_NULL
     new = _bone_score(clean, frames, p)
     assert new >= p.null_z + 0.1 and new >= 0.95 * _bone_score(preset, frames, p)
     old = replace(p, null_dark_fraction=0.0)
@@ -62,6 +66,10 @@ def test_a_sweep_with_a_darker_shadow_keeps_its_near_cortex(radius_pair) -> None
     """The cleaner sweep keeps its near cortex (recall 0.975, was 0.65: the far cortex,
     deep in the shadow, was the only candidate of the last 14 frames)."""
     _, clean = radius_pair
-    s = score_simulation(segment_sweep(clean.sweep), clean)
+    s = score_simulation(
+        segment_sweep(clean.sweep, SegmentationParams(shadowpath=TISSUE_NULL)), clean
+    )
     assert s.recall >= 0.95 and s.wrong_share == 0.0
+    # With the nulls over every pixel (the default): the last frames lost.
+    assert score_simulation(segment_sweep(clean.sweep), clean).recall < 0.8
     assert s.summary()["median_mm"] < 0.15

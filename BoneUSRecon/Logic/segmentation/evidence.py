@@ -282,11 +282,12 @@ def _null_pixels(valid: np.ndarray, dark: np.ndarray | None, min_share: float) -
     and a near cortex 5-8 mm deep fell under the path's null level: recall 0.82 and
     0.81 (475 x 405 and 160 x 128), the easier image read worse than the preset's.
     ``dark`` marks pixels whose band or the window above it is under
-    ``null_dark_fraction`` of the tissue beside at their depth: a quarter, so that a
-    grey shadow (the cadaver's 0.65) stays in the null and the preset's frames keep
-    99.9 % of their pixels (the L14 recording, dark speckle, 87-91 %). Both levels are
-    the frame's own, so no grey level decides. When fewer than ``min_share`` of the
-    valid pixels remain (a frame mostly black), all are used.
+    ``null_dark_fraction`` of the tissue beside at their depth (None: the option is
+    off, the default). At a quarter a grey shadow (the cadaver's 0.65) stays in the
+    null and the preset's frames at 475 x 405 keep 99.9 % of their pixels (the L14
+    recording, dark speckle, 87-91 %). Both levels are the frame's own, so no grey
+    level decides. When fewer than ``min_share`` of the valid pixels remain (a frame
+    mostly black), all are used.
     """
     if dark is None:
         return valid
