@@ -52,9 +52,11 @@ def test_incremental_track_equals_batch(sim_factory, params):
             _assert_same(track.solve(), select_bone_track(frames[: k + 1], poses[: k + 1]))
     full = track.solve()
     # The sweep gives the track something to decide: frames with several candidates,
-    # and frames off the track for continuity, not only for having no candidate.
+    # and frames off the track for continuity or on it through a candidate other than
+    # their strongest (the tibia: no jump since the skin gap is found whole, branch
+    # gap, but the track takes a weaker candidate in several frames).
     assert sum(len(fc.usable) > 1 for fc in frames) >= 5
-    assert "jump from neighbouring frames" in full.reason
+    assert "jump from neighbouring frames" in full.reason or (full.chosen > 0).sum() >= 3
     assert (full.chosen >= 0).sum() >= n // 2
 
 
