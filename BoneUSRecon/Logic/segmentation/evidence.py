@@ -591,7 +591,8 @@ def bone_evidence(
     nf = mm_to_px(p.near_field_mm, dy, minimum=0)
     rows_ok = (inside >= 0.5) & (top - up >= 0) & (j >= nf)
     valid = rows_ok[:, None] & usable[None, :]
-    # Both z-scores' nulls over the tissue's pixels, not the black ones (_null_pixels).
+    # Both z-scores' nulls over the tissue's pixels, with null_dark_fraction set not
+    # the black ones (_null_pixels; by default every valid pixel).
     null = _null_pixels(valid, dark, p.null_min_share)
     echo_z = _robust_z(log_e, valid, _robust_scale(log_e, null))
     shadow_ms = _shadow_scale(log_s, null, p.shadow_null_tolerance)
