@@ -32,9 +32,11 @@ Run::
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 import warnings
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -43,10 +45,9 @@ from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.simulation import BONES, SimulationParams, echo_levels, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
-GEOMETRY = {
-    "R": {"width": 475, "height": 405, "spacing_mm": 0.108},
-    "S": {"width": 160, "height": 128, "spacing_mm": 0.3},
-}
+# The harness's two geometries (one definition, in bench_sweeps).
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_sweeps import GEOMETRY  # noqa: E402
 
 #: Per level: where it lives (``hard`` preset or ``imaging``) and the values tried; the
 #: preset's own value is the row "preset".
