@@ -421,13 +421,13 @@ class ShadowPathParams:
     """Least height of the cover window inside the image for the cover to be judged, mm."""
     tissue_percentile: float = 60.0
     """Percentile over the columns giving the tissue level at each depth (ours: bone and shadow fill fewer than 30 % of the columns at most depths, a thin echo barely counts)."""
-    shadow_z_zero: float = -1.0
+    shadow_z_zero: float = -0.8
     """Shadow z-score at which the shadow gate closes, robust z units (ours: half a spread brighter than the tissue at that depth: tissue, not shadow, beneath)."""
     shadow_z_full: float = 1.0
     """Shadow z-score at which the shadow gate is fully open, robust z units (ours: one spread darker than the tissue beside it; a grey shadow 0.65 of the tissue, or the L14 bone whose interior is barely darker, still opens it partly and the echo carries the score)."""
     shadow_percentile: float = 80.0
     """Percentile over the columns giving the tissue level the shadow windows are compared with (ours: tissue beside a bone whose shadow covers up to 80 % of the width)."""
-    null_dark_fraction: float = 0.0
+    null_dark_fraction: float = 0.25
     """A pixel whose band or the window above it is darker than this fraction of the tissue level beside at its depth (``shadow_percentile``) lies near the display's floor and is left out of the echo and shadow z-scores' nulls (:func:`.evidence._null_pixels`; 0: every valid pixel, the default). Measured at 0.25 (``Testing/benchmarks/README.md``, session 27): a darker, cleaner shadow no longer weakens the bone (``bench_levels.py``: display 9 dB darker, recall 0.81 -> 0.95; less electronic noise 0.84 -> 0.96 at 160 x 128, 0.82 -> 0.98 at 475 x 405), the L14 cadaver-level copy 1.62 -> 1.02 mm, the harness's surfaces unchanged on average; not yet the default: layers 2-3 mm over a shallow bone pass the shadow gate more often (two hard sweeps gain wrong frames; the gate's zero would move with it, -1 -> -0.8 measured promising) and 19 tests' examples change."""
     null_min_share: float = 0.3
     """Least share of the valid pixels the nulls are estimated on; below it (a frame mostly shadow) every valid pixel is used (ours)."""
