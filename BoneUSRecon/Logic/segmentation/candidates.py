@@ -68,7 +68,12 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, mi
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
-from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px, sorted_row_percentiles
+from BoneUSRecon.Logic.segmentation.features import (
+    ceil_px,
+    median1d,
+    mm_to_px,
+    sorted_row_percentiles,
+)
 from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 from BoneUSRecon.Logic.segmentation.settle import settle_candidates
@@ -379,10 +384,10 @@ def _path_steps(ev: EvidenceMaps, p: ShadowPathParams) -> tuple[np.ndarray, int]
     the slope) and the fewest working columns a contour may have (``min_length_mm``):
     one definition for every path of the per-frame step and of the guided search
     (:mod:`.recovery`)."""
-    n_shift = max(1, int(np.ceil(p.max_slope * ev.dx / ev.dy)))
+    n_shift = max(1, ceil_px(p.max_slope * ev.dx / ev.dy))
     steps = np.arange(-n_shift, n_shift + 1)
     shift_cost = p.slope_penalty * (steps * ev.dy / ev.dx) ** 2 * ev.dx
-    return shift_cost, max(2, int(np.ceil(p.min_length_mm / ev.dx)))
+    return shift_cost, max(2, ceil_px(p.min_length_mm / ev.dx))
 
 
 def _groups(path: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> list[np.ndarray]:
@@ -1587,7 +1592,7 @@ def _fill_excursions(
     grid = x[0] + dx * np.arange(n)
     regular = bool(np.abs(x - grid).max() < 1e-6 * max(dx, 1e-9))
     zg = z if regular else np.interp(grid, x, z)
-    size = max(3, int(np.ceil(p.min_length_mm / dx)) | 1)
+    size = max(3, ceil_px(p.min_length_mm / dx) | 1)
     # The morphological closing (maximum then minimum filter, as grey_closing).
     closed = minimum_filter1d(maximum_filter1d(zg, size, mode="nearest"), size, mode="nearest")
     if not regular:
