@@ -94,9 +94,10 @@ def test_a_kept_bone_free_frame_counts_as_wrong():
 
 # Humerus 1 replaces humerus 5: since the z-scores' nulls leave out the pixels near the
 # display's floor (ShadowPathParams.null_dark_fraction, shadow_z_zero -0.8), humerus 5's
-# plain track keeps none of its bone-free frames (their layer's evidence barely moves,
-# 1.08-1.52; its links no longer pay), so there is nothing left to cut. Humerus 1 keeps
-# all 10 with the cut off, old nulls or new.
+# plain track keeps none of its bone-free frames, so there is nothing left to cut: their
+# layer's score barely moves (1.08-1.52 either way), the sweep's typical strength, which
+# the track's node values are relative to, rose 6.0 -> 6.7, and the track no longer
+# reaches the layer. Humerus 1 keeps all 10 with the cut off, old nulls or new.
 @pytest.mark.parametrize(("bone", "seed"), [("tibia", 5), ("humerus", 1)])
 def test_track_ends_cut_where_the_frames_show_no_bone(bone, seed):
     sim = _free_end(bone, seed)
