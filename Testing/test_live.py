@@ -85,8 +85,13 @@ def test_live_recovery_equals_offline_on_hard_sweep(sim_factory):
     """A hard sweep where recovery (frames off the track searched again) changes the
     offline surface: refits along the way search each frame once per prior, keep
     pixels only for frames off the track, and the final refit is the offline
-    reconstruction point for point, the same frames recovered."""
-    sim = sim_factory(bone="humerus", realism="hard", seed=7)
+    reconstruction point for point, the same frames recovered.
+
+    Humerus seed 11: frames 3, 21, 26 and 30 recovered, 0.07-0.12 mm from the bone on
+    median. Seed 7 was used until pixel counts became immune to the pixel size's last
+    bit (``features.ceil_px``): nothing recovered there since (humerus seeds 0-14
+    scanned: 2, 3, 6, 11 and 14 recover 1-4 frames)."""
+    sim = sim_factory(bone="humerus", realism="hard", seed=11)
     sweep = sim.sweep
     offline = reconstruct(sweep)
     off = ReconstructionParams(
@@ -94,9 +99,8 @@ def test_live_recovery_equals_offline_on_hard_sweep(sim_factory):
     )
     plain = reconstruct(sweep, off)
     recovered = _recovered(offline)
-    # 3 before narrow excursions stopped splitting domes, 2 until the shadow's z-score
-    # was centred on the tissue (one more frame on the first track).
-    assert len(recovered) >= 1
+    # Four frames, so that one more or fewer on the first track keeps the premise.
+    assert len(recovered) >= 2
     assert _points(plain.surface).shape != _points(offline.surface).shape or not np.array_equal(
         _points(plain.surface), _points(offline.surface)
     )
@@ -121,10 +125,10 @@ def test_live_recovery_equals_offline_on_hard_sweep(sim_factory):
         <= live.pixels_kept
         <= sum(not c.accepted for c in r.segmentation.contours) + len(recovered) + strayed + 2
     )
-    # Against the true surface (offline measures the same: 1.43 mm mean, 0.47 median;
-    # 1.13 and 0.42 without recovery on this sweep).
+    # Against the true surface (offline measures the same: 0.32 mm mean, 0.19 median;
+    # 0.34 and 0.20 without recovery on this sweep).
     ev = evaluate_surface(r.surface, sim.gold)
-    assert ev.mean < 1.6 and ev.median < 0.6
+    assert ev.mean < 0.45 and ev.median < 0.3
     # Recovery off: no pixels kept, and the live surface is the plain offline one.
     live = LiveReconstructor(off)
     for k, image in sweep.iter_frames():

@@ -176,23 +176,27 @@ def test_a_plain_dome_is_not_cut() -> None:
 
 def test_shoulder_layer_cut_on_a_hard_sweep() -> None:
     """Humerus, hard realism (a fascia running off the bone at its level, a skin gap):
-    frame 39's contour ran from the bone's left shoulder onto the fascia (1.53 mm off on
-    median); cut at the shoulder it lies on the bone (0.18 mm), and no frame is kept on
-    a wrong structure.
+    frames 35 and 36 kept a contour leaving the bone's right shoulder along the fascia
+    (columns 113-133 and 118-159, 2.62 and 6.56 mm off on median); with the cut they
+    keep the dome (columns 50-111, 0.05 and 0.07 mm), and no frame is kept on a wrong
+    structure.
 
-    Seed 1. Seed 5 (frame 21, 1.66 mm without the cut) was used until the z-scores'
+    Seed 34. Seed 5 (frame 21, 1.66 mm without the cut) was used until the z-scores'
     nulls left out the pixels near the display's floor (``null_dark_fraction`` 0.25,
     ``shadow_z_zero`` -0.8): its path no longer runs onto the fascia there without the
-    cut (0.06 mm; seeds 0-11 scanned, seed 1 is the one frame still needing the cut)."""
-    sim = small_simulation(bone="humerus", seed=1, realism="hard")
+    cut (0.06 mm). Seed 1 (frame 39, 1.53 mm) then, until pixel counts became immune to
+    the pixel size's last bit (``features.ceil_px``): 0.18 mm without the cut since.
+    Seeds 0-40 scanned: 34 (two frames) and 18 (frame 33, 1.96 -> 0.03 mm) need the cut."""
+    sim = small_simulation(bone="humerus", seed=34, realism="hard")
     # The rule measured on its own: settled candidates (settle.py) and the flat ends
     # followed (rim.py) change the contours' ends.
     bare = ShadowPathParams(settle=SettleParams(enabled=False), rim=RimParams(enabled=False))
     with_cut = score_simulation(segment_sweep(sim.sweep, SegmentationParams(shadowpath=bare)), sim)
     off = SegmentationParams(shadowpath=dataclasses.replace(bare, shoulder_slope=100.0))
     without = score_simulation(segment_sweep(sim.sweep, off), sim)
-    assert without.frames[39].median_mm > 1.0  # the layer kept with the bone
-    assert with_cut.frames[39].median_mm < 0.3
+    for k in (35, 36):
+        assert without.frames[k].median_mm > 1.0  # the layer kept with the bone
+        assert with_cut.frames[k].median_mm < 0.3
     s, s0 = with_cut.summary(), without.summary()
     assert s["recall"] >= 0.95 and s["recall"] > s0["recall"], (s["recall"], s0["recall"])
     assert s["wrong_share"] == 0.0
