@@ -249,6 +249,32 @@ def test_series_top_traced_along_its_echo(sim_factory, monkeypatch):
     assert _offered(sim) <= n - 3
 
 
+def test_a_far_cortex_reaching_beyond_the_near_cortex_does_not_flag_it(sim_factory):
+    """The clavicle under the grey shadow (seed 5), frames 21 and 22: the far cortex's
+    pass runs on past the bone along the tissue beside it (columns 26-83 and 56-124
+    under a series' top over 53-93 and 30-96), so it lies under the top over 31 of its
+    58 and 41 of its 69 columns. In the top's shadow over their common columns, it is
+    no sign that sound went through the top (``_mark_echo_beneath``); it flagged the
+    near cortex as no first interface in both frames. With the z-scores' nulls over
+    the tissue the near cortex was offered in 30 frames of the sweep, 35 now (35 with
+    the nulls over every pixel)."""
+    from BoneUSRecon.Logic.simulation.scoring import polyline_distance
+    from BoneUSRecon.Logic.sweep import pixel_spacing
+
+    sim = sim_factory(bone="clavicle", seed=5, realism="hard", hard_conditions=("grey_shadow",))
+    sw = sim.sweep
+    sp = pixel_spacing(sw.image_to_reference)
+    for k in (21, 22):
+        tc = sim.true_contours_px[k]
+        on = [
+            c
+            for c in frame_candidates(np.asarray(sw.frames[k]), tuple(sp[k])).usable
+            if np.median(polyline_distance(c.points_px * sp[k], tc * sp[k])) < 0.5
+        ]
+        assert on and not any(c.echo_beneath for c in on), k
+    assert _offered(sim) >= 35
+
+
 @pytest.mark.parametrize(
     ("bone", "seed", "least", "most_wrong"),
     [
