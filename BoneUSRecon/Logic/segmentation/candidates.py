@@ -1559,10 +1559,12 @@ def _cut_mm(pts: np.ndarray, keep: np.ndarray, sx: float) -> float:
     return max((float(np.ptp(r[:, 0])) * sx for r in runs if len(r) > 1), default=0.0)
 
 
-def _hops_up(z: np.ndarray, least: float) -> bool:
-    """Whether depths ``z`` (mm, outward from a turn) climb by at least ``least`` from
-    one point to the next: the path stepping from one line onto another over it."""
-    return bool(z.size > 1 and (z[:-1] - z[1:]).max() >= least)
+def _hops_up(xo: np.ndarray, z: np.ndarray, up: float, run: float) -> bool:
+    """Whether a contour's part outward from a turn (``xo`` mm from it, depths ``z`` mm)
+    climbs by at least ``up`` from one point to the next (the path stepping from one
+    line onto another over it) and runs on at least ``run`` mm past that step."""
+    k = np.flatnonzero(z[:-1] - z[1:] >= up)
+    return bool(k.size and xo[-1] - xo[k[0] + 1] >= run)
 
 
 def _shoulder_cut(
@@ -1630,8 +1632,10 @@ def _shoulder_cut(
     **A hop onto a layer over the turn.** The short part beyond may rise over the turn
     when it gets there by a hop: one point to the next ``valley_mm`` or more shallower
     (five times the contour's jitter; the path stepping from the bone onto a line over
-    it, which a bone's surface, descending outward from its apex, never does; a dome
-    beyond rises smoothly and keeps the rule above). The underside ratio still
+    it, which a bone's surface, descending outward from its apex, never does), onto a
+    layer running on at least ``shoulder_short_mm`` past the hop (the short layer's own
+    floor; a shorter climb at the end is the end's rule, see above, and a dome beyond
+    rises smoothly: both keep the rule above). The underside ratio still
     decides, and the cut is at the turn as for any short layer (standard clavicle seed
     1 with corrupted frames, frame 13, under the nulls over tissue: the path hopped
     0.9 mm up onto a fascia crossing the right shoulder and ran on 4 mm, 2-3.5 mm off
@@ -1684,7 +1688,7 @@ def _shoulder_cut(
                 or abs(x[idx[kk]] - x[n - 1 if side < 0 else 0]) < p.shoulder_min_mm
                 or (
                     z[idx[kk + 1 :]].min() < z[idx[kk]] - p.shoulder_slope * w_in
-                    and not _hops_up(z[idx[kk:]], p.valley_mm)
+                    and not _hops_up(xo[kk:], z[idx[kk:]], p.valley_mm, p.shoulder_short_mm)
                 )
                 or z[idx[-1]] - z[idx[kk]] > p.shoulder_slope * beyond
             ):
