@@ -10,6 +10,7 @@ hard sweeps against the true surface (frame recall, flank coverage).
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from BoneUSRecon.Logic.evaluation import evaluate_surface
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation import candidates as cand_mod
 from BoneUSRecon.Logic.segmentation.candidates import (
+    BoneCandidate,
     _convex_pieces,
     _fill_excursions,
     _shoulder_cut,
@@ -343,3 +345,68 @@ def test_a_fascia_running_level_off_the_crest_is_not_kept() -> None:
         far, n = far + int((d > 1.0).sum()), n + d.size
     assert far / n < 0.06, (far, n)
     assert score_simulation(res, sim).summary()["recall"] >= 0.975
+
+
+def test_a_short_layer_hopped_onto_over_the_shoulder_is_cut() -> None:
+    """The path hops up from the bone's shoulder onto a layer crossing it over the
+    apex's level and runs on 4 mm, tissue under the layer and shadow under the bone
+    (standard clavicle seed 1 with corrupted frames, frame 13, under the nulls over
+    tissue: 0.9 mm up, 4 mm on, the layer's end as high as the apex). The layer rises
+    over the turn, which kept it whole before; by a hop, it is cut at the turn (where
+    the descent first reaches shoulder_slope), and the bone inside it is kept."""
+    xd = np.arange(-14.0, 2.5 + 1e-9, SP[0])
+    xl = np.arange(2.5 + SP[0], 6.5 + 1e-9, SP[0])
+    # A crest descending ever more steeply to the right, gently to the left (the apex
+    # stays in the middle 60 % of the span, where _apex looks).
+    zd = TOP + np.where(xd > 0, 0.3, 0.05) * xd**2
+    z = np.r_[zd, np.full(xl.size, TOP - 0.3)]
+    step = np.r_[np.full(xd.size, 0.5), np.zeros(xl.size)]
+    keep = _shoulder_cut(_px(np.r_[xd, xl], z), SP, step, ShadowPathParams())
+    assert not keep[xd.size :].any()
+    assert keep[: xd.size][xd <= 0.5].all()
+
+
+def _cand(pts: np.ndarray, **kw: object) -> BoneCandidate:
+    return BoneCandidate(pts, np.full(pts.shape[0], 100.0), 1.0, 1.5, 1.0, **kw)
+
+
+def test_a_layer_left_beyond_the_settled_wall_is_dropped() -> None:
+    """The settle moved the points over the dome's wall (x 2.5-3.5 mm) 1.5 mm down onto
+    it; the layer's points beyond stay 1-2 mm over the wall's foot: they cannot be the
+    convex bone and go, the settled wall stays. One settled point inside the dome
+    (its outer side coming back down to it) drops nothing."""
+    p = ShadowPathParams()
+    x = np.arange(-6.0, 7.0 + 1e-9, SP[0])
+    layer = _dome(2.5) + 0.05 * (x - 2.5)
+    z0 = np.where(x <= 2.5, _dome(np.minimum(x, 2.5)), layer)
+    wall = (x > 2.5) & (x <= 3.5)
+    z1 = np.where(wall, layer + 1.5, z0)
+    before, after = _cand(_px(x, z0)), _cand(_px(x, z1))
+    got = cand_mod._past_the_settled_wall(before, after, SP, p, 5)
+    assert got.points_px.shape[0] == int((x <= 3.5).sum())
+    assert np.array_equal(got.points_px, after.points_px[x <= 3.5])
+    # One point of the dome settled 1 mm down (x = -2): nothing dropped.
+    z2 = z0.copy()
+    z2[np.argmin(np.abs(x + 2.0))] += 1.0
+    one = _cand(_px(x, z2))
+    assert cand_mod._past_the_settled_wall(before, one, SP, p, 5) is one
+
+
+def test_a_layer_branching_off_the_bone_contour_is_flagged() -> None:
+    """A piece rooted on the whole bone's shoulder (x 3 mm) and running on level over
+    the wall's descent (2 mm per mm from x 4 mm) (tibia hard seed 5, frame 24, under the nulls over tissue) is flagged
+    ``echo_beneath``; the whole bone, its own apex piece (on it at every column) and a
+    far cortex under it are not."""
+    p = ShadowPathParams()
+    ev = SimpleNamespace(fx=1, fy=1)
+    xb = np.arange(-6.0, 6.0 + 1e-9, SP[0])
+    wall = np.where(xb <= 4.0, _dome(np.minimum(xb, 4.0)), _dome(4.0) + 2.0 * (xb - 4.0))
+    bone = _cand(_px(xb, wall))
+    xa = np.arange(3.0, 6.0 + 1e-9, SP[0])
+    layer = _cand(_px(xa, np.full(xa.size, _dome(3.0))))
+    xt = np.arange(-2.0, 2.0 + 1e-9, SP[0])
+    apex = _cand(_px(xt, _dome(xt)))
+    far = _cand(_px(xt, _dome(xt) + 8.0))
+    cands = [bone, layer, apex, far]
+    got = cand_mod._mark_branches(cands, [c.points_px for c in cands], ev, SP, p)
+    assert [c.echo_beneath for c in got] == [False, True, False, False]

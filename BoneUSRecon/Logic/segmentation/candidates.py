@@ -58,6 +58,7 @@ its own evidence and the strongest kept; pieces lying over one shadow (a line fl
 
 from __future__ import annotations
 
+import dataclasses
 from bisect import bisect_right
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
@@ -1357,9 +1358,138 @@ def _frame_candidates_steps(
     # order, and those cut off are not traced).
     # A candidate running on a layer just over the bone is first moved onto it where the
     # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
-    out = settle_candidates(img, ev, out[: p.max_candidates], sp, p.settle)
+    out = out[: p.max_candidates]
+    settled = settle_candidates(img, ev, out, sp, p.settle)
+    out = [_past_the_settled_wall(a, b, sp, p, min_cols) for a, b in zip(out, settled, strict=True)]
     out = extend_candidates(img, ev, out, sp, p.flanks, p.rim)
+    # Each piece judged on its settled contour before a layer beyond its wall was
+    # dropped (that drop found the same layer; the extension keeps order and count).
+    out = _mark_branches(out, [c.points_px for c in settled], ev, sp, p)
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
+
+
+def _mark_branches(
+    out: list[BoneCandidate],
+    shapes: list[np.ndarray],
+    ev: EvidenceMaps,
+    spacing: tuple[float, float],
+    p: ShadowPathParams,
+) -> list[BoneCandidate]:
+    """``out`` (followed down their flanks) with each layer branching off another
+    candidate's contour flagged ``echo_beneath`` (no first interface). ``shapes``: each
+    candidate's own contour as the piece judged (its settled points, before
+    :func:`_past_the_settled_wall`; ``out``'s ``core_px`` where the counts differ).
+
+    A fascia leaving the bone's shoulder may be offered as a piece of its own: the last
+    few mm of the bone's wall (its root) and the layer running on, level, over the
+    wall's descent. The whole bone is offered in the same frame (its wall followed by
+    :mod:`.flanks`). The piece lies within that contour's columns, on it at one end
+    (within ``suppress_mm``, the band a path pass takes as one line) and over it on
+    the half away from there (median offset more than ``suppress_mm``). Sound reached
+    the wall under the layer through the layer, so the layer is no first interface:
+    the same flag as :func:`_mark_echo_beneath`'s for a line over an echo. That rule
+    compares the whole contours' greys, which a fascia brighter than a steep wall's
+    echo passes (0.6 of it here); and a piece shorter than ``shoulder_min_mm`` with
+    2-4 mm of wall kept is too short for :func:`_shoulder_cut`.
+
+    It generalises because it is the geometry of two candidates of one frame against
+    each other, in mm, with the band the passes already use: no new constant and no
+    grey level. Only a piece that leaves a longer contour and rises over it is flagged:
+    the bone's own apex piece lies on the whole contour at every column; a far cortex
+    or a copy lies under the bone, not over it; and the whole contour itself, which has
+    nothing over it that shares its root, is never flagged. A bone's piece over a longer
+    contour that dives under it would have to be a path into the bone's own shadow
+    (gains under the null level), which the optimal path does not take over the bright
+    bone.
+    (Measured: hard tibia seed 5, frame 24, under the nulls over tissue: the piece
+    x 98-122, 4 mm of wall and the fascia's root, 3.15 score x mm against the whole
+    bone's 2.48, linked the track to the fascia in frame 25, 2.6 mm off; flagged, both
+    frames are on the bone, 0.09 mm; see Testing/benchmarks/README.md, branch tlayer.)
+    """
+    if len(out) < 2:
+        return out
+    same = mm_to_px(p.suppress_mm, spacing[1])
+    res = list(out)
+    for i, a in enumerate(out):
+        pa = shapes[i] if len(shapes) == len(out) else a.core_px
+        if a.reverberation or a.echo_beneath or pa.shape[0] < 2:
+            continue
+        for j, b in enumerate(out):
+            if j == i or b.reverberation or b.echo_beneath:
+                continue
+            pb = b.points_px[np.argsort(b.points_px[:, 0], kind="stable")]
+            if pa[:, 0].min() < pb[0, 0] - ev.fx or pa[:, 0].max() > pb[-1, 0] + ev.fx:
+                continue  # not within b's columns (to a working column)
+            off = np.interp(pa[:, 0], pb[:, 0], pb[:, 1]) - pa[:, 1]  # +: b under a
+            if abs(off[0]) <= same:
+                far = off[off.size // 2 :]  # the half away from the root
+            elif abs(off[-1]) <= same:
+                far = off[: (off.size + 1) // 2]
+            else:
+                continue  # no root on b's contour
+            if median1d(far) <= same:
+                continue  # on b (or under it): no branch
+            res[i] = dataclasses.replace(a, echo_beneath=True)
+            break
+    return res
+
+
+def _past_the_settled_wall(
+    before: BoneCandidate,
+    after: BoneCandidate,
+    spacing: tuple[float, float],
+    p: ShadowPathParams,
+    min_cols: int,
+) -> BoneCandidate:
+    """``after`` (``before`` settled, :mod:`.settle`) without a layer left beyond the
+    wall the settle found.
+
+    A fascia crossing the bone's shoulder just over it: the path runs from the dome onto
+    it and on, and the settle moves the points where the bone's wall lies under the
+    layer down onto the wall, leaving the layer's points beyond (where the wall is
+    deeper than the settle looks) on the layer. Going outward from the apex a long
+    bone's cross-section only descends (it is convex). Where the outermost settled
+    points on a side are a wall (two or more consecutive points, descending outward)
+    and every point beyond them lies more than ``valley_mm`` (five times the contour's
+    jitter) over its foot, those points cannot be the bone and are dropped, when they
+    run at least ``min_cols`` (``min_length_mm``: shorter runs are speckle, the
+    passes' own rule; a point or two past the foot is the flank trace's). A single
+    settled point (a grain; on the L14 cadaver copy one such point would have dropped
+    20 points of a candidate) or a side whose outer part comes back down to the foot
+    (the dome going on) drops nothing. It generalises because it is the convexity of a
+    long bone's cross-section, in mm, on the contour the settle gives, with the
+    settle's own finding of where the wall is; no new constant, no grey level. Strength
+    unchanged, as for the settle. (Measured: standard clavicle seed 1 with corrupted
+    frames, frame 11 under the nulls over tissue: columns 99-112 kept on the fascia,
+    1.5-4.4 mm off; see Testing/benchmarks/README.md, branch tlayer.)
+    """
+    pa, pb = before.points_px, after.points_px
+    n = pb.shape[0]
+    if pb is pa or pa.shape != pb.shape or n < 2 * min_cols:
+        return after
+    moved = np.flatnonzero(np.abs(pb[:, 1] - pa[:, 1]) > 0)
+    if moved.size == 0:
+        return after
+    z = pb[:, 1] * float(spacing[1])
+    top = _apex(pb[:, 0] * float(spacing[0]), z)
+    lift = p.valley_mm
+    keep = np.ones(n, bool)
+    for side in (-1, 1):
+        ms = moved[moved < top][::-1] if side < 0 else moved[moved > top]
+        if ms.size < 2:
+            continue
+        # The settled run at the outer end: consecutive points, descending outward.
+        breaks = np.flatnonzero(np.abs(np.diff(ms)) > 1)
+        run = ms[breaks[-1] + 1 :] if breaks.size else ms
+        if run.size < 2 or z[run[-1]] <= z[run[0]]:
+            continue
+        o = int(run[-1])
+        beyond = slice(0, o) if side < 0 else slice(o + 1, n)
+        if len(range(n)[beyond]) >= min_cols and z[beyond].max() < z[o] - lift:
+            keep[beyond] = False
+    if keep.all() or keep.sum() < min_cols:
+        return after
+    return dataclasses.replace(after, points_px=pb[keep], intensity=after.intensity[keep])
 
 
 def _shadowed_span(c: dict, cands: list[dict]) -> tuple[int, int] | None:
@@ -1437,6 +1567,14 @@ def _cut_mm(pts: np.ndarray, keep: np.ndarray, sx: float) -> float:
     return max((float(np.ptp(r[:, 0])) * sx for r in runs if len(r) > 1), default=0.0)
 
 
+def _hops_up(xo: np.ndarray, z: np.ndarray, up: float, run: float) -> bool:
+    """Whether a contour's part outward from a turn (``xo`` mm from it, depths ``z`` mm)
+    climbs by at least ``up`` from one point to the next (the path stepping from one
+    line onto another over it) and runs on at least ``run`` mm past that step."""
+    k = np.flatnonzero(z[:-1] - z[1:] >= up)
+    return bool(k.size and xo[-1] - xo[k[0] + 1] >= run)
+
+
 def _shoulder_cut(
     pts: np.ndarray,
     spacing: tuple[float, float],
@@ -1499,6 +1637,18 @@ def _shoulder_cut(
     cut to 5 mm, the same tibia's frame 35 gave its neighbours a 3 mm band, their faint
     tops were not found and frames 36-39 were lost (recall 0.975 -> 0.9); a layer
     climbing over the turn is :func:`convex_part`'s and the excursions'.
+    **A hop onto a layer over the turn.** The short part beyond may rise over the turn
+    when it gets there by a hop: one point to the next ``valley_mm`` or more shallower
+    (five times the contour's jitter; the path stepping from the bone onto a line over
+    it, which a bone's surface, descending outward from its apex, never does), onto a
+    layer running on at least ``shoulder_short_mm`` past the hop (the short layer's own
+    floor; a shorter climb at the end is the end's rule, see above, and a dome beyond
+    rises smoothly: both keep the rule above). The underside ratio still
+    decides, and the cut is at the turn as for any short layer (standard clavicle seed
+    1 with corrupted frames, frame 13, under the nulls over tissue: the path hopped
+    0.9 mm up onto a fascia crossing the right shoulder and ran on 4 mm, 2-3.5 mm off
+    the bone). Cutting at the hop instead kept a 5 mm piece of the hard tibia's
+    shoulder (seed 5, frame 24) that linked the track to the fascia in frame 25.
     ``shoulder_min_mm`` stays the floor where the shadow is
     faint or absent: a bone that passes sound (the L14 forearm, whose 5-7 mm plateau
     before its flank that floor was set for) has no step under its dome (0.02-0.25 on
@@ -1544,7 +1694,10 @@ def _shoulder_cut(
             if beyond < p.shoulder_min_mm and (
                 median1d(step[idx[: kk + 1]]) < p.shoulder_short_step
                 or abs(x[idx[kk]] - x[n - 1 if side < 0 else 0]) < p.shoulder_min_mm
-                or z[idx[kk + 1 :]].min() < z[idx[kk]] - p.shoulder_slope * w_in
+                or (
+                    z[idx[kk + 1 :]].min() < z[idx[kk]] - p.shoulder_slope * w_in
+                    and not _hops_up(xo[kk:], z[idx[kk:]], p.valley_mm, p.shoulder_short_mm)
+                )
                 or z[idx[-1]] - z[idx[kk]] > p.shoulder_slope * beyond
             ):
                 continue
