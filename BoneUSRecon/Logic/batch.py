@@ -874,7 +874,7 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
             with (
                 dask.config.set(_preload_workers()),
                 _sigint_ignored(),
-                _environ(DASK_LOGGING__DISTRIBUTED="error"),
+                _environ(DASK_LOGGING__DISTRIBUTED=WORKER_ENV["DASK_LOGGING__DISTRIBUTED"]),
             ):
                 cluster = LocalCluster(
                     n_workers=n,
@@ -909,7 +909,10 @@ WORKER_PRELOAD = (
 
 #: Set for the fork server, so for every local worker: Dask's own thread limits for
 #: worker processes (``distributed.nanny.pre-spawn-environ``; one BLAS thread per
-#: single-threaded worker), and its logging at ``error``. Not Dask's
+#: single-threaded worker), and its logging at ``critical``: a sweep's failure reaches
+#: the client through its future, and what a worker logs at ``error`` is its own
+#: plumbing, e.g. a heartbeat to a scheduler already closed after Ctrl-C, printed with
+#: a traceback on a loaded machine (seen in the suite's Ctrl-C test). Not Dask's
 #: ``MALLOC_TRIM_THRESHOLD_=65536``: setting it also fixes glibc's mmap threshold at
 #: 128 KiB, so every frame-sized temporary array is mapped and unmapped afresh: 2.5x
 #: the page faults and ~0.09 s more system CPU per reference sweep (~4 %; measured
@@ -919,7 +922,7 @@ WORKER_ENV = {
     "OMP_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
-    "DASK_LOGGING__DISTRIBUTED": "error",
+    "DASK_LOGGING__DISTRIBUTED": "critical",
 }
 
 
