@@ -89,23 +89,14 @@ def test_edge_gap_changes_nothing_on_the_real_recording():
 
 
 def test_fascia_under_a_skin_gap_is_not_the_bone(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The hard radius, seed 1 (0.3 mm): in frames 13 and 38 a layer runs from the
-    bone's level to the image edge under the skin gap's shaded columns (0-29 and 0-45);
-    credited with the gap's shade as its shadow it carries the track onto it (7.4 and
-    4.1 mm off, frame 39 1.2 mm). The shoulder rules (``candidates._fill_excursions``,
-    ``_shoulder_cut``) cut such a layer off the bone too, so the gap rule is judged with
-    them off (measured: recall 0.925 -> 1.00, wrong share 0.05 -> 0), and with
-    everything on the sweep holds (measured: 1.00, no wrong frame; 0.975 without the
-    gap rule).
-
-    It replaces the hard ulna, seed 29 (6 frames on the fascia, wrong share 0.15 ->
-    0.025): since the z-scores' nulls leave out the pixels near the display's floor
-    (``null_dark_fraction`` 0.25, ``shadow_z_zero`` -0.8) the bone there outscores the
-    fascia (whose own evidence did not change: score 1.2-1.5 either way) and the track
-    stays on the bone without the rule (0.95, one wrong frame either way). Of 70 hard
-    sweeps scanned (5 bones, seeds 1-83) radius 1 is the one where the rule still
-    keeps the track off such a layer."""
-    sim = small_simulation(bone="radius", realism="hard", seed=1)
+    """The hard ulna, seed 29 (0.3 mm): a fascia runs from the bone's shoulder to the
+    image edge under the skin gap's shaded columns; credited with the gap's shade as
+    its shadow it carried the track onto it for 6 frames. The shoulder rules
+    (``candidates._fill_excursions``, ``_shoulder_cut``) cut that fascia off the bone
+    too, so the gap rule is judged with them off (measured: recall 0.775 -> 0.95,
+    wrong share 0.15 -> 0.025), and with everything on the sweep holds (measured:
+    0.975, no wrong frame; 0.95 without the gap rule)."""
+    sim = small_simulation(bone="ulna", realism="hard", seed=29)
 
     def run(**kw: object) -> dict:
         p = SegmentationParams(shadowpath=ShadowPathParams(**kw))
@@ -121,9 +112,9 @@ def test_fascia_under_a_skin_gap_is_not_the_bone(monkeypatch: pytest.MonkeyPatch
     )
     on = run(shoulder_min_mm=1e6)
     off = run(shoulder_min_mm=1e6, gap_shade=False)
-    assert off["wrong_share"] >= 0.05  # the failure the rule is for (2 of 40 frames)
-    assert on["wrong_share"] == 0.0
-    assert on["recall"] >= 0.95 and on["recall"] >= off["recall"] + 0.05
+    assert off["wrong_share"] >= 0.1  # the failure the rule is for
+    assert on["wrong_share"] <= 0.05
+    assert on["recall"] >= 0.9 and on["recall"] >= off["recall"] + 0.1
     assert on["median_mm"] < 0.15  # the contours kept lie on the bone
 
 

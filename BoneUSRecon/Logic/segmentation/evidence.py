@@ -48,12 +48,6 @@ their bone. A shadow only adds values above the tissue's, so the lower tail (10t
 ``shadow_null_tolerance`` spreads above the centre so estimated, the centre moves down
 by the excess (:func:`_shadow_scale`; clean frames are unchanged).
 
-Both nulls (centre and spread) are taken over the tissue's pixels, not over those near
-the display's floor (:func:`_null_pixels`, ``null_dark_fraction``): log ratios of small
-greys spread the more, the darker they are, so a null over a black shadow widened with
-a darker display or less electronic noise, and every z-score in the frame shrank with
-it (the easier image read worse than the hard one).
-
 The score is the echo z-score (positive part) times a shadow gate rising from 0 at
 ``shadow_z_zero`` (the region below brighter than the tissue at its depth: a fascia or
 tendon, a bright line with tissue beneath) to 1 at ``shadow_z_full`` (clearly darker).
@@ -288,8 +282,8 @@ def _null_pixels(valid: np.ndarray, dark: np.ndarray | None, min_share: float) -
     and a near cortex 5-8 mm deep fell under the path's null level: recall 0.82 and
     0.81 (475 x 405 and 160 x 128), the easier image read worse than the preset's.
     ``dark`` marks pixels whose band or the window above it is under
-    ``null_dark_fraction`` of the tissue beside at their depth (None: every valid
-    pixel, ``null_dark_fraction`` 0). At a quarter a grey shadow (the cadaver's 0.65) stays in the
+    ``null_dark_fraction`` of the tissue beside at their depth (None: the option is
+    off, the default). At a quarter a grey shadow (the cadaver's 0.65) stays in the
     null and the preset's frames at 475 x 405 keep 99.9 % of their pixels (the L14
     recording, dark speckle, 87-91 %). Both levels are the frame's own, so no grey
     level decides. When fewer than ``min_share`` of the valid pixels remain (a frame
@@ -597,7 +591,8 @@ def bone_evidence(
     nf = mm_to_px(p.near_field_mm, dy, minimum=0)
     rows_ok = (inside >= 0.5) & (top - up >= 0) & (j >= nf)
     valid = rows_ok[:, None] & usable[None, :]
-    # Both z-scores' nulls over the tissue's pixels, not the black ones (_null_pixels).
+    # Both z-scores' nulls over the tissue's pixels, with null_dark_fraction set not
+    # the black ones (_null_pixels; by default every valid pixel).
     null = _null_pixels(valid, dark, p.null_min_share)
     echo_z = _robust_z(log_e, valid, _robust_scale(log_e, null))
     shadow_ms = _shadow_scale(log_s, null, p.shadow_null_tolerance)

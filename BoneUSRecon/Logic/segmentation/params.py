@@ -421,14 +421,14 @@ class ShadowPathParams:
     """Least height of the cover window inside the image for the cover to be judged, mm."""
     tissue_percentile: float = 60.0
     """Percentile over the columns giving the tissue level at each depth (ours: bone and shadow fill fewer than 30 % of the columns at most depths, a thin echo barely counts)."""
-    shadow_z_zero: float = -0.8
-    """Shadow z-score at which the shadow gate closes, robust z units (ours: a little brighter than the tissue at that depth: tissue, not shadow, beneath. -0.8 since the nulls are the tissue's (``null_dark_fraction``), on which the tissue reads ~0.2 spreads higher than on nulls over every pixel: the gate over tissue stays where it was at -1; measured in ``Testing/benchmarks/README.md``, session 28)."""
+    shadow_z_zero: float = -1.0
+    """Shadow z-score at which the shadow gate closes, robust z units (ours: half a spread brighter than the tissue at that depth: tissue, not shadow, beneath)."""
     shadow_z_full: float = 1.0
     """Shadow z-score at which the shadow gate is fully open, robust z units (ours: one spread darker than the tissue beside it; a grey shadow 0.65 of the tissue, or the L14 bone whose interior is barely darker, still opens it partly and the echo carries the score)."""
     shadow_percentile: float = 80.0
     """Percentile over the columns giving the tissue level the shadow windows are compared with (ours: tissue beside a bone whose shadow covers up to 80 % of the width)."""
-    null_dark_fraction: float = 0.25
-    """A pixel whose band or the window above it is darker than this fraction of the tissue level beside at its depth (``shadow_percentile``) lies near the display's floor and is left out of the echo and shadow z-scores' nulls (:func:`.evidence._null_pixels`; 0: every valid pixel). Ours, a quarter: a grey shadow (the cadaver's 0.65 of the tissue beside) stays in the null, a black one does not. Measured with ``shadow_z_zero`` -0.8 (``Testing/benchmarks/README.md``, sessions 27 and 28): a darker, cleaner shadow no longer weakens the bone (``bench_levels.py``: display 9 dB darker, recall 0.81 -> 0.96; less electronic noise 0.84 -> 0.94 at 160 x 128), the L14 cadaver-level copy 1.62 -> 0.97 mm, the L14 recording 0.337 -> 0.335 mm, the harness's surfaces 0.313 -> 0.293 mm (seeds 53, 59)."""
+    null_dark_fraction: float = 0.0
+    """A pixel whose band or the window above it is darker than this fraction of the tissue level beside at its depth (``shadow_percentile``) lies near the display's floor and is left out of the echo and shadow z-scores' nulls (:func:`.evidence._null_pixels`; 0: every valid pixel, the default). Measured at 0.25 with ``shadow_z_zero`` -0.8 (``Testing/benchmarks/README.md``, sessions 27 and 28): a darker, cleaner shadow no longer weakens the bone (``bench_levels.py`` at 160 x 128: display 9 dB darker, recall 0.81 -> 0.97; less electronic noise 0.84 -> 0.98), the L14 cadaver-level copy 1.62 -> 0.97 mm, unseen harness sweeps' gold 0.236 -> 0.226 mm. Not the default: on a black shadow (the standard simulator) the nulls lose a quarter of the frame, every z-score grows ~1.25x, and speckle and layers past the bone's shoulder clear the path's null level: twice the pixels over it, 4-5x the path groups, segmentation 38-80 % slower at 480 x 640 (21-25 frames/s), kept points' 95th percentile 0.09 -> 0.39 mm on a standard ulna."""
     null_min_share: float = 0.3
     """Least share of the valid pixels the nulls are estimated on; below it (a frame mostly shadow) every valid pixel is used (ours)."""
     shadow_null_tolerance: float = 0.25
