@@ -15,6 +15,7 @@ import pytest
 
 from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import frame_candidates
+from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
 S = 0.1  # mm per pixel of the synthetic frames
@@ -178,9 +179,10 @@ def test_small_bone_series_top_and_no_step_onto_the_far_cortex(sim_factory):
     assert s["median_mm"] <= 0.3
 
 
-def _offered(sim) -> int:
+def _offered(sim, params: ShadowPathParams | None = None) -> int:
     """Frames with a usable candidate lying on the true contour (median < 1 mm), not
-    marked as no first interface: what the track can choose from."""
+    marked as no first interface: what the track can choose from (``params``: the
+    segmenter's, default if None)."""
     from BoneUSRecon.Logic.simulation.scoring import polyline_distance
     from BoneUSRecon.Logic.sweep import pixel_spacing
 
@@ -191,7 +193,8 @@ def _offered(sim) -> int:
         tc = sim.true_contours_px[k]
         if not len(tc):
             continue
-        for c in frame_candidates(np.asarray(sw.frames[k]), tuple(sp[k])).usable:
+        fc = frame_candidates(np.asarray(sw.frames[k]), tuple(sp[k]), params or ShadowPathParams())
+        for c in fc.usable:
             d = polyline_distance(c.points_px * sp[k], tc * sp[k])
             if c.strength > 0 and not c.echo_beneath and np.median(d) < 1.0:
                 n += 1
@@ -233,30 +236,33 @@ def test_series_top_traced_along_its_echo(sim_factory, monkeypatch):
 
 
 def test_a_far_cortex_reaching_beyond_the_near_cortex_does_not_flag_it(sim_factory):
-    """The clavicle under the grey shadow (seed 5), frames 21 and 22: the far cortex's
-    pass runs on past the bone along the tissue beside it (columns 26-83 and 56-124
-    under a series' top over 53-93 and 30-96), so it lies under the top over 31 of its
-    58 and 41 of its 69 columns. In the top's shadow over their common columns, it is
-    no sign that sound went through the top (``_mark_echo_beneath``); it flagged the
-    near cortex as no first interface in both frames. With the z-scores' nulls over
-    the tissue the near cortex was offered in 30 frames of the sweep, 35 with the rule
-    (35 with the nulls over every pixel); 34 since pixel counts ignore the pixel size's
-    last bit (``features.ceil_px``) and layers branching off a contour are flagged."""
+    """The clavicle under the grey shadow (seed 5), frames 21 and 22, with the z-scores'
+    nulls over the tissue (``null_dark_fraction`` 0.25, ``shadow_z_zero`` -0.8; an
+    option, off by default): the far cortex's pass runs on past the bone along the
+    tissue beside it (columns 26-83 and 56-124 under a series' top over 53-93 and
+    30-96), so it lies under the top over 31 of its 58 and 41 of its 69 columns. In
+    the top's shadow over their common columns, it is no sign that sound went through
+    the top (``_mark_echo_beneath``); it flagged the near cortex as no first interface
+    in both frames, and the near cortex was offered in 30 frames of the sweep, 34 with
+    the rule. With the default nulls the far cortex stays under the top: the rule
+    changes nothing there."""
     from BoneUSRecon.Logic.simulation.scoring import polyline_distance
     from BoneUSRecon.Logic.sweep import pixel_spacing
 
+    tissue_null = ShadowPathParams(null_dark_fraction=0.25, shadow_z_zero=-0.8)
     sim = sim_factory(bone="clavicle", seed=5, realism="hard", hard_conditions=("grey_shadow",))
     sw = sim.sweep
     sp = pixel_spacing(sw.image_to_reference)
     for k in (21, 22):
         tc = sim.true_contours_px[k]
+        fc = frame_candidates(np.asarray(sw.frames[k]), tuple(sp[k]), tissue_null)
         on = [
             c
-            for c in frame_candidates(np.asarray(sw.frames[k]), tuple(sp[k])).usable
+            for c in fc.usable
             if np.median(polyline_distance(c.points_px * sp[k], tc * sp[k])) < 0.5
         ]
         assert on and not any(c.echo_beneath for c in on), k
-    assert _offered(sim) >= 33
+    assert _offered(sim, tissue_null) >= 33
 
 
 @pytest.mark.parametrize(
