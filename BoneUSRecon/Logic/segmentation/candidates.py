@@ -1051,10 +1051,10 @@ def _mark_echo_beneath(
                     # shadow is as wide as its reflector). A b reaching beyond them (a
                     # far cortex whose pass runs on along the tissue beside) is no
                     # sign that sound went through c either: shadow, not tissue,
-                    # lies between them. With the z-scores' nulls over the tissue
-                    # such far cortices flagged the series' top over them (grey-shadow
-                    # clavicle seed 5: near cortex offered in 30 frames, 35 without
-                    # that; Testing/benchmarks/README.md, branch tgrey).
+                    # lies between them. With the z-scores' nulls over the tissue (an
+                    # option) such far cortices flagged the series' top over them
+                    # (grey-shadow clavicle seed 5: near cortex offered in 30 frames,
+                    # 34 with this rule; Testing/benchmarks/README.md, branch tgrey).
                     if common.size >= 0.8 * b["cols"].size:
                         b["beneath"] = True
                     continue
