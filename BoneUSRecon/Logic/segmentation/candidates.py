@@ -1378,7 +1378,7 @@ def _mark_branches(
     """``out`` (followed down their flanks) with each layer branching off another
     candidate's contour flagged ``echo_beneath`` (no first interface). ``shapes``: each
     candidate's own contour as the piece judged (its settled points, before
-    :func:`_past_the_settled_wall`; ``out``'s ``core_px`` where the counts differ).
+    :func:`_past_the_settled_wall`; one per candidate, in ``out``'s order).
 
     A fascia leaving the bone's shoulder may be offered as a piece of its own: the last
     few mm of the bone's wall (its root) and the layer running on, level, over the
@@ -1410,8 +1410,7 @@ def _mark_branches(
         return out
     same = mm_to_px(p.suppress_mm, spacing[1])
     res = list(out)
-    for i, a in enumerate(out):
-        pa = shapes[i] if len(shapes) == len(out) else a.core_px
+    for i, (a, pa) in enumerate(zip(out, shapes, strict=True)):
         if a.reverberation or a.echo_beneath or pa.shape[0] < 2:
             continue
         for j, b in enumerate(out):
