@@ -78,6 +78,7 @@ from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 
 from BoneUSRecon.Logic.segmentation.confidence import confidence_drop
 from BoneUSRecon.Logic.segmentation.features import (
+    ceil_px,
     median1d,
     mm_to_px,
     sorted_row_medians,
@@ -415,7 +416,7 @@ def _edge_gap(
     # width (subcutaneous fat) darken every column's rows, a gap only its own.
     typical = float(np.median(share[usable]))
     dark = (share >= p.gap_dark_fraction + typical) & usable
-    least = max(1, int(np.ceil(p.gap_min_mm / dx - 1e-9)))
+    least = max(1, ceil_px(p.gap_min_mm / dx))
     margin = int(round(p.gap_margin_mm / dx))
     for edge, step in ((int(cols[0]), 1), (int(cols[-1]), -1)):
         # The dark columns from this edge inward, by their distance from the edge.
