@@ -164,3 +164,20 @@ def test_flanks_add_no_point_off_the_bone_where_a_fascia_runs_off_it() -> None:
 def test_bad_flank_params_refused(changes: dict, says: str) -> None:
     with pytest.raises(BoneUSReconError, match=says):
         FlankParams(**changes)
+
+
+def test_stop_level_ignores_windows_touching_the_image_edge() -> None:
+    """The stop level is what speckle gives beside the flank: null windows averaging an
+    invalid sample (a null band leaving the image) must not set it, even when they are a
+    third of the pool (they sat at ~-250 against valid values of a few tenths)."""
+    from BoneUSRecon.Logic.segmentation.flanks import _BAD, _stop_level
+
+    rng = np.random.default_rng(0)
+    clean = rng.normal(0.1, 0.3, 40)
+    n_run = 4
+    touched = (_BAD + (n_run - 1) * rng.normal(0.1, 0.3, 20)) / n_run
+    whole = np.full(10, _BAD)
+    level = _stop_level(np.concatenate([clean, touched, whole]), n_run, 4.0)
+    assert level == pytest.approx(_stop_level(clean, n_run, 4.0))
+    assert 0.5 < level < 3.0, level
+    assert _stop_level(np.concatenate([clean[:9], touched, whole]), n_run, 4.0) is None
