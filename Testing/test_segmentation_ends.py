@@ -256,6 +256,23 @@ def test_bone_free_ends_cuts_weak_runs_at_the_ends_only():
     assert bone_free_ends(half, dataclasses.replace(p, max_cut_share=0.5)).sum() <= 5
 
 
+def test_an_end_no_weaker_than_the_bone_inside_the_track_is_kept():
+    """The bar is the recording's own: two end frames a little under ``min_ratio`` are
+    cut on a track whose other frames all step alike, not on one where a frame inside
+    reads weaker still (the bone's steps stray that far here: S clavicle grey s113,
+    frames 0-1 at 0.43 and 0.41 of typical, frame 34 at 0.29, all on the bone). A run
+    past the bone's end, weak throughout, is cut on either track."""
+    p = EndsParams()
+    typical = -0.7
+    steps = np.full(40, typical)
+    steps[:2] = 0.42 * typical
+    assert bone_free_ends(steps, p)[:2].all()
+    steps[34] = 0.29 * typical
+    assert not bone_free_ends(steps, p).any()
+    steps[:5] = 0.3 * typical  # five frames past the end: 5 x 0.2 against 0.21
+    assert bone_free_ends(steps, p)[:5].all() and bone_free_ends(steps, p).sum() == 5
+
+
 def test_ends_params_are_validated():
     with pytest.raises(BoneUSReconError, match="EndsParams.band_mm"):
         EndsParams(band_mm=0)

@@ -216,23 +216,17 @@ def test_far_cortex_read_along_its_mirror_image_offers_the_near_cortex(sim_facto
     assert _offered(sim) <= 33
 
 
-def test_series_top_traced_along_its_echo(sim_factory, monkeypatch):
-    """The clavicle under the grey shadow (seed 5): the series' top built from another
-    line's shape moved up, with per-column maxima in the band, hops onto a layer over
-    the bone or the first copy at the flanks and is cut to a short piece off the bone;
-    traced as a path along the echo with shadow under it, it lies on the bone in 36
-    frames (32 with per-column maxima)."""
-    from BoneUSRecon.Logic.segmentation import candidates
-
+def test_series_top_traced_along_its_echo(sim_factory):
+    """The clavicle under the grey shadow (seed 5): the series' top, built from another
+    line's shape moved up and traced as a path along the echo with shadow under it
+    (``candidates._trace_band``), lies on the bone in 37 frames (36 before session 29's
+    series rules). Per-column maxima in the band, which hopped onto a layer over the
+    bone or the first copy at the flanks, gave 33 then; with those rules they give 39
+    here and 334 against 324 frames over nine grey sweeps (recall 0.988 against 0.987
+    on fifteen), so the trace is kept as the principled form, not for a measured gain
+    (``Testing/benchmarks/README.md``, session 29)."""
     sim = sim_factory(bone="clavicle", seed=5, realism="hard", hard_conditions=("grey_shadow",))
-    assert _offered(sim) >= 35
-
-    def per_column_max(ev, cols, base, rw, shift_cost, lr, half, dark):
-        win = np.clip(base[None, :] + np.arange(-rw, rw + 1)[:, None], 0, ev.echo_z.shape[0] - 1)
-        return win[ev.echo_z[win, cols[None, :]].argmax(axis=0), np.arange(cols.size)]
-
-    monkeypatch.setattr(candidates, "_trace_band", per_column_max)  # the rule off
-    assert _offered(sim) <= 33
+    assert _offered(sim) >= 36
 
 
 def test_a_far_cortex_reaching_beyond_the_near_cortex_does_not_flag_it(sim_factory):
@@ -262,7 +256,7 @@ def test_a_far_cortex_reaching_beyond_the_near_cortex_does_not_flag_it(sim_facto
             if np.median(polyline_distance(c.points_px * sp[k], tc * sp[k])) < 0.5
         ]
         assert on and not any(c.echo_beneath for c in on), k
-    assert _offered(sim, tissue_null) >= 33
+    assert _offered(sim, tissue_null) >= 32  # 34 before session 29's series rules
 
 
 @pytest.mark.parametrize(
@@ -385,3 +379,39 @@ def test_a_shallow_bone_whose_shadow_fills_the_frame_is_kept(sim_factory) -> Non
         if f.shows_bone and sim.true_contours_px[f.frame][:, 1].min() * sy < 10.0
     ]
     assert len(shallow) >= 8 and all(f.on_bone for f in shallow)
+
+
+@pytest.mark.parametrize(("bone", "least"), [("tibia", 0.9), ("radius", 0.95)])
+def test_strong_reverberation_keeps_the_near_cortex(sim_factory, bone, least):
+    """Reverberation 0.45 (the hard preset's 0.35 moved up, ``bench_levels.py``), seed
+    101: toward the sweep's shallow end the near cortex has five bright copies under
+    it and the passes find only the far cortex, 19-26 mm deep. Read along its mirror
+    image up to the near field (not only ``far_shadow_mm`` over it, where two copies
+    showed) the series is found and its top is the near cortex; a line under the
+    series is no copy, so its bright echo does not veto the top (``copy_echo_ratio``).
+    Recall tibia 0.65 -> 0.925, radius 0.675 -> 0.975; nothing kept off the bone. On
+    the radius a layer 2.8 mm over the bone passed for the top with two speckle-level
+    "copies" over a long spacing, the bone's own echo between it and the first: a copy
+    is the brightest return since its reflector (0.875 without that rule)."""
+    from dataclasses import replace
+
+    from BoneUSRecon.Logic.simulation import HardParams
+
+    sim = sim_factory(
+        bone=bone, seed=101, realism="hard", hard=replace(HardParams(), reverb_amplitude=0.45)
+    )
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["recall"] >= least and s["wrong_share"] == 0.0, (s["recall"], s["wrong_share"])
+
+
+def test_a_shallow_near_cortex_over_its_copies_is_kept(sim_factory):
+    """The clavicle under the grey shadow, seed 109: in the last frames the near cortex
+    lies 3.9 mm deep over bright copies and the far cortex was the frames' only
+    candidate (frames 37-39 rejected as jumps, recall 0.925). The series' chain from
+    the top ran on past its third copy onto the far cortex (brighter than the copy over
+    it), which failed the whole chain: the longest valid run from the top is taken. Its
+    1.5-3 mm over the top is skin and gel (the near field), not the tissue over a
+    reflector: the rows in the near field are not judged. Recall 1.00."""
+    sim = sim_factory(bone="clavicle", seed=109, realism="hard", hard_conditions=("grey_shadow",))
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["recall"] == 1.0 and s["wrong_share"] == 0.0, (s["recall"], s["wrong_share"])

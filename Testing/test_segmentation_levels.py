@@ -64,12 +64,14 @@ def test_a_darker_shadow_does_not_weaken_the_bone(radius_pair) -> None:
 
 def test_a_sweep_with_a_darker_shadow_keeps_its_near_cortex(radius_pair) -> None:
     """The cleaner sweep keeps its near cortex (recall 0.975, was 0.65: the far cortex,
-    deep in the shadow, was the only candidate of the last 14 frames)."""
+    deep in the shadow, was the only candidate of the last 14 frames). With the default
+    nulls 0.875 since session 29 (the series over a far cortex read up to the near
+    field, ``candidates._mark_series``), 0.65 before."""
     _, clean = radius_pair
     s = score_simulation(
         segment_sweep(clean.sweep, SegmentationParams(shadowpath=TISSUE_NULL)), clean
     )
     assert s.recall >= 0.95 and s.wrong_share == 0.0
     # With the nulls over every pixel (the default): the last frames lost.
-    assert score_simulation(segment_sweep(clean.sweep), clean).recall < 0.8
+    assert score_simulation(segment_sweep(clean.sweep), clean).recall < 0.9
     assert s.summary()["median_mm"] < 0.15

@@ -715,17 +715,35 @@ def _series(
             return False
         if troughs[0] >= dark:
             return False
-        # Only shadow between copies: no line between two members brighter than the
-        # upper one (a brighter layer between them is tissue, not a gap in a shadow).
+        # Only shadow between copies: no line between two members brighter than
+        # either (a brighter layer between them is tissue, not a gap in a shadow; and
+        # a copy is the brightest return since its reflector, nothing came back
+        # between them: S radius s101, reverberation 0.45, frames 22-25, a layer 2.8
+        # mm over the bone passed for a top with "copies" at 0.06 and 0.02 over a long
+        # spacing, the bone's own echo, 0.21, between it and the first).
         for a, b in zip(members[:-1], members[1:], strict=True):
             inner = [vl[q + reach] for q in plist if a < q < b]
-            if inner and max(inner) > vl[a + reach] + 0.05:
+            if inner and max(inner) > min(vl[a + reach], vl[b + reach]) + 0.05:
                 return False
         vals = [vl[q] for q in m]
         # The deepest member is exempt from fading: the far cortex may lie where the
         # last copy falls (it is still dimmer than the top).
         fades = all(y - x <= 0.15 for x, y in zip(vals[:-2], vals[1:-1], strict=True))
         return fades and vals[0] >= max(vals) - 0.05
+
+    def continues_up(d: float) -> bool:
+        """Whether the series goes on above offset 0: a line one spacing over it, at
+        least as bright (within the fading's 0.15), with shadow (a trough darker than
+        ``dark``) between. Then 0 is a copy, not the reflector: the reflector has
+        tissue over it, its first copy has the shadow and the reflector's own echo
+        (which a shorter series under the copy would otherwise pass for a top). A
+        fainter line over a dark layer is tissue over the bone, not its reflector."""
+        up = step_from(0, d, -1)
+        return (
+            up is not None
+            and vl[up + reach] >= vl[reach] - 0.15
+            and min(vl[up + reach + 1 : reach]) < dark
+        )
 
     if strict:
         # From offset 0 down, the spacing set by one of the nearest lines below (the
@@ -736,8 +754,16 @@ def _series(
             while (nxt := step_from(k, float(q), 1)) is not None:
                 members.append(nxt)
                 k = nxt
-            if valid(members):
-                return members
+            # The longest valid run from the top: the chain may run on past the
+            # series' end onto a line that is no copy (the far cortex where the last
+            # copy falls, brighter than the copy over it), which fails the whole
+            # chain but not the copies above it (S clavicle grey s109, frames 37-39:
+            # top 0.95, copies 0.53 / 0.59 / 0.63 over troughs -1.1 to -2.5, the far
+            # cortex 0.91 four rows under the third copy: the near cortex had no
+            # candidate and the far cortex was the frames' only one).
+            for n in range(len(members), 2, -1):
+                if valid(members[:n]):
+                    return members[:n] if not continues_up(float(members[1])) else [0]
         return [0]
     # Loose: a series among the lines above offset 0 (0 itself may be a copy or lie
     # under the series, as a far cortex does), the spacing set by a line and the next
@@ -884,14 +910,22 @@ def _mark_series(
             return False
         if len(_series(t["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
             return False
-        above = prof[reach - 2 * gap : reach - gap]
+        # Rows in the near field (gel, skin) say nothing of what lies over the
+        # reflector: over a bone 3-4 mm deep most of the window is skin (S clavicle
+        # grey s109, frames 37-39, the near cortex 3.9 mm deep).
+        top = int(median1d(t["rows"]))
+        lo = max(reach - 2 * gap, reach - (top - nf))
+        above = prof[lo : reach - gap]
         above = above[np.isfinite(above)]
         return not (above.size >= gap and median1d(above) < float(np.log(p.under_ratio)))
 
-    def top_at(c: dict, shape: dict, top: int, d: float) -> tuple[dict, bool] | None:
+    def top_at(
+        c: dict, shape: dict, top: int, d: float, copy: bool = True
+    ) -> tuple[dict, bool] | None:
         """The series' top ``top`` rows from ``shape`` over c's columns, if confirmed:
         an existing candidate there, or one made from the shape moved up to the
-        strongest echo near it; and whether it is new."""
+        strongest echo near it; and whether it is new. ``copy``: ``c`` is a member of
+        the series (else it lies under it: a far cortex, its own reflector)."""
         rw = max(1, int(0.45 * d))
         best = None
         for t in cands + added:
@@ -923,7 +957,10 @@ def _mark_series(
             }
         # A copy returns less than its reflector; over the shadow it may stand out
         # more, but a line with much more echo contrast than the top was not made by it.
-        if c["echo"] > p.copy_echo_ratio * max(best["echo"], 0.0) or not confirmed(best):
+        # A line under the series (a far cortex) is no copy: it says nothing of the
+        # top's echo (with strong reverberation, S tibia s101, the far cortex's echo z
+        # 1.4-1.7 in a dark shadow, the near cortex's under 1 over its tissue).
+        if (copy and c["echo"] > p.copy_echo_ratio * max(best["echo"], 0.0)) or not confirmed(best):
             return None
         return best, new
 
@@ -942,20 +979,36 @@ def _mark_series(
         # mirror image. Its top: the shallowest member confirmed from its own profile
         # (the loose chain may reach up into speckle peaks of the tissue over the bone).
         found_top = None
-        for shape in (None, c) if bowl else (c,):
-            if shape is None:
-                shape = _mirrored(c)
-                shape["prof"] = _underside_profile(lr, shape, reach)
-                shape["peaks"] = _profile_peaks(shape["prof"], reach)
-            members = _series(shape["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=False)
+        # The near cortex lies a bone's thickness over the far one, often more than the
+        # shadow window: a bowl is read along its mirror image up to the near field
+        # (hard tibia, reverberation 0.45, S s101 frames 26-39: the far cortex 19-26 mm
+        # deep, the near cortex and its five copies 6-20 mm; within ``far_shadow_mm``
+        # (12 mm) over the far cortex two copies showed and no series). Over all its
+        # columns first, then over the middle half only: the mirror of a bowl fits the
+        # copies' dome near its bottom, less and less out on its sides (the tibia's
+        # series, spacing 2.5 mm, shows only so); the whole width first, as a chain
+        # read over the middle alone may climb one spacing higher onto a layer over
+        # the bone (S clavicle s101, frames 20-21: a layer 2.45 mm over the bone).
+        far = max(reach, int(median1d(c["rows"])) - nf)
+        q = c["cols"].size // 4
+        mid = c["cols"][q : c["cols"].size - q]
+        for read in ("mirror", "mirror middle", "own") if bowl else ("own",):
+            at, shape = reach, c
+            if read != "own":
+                at, shape = far, _mirrored(c)
+                only = mid if read == "mirror middle" else None
+                shape["prof"] = _underside_profile(lr, shape, at, only)
+                shape["peaks"] = _profile_peaks(shape["prof"], at)
+            members = _series(shape["peaks"], at, min_px, dark, p.reverb_tolerance, strict=False)
             v = shape["peaks"][0]
+            on = min(abs(m) for m in members) <= 1  # c is a member: a copy
             for i in range(len(members) - 2):
-                found_top = top_at(c, shape, members[i], members[i + 1] - members[i])
+                found_top = top_at(c, shape, members[i], members[i + 1] - members[i], on)
                 if found_top is not None:
                     members = members[i:]
                     break
                 # A member with shadow under it is in the series: no deeper top.
-                a, b = members[i] + reach, members[i + 1] + reach
+                a, b = members[i] + at, members[i + 1] + at
                 if float(v[a + 1 : b].min()) < dark:
                     break
             if found_top is not None:
