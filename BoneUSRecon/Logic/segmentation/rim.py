@@ -89,6 +89,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d
@@ -297,8 +298,21 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
         lim = np.repeat(ms - up.T, wp, axis=1)[:, ms : ms + run]  # (S, run)
         allowed = np.arange(ms)[:, None, None] >= lim[None]  # (ms, S, run)
         barred = (np.arange(ms) < (ms - up).max(axis=0)[:, None]).tolist()
+    # Unbarred steps: the maxima of adjacent pairs first (pair[i] = max(prev[i],
+    # prev[i + 1])), then every other pair and the last predecessor: ms + 1 calls for
+    # the 2 ms + 1 predecessors instead of 2 ms (maxima of the same values: the same
+    # scores).
+    pair = np.empty(run + 2 * ms - 1)
+    n_pair = pair.size
     for t in range(1, n_step):
         prev = acc[t - 1]  # predecessors of position q: prev[q - ms .. q + ms]
+        if not any(barred[t]):
+            maximum(prev[:n_pair], prev[1 : 1 + n_pair], out=pair)
+            maximum(pair[:run], prev[2 * ms : 2 * ms + run], out=best)
+            for j in range(2, 2 * ms, 2):
+                maximum(best, pair[j : j + run], out=best)
+            add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
+            continue
         # The inward and straight moves first (never barred), then the outward ones
         # (where allowed): the same maxima, so the same scores.
         maximum(prev[ms : ms + run], prev[ms + 1 : ms + 1 + run], out=best)
@@ -310,23 +324,22 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
             else:
                 maximum(best, prev[j : j + run], out=best)
         add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
-    # The backtrack: each trace's state as its position in a step's row of ``acc``; its
-    # predecessors at moves -ms .. ms, those over the step's outward limit at -inf.
-    at_step = np.empty((n_step, n_tr), np.intp)
-    at_step[-1] = base + ms + acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
-    moves = np.arange(-ms, ms + 1)
+    # The backtrack: each trace's state as the first of its predecessors' positions in a
+    # step's row of ``acc`` (its position less ms), its predecessors read as one window
+    # of 2 ms + 1 (moves -ms .. ms), those over the step's outward limit at -inf.
+    win = sliding_window_view(acc, 2 * ms + 1, axis=1)  # win[t, i] = acc[t, i .. i + 2 ms]
+    lo_step = np.empty((n_step, n_tr), np.intp)
+    lo_step[-1] = base + acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
     if up is not None:
+        moves = np.arange(-ms, ms + 1)
         over = np.where(moves < -up.T[:, :, None], -np.inf, 0.0)  # (S, T, moves)
-    at = np.empty((n_tr, moves.size), np.intp)
-    cand = np.empty((n_tr, moves.size))
     for t in range(n_step - 1, 0, -1):
-        add(at_step[t, :, None], moves, out=at)
-        np.take(acc[t - 1], at, out=cand)
+        cand = win[t - 1][lo_step[t]]
         if any(barred[t]):
             cand += over[t]
-        add(at_step[t], cand.argmax(axis=1), out=at_step[t - 1])
-        at_step[t - 1] -= ms
-    path = (at_step - (base + ms)).T
+        add(lo_step[t], cand.argmax(axis=1), out=lo_step[t - 1])
+        lo_step[t - 1] -= ms
+    path = (lo_step - base).T
     return path
 
 
