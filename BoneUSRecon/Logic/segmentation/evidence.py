@@ -204,8 +204,10 @@ def tissue_level(
 
     Several percentiles at once (one partition of the rows) give shape ``(n, h)``.
     """
-    sel = work[:, columns] if columns.any() else work
-    sel = sel[:, ::2] if sel.shape[1] >= 40 else sel  # half the columns suffice for a percentile
+    # Half the columns suffice for a percentile (from 40 on): every other one of the
+    # selected columns, gathered once.
+    cols = np.flatnonzero(columns) if columns.any() else np.arange(work.shape[1])
+    sel = work[:, cols[::2] if cols.size >= 40 else cols]
     # Sorting the rows first: the same order statistics, so the same percentiles, and a
     # row-wise sort is several times faster than numpy's per-row selection at these sizes.
     # np.percentile's values read from the sorted rows (no re-partition).
@@ -313,9 +315,7 @@ def _null_pixels(valid: np.ndarray, dark: np.ndarray | None, min_share: float) -
 _Z10, _Z25 = -1.2815516, -0.6744898
 
 
-def _shadow_scale(
-    log_s: np.ndarray, valid: np.ndarray, tolerance: float
-) -> tuple[float, float] | None:
+def _shadow_scale(v: np.ndarray, tolerance: float) -> tuple[float, float] | None:
     """Centre and spread of the shadow log-ratio's null (the tissue), robust to a shadow
     filling most of the frame (see the module docstring).
 
@@ -323,9 +323,10 @@ def _shadow_scale(
     much as it lies over ``tolerance`` spreads above the centre of a normal fitted to
     the lower tail (the 10th and 25th percentiles), where no shadow reaches.
     """
-    # The sample _robust_scale takes, sorted once: the same statistics (of the same
-    # values) as np.percentile's, whose partition at several ranks costs ~6x a sort.
-    v = np.sort(log_s[valid][::3])
+    # ``v``: the sample _robust_scale takes (every third null pixel). Sorted once: the
+    # same statistics (of the same values) as np.percentile's, whose partition at
+    # several ranks costs ~6x a sort.
+    v = np.sort(v)
     ms = _scale_of(v)
     if ms is None:
         return None
@@ -440,12 +441,12 @@ def _edge_gap(
         # between dark columns are narrower than ``least`` (index steps of at most it).
         if idx.size < least or idx[0] >= least:
             continue
-        brk = np.flatnonzero(np.diff(idx) > least)
+        brk = np.flatnonzero(idx[1:] - idx[:-1] > least)
         n = int(brk[0]) + 1 if brk.size else idx.size
         if n < least:  # fewer than gap_min_mm of dark columns: speckle
             continue
         end = edge + step * (int(idx[n - 1]) + margin)
-        lo, hi = sorted((edge, int(np.clip(end, 0, w - 1))))
+        lo, hi = sorted((edge, min(max(end, 0), w - 1)))
         gap[lo : hi + 1] = True
     return gap & usable
 
@@ -510,8 +511,8 @@ def _withhold_gap_shade(
     # runs (from the field's edges): subtracted on slices, not by fancy index (the same
     # values).
     r = slice(int(rows[0]), int(rows[-1]) + 1) if rows[-1] - rows[0] == rows.size - 1 else rows
-    cut = np.r_[0, np.flatnonzero(np.diff(gc) != 1) + 1, gc.size]
-    for a, b in zip(cut[:-1].tolist(), cut[1:].tolist(), strict=True):
+    cut = [0, *(np.flatnonzero(gc[1:] - gc[:-1] != 1) + 1).tolist(), gc.size]
+    for a, b in zip(cut[:-1], cut[1:], strict=True):
         c = slice(int(gc[a]), int(gc[b - 1]) + 1)
         if isinstance(r, slice):
             shadow_z[r, c] -= shade[:, a:b]
@@ -622,8 +623,11 @@ def bone_evidence(
     # Both z-scores' nulls over the tissue's pixels, with null_dark_fraction set not
     # the black ones (_null_pixels; by default every valid pixel).
     null = _null_pixels(valid, dark, p.null_min_share)
-    echo_z = _robust_z(log_e, valid, _robust_scale(log_e, null))
-    shadow_ms = _shadow_scale(log_s, null, p.shadow_null_tolerance)
+    # Both nulls on the sample _robust_scale takes (every third null pixel), its
+    # positions found once.
+    pick = np.flatnonzero(null)[::3]
+    echo_z = _robust_z(log_e, valid, _scale_of(log_e.ravel().take(pick)))
+    shadow_ms = _shadow_scale(log_s.ravel().take(pick), p.shadow_null_tolerance)
     shadow_z = _robust_z(log_s, valid, shadow_ms)
     gap_cols = _edge_gap(work, tissue, usable, dx, dy, p)
     if gap_cols.any() and (ms := shadow_ms) is not None:
