@@ -75,8 +75,9 @@ from BoneUSRecon.Logic.segmentation.features import (
     mm_to_px,
     sorted_row_percentiles,
 )
-from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
+from BoneUSRecon.Logic.segmentation.flanks import extend_candidates_steps
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+from BoneUSRecon.Logic.segmentation.rim import RadiusPaths, radius_paths_many
 from BoneUSRecon.Logic.segmentation.settle import settle_candidates
 
 __all__ = [
@@ -1189,7 +1190,7 @@ def frame_candidates_many(
         for img, sp, ev in zip(images, spacings, evs, strict=True)
     ]
     out: list[FrameCandidates | None] = [None] * len(gens)
-    pending: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+    pending: dict[int, tuple[np.ndarray, np.ndarray, float] | RadiusPaths] = {}
     scratch: dict = {}  # the passes' optimal paths reuse one scores' array
 
     def advance(i: int, path: np.ndarray | None) -> None:
@@ -1202,13 +1203,20 @@ def frame_candidates_many(
         advance(i, None)
     while pending:
         asked, pending = pending, {}
+        # The rim's paths (:mod:`.rim`) of the frames that reached it, solved together
+        # (:func:`.rim.radius_paths_many`: the same paths).
+        rims = [i for i, a in asked.items() if isinstance(a, RadiusPaths)]
+        if rims:
+            solved = radius_paths_many([asked.pop(i) for i in rims])  # type: ignore[misc]
+            for i, path in zip(rims, solved, strict=True):
+                advance(i, path)
         # Paths are solved together when their switch is the same, each with its own
         # costs: frames' spacings (from their poses) differ in the last bits, and
         # grouping by equal costs split a 30-frame batch into 5-10 column loops; by the
         # costs' size, into two (a slope limit of 3.000...01 rows or 2.999...9 rounds
         # up to 4 or 3 shifts), the smaller loop costing nearly as much as the larger.
         groups: dict[float, list[int]] = {}
-        for i, (_, _, switch) in asked.items():
+        for i, (_, _, switch) in asked.items():  # type: ignore[misc]
             groups.setdefault(switch, []).append(i)
         for idx in groups.values():
             switch = asked[idx[0]][2]
@@ -1228,10 +1236,11 @@ def _frame_candidates_steps(
     spacing: tuple[float, float],
     params: ShadowPathParams,
     evidence: EvidenceMaps | None = None,
-) -> Generator[tuple[np.ndarray, np.ndarray, float], np.ndarray, FrameCandidates]:
+) -> Generator[tuple[np.ndarray, np.ndarray, float] | RadiusPaths, np.ndarray, FrameCandidates]:
     """:func:`frame_candidates` as a generator: yields each optimal path it needs as
-    ``(gain, shift_cost, switch)``, is sent the path, returns the FrameCandidates.
-    ``evidence``: the frame's :func:`.evidence.bone_evidence`, if computed already."""
+    ``(gain, shift_cost, switch)`` and the rim's paths as :class:`.rim.RadiusPaths`, is
+    sent the path(s), returns the FrameCandidates. ``evidence``: the frame's
+    :func:`.evidence.bone_evidence`, if computed already."""
     p = params
     sp = (float(spacing[0]), float(spacing[1]))
     img = np.asarray(image)
@@ -1370,7 +1379,7 @@ def _frame_candidates_steps(
     out = out[: p.max_candidates]
     settled = settle_candidates(img, ev, out, sp, p.settle)
     out = [_past_the_settled_wall(a, b, sp, p, min_cols) for a, b in zip(out, settled, strict=True)]
-    out = extend_candidates(img, ev, out, sp, p.flanks, p.rim)
+    out = yield from extend_candidates_steps(img, ev, out, sp, p.flanks, p.rim)
     # Each piece judged on its settled contour before a layer beyond its wall was
     # dropped (that drop found the same layer; the extension keeps order and count).
     out = _mark_branches(out, [c.points_px for c in settled], ev, sp, p)

@@ -82,8 +82,8 @@ from BoneUSRecon.Logic.segmentation.features import (
     column_cumsum,
     median1d,
     mm_to_px,
-    sorted_row_medians,
     sorted_percentile,
+    sorted_row_medians,
     sorted_row_percentiles,
 )
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams

@@ -86,7 +86,8 @@ steps of the path search. Figures: ``Testing/benchmarks/README.md`` ("Rim").
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -96,7 +97,16 @@ from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.params import RimParams
 from BoneUSRecon.Logic.segmentation.sampling import bilinear_at, refine_across
 
-__all__ = ["follow_rims", "kasa_circle"]
+__all__ = [
+    "RadiusPaths",
+    "follow_rims",
+    "follow_rims_steps",
+    "kasa_circle",
+    "radius_paths_many",
+    "run_rims",
+]
+
+_T = TypeVar("_T")
 
 _EPS = 1e-3
 _BAD = -1e3
@@ -343,6 +353,63 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
     return path
 
 
+class RadiusPaths(NamedTuple):
+    """The arguments of one :func:`_radius_paths` a :func:`follow_rims_steps` asks for."""
+
+    e: np.ndarray
+    start: int
+    ms: int
+    up: np.ndarray | None
+
+
+def run_rims(steps: Generator[RadiusPaths, np.ndarray, _T]) -> _T:
+    """The value of a generator of :class:`RadiusPaths` requests (:func:`follow_rims_steps`,
+    :func:`.flanks.extend_candidates_steps`), each request solved on its own."""
+    try:
+        ask = next(steps)
+        while True:
+            ask = steps.send(_radius_paths(*ask))
+    except StopIteration as done:
+        return done.value
+
+
+def radius_paths_many(asks: Sequence[RadiusPaths]) -> list[np.ndarray]:
+    """``[_radius_paths(*a) for a in asks]`` (the same paths), the requests of the same
+    steps, radii, start and reach solved by one loop.
+
+    :func:`_radius_paths` is bound by its ~10 numpy calls per step (51 steps, each on a
+    few thousand states of one frame's traces), not by the arithmetic; the traces of the
+    frames of a batch (:func:`.candidates.frame_candidates_many`) stacked make each call
+    do the work of all of them. Each trace's states lie apart from every other's (its
+    own padding), so a trace's path is the one it has alone; a request without an
+    outward limit is given the limit ``ms`` (every move allowed, the same maxima).
+    """
+    out: list[np.ndarray | None] = [None] * len(asks)
+    groups: dict[tuple[int, int, int, int], list[int]] = {}
+    for q, a in enumerate(asks):
+        groups.setdefault((a.e.shape[1], a.e.shape[2], a.start, a.ms), []).append(q)
+    for (n_step, _, start, ms), idx in groups.items():
+        if len(idx) == 1:
+            out[idx[0]] = _radius_paths(*asks[idx[0]])
+            continue
+        e = np.concatenate([asks[q].e for q in idx])
+        up = None
+        if any(asks[q].up is not None for q in idx):
+            up = np.concatenate(
+                [
+                    asks[q].up
+                    if asks[q].up is not None
+                    else np.full((asks[q].e.shape[0], n_step), ms, np.intp)
+                    for q in idx
+                ]
+            )
+        path = _radius_paths(e, start, ms, up)
+        cut = np.cumsum([0] + [asks[q].e.shape[0] for q in idx])
+        for k, q in enumerate(idx):
+            out[q] = path[cut[k] : cut[k + 1]]
+    return out  # type: ignore[return-value]
+
+
 def follow_rims(
     image: np.ndarray,
     ev: EvidenceMaps,
@@ -369,6 +436,20 @@ def follow_rims(
     list of ndarray
         The contours, extended where a trace held (the others the same objects).
     """
+    return run_rims(follow_rims_steps(image, ev, contours_px, ends, spacing, params))
+
+
+def follow_rims_steps(
+    image: np.ndarray,
+    ev: EvidenceMaps,
+    contours_px: Sequence[np.ndarray],
+    ends: Sequence[tuple[bool, bool]],
+    spacing: tuple[float, float],
+    params: RimParams = RimParams(),  # noqa: B008 (frozen dataclass)
+) -> Generator[RadiusPaths, np.ndarray, list[np.ndarray]]:
+    """:func:`follow_rims` as a generator: yields the :class:`RadiusPaths` it needs
+    (at most one), is sent the paths, returns the contours (the caller may solve the
+    paths of several frames together: :func:`radius_paths_many`)."""
     p = params
     out = list(contours_px)
     if not p.enabled:
@@ -612,7 +693,7 @@ def follow_rims(
     # descent (tan would turn negative there: clipped just under a right angle).
     lean = np.clip(phi - np.radians(p.min_descent_deg), 0.0, np.radians(89.0))
     up = np.clip(np.floor(p.step_mm * np.tan(lean) / p.offset_mm + 1e-9), 1, ms).astype(np.intp)
-    path = _radius_paths(e, m, ms, None if (up >= ms).all() else np.concatenate([up, up]))
+    path = yield RadiusPaths(e, m, ms, None if (up >= ms).all() else np.concatenate([up, up]))
     tt = np.arange(2 * n_t)
     vals = e[tt[:, None], np.arange(n_step), path]
     ridge, null, path = vals[:n_t], vals[n_t:], path[:n_t]
