@@ -289,11 +289,19 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
     n_tr, n_step, nb = e.shape
     wp = nb + 2 * ms  # a trace's states and its padding
     run = n_tr * wp - 2 * ms  # positions ms .. n_tr wp - ms of a step's scores
-    acc = np.full((n_step, n_tr * wp), -np.inf)
+    # Every step's run (positions ms .. ms + run) is written by the loop: -inf is
+    # filled only into the first step and the two ends (written once, not twice: the
+    # batched requests of :func:`radius_paths_many` make these arrays a few MB).
+    acc = np.empty((n_step, n_tr * wp))
+    acc[0] = -np.inf
+    acc[:, :ms] = -np.inf
+    acc[:, ms + run :] = -np.inf
     base = np.arange(n_tr) * wp  # trace i's state b at base[i] + ms + b
     acc[0, base + ms + start] = e[:, 0, start]
     # The scores in the same layout, -inf in the padding (which then stays -inf).
-    ep = np.full((n_step, n_tr, wp), -np.inf)
+    ep = np.empty((n_step, n_tr, wp))
+    ep[:, :, :ms] = -np.inf
+    ep[:, :, ms + nb :] = -np.inf
     ep[:, :, ms : ms + nb] = e.transpose(1, 0, 2)
     ep = ep.reshape(n_step, -1)
     best = np.empty(run)
@@ -305,8 +313,10 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
         # Predecessor prev[q + j - ms] moves into q by ms - j (outward when positive):
         # allowed where j >= ms - up, per position of the run and step (j < ms only;
         # inward moves are never barred), as ``where=`` masks of the maxima.
-        lim = np.repeat(ms - up.T, wp, axis=1)[:, ms : ms + run]  # (S, run)
-        allowed = np.arange(ms)[:, None, None] >= lim[None]  # (ms, S, run)
+        # (Per trace, then repeated over its states: the same masks as comparing the
+        # limits repeated per state, a quarter of the bytes.)
+        allowed = np.arange(ms)[:, None, None] >= (ms - up.T)[None]  # (ms, S, T)
+        allowed = np.repeat(allowed, wp, axis=2)[:, :, ms : ms + run]  # (ms, S, run)
         barred = (np.arange(ms) < (ms - up).max(axis=0)[:, None]).tolist()
     # Unbarred steps: the maxima of adjacent pairs first (pair[i] = max(prev[i],
     # prev[i + 1])), then every other pair and the last predecessor: ms + 1 calls for
