@@ -1299,7 +1299,7 @@ def _frame_candidates_steps(
     lr = _log_ratio(ev)
     found = _mark_series(found, ev, lr, p)
     _mark_echo_beneath(found, ev, lr, p)
-    out = []
+    made: list[tuple] = []
     # Every candidate's sub-pixel rows in one go (the same values as one at a time).
     refined = _refine_many(img, ev, [(c["cols"], c["rows"]) for c in found], p, sp[1])
     for c, pts in zip(found, refined, strict=True):
@@ -1359,10 +1359,9 @@ def _frame_candidates_steps(
                 cols, rows = cols[sk], rows[sk]
         # A reverberation series' top carries the evidence of its copies.
         strength = max(strength, c.get("inherit", -np.inf))
-        out.append(
-            BoneCandidate(
+        made.append(
+            (
                 pts[m],
-                sample_bilinear(img, pts[m]),
                 strength,
                 median1d(ev.echo_z[rows, cols]),
                 median1d(ev.shadow_z[rows, cols]),
@@ -1370,13 +1369,20 @@ def _frame_candidates_steps(
                 bool(c.get("beneath", False)),
             )
         )
-    out.sort(key=lambda b: -b.strength)
+    made.sort(key=lambda q: -q[1])
     # Past the path's reach: each candidate kept followed down the bone's flanks
     # (:mod:`.flanks`; strengths unchanged, so the same candidates are kept, in the same
     # order, and those cut off are not traced).
     # A candidate running on a layer just over the bone is first moved onto it where the
     # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
-    out = out[: p.max_candidates]
+    made = made[: p.max_candidates]
+    # The grey values of the kept candidates' points, sampled in one call (the same
+    # values as one candidate at a time; those cut off are not sampled).
+    grey = sample_bilinear(img, np.concatenate([q[0] for q in made]))
+    cut = np.cumsum([0] + [q[0].shape[0] for q in made]).tolist()
+    out = [
+        BoneCandidate(q[0], grey[cut[k] : cut[k + 1]], *q[1:]) for k, q in enumerate(made)
+    ]
     settled = settle_candidates(img, ev, out, sp, p.settle)
     out = [_past_the_settled_wall(a, b, sp, p, min_cols) for a, b in zip(out, settled, strict=True)]
     out = yield from extend_candidates_steps(img, ev, out, sp, p.flanks, p.rim)
