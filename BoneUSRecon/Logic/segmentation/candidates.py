@@ -1380,9 +1380,7 @@ def _frame_candidates_steps(
     # values as one candidate at a time; those cut off are not sampled).
     grey = sample_bilinear(img, np.concatenate([q[0] for q in made]))
     cut = np.cumsum([0] + [q[0].shape[0] for q in made]).tolist()
-    out = [
-        BoneCandidate(q[0], grey[cut[k] : cut[k + 1]], *q[1:]) for k, q in enumerate(made)
-    ]
+    out = [BoneCandidate(q[0], grey[cut[k] : cut[k + 1]], *q[1:]) for k, q in enumerate(made)]
     settled = settle_candidates(img, ev, out, sp, p.settle)
     out = [_past_the_settled_wall(a, b, sp, p, min_cols) for a, b in zip(out, settled, strict=True)]
     out = yield from extend_candidates_steps(img, ev, out, sp, p.flanks, p.rim)
