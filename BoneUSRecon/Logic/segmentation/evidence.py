@@ -315,9 +315,18 @@ def _null_pixels(valid: np.ndarray, dark: np.ndarray | None, min_share: float) -
 _Z10, _Z25 = -1.2815516, -0.6744898
 
 
-def _shadow_scale(v: np.ndarray, tolerance: float) -> tuple[float, float] | None:
+def _shadow_scale(
+    log_s: np.ndarray, valid: np.ndarray, tolerance: float
+) -> tuple[float, float] | None:
     """Centre and spread of the shadow log-ratio's null (the tissue), robust to a shadow
-    filling most of the frame (see the module docstring).
+    filling most of the frame (see the module docstring): :func:`_shadow_scale_of` of
+    the sample :func:`_robust_scale` takes (every third ``valid`` pixel)."""
+    return _shadow_scale_of(log_s[valid][::3], tolerance)
+
+
+def _shadow_scale_of(v: np.ndarray, tolerance: float) -> tuple[float, float] | None:
+    """:func:`_shadow_scale` of an already gathered sample ``v`` of the shadow
+    log-ratio (bone_evidence gathers it once for both z-scores).
 
     The spread is :func:`_robust_scale`'s. The centre is the median, moved down by as
     much as it lies over ``tolerance`` spreads above the centre of a normal fitted to
@@ -627,7 +636,7 @@ def bone_evidence(
     # positions found once.
     pick = np.flatnonzero(null)[::3]
     echo_z = _robust_z(log_e, valid, _scale_of(log_e.ravel().take(pick)))
-    shadow_ms = _shadow_scale(log_s.ravel().take(pick), p.shadow_null_tolerance)
+    shadow_ms = _shadow_scale_of(log_s.ravel().take(pick), p.shadow_null_tolerance)
     shadow_z = _robust_z(log_s, valid, shadow_ms)
     gap_cols = _edge_gap(work, tissue, usable, dx, dy, p)
     if gap_cols.any() and (ms := shadow_ms) is not None:
