@@ -75,8 +75,9 @@ from BoneUSRecon.Logic.segmentation.features import (
     mm_to_px,
     sorted_row_percentiles,
 )
-from BoneUSRecon.Logic.segmentation.flanks import extend_candidates
+from BoneUSRecon.Logic.segmentation.flanks import extend_candidates_steps
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+from BoneUSRecon.Logic.segmentation.rim import RadiusPaths, radius_paths_many
 from BoneUSRecon.Logic.segmentation.settle import settle_candidates
 
 __all__ = [
@@ -282,9 +283,14 @@ def _optimal_paths(
         if scratch is not None:
             scratch["score"] = kept
     score = kept[:size].reshape(wmax, m, hp)
-    score.fill(-np.inf)
+    # -inf only where no gain is copied (each gain's padding rows, rows past its height
+    # and columns past its width): the same array as filling it all first, without
+    # writing the ~19 MB twice.
     for i, g in enumerate(gains):
         score[: ws[i], i, d : d + hs[i]] = g.T
+        score[: ws[i], i, :d] = -np.inf
+        score[: ws[i], i, d + hs[i] :] = -np.inf
+        score[ws[i] :, i] = -np.inf
     # Each column's scores as one contiguous run of the gains' padded rows (gain after
     # gain, d rows of -inf between them): shift s of every row of every gain is one slice
     # of the run, so each numpy call runs over one long contiguous row. (Laid out as
@@ -610,7 +616,11 @@ def _underside_profile(
 
 def _profile_peaks(prof: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]:
     """``prof`` with NaN as -10, and the offsets of its local maxima brighter than tissue."""
-    v = np.nan_to_num(prof, nan=-10.0)
+    # np.nan_to_num's values (its wrapper costs ~5x the work on a profile's ~100 values;
+    # an infinite value, never seen, is left to it).
+    v = np.where(np.isnan(prof), -10.0, prof)
+    if np.isinf(v).any():
+        v = np.nan_to_num(prof, nan=-10.0)
     is_peak = np.zeros(v.size, bool)
     is_peak[1:-1] = (v[1:-1] >= v[:-2]) & (v[1:-1] > v[2:]) & (v[1:-1] > 0)
     return v, np.flatnonzero(is_peak) - reach
@@ -1233,7 +1243,7 @@ def frame_candidates_many(
         for img, sp, ev in zip(images, spacings, evs, strict=True)
     ]
     out: list[FrameCandidates | None] = [None] * len(gens)
-    pending: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+    pending: dict[int, tuple[np.ndarray, np.ndarray, float] | RadiusPaths] = {}
     scratch: dict = {}  # the passes' optimal paths reuse one scores' array
 
     def advance(i: int, path: np.ndarray | None) -> None:
@@ -1246,13 +1256,20 @@ def frame_candidates_many(
         advance(i, None)
     while pending:
         asked, pending = pending, {}
+        # The rim's paths (:mod:`.rim`) of the frames that reached it, solved together
+        # (:func:`.rim.radius_paths_many`: the same paths).
+        rims = [i for i, a in asked.items() if isinstance(a, RadiusPaths)]
+        if rims:
+            solved = radius_paths_many([asked.pop(i) for i in rims])  # type: ignore[misc]
+            for i, path in zip(rims, solved, strict=True):
+                advance(i, path)
         # Paths are solved together when their switch is the same, each with its own
         # costs: frames' spacings (from their poses) differ in the last bits, and
         # grouping by equal costs split a 30-frame batch into 5-10 column loops; by the
         # costs' size, into two (a slope limit of 3.000...01 rows or 2.999...9 rounds
         # up to 4 or 3 shifts), the smaller loop costing nearly as much as the larger.
         groups: dict[float, list[int]] = {}
-        for i, (_, _, switch) in asked.items():
+        for i, (_, _, switch) in asked.items():  # type: ignore[misc]
             groups.setdefault(switch, []).append(i)
         for idx in groups.values():
             switch = asked[idx[0]][2]
@@ -1272,10 +1289,11 @@ def _frame_candidates_steps(
     spacing: tuple[float, float],
     params: ShadowPathParams,
     evidence: EvidenceMaps | None = None,
-) -> Generator[tuple[np.ndarray, np.ndarray, float], np.ndarray, FrameCandidates]:
+) -> Generator[tuple[np.ndarray, np.ndarray, float] | RadiusPaths, np.ndarray, FrameCandidates]:
     """:func:`frame_candidates` as a generator: yields each optimal path it needs as
-    ``(gain, shift_cost, switch)``, is sent the path, returns the FrameCandidates.
-    ``evidence``: the frame's :func:`.evidence.bone_evidence`, if computed already."""
+    ``(gain, shift_cost, switch)`` and the rim's paths as :class:`.rim.RadiusPaths`, is
+    sent the path(s), returns the FrameCandidates. ``evidence``: the frame's
+    :func:`.evidence.bone_evidence`, if computed already."""
     p = params
     sp = (float(spacing[0]), float(spacing[1]))
     img = np.asarray(image)
@@ -1334,7 +1352,7 @@ def _frame_candidates_steps(
     lr = _log_ratio(ev)
     found = _mark_series(found, ev, lr, p)
     _mark_echo_beneath(found, ev, lr, p)
-    out = []
+    made: list[tuple] = []
     # Every candidate's sub-pixel rows in one go (the same values as one at a time).
     refined = _refine_many(img, ev, [(c["cols"], c["rows"]) for c in found], p, sp[1])
     for c, pts in zip(found, refined, strict=True):
@@ -1394,10 +1412,9 @@ def _frame_candidates_steps(
                 cols, rows = cols[sk], rows[sk]
         # A reverberation series' top carries the evidence of its copies.
         strength = max(strength, c.get("inherit", -np.inf))
-        out.append(
-            BoneCandidate(
+        made.append(
+            (
                 pts[m],
-                sample_bilinear(img, pts[m]),
                 strength,
                 median1d(ev.echo_z[rows, cols]),
                 median1d(ev.shadow_z[rows, cols]),
@@ -1405,16 +1422,21 @@ def _frame_candidates_steps(
                 bool(c.get("beneath", False)),
             )
         )
-    out.sort(key=lambda b: -b.strength)
+    made.sort(key=lambda q: -q[1])
     # Past the path's reach: each candidate kept followed down the bone's flanks
     # (:mod:`.flanks`; strengths unchanged, so the same candidates are kept, in the same
     # order, and those cut off are not traced).
     # A candidate running on a layer just over the bone is first moved onto it where the
     # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
-    out = out[: p.max_candidates]
+    made = made[: p.max_candidates]
+    # The grey values of the kept candidates' points, sampled in one call (the same
+    # values as one candidate at a time; those cut off are not sampled).
+    grey = sample_bilinear(img, np.concatenate([q[0] for q in made]))
+    cut = np.cumsum([0] + [q[0].shape[0] for q in made]).tolist()
+    out = [BoneCandidate(q[0], grey[cut[k] : cut[k + 1]], *q[1:]) for k, q in enumerate(made)]
     settled = settle_candidates(img, ev, out, sp, p.settle)
     out = [_past_the_settled_wall(a, b, sp, p, min_cols) for a, b in zip(out, settled, strict=True)]
-    out = extend_candidates(img, ev, out, sp, p.flanks, p.rim)
+    out = yield from extend_candidates_steps(img, ev, out, sp, p.flanks, p.rim)
     # Each piece judged on its settled contour before a layer beyond its wall was
     # dropped (that drop found the same layer; the extension keeps order and count).
     out = _mark_branches(out, [c.points_px for c in settled], ev, sp, p)

@@ -63,14 +63,14 @@ accuracy, speed) are in ``Testing/benchmarks/README.md`` ("Flanks").
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
 
 import numpy as np
 
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d, mm_to_px
 from BoneUSRecon.Logic.segmentation.params import FlankParams, RimParams
-from BoneUSRecon.Logic.segmentation.rim import follow_rims
+from BoneUSRecon.Logic.segmentation.rim import RadiusPaths, follow_rims_steps, run_rims
 from BoneUSRecon.Logic.segmentation.sampling import (
     bilinear_at,
     median3,
@@ -78,7 +78,7 @@ from BoneUSRecon.Logic.segmentation.sampling import (
     with_points,
 )
 
-__all__ = ["extend_flanks", "extend_candidates"]
+__all__ = ["extend_flanks", "extend_candidates", "extend_candidates_steps"]
 
 _EPS = 1e-3  # grey/255: guards log(0) in black regions (no decision rests on it)
 _BAD = -1e3  # evidence of a sample outside the usable image: any window holding one is
@@ -392,6 +392,19 @@ def extend_candidates(
     Reverberation copies are left as they are (never chosen); a candidate whose points
     changed gets its grey values re-sampled; strengths are unchanged.
     """
+    return run_rims(extend_candidates_steps(image, ev, candidates, spacing, params, rim))
+
+
+def extend_candidates_steps(
+    image: np.ndarray,
+    ev: EvidenceMaps,
+    candidates: Sequence,
+    spacing: tuple[float, float],
+    params: FlankParams = FlankParams(),  # noqa: B008 (frozen dataclass)
+    rim: RimParams | None = None,
+) -> Generator[RadiusPaths, np.ndarray, list]:
+    """:func:`extend_candidates` as a generator: yields the rim's path requests
+    (:func:`.rim.follow_rims_steps`), is sent their paths, returns the candidates."""
     cands = list(candidates)
     which = [n for n, c in enumerate(cands) if not c.reverberation]
     if not which:
@@ -403,7 +416,7 @@ def extend_candidates(
         # ``rim.candidates`` only (candidates come strongest first: the bone is among
         # them, and each trace costs ~1 ms at 480x640).
         ends = [(q < rim.candidates,) * 2 for q in range(len(new))]
-        traced = follow_rims(image, ev, new, ends, spacing, rim)
+        traced = yield from follow_rims_steps(image, ev, new, ends, spacing, rim)
         added = [_added(a, b) for a, b in zip(new, traced, strict=True)]
         cands = with_points(image, cands, which, traced)
         for n, ab in zip(which, added, strict=True):

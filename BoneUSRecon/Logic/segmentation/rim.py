@@ -86,16 +86,27 @@ steps of the path search. Figures: ``Testing/benchmarks/README.md`` ("Rim").
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
+from typing import NamedTuple, TypeVar
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps
 from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.params import RimParams
 from BoneUSRecon.Logic.segmentation.sampling import bilinear_at, refine_across
 
-__all__ = ["follow_rims", "kasa_circle"]
+__all__ = [
+    "RadiusPaths",
+    "follow_rims",
+    "follow_rims_steps",
+    "kasa_circle",
+    "radius_paths_many",
+    "run_rims",
+]
+
+_T = TypeVar("_T")
 
 _EPS = 1e-3
 _BAD = -1e3
@@ -278,11 +289,19 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
     n_tr, n_step, nb = e.shape
     wp = nb + 2 * ms  # a trace's states and its padding
     run = n_tr * wp - 2 * ms  # positions ms .. n_tr wp - ms of a step's scores
-    acc = np.full((n_step, n_tr * wp), -np.inf)
+    # Every step's run (positions ms .. ms + run) is written by the loop: -inf is
+    # filled only into the first step and the two ends (written once, not twice: the
+    # batched requests of :func:`radius_paths_many` make these arrays a few MB).
+    acc = np.empty((n_step, n_tr * wp))
+    acc[0] = -np.inf
+    acc[:, :ms] = -np.inf
+    acc[:, ms + run :] = -np.inf
     base = np.arange(n_tr) * wp  # trace i's state b at base[i] + ms + b
     acc[0, base + ms + start] = e[:, 0, start]
     # The scores in the same layout, -inf in the padding (which then stays -inf).
-    ep = np.full((n_step, n_tr, wp), -np.inf)
+    ep = np.empty((n_step, n_tr, wp))
+    ep[:, :, :ms] = -np.inf
+    ep[:, :, ms + nb :] = -np.inf
     ep[:, :, ms : ms + nb] = e.transpose(1, 0, 2)
     ep = ep.reshape(n_step, -1)
     best = np.empty(run)
@@ -294,11 +313,26 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
         # Predecessor prev[q + j - ms] moves into q by ms - j (outward when positive):
         # allowed where j >= ms - up, per position of the run and step (j < ms only;
         # inward moves are never barred), as ``where=`` masks of the maxima.
-        lim = np.repeat(ms - up.T, wp, axis=1)[:, ms : ms + run]  # (S, run)
-        allowed = np.arange(ms)[:, None, None] >= lim[None]  # (ms, S, run)
+        # (Per trace, then repeated over its states: the same masks as comparing the
+        # limits repeated per state, a quarter of the bytes.)
+        allowed = np.arange(ms)[:, None, None] >= (ms - up.T)[None]  # (ms, S, T)
+        allowed = np.repeat(allowed, wp, axis=2)[:, :, ms : ms + run]  # (ms, S, run)
         barred = (np.arange(ms) < (ms - up).max(axis=0)[:, None]).tolist()
+    # Unbarred steps: the maxima of adjacent pairs first (pair[i] = max(prev[i],
+    # prev[i + 1])), then every other pair and the last predecessor: ms + 1 calls for
+    # the 2 ms + 1 predecessors instead of 2 ms (maxima of the same values: the same
+    # scores).
+    pair = np.empty(run + 2 * ms - 1)
+    n_pair = pair.size
     for t in range(1, n_step):
         prev = acc[t - 1]  # predecessors of position q: prev[q - ms .. q + ms]
+        if not any(barred[t]):
+            maximum(prev[:n_pair], prev[1 : 1 + n_pair], out=pair)
+            maximum(pair[:run], prev[2 * ms : 2 * ms + run], out=best)
+            for j in range(2, 2 * ms, 2):
+                maximum(best, pair[j : j + run], out=best)
+            add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
+            continue
         # The inward and straight moves first (never barred), then the outward ones
         # (where allowed): the same maxima, so the same scores.
         maximum(prev[ms : ms + run], prev[ms + 1 : ms + 1 + run], out=best)
@@ -310,24 +344,80 @@ def _radius_paths(e: np.ndarray, start: int, ms: int, up: np.ndarray | None = No
             else:
                 maximum(best, prev[j : j + run], out=best)
         add(best, ep[t, ms : ms + run], out=acc[t, ms : ms + run])
-    # The backtrack: each trace's state as its position in a step's row of ``acc``; its
-    # predecessors at moves -ms .. ms, those over the step's outward limit at -inf.
-    at_step = np.empty((n_step, n_tr), np.intp)
-    at_step[-1] = base + ms + acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
-    moves = np.arange(-ms, ms + 1)
+    # The backtrack: each trace's state as the first of its predecessors' positions in a
+    # step's row of ``acc`` (its position less ms), its predecessors read as one window
+    # of 2 ms + 1 (moves -ms .. ms), those over the step's outward limit at -inf.
+    win = sliding_window_view(acc, 2 * ms + 1, axis=1)  # win[t, i] = acc[t, i .. i + 2 ms]
+    lo_step = np.empty((n_step, n_tr), np.intp)
+    lo_step[-1] = base + acc[-1].reshape(n_tr, wp)[:, ms : ms + nb].argmax(axis=1)
     if up is not None:
+        moves = np.arange(-ms, ms + 1)
         over = np.where(moves < -up.T[:, :, None], -np.inf, 0.0)  # (S, T, moves)
-    at = np.empty((n_tr, moves.size), np.intp)
-    cand = np.empty((n_tr, moves.size))
     for t in range(n_step - 1, 0, -1):
-        add(at_step[t, :, None], moves, out=at)
-        np.take(acc[t - 1], at, out=cand)
+        cand = win[t - 1][lo_step[t]]
         if any(barred[t]):
             cand += over[t]
-        add(at_step[t], cand.argmax(axis=1), out=at_step[t - 1])
-        at_step[t - 1] -= ms
-    path = (at_step - (base + ms)).T
+        add(lo_step[t], cand.argmax(axis=1), out=lo_step[t - 1])
+        lo_step[t - 1] -= ms
+    path = (lo_step - base).T
     return path
+
+
+class RadiusPaths(NamedTuple):
+    """The arguments of one :func:`_radius_paths` a :func:`follow_rims_steps` asks for."""
+
+    e: np.ndarray
+    start: int
+    ms: int
+    up: np.ndarray | None
+
+
+def run_rims(steps: Generator[RadiusPaths, np.ndarray, _T]) -> _T:
+    """The value of a generator of :class:`RadiusPaths` requests (:func:`follow_rims_steps`,
+    :func:`.flanks.extend_candidates_steps`), each request solved on its own."""
+    try:
+        ask = next(steps)
+        while True:
+            ask = steps.send(_radius_paths(*ask))
+    except StopIteration as done:
+        return done.value
+
+
+def radius_paths_many(asks: Sequence[RadiusPaths]) -> list[np.ndarray]:
+    """``[_radius_paths(*a) for a in asks]`` (the same paths), the requests of the same
+    steps, radii, start and reach solved by one loop.
+
+    :func:`_radius_paths` is bound by its ~10 numpy calls per step (51 steps, each on a
+    few thousand states of one frame's traces), not by the arithmetic; the traces of the
+    frames of a batch (:func:`.candidates.frame_candidates_many`) stacked make each call
+    do the work of all of them. Each trace's states lie apart from every other's (its
+    own padding), so a trace's path is the one it has alone; a request without an
+    outward limit is given the limit ``ms`` (every move allowed, the same maxima).
+    """
+    out: list[np.ndarray | None] = [None] * len(asks)
+    groups: dict[tuple[int, int, int, int], list[int]] = {}
+    for q, a in enumerate(asks):
+        groups.setdefault((a.e.shape[1], a.e.shape[2], a.start, a.ms), []).append(q)
+    for (n_step, _, start, ms), idx in groups.items():
+        if len(idx) == 1:
+            out[idx[0]] = _radius_paths(*asks[idx[0]])
+            continue
+        e = np.concatenate([asks[q].e for q in idx])
+        up = None
+        if any(asks[q].up is not None for q in idx):
+            up = np.concatenate(
+                [
+                    asks[q].up
+                    if asks[q].up is not None
+                    else np.full((asks[q].e.shape[0], n_step), ms, np.intp)
+                    for q in idx
+                ]
+            )
+        path = _radius_paths(e, start, ms, up)
+        cut = np.cumsum([0] + [asks[q].e.shape[0] for q in idx])
+        for k, q in enumerate(idx):
+            out[q] = path[cut[k] : cut[k + 1]]
+    return out  # type: ignore[return-value]
 
 
 def follow_rims(
@@ -356,6 +446,20 @@ def follow_rims(
     list of ndarray
         The contours, extended where a trace held (the others the same objects).
     """
+    return run_rims(follow_rims_steps(image, ev, contours_px, ends, spacing, params))
+
+
+def follow_rims_steps(
+    image: np.ndarray,
+    ev: EvidenceMaps,
+    contours_px: Sequence[np.ndarray],
+    ends: Sequence[tuple[bool, bool]],
+    spacing: tuple[float, float],
+    params: RimParams = RimParams(),  # noqa: B008 (frozen dataclass)
+) -> Generator[RadiusPaths, np.ndarray, list[np.ndarray]]:
+    """:func:`follow_rims` as a generator: yields the :class:`RadiusPaths` it needs
+    (at most one), is sent the paths, returns the contours (the caller may solve the
+    paths of several frames together: :func:`radius_paths_many`)."""
     p = params
     out = list(contours_px)
     if not p.enabled:
@@ -599,7 +703,7 @@ def follow_rims(
     # descent (tan would turn negative there: clipped just under a right angle).
     lean = np.clip(phi - np.radians(p.min_descent_deg), 0.0, np.radians(89.0))
     up = np.clip(np.floor(p.step_mm * np.tan(lean) / p.offset_mm + 1e-9), 1, ms).astype(np.intp)
-    path = _radius_paths(e, m, ms, None if (up >= ms).all() else np.concatenate([up, up]))
+    path = yield RadiusPaths(e, m, ms, None if (up >= ms).all() else np.concatenate([up, up]))
     tt = np.arange(2 * n_t)
     vals = e[tt[:, None], np.arange(n_step), path]
     ridge, null, path = vals[:n_t], vals[n_t:], path[:n_t]
