@@ -891,7 +891,9 @@ def _mark_series(
     the copies, whose shadow beneath is darker than the reflector's). A candidate that
     curves down (a bowl: the far cortex, the back wall of a convex bone) is also read
     along its mirror image, the shape of the bone's front and so of the copies
-    (:func:`_mirrored`); the top is traced along the echo in its band
+    (:func:`_mirrored`), up to the near field (the near cortex lies a bone's thickness
+    over it) and, failing that, over its middle half; its own echo, not being a copy,
+    does not veto the top (``copy_echo_ratio``); the top is traced along the echo in its band
     (:func:`_trace_band`), and when the shallowest member of a loose series is no
     confirmed top (a speckle peak of the tissue over the bone, with tissue under it)
     the next one down is tried, never past a member with shadow under it. The top must be
@@ -1001,14 +1003,12 @@ def _mark_series(
         # series, spacing 2.5 mm, shows only so); the whole width first, as a chain
         # read over the middle alone may climb one spacing higher onto a layer over
         # the bone (S clavicle s101, frames 20-21: a layer 2.45 mm over the bone).
-        far = max(reach, int(median1d(c["rows"])) - nf)
-        q = c["cols"].size // 4
-        mid = c["cols"][q : c["cols"].size - q]
         for read in ("mirror", "mirror middle", "own") if bowl else ("own",):
             at, shape = reach, c
             if read != "own":
-                at, shape = far, _mirrored(c)
-                only = mid if read == "mirror middle" else None
+                at, shape = max(reach, int(median1d(c["rows"])) - nf), _mirrored(c)
+                q = c["cols"].size // 4
+                only = c["cols"][q : c["cols"].size - q] if read == "mirror middle" else None
                 shape["prof"] = _underside_profile(lr, shape, at, only)
                 shape["peaks"] = _profile_peaks(shape["prof"], at)
             members = _series(shape["peaks"], at, min_px, dark, p.reverb_tolerance, strict=False)
