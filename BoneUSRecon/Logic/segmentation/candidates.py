@@ -920,15 +920,15 @@ def _mark_series(
         if "peaks" not in t:
             t["peaks"] = _profile_peaks(prof, reach)
         # The near-field test first (cheap; the same answer in either order).
-        if median1d(t["rows"]) < nf:
+        depth = median1d(t["rows"])
+        if depth < nf:
             return False
         if len(_series(t["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
             return False
         # Rows in the near field (gel, skin) say nothing of what lies over the
         # reflector: over a bone 3-4 mm deep most of the window is skin (S clavicle
         # grey s109, frames 37-39, the near cortex 3.9 mm deep).
-        top = int(median1d(t["rows"]))
-        lo = max(reach - 2 * gap, reach - (top - nf))
+        lo = max(reach - 2 * gap, reach - (int(depth) - nf))
         above = prof[lo : reach - gap]
         above = above[np.isfinite(above)]
         return not (above.size >= gap and median1d(above) < float(np.log(p.under_ratio)))
