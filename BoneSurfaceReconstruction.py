@@ -113,7 +113,7 @@ class BoneSurfaceReconstructionParameterNode:
     calibrationFile - optional PLUS configuration XML whose Image->Probe transform maps
         pixels to probe mm (then the frames must sit under the probe's transform).
     segmenter - bone contour segmenter ("snake" is the paper's).
-    controlPointsU/V, degreeU/V - the B-spline surface (paper: 15 x 5, quadratic).
+    controlPointsU/V, degreeU/V - the B-spline surface (paper: 15 x 5, quadratic; default 15 x 6).
     rays - rays per frame when resampling (paper: 15).
     flankExtension - mm the surface is continued down the bone's flanks past the data
         (extrapolated, flagged by the point array "Extrapolated"; 0: off, the default).

@@ -36,7 +36,12 @@ INT_PARAMETERS: dict[str, tuple[int, int, int, str]] = {
         60,
         "B-spline control points along the sweep (e; paper: 15 for ulna/radius, 10-15 best).",
     ),
-    "controlPointsV": (5, 3, 30, "B-spline control points across the bone (f; paper: 5)."),
+    "controlPointsV": (
+        6,
+        3,
+        30,
+        "B-spline control points across the bone (f; paper: 5 for ulna/radius; 6 follows flanks and crests).",
+    ),
     "degreeU": (2, 1, 5, "B-spline degree along the sweep (p; paper: 2, quadratic)."),
     "degreeV": (2, 1, 5, "B-spline degree across the bone (q; paper: 2, quadratic)."),
     "rays": (15, 3, 90, "Rays cast per frame when resampling the contours (n; paper: 15)."),

@@ -101,7 +101,7 @@ NO_SURFACE = [
     ("noise", "no bone contour found"),
     ("still", "the probe does not move"),
     ("jitter", "the probe does not move"),
-    ("four", "too few valid grid points for 15 x 5"),
+    ("four", "too few valid grid points for 15 x 6"),
     ("two_tracked", "only 2 slices with a bone contour"),
 ]
 
@@ -264,8 +264,8 @@ def test_reconstruct_refuses_absurd_parameters(capsys, bad, tmp_path, options, p
 @pytest.mark.parametrize(
     ("options", "problem"),
     [
-        (["--control-points", "5", "500"], "too few valid grid points for 500 x 5"),
-        (["--control-points", "0"], "0 x 5 control points are too few"),
+        (["--control-points", "5", "500"], "too few valid grid points for 500 x 6"),
+        (["--control-points", "0"], "0 x 6 control points are too few"),
         (["--around", "0"], "15 x 0 control points are too few"),
         (["--degree", "0", "0"], "degree must be at least 1"),
         (["--rays", "0"], "need at least 2 rays"),

@@ -216,7 +216,7 @@ def test_manifest_names_paths_and_overrides(cohort):
     assert jobs[0].params == read_manifest(cohort / "manifest.csv")[1].params  # defaults
     m = cohort / "along.csv"
     m.write_text("sweep,along,around\ndata/a.mha,9,\ndata/a.mha,,4\n")
-    assert [j.params.fit.n_control_points for j in read_manifest(m)] == [(9, 5), (15, 4)]
+    assert [j.params.fit.n_control_points for j in read_manifest(m)] == [(9, 6), (15, 4)]
 
 
 @pytest.mark.parametrize(

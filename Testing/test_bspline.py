@@ -16,7 +16,10 @@ from BoneUSRecon.Logic.bspline import (
 from BoneUSRecon.Logic.errors import BoneUSReconError
 
 
-def known_surface(m=40, n=15, e=15, f=5, seed=0, p=2, q=2):
+def known_surface(m=40, n=15, e=None, f=None, seed=0, p=2, q=2):
+    # The default control net is FitParams's, so the tests below fit with its default.
+    e0, f0 = FitParams().n_control_points
+    e, f = e0 if e is None else e, f0 if f is None else f
     rng = np.random.default_rng(seed)
     u = np.r_[0.0, np.sort(rng.uniform(0, 1, m - 2)), 1.0]
     v = np.linspace(0, 1, n)
@@ -267,3 +270,31 @@ def test_robust_weights_judge_offsets_along_the_normal_not_within_the_surface():
     # The surface stays on the true cylinder (points on it are within a few hundredths).
     s = fit.surface.evaluate(np.linspace(0.05, 0.95, 40), np.linspace(0.05, 0.95, 20))
     assert np.abs(np.hypot(s[..., 1], s[..., 2]) - radius).max() < 0.05
+
+
+def test_fit_runs_on_one_blas_thread_and_gives_the_threads_back():
+    # fit_surface limits BLAS to one thread while it runs (speed on small matrices, and
+    # the same bits in a batch worker and a single run: test_batch compares them bit for
+    # bit) and restores the process's own limits afterwards.
+    from threadpoolctl import threadpool_info
+
+    import BoneUSRecon.Logic.bspline as bspline
+
+    seen = []
+    real = bspline.thin_basis
+
+    def spy(*args, **kwargs):
+        seen.append({lib["filepath"]: lib["num_threads"] for lib in threadpool_info()})
+        return real(*args, **kwargs)
+
+    before = {lib["filepath"]: lib["num_threads"] for lib in threadpool_info()}
+    surf, u, v, pts, rng = known_surface(seed=5)
+    pts = pts.copy()
+    pts[:, :3] = np.nan  # a thin side: the thin-data basis is used
+    bspline.thin_basis = spy
+    try:
+        fit_surface(pts, FitParams(), u=u, v=v)
+    finally:
+        bspline.thin_basis = real
+    assert seen and all(set(s.values()) == {1} for s in seen)
+    assert {lib["filepath"]: lib["num_threads"] for lib in threadpool_info()} == before

@@ -50,11 +50,11 @@ def test_one_spelling_for_sizes_and_control_points() -> None:
 def test_old_spellings_still_work_and_agree() -> None:
     subs = _subparsers()
     p = subs["reconstruct"]
-    new = params_from_args(p.parse_args(["s.mha", "-o", "x.vtp", "--along", "12", "--around", "6"]))
-    old = params_from_args(p.parse_args(["s.mha", "-o", "x.vtp", "--control-points", "12", "6"]))
-    assert new == old and new.fit.n_control_points == (12, 6)
+    new = params_from_args(p.parse_args(["s.mha", "-o", "x.vtp", "--along", "12", "--around", "7"]))
+    old = params_from_args(p.parse_args(["s.mha", "-o", "x.vtp", "--control-points", "12", "7"]))
+    assert new == old and new.fit.n_control_points == (12, 7)
     only_along = params_from_args(p.parse_args(["s.mha", "-o", "x.vtp", "--along", "9"]))
-    assert only_along.fit.n_control_points == (9, 5)
+    assert only_along.fit.n_control_points == (9, 6)
     t = subs["table"]
     assert t.parse_args(["s", "--gold", "g", "--along", "5", "10"]).counts == [5, 10]
     assert t.parse_args(["s", "--gold", "g", "--control-points", "5", "10"]).counts == [5, 10]

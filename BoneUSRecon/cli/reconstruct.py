@@ -47,7 +47,10 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
             "--along", type=int, metavar="E", help="control points along the bone (default 15)"
         )
         p.add_argument(
-            "--around", type=int, metavar="F", help="control points around the bone (default 5)"
+            "--around",
+            type=int,
+            metavar="F",
+            help="control points around the bone (default 6; the paper: 5)",
         )
         p.add_argument(
             "--control-points", nargs=2, type=int, metavar=("E", "F"), help=argparse.SUPPRESS
