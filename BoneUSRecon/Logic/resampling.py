@@ -262,9 +262,7 @@ def _circle_centres(xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float) 
     r2 = cx**2 + cy**2 - sol[:, 2]
     radius = np.sqrt(np.maximum(r2, 0.0))
     # Chord fallback: half a chord below the chord's midpoint (y is "up").
-    first = xy[:, 0]
-    last_idx = mask.sum(axis=1) - 1
-    last = xy[np.arange(xy.shape[0]), last_idx]
+    first, last = _contour_ends(xy, mask)
     mid = (first + last) / 2
     half = np.linalg.norm(last - first, axis=1) / 2
     fallback = mid - np.stack([np.zeros_like(half), np.maximum(half, rmin)], axis=1)
@@ -275,15 +273,21 @@ def _circle_centres(xy: np.ndarray, mask: np.ndarray, rmin: float, rmax: float) 
     return np.where(good[:, None], np.stack([cx, cy], axis=1), fallback)
 
 
+def _contour_ends(xy: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and last point of each slice's padded contour, (m, 2) each."""
+    return xy[:, 0], xy[np.arange(xy.shape[0]), mask.sum(axis=1) - 1]
+
+
 def _chord_weights(xy: np.ndarray, mask: np.ndarray, params: ResamplingParams) -> np.ndarray:
     """Per-slice weight (0 or 1) of its circle centre in the axis fit, from its
     contour's chord (``ResamplingParams.axis_chord_share``; contours ordered along
-    themselves)."""
+    themselves). A slice left out has axis weight 0, so it does not set the fixed
+    rays' span either (only slices whose centre the axis trusts do)."""
     m = xy.shape[0]
     if not params.axis_chord_share > 0 or m == 0:
         return np.ones(m)
-    last = xy[np.arange(m), mask.sum(axis=1) - 1]
-    chord = np.linalg.norm(last - xy[:, 0], axis=1)
+    first, last = _contour_ends(xy, mask)
+    chord = np.linalg.norm(last - first, axis=1)
     ref = params.axis_chord_share * float(np.median(chord))
     keep = chord >= ref
     if not ref > 0 or keep.sum() < 3:
