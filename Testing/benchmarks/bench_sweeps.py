@@ -16,6 +16,9 @@ Groups of sweeps (40 frames each, per seed):
   clavicle;
 * ``grey``: the five bones with the grey shadow alone, 160 x 128 at 0.3 mm;
 * ``realstd``: the five bones, standard realism, at the cadaver geometry.
+* ``twobones``: the radius and the ulna, standard and hard, at the cadaver geometry
+  with the other forearm bone 18 mm beside the one swept (toward the wrist; both show
+  whole in the image).
 
 A seed nobody tuned on is the measure of a change; compare two checkouts on the same
 seeds (``PYTHONPATH`` set to each).
@@ -66,6 +69,12 @@ def cases(group: str, seed: int) -> list[tuple[str, SimulationParams]]:
         ]
     if group == "realstd":
         return [(f"R {b} std s{seed}", sim(b, "R")) for b in BONES]
+    if group == "twobones":
+        return [
+            (f"R {b} {r[:4]} 18mm s{seed}", sim(b, "R", realism=r, neighbour_mm=18.0))
+            for b in ("radius", "ulna")
+            for r in ("standard", "hard")
+        ]
     raise ValueError(f"unknown group {group!r}")
 
 
@@ -76,7 +85,7 @@ def main() -> None:
         "--groups",
         nargs="+",
         default=["real", "small"],
-        choices=["real", "small", "grey", "realstd"],
+        choices=["real", "small", "grey", "realstd", "twobones"],
     )
     ap.add_argument("--reconstruct", action="store_true", help="also the surface's gold distance")
     args = ap.parse_args()

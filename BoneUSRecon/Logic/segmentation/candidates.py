@@ -146,12 +146,18 @@ class BoneCandidate:
 
 @dataclass(frozen=True, eq=False)
 class FrameCandidates:
-    """The candidates of one frame, strongest first, and why there is none if so."""
+    """The candidates of one frame, strongest first, and why there is none if so.
+
+    ``fov_px``: the first and last image columns of the imaged field of view, when
+    known (the track prefers a bone near its middle over a neighbouring one,
+    :func:`.track.central_track`; None: no such preference for this frame).
+    """
 
     candidates: tuple[BoneCandidate, ...]
     spacing: tuple[float, float]
     reason: str = ""
     extras: dict = field(default_factory=dict)
+    fov_px: tuple[float, float] | None = None
 
     @property
     def usable(self) -> tuple[BoneCandidate, ...]:
@@ -498,6 +504,14 @@ def _is_copy(deep: np.ndarray, shallow: np.ndarray, depth0: float, tol: float) -
     dev = np.abs(ratio - 2.0)
     dev.sort()
     return bool(sorted_row_percentiles(dev[None, :], (90.0,))[0, 0] <= 2.0 * tol)
+
+
+def _fov_px(ev: EvidenceMaps) -> tuple[float, float] | None:
+    """First and last image columns of ``ev``'s field of view (None if empty)."""
+    cols = np.flatnonzero(ev.usable if ev.fov is None else ev.fov)
+    if cols.size == 0:
+        return None
+    return float(cols[0] * ev.fx), float((cols[-1] + 1) * ev.fx - 1)
 
 
 def _clip_rows(rows: np.ndarray, lo: int, hi: int) -> np.ndarray:
@@ -1442,7 +1456,7 @@ def _frame_candidates_steps(
     # Each piece judged on its settled contour before a layer beyond its wall was
     # dropped (that drop found the same layer; the extension keeps order and count).
     out = _mark_branches(out, [c.points_px for c in settled], ev, sp, p)
-    return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)})
+    return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)}, _fov_px(ev))
 
 
 def _mark_branches(
@@ -1957,4 +1971,4 @@ def candidates_from_points(
         float(np.median(ev.echo_z[rj, ci])),
         float(np.median(ev.shadow_z[rj, ci])),
     )
-    return FrameCandidates((cand,), sp, "", ex)
+    return FrameCandidates((cand,), sp, "", ex, _fov_px(ev))

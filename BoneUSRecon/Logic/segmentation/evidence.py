@@ -124,6 +124,9 @@ class EvidenceMaps:
         over rows of the per-row median of ``log(work / tissue_beside)`` (rows mostly
         tissue; speckle's median sits below a high percentile). The baseline of
         ratios measured against ``tissue_beside``.
+    fov : ndarray of bool, shape (w,), or None
+        Columns inside the imaged field of view (``usable`` without the contact test;
+        None: not recorded, as ``usable``).
     """
 
     work: np.ndarray
@@ -139,6 +142,7 @@ class EvidenceMaps:
     score: np.ndarray
     tissue_beside: np.ndarray
     log_tissue_ratio: float
+    fov: np.ndarray | None = None
 
     @property
     def nbytes(self) -> int:
@@ -694,4 +698,5 @@ def bone_evidence(
         score.astype(np.float32, copy=False),
         t_shadow,
         base,
+        fov,
     )

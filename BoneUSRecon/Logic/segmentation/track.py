@@ -32,7 +32,7 @@ neighbouring frames" (the distance to the track is in the frame's ``detail``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -489,25 +489,138 @@ def select_bone_track(
     by_frame: dict[int, list[int]] = {}
     for k, (f, _) in enumerate(nodes):
         by_frame.setdefault(f, []).append(k)
-    score = value.copy()  # best path value ending at each node (a path may start anywhere)
-    back = np.full(m, -1, dtype=np.intp)
-    link_dev = np.zeros(m)
     origin, axes, normal = frame_planes(poses)
+    # The edges (a, b, deviation, cost of the frames skipped) in the order the forward
+    # pass visits them: for each frame g, every node of the frames before it that may
+    # link to it, in frame order, their links to g's nodes made together (_links_many).
+    edges: list[tuple[int, int, float, float]] = []
     for g in sorted(by_frame):
         ks = by_frame[g]
         b_nodes = [geometry[kb][1:] for kb in ks]
-        # Every node of the frames before g that may link to it, in frame order: their
-        # links to g's nodes made together (_links_many), then visited in that order.
         kas = [ka for f in range(max(0, g - p.max_skip - 1), g) for ka in by_frame.get(f, ())]
-        edges = _links_many([ref[ka] for ka in kas], (origin[g], axes[g], normal[g]), b_nodes, p)
-        for ka, links in zip(kas, edges, strict=True):
-            f = nodes[ka][0]
-            for i, dev in links:
-                kb = ks[i]
-                s = score[ka] - dev**2 - p.miss_cost * (g - f - 1) + value[kb]
-                if s > score[kb]:
-                    score[kb], back[kb], link_dev[kb] = s, ka, dev
+        links = _links_many([ref[ka] for ka in kas], (origin[g], axes[g], normal[g]), b_nodes, p)
+        for ka, pairs in zip(kas, links, strict=True):
+            gap = p.miss_cost * (g - nodes[ka][0] - 1)
+            edges.extend((ka, ks[i], dev, gap) for i, dev in pairs)
+
+    def forward(value: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        score = value.copy()  # best path value ending at each node (a path may start anywhere)
+        back = np.full(m, -1, dtype=np.intp)
+        link_dev = np.zeros(m)
+        for ka, kb, dev, gap in edges:
+            s = score[ka] - dev**2 - gap + value[kb]
+            if s > score[kb]:
+                score[kb], back[kb], link_dev[kb] = s, ka, dev
+        return score, back, link_dev
+
+    value, (score, back, link_dev) = central_track(frames, nodes, value, forward, p)
     return _finish(frames, poses, nodes, value, score, back, link_dev, reason, p, detail=detail)
+
+
+def _path(score: np.ndarray, back: np.ndarray, need: int) -> list[int]:
+    """The nodes of the best-valued path that links at least ``need`` frames, last
+    first ([] if none): the track :func:`_finish` takes. Nodes ruled out (value -inf,
+    :func:`central_track`) end no path."""
+    m = score.size
+    length = np.zeros(m, dtype=np.intp)
+    for k in range(m):  # nodes are in frame order, so a predecessor comes first
+        length[k] = 1 + (length[back[k]] if back[k] >= 0 else 0)
+    ends = [k for k in np.argsort(-score) if length[k] >= need and np.isfinite(score[k])]
+    path: list[int] = []
+    k = int(ends[0]) if ends else -1
+    while k >= 0:
+        path.append(k)
+        k = int(back[k])
+    return path
+
+
+def _offcentre(
+    frames: Sequence[FrameCandidates], nodes: list[tuple[int, int]], path: list[int]
+) -> float | None:
+    """Median over ``path``'s frames of its contour's lateral middle's distance from the
+    middle of the imaged field of view, in its half-widths (None: no frame on it knows
+    its field of view)."""
+    u = []
+    for k in path:
+        f, c = nodes[k]
+        fov = frames[f].fov_px
+        if fov is not None and fov[1] > fov[0]:
+            x = frames[f].candidates[c].core_px[:, 0]
+            mid = 0.5 * (float(x.min()) + float(x.max()))
+            u.append(abs(mid - 0.5 * (fov[0] + fov[1])) / (0.5 * (fov[1] - fov[0])))
+    return median1d(np.asarray(u)) if u else None
+
+
+def _in_lane(
+    frames: Sequence[FrameCandidates], nodes: list[tuple[int, int]], path: list[int]
+) -> np.ndarray:
+    """Nodes lying over the columns of ``path``'s contours: at least half their width
+    inside the span of the path's contour in their frame (or, off the path, in the
+    nearest frame on it)."""
+    on = sorted((nodes[k][0], nodes[k][1]) for k in path)
+    track_f = np.array([f for f, _ in on])
+    spans = []
+    for f, c in on:
+        x = frames[f].candidates[c].core_px[:, 0]
+        spans.append((float(x.min()), float(x.max())))
+    out = np.zeros(len(nodes), bool)
+    for k, (f, c) in enumerate(nodes):
+        a, b = spans[int(np.argmin(np.abs(track_f - f)))]
+        x = frames[f].candidates[c].core_px[:, 0]
+        lo, hi = float(x.min()), float(x.max())
+        out[k] = min(hi, b) - max(lo, a) >= 0.5 * max(hi - lo, 1.0)
+    return out
+
+
+def central_track(
+    frames: Sequence[FrameCandidates],
+    nodes: list[tuple[int, int]],
+    value: np.ndarray,
+    forward: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    p: RejectionParams,
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The node values and the forward pass (``forward(value)``: scores, back-pointers
+    and link deviations) the track is taken from: ``value`` as it is, or, when the best
+    track runs off the image's middle and another bone track runs nearer it, with the
+    first track's columns ruled out (value -inf).
+
+    Two bones in view (the radius beside the ulna, the fibula beside the tibia, 15-30
+    mm apart, in a 40-50 mm wide image): both are continuous tracks of bone echo over
+    shadow, and the bigger or brighter one has the more evidence; on simulated forearms
+    with the neighbour 18 mm beside the ulna (475 x 405 at 0.108 mm), the ulna's sweeps
+    followed the radius in 5 of 8. The operator keeps the bone swept in the middle of
+    the image (that is what keeps it in view along a freehand sweep), so where the
+    best track lies, on median over its frames, farther than ``lane_offcentre`` of the
+    half-width from the middle, the track is chosen again without the nodes over its
+    columns (:func:`_in_lane`), and that one is taken if it lies at least ``lane_gain``
+    nearer the middle, links at least ``lane_frames`` of the first's frames and carries
+    at least ``lane_value`` of its value (a bone, not a vessel or a fascia that comes
+    and goes). Shares of the field of view and of the sweep's own track: no grey level.
+    A centred bone (the usual sweep) never triggers the second pass.
+    """
+    out = forward(value)
+    if p.lane_offcentre >= 1.0:
+        return value, out
+    need = min(p.min_track_frames, len({f for f, _ in nodes}))
+    path = _path(out[0], out[1], need)
+    u1 = _offcentre(frames, nodes, path)
+    if u1 is None or u1 <= p.lane_offcentre:
+        return value, out
+    lane = _in_lane(frames, nodes, path)
+    if lane.all():
+        return value, out
+    other = np.where(lane, -np.inf, value)
+    alt = forward(other)
+    path2 = _path(alt[0], alt[1], need)
+    u2 = _offcentre(frames, nodes, path2)
+    if (
+        u2 is not None
+        and u2 <= u1 - p.lane_gain
+        and len(path2) >= p.lane_frames * len(path)
+        and float(other[path2].sum()) >= p.lane_value * float(value[path].sum())
+    ):
+        return other, alt
+    return value, out
 
 
 def _finish(
@@ -535,7 +648,7 @@ def _finish(
     that only needs the choice). ``detail``: the details of the frames given a reason
     beforehand (ruled out of the track; "" elsewhere).
     """
-    n, m = len(frames), len(nodes)
+    n = len(frames)
     chosen = np.full(n, -1, dtype=np.intp)
     conf = np.zeros(n)
     reason = list(reason)
@@ -547,11 +660,8 @@ def _finish(
     # frames (fewer if the sweep has fewer): one frame alone, or two, can be speckle
     # that happens to look like a line; a bone continues through the sweep.
     need = min(p.min_track_frames, len(by_frame))
-    length = np.zeros(m, dtype=np.intp)
-    for k in range(m):  # nodes are in frame order, so a predecessor comes first
-        length[k] = 1 + (length[back[k]] if back[k] >= 0 else 0)
-    ends = [k for k in np.argsort(-score) if length[k] >= need]
-    if not (back >= 0).any() or (not ends and len(by_frame) < 2 * need):
+    on_track = _path(score, back, need)
+    if not (back >= 0).any() or (not on_track and len(by_frame) < 2 * need):
         # No two frames link, or a handful of frames (under twice ``need``) of which
         # none links ``need`` (scattered frames, tens of mm apart, where a chance pair
         # of speckle pieces may link and the bone's candidates do not; measured: 4
@@ -560,14 +670,10 @@ def _finish(
         # nothing to choose between). A longer sweep with no such path keeps nothing.
         for f, ks in by_frame.items():
             k = max(ks, key=lambda q: value[q])
-            chosen[f] = nodes[k][1]
-            conf[f] = min(1.0, value[k])
+            if np.isfinite(value[k]):  # not a node ruled out (central_track)
+                chosen[f] = nodes[k][1]
+                conf[f] = min(1.0, value[k])
         return TrackChoice(chosen, conf, reason, detail)
-    on_track: list[int] = []
-    k = int(ends[0]) if ends else -1
-    while k >= 0:
-        on_track.append(k)
-        k = int(back[k])
     for k in on_track:
         f, c = nodes[k]
         chosen[f] = c

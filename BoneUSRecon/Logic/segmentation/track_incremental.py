@@ -48,6 +48,7 @@ from BoneUSRecon.Logic.segmentation.track import (
     _node_points,
     _node_value,
     _typical_strength,
+    central_track,
 )
 from BoneUSRecon.Logic.sweep import frame_planes
 
@@ -350,55 +351,60 @@ class IncrementalTrack:
             self._details.clear()  # choices that changed long ago
         typical = _typical_strength(fcs)
         value_arr = np.array([_node_value(fcs[f].candidates[c], typical, p) for f, c in nodes])
-        # The forward pass on Python floats (the same IEEE arithmetic as the batch
-        # version's numpy scalars, ~10x faster per edge); edges in the batch order.
-        value = value_arr.tolist()
-        score = list(value)
-        back = [-1] * len(nodes)
-        link_dev = [0.0] * len(nodes)
         count = [nb + (1 if x else 0) for nb, x in zip(n_base, has_extra, strict=True)]
         base = np.cumsum([0] + count).tolist()
-        for g, fr in enumerate(frames):
-            if not count[g]:
-                continue
-            bg, eg = base[g], ext[g]
-            for f in range(max(0, g - p.max_skip - 1), g):
-                if not count[f]:
-                    continue  # no nodes (its stored links, if any, name none)
-                fa, ef = frames[f], ext[f]
-                bf = base[f]
-                gap_cost = p.miss_cost * (g - f - 1)
-                edges = fr.links.get(fa.uid)
-                if edges:
-                    for ia, ib, dev in edges:
-                        ka, kb = bf + ia, bg + ib
+
+        def forward(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            # On Python floats (the same IEEE arithmetic as the batch version's numpy
+            # scalars, ~10x faster per edge); edges in the batch order.
+            value = values.tolist()
+            score = list(value)
+            back = [-1] * len(nodes)
+            link_dev = [0.0] * len(nodes)
+            for g, fr in enumerate(frames):
+                if not count[g]:
+                    continue
+                bg, eg = base[g], ext[g]
+                for f in range(max(0, g - p.max_skip - 1), g):
+                    if not count[f]:
+                        continue  # no nodes (its stored links, if any, name none)
+                    fa, ef = frames[f], ext[f]
+                    bf = base[f]
+                    gap_cost = p.miss_cost * (g - f - 1)
+                    edges = fr.links.get(fa.uid)
+                    if edges:
+                        for ia, ib, dev in edges:
+                            ka, kb = bf + ia, bg + ib
+                            s = score[ka] - dev**2 - gap_cost + value[kb]
+                            if s > score[kb]:
+                                score[kb], back[kb], link_dev[kb] = s, ka, dev
+                    if eg is None and ef is None:
+                        continue
+                    # The extra nodes' edges. Only the order of the edges into one node
+                    # matters (a node's predecessors' scores are final): the batch
+                    # version visits them by the predecessor's node, the extra one last.
+                    into, out, both = self._extra_edges(fa, ef, fr, eg)
+                    xf, xg = bf + n_base[f], bg + n_base[g]  # the extra nodes' indices
+                    for ka, kb, dev in (
+                        *((bf + ia, xg, dev) for ia, dev in into),
+                        *((xf, bg + ib, dev) for ib, dev in out),
+                        *((xf, xg, dev) for dev in both),
+                    ):
                         s = score[ka] - dev**2 - gap_cost + value[kb]
                         if s > score[kb]:
                             score[kb], back[kb], link_dev[kb] = s, ka, dev
-                if eg is None and ef is None:
-                    continue
-                # The extra nodes' edges. Only the order of the edges into one node
-                # matters (a node's predecessors' scores are final): the batch version
-                # visits them by the predecessor's node, the extra one last.
-                into, out, both = self._extra_edges(fa, ef, fr, eg)
-                xf, xg = bf + n_base[f], bg + n_base[g]  # the extra nodes' indices
-                for ka, kb, dev in (
-                    *((bf + ia, xg, dev) for ia, dev in into),
-                    *((xf, bg + ib, dev) for ib, dev in out),
-                    *((xf, xg, dev) for dev in both),
-                ):
-                    s = score[ka] - dev**2 - gap_cost + value[kb]
-                    if s > score[kb]:
-                        score[kb], back[kb], link_dev[kb] = s, ka, dev
+            return np.array(score), np.array(back, dtype=np.intp), np.array(link_dev)
+
+        value_arr, (score_arr, back_arr, dev_arr) = central_track(fcs, nodes, value_arr, forward, p)
         poses = np.stack([fr.pose for fr in frames])
         return _finish(
             fcs,
             poses,
             nodes,
             value_arr,
-            np.array(score),
-            np.array(back, dtype=np.intp),
-            np.array(link_dev),
+            score_arr,
+            back_arr,
+            dev_arr,
             reason,
             p,
             keys=[fr.uid if e is None else e.key for fr, e in zip(frames, ext, strict=True)],

@@ -372,6 +372,8 @@ def _neighbour(geom: BoneGeometry, params: SimulationParams) -> BoneGeometry | N
     if not params.neighbour or params.bone not in NEIGHBOURS:
         return None
     name, dy = NEIGHBOURS[params.bone]
+    if params.neighbour_mm is not None:
+        dy = float(np.copysign(params.neighbour_mm, dy))
     spec2 = BONE_SPECS[name]
     plain = BoneGeometry(spec2)
     skin = float(geom.top_height(geom.length / 2)[0]) + geom.spec.depth_mm

@@ -335,6 +335,12 @@ class SimulationParams:
     #: transverse forearm scan does: a second bone echo with its own shadow at the
     #: side of the image. It is not part of the truth, the gold points or the contours.
     neighbour: bool = True
+    #: Axis-to-axis distance of that other bone (mm; None: :data:`.bones.NEIGHBOURS`'
+    #: 26 mm, mid-shaft, where a 48-51 mm wide image catches only its edge). The two
+    #: come to 15-20 mm of each other toward the wrist, where both show whole and the
+    #: segmentation must tell the bone swept from its neighbour (:func:`.segmentation.
+    #: track.central_track`).
+    neighbour_mm: float | None = None
     #: Width (pixels) of the black margin left and right of the imaged area, as in a
     #: scan-converted recording (the real L14 sweep: 176 columns of 820 on the left).
     #: No echo there and no bone in the true contours; 0 (default) images every column.
@@ -395,6 +401,10 @@ class SimulationParams:
             )
         if self.n_frames < 2:
             raise BoneUSReconError(f"need at least 2 frames, got {self.n_frames}")
+        if self.neighbour_mm is not None and not self.neighbour_mm > 0:
+            raise BoneUSReconError(
+                f"SimulationParams.neighbour_mm must be > 0 (or None), got {self.neighbour_mm!r}"
+            )
         if sum(self.bone_free_frames) > self.n_frames - 2:
             raise BoneUSReconError(
                 f"SimulationParams.bone_free_frames: {self.bone_free_frames} leaves fewer than "
