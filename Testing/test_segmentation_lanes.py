@@ -1,5 +1,7 @@
-"""Two bones in view: the track follows the one in the middle of the image
-(``track.central_track``, ``RejectionParams.lane_*``)."""
+"""Two bones in view (the radius and the ulna, the tibia and the fibula): each is a
+candidate of its own (``candidates._valley_runs``, ``candidates._separate_domes``) and
+the track follows the one in the middle of the image (``track.central_track``,
+``RejectionParams.lane_*``)."""
 
 from __future__ import annotations
 
@@ -7,10 +9,17 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import segment_sweep
-from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
+from BoneUSRecon.Logic.segmentation.candidates import (
+    BoneCandidate,
+    FrameCandidates,
+    _separate_domes,
+    _valley_runs,
+    frame_candidates,
+)
 from BoneUSRecon.Logic.segmentation.params import RejectionParams, SegmentationParams
 from BoneUSRecon.Logic.segmentation.track import select_bone_track
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
@@ -127,3 +136,74 @@ def test_neighbour_distance_must_be_positive(bad):
 def test_lane_parameters_are_checked(field, value):
     with pytest.raises(BoneUSReconError, match=field):
         RejectionParams(**{field: value})
+
+
+def _two_domes(gap_depth_mm: float = 2.0) -> np.ndarray:
+    """A contour over two domes (tops 6 mm deep at columns 50 and 150, 0.1 mm pixels)
+    meeting in a valley ``gap_depth_mm`` under the tops at column 100."""
+    i = np.arange(0.0, 200.0)
+    z = 6.0 + gap_depth_mm * np.minimum(np.abs(i - 50.0), np.abs(i - 150.0)) / 50.0
+    return np.column_stack([i, z / 0.1])
+
+
+def test_a_valley_with_tissue_under_it_between_two_shadows_parts_two_bones():
+    pts = _two_domes()
+    gap = np.abs(pts[:, 0] - 100.0) <= 12.0
+    shadow = np.where(gap, -0.5, 0.8)
+    runs = _valley_runs(pts, (0.1, 0.1), 0.5, shadow)
+    assert [(int(r[0]), int(r[-1])) for r in runs] == [(0, 100), (100, 199)]
+    # A groove: the bone's shadow under its bottom too. Stays whole.
+    assert len(_valley_runs(pts, (0.1, 0.1), 0.5, np.full(200, 0.8))) == 1
+    # The same valley without a dip in the shadow under it: a groove as well.
+    assert len(_valley_runs(pts, (0.1, 0.1), 0.5, np.where(gap, 0.6, 0.8))) == 1
+    # A concave surface spanning the image (no tissue beside its deepest stretch, so
+    # its bottom reads shadowless too): its sides are no domes, it stays whole.
+    bowl = np.column_stack(
+        [pts[:, 0], (6.0 + 2.0 * (1.0 - np.abs(pts[:, 0] - 100.0) / 100.0)) / 0.1]
+    )
+    assert len(_valley_runs(bowl, (0.1, 0.1), 0.5, shadow)) == 1
+
+
+def test_a_second_dome_of_one_path_is_offered_a_flat_run_is_not():
+    pts = _two_domes()
+    p = SegmentationParams().shadowpath
+    # The pieces a path over two bones leaves once the valley between them is cut.
+    left, right = pts[:, 0] <= 80.0, pts[:, 0] >= 120.0
+    cols = rows = np.zeros(0, np.intp)  # not read
+    best = (5.0, left, cols, rows)
+    dome = (3.0, right, cols, rows)
+    assert _separate_domes([best, dome], best, pts, (0.1, 0.1), p) == [dome]
+    # A dome touching the best piece: one bone's relief (a crest's corner), not offered.
+    touching = (3.0, pts[:, 0] > 80.0, cols, rows)
+    assert _separate_domes([best, touching], best, pts, (0.1, 0.1), p) == []
+    # No evidence above the null level: not offered.
+    weak = (-0.5, right, cols, rows)
+    assert _separate_domes([best, weak], best, pts, (0.1, 0.1), p) == []
+    # A layer running on flat (or falling one way) from the bone's shoulder.
+    flat = pts.copy()
+    flat[right, 1] = pts[100, 1]
+    assert _separate_domes([best, (3.0, right, cols, rows)], best, flat, (0.1, 0.1), p) == []
+
+
+@pytest.mark.parametrize("seed", [127, 3])
+def test_the_bone_swept_is_offered_in_every_frame_beside_its_neighbour(seed):
+    """Radius swept, the ulna 18 mm beside it, at the cadaver's 0.108 mm: one path may run
+    over both bones, and the radius was then no candidate of its frame (7 of 8 frames
+    offered it before the valley between two shadows was cut and second domes offered)."""
+    s = simulate(
+        SimulationParams(
+            bone="radius",
+            n_frames=8,
+            width=475,
+            height=405,
+            spacing_mm=0.108,
+            seed=seed,
+            neighbour_mm=18.0,
+        )
+    )
+    p = SegmentationParams().shadowpath
+    for f in range(8):
+        truth = np.asarray(s.true_contours_px[f]) * 0.108
+        fc = frame_candidates(np.asarray(s.sweep.frames[f]), (0.108, 0.108), p)
+        d = [np.median(cKDTree(truth).query(c.points_px * 0.108)[0]) for c in fc.usable]
+        assert min(d) < 0.5, f

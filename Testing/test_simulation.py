@@ -520,6 +520,13 @@ def test_cli_simulate_writes_and_reports(tmp_path, capsys) -> None:
     )
     assert rc == 0 and "Simulated radius sweep" in capsys.readouterr().out
     assert json.loads((tmp_path / "alone" / "simulation.json").read_text())["neighbour"] is None
+    rc = main(
+        ["simulate", "ulna", str(tmp_path / "near"), "--frames", "3", "--size", "64x64"]
+        + ["--spacing", "0.6", "--neighbour-mm", "18", "-q"]
+    )
+    assert rc == 0
+    saved = json.loads((tmp_path / "near" / "simulation.json").read_text())
+    assert saved["neighbour"]["bone"] == "radius" and saved["neighbour"]["offset_mm"][1] == 18.0
 
 
 @pytest.mark.parametrize(
@@ -529,6 +536,7 @@ def test_cli_simulate_writes_and_reports(tmp_path, capsys) -> None:
         (["ulna", "--frames", "-4"], "at least 2 frames"),
         (["ulna", "--corrupt", "2"], "between 0 and 1"),
         (["ulna", "--spacing", "-0.1"], "spacing"),
+        (["ulna", "--neighbour-mm", "0"], "neighbour_mm must be > 0"),
     ],
 )
 def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, args: list[str], message: str) -> None:

@@ -116,6 +116,14 @@ def register(subparsers: Any) -> None:
         action="store_false",
         help="forearm bones: do not show the other bone (radius/ulna) beside the target",
     )
+    p.add_argument(
+        "--neighbour-mm",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="forearm bones: the other bone's distance from the target, axis to axis "
+        "(default 26 mm, mid-shaft; 15-20 toward the wrist, where both show whole)",
+    )
     add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
@@ -168,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         reverse=args.reverse,
         neighbour=args.neighbour,
+        neighbour_mm=args.neighbour_mm,
         bone_free_frames=_bone_free(args.bone_free),
     )
     # Refuse bad input before any work is done or any folder is made.

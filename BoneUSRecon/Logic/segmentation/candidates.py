@@ -1369,6 +1369,7 @@ def _frame_candidates_steps(
     found = _mark_series(found, ev, lr, p)
     _mark_echo_beneath(found, ev, lr, p)
     made: list[tuple] = []
+    domes: list[tuple] = []  # pieces offered besides their path's best (_separate_domes)
     # Every candidate's sub-pixel rows in one go (the same values as one at a time).
     refined = _refine_many(img, ev, [(c["cols"], c["rows"]) for c in found], p, sp[1])
     for c, pts in zip(found, refined, strict=True):
@@ -1408,43 +1409,53 @@ def _frame_candidates_steps(
                 jm = np.logical_or.reduce([q[1] for q in inside])
                 jc, jr = c["cols"][jm], c["rows"][jm]
                 best = (float((ev.score[jr, jc] - p.null_z).sum() * ev.dx), jm, jc, jr)
-        strength, m, cols, rows = best
-        # A layer running off the bone's shoulder is cut off (see _shoulder_cut); the
-        # flanks are then followed from the cut end like any other (:mod:`.flanks`).
-        if not c.get("reverb"):
-            sk, strength = _cut_at_shoulder(
-                pts[m],
-                cols,
-                rows,
-                strength,
-                ev,
-                lambda cols=cols, rows=rows: _underside_step(lr, cols, rows, ev.dy),
-                sp,
-                p,
-                min_cols,
+        # Besides the best piece, every other piece that is a dome of its own (a second
+        # bone the path ran on to over the gap between them, :func:`_separate_domes`).
+        chosen = [(best, made)]
+        if not c.get("reverb") and len(pieces) > 1:
+            chosen += [(q, domes) for q in _separate_domes(pieces, best, pts, sp, p)]
+        for (strength, m, cols, rows), into in chosen:
+            # A layer running off the bone's shoulder is cut off (see _shoulder_cut);
+            # the flanks are then followed from the cut end like any other (:mod:`.flanks`).
+            if not c.get("reverb"):
+                sk, strength = _cut_at_shoulder(
+                    pts[m],
+                    cols,
+                    rows,
+                    strength,
+                    ev,
+                    lambda cols=cols, rows=rows: _underside_step(lr, cols, rows, ev.dy),
+                    sp,
+                    p,
+                    min_cols,
+                )
+                if sk is not None:
+                    m = np.flatnonzero(m)[sk]
+                    cols, rows = cols[sk], rows[sk]
+            # A reverberation series' top carries the evidence of its copies.
+            strength = max(strength, c.get("inherit", -np.inf))
+            into.append(
+                (
+                    pts[m],
+                    strength,
+                    median1d(ev.echo_z[rows, cols]),
+                    median1d(ev.shadow_z[rows, cols]),
+                    bool(c.get("reverb", False)),
+                    bool(c.get("beneath", False)),
+                )
             )
-            if sk is not None:
-                m = np.flatnonzero(m)[sk]
-                cols, rows = cols[sk], rows[sk]
-        # A reverberation series' top carries the evidence of its copies.
-        strength = max(strength, c.get("inherit", -np.inf))
-        made.append(
-            (
-                pts[m],
-                strength,
-                median1d(ev.echo_z[rows, cols]),
-                median1d(ev.shadow_z[rows, cols]),
-                bool(c.get("reverb", False)),
-                bool(c.get("beneath", False)),
-            )
-        )
     made.sort(key=lambda q: -q[1])
     # Past the path's reach: each candidate kept followed down the bone's flanks
     # (:mod:`.flanks`; strengths unchanged, so the same candidates are kept, in the same
     # order, and those cut off are not traced).
     # A candidate running on a layer just over the bone is first moved onto it where the
     # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
+    # The domes come on top of the budget: a second bone's piece takes no other
+    # candidate's place (a weak near cortex of the bone swept, on a forearm), and the
+    # room it takes is no other's either.
     made = made[: p.max_candidates]
+    if domes:
+        made = sorted(made + domes, key=lambda q: -q[1])
     # The grey values of the kept candidates' points, sampled in one call (the same
     # values as one candidate at a time; those cut off are not sampled).
     grey = sample_bilinear(img, np.concatenate([q[0] for q in made]))
@@ -1807,6 +1818,59 @@ def _shoulder_cut(
     return keep
 
 
+#: Half-width of the gap between two bones side by side, mm: the bottom of a dip whose
+#: shadow tells that gap from a groove in one bone (:func:`_valley_runs`), and half the
+#: least gap between a path's best piece and a second bone's (:func:`_separate_domes`).
+#: The gap is a few mm of tissue; its edges are the bones' flanks.
+_GAP_MM = 1.0
+
+
+def _separate_domes(
+    pieces: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]],
+    best: tuple[float, np.ndarray, np.ndarray, np.ndarray],
+    pts: np.ndarray,
+    spacing: tuple[float, float],
+    p: ShadowPathParams,
+) -> list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]:
+    """The pieces of one path, besides ``best``, that are domes of their own: evidence
+    above the null level, both ends at least ``dome_mm`` deeper than the piece's apex
+    (:func:`_apex`), and a gap of at least twice ``_GAP_MM`` from ``best`` (the tissue
+    between two bones; a crest's corners part its contour into pieces that touch).
+
+    One optimal path may run over two bones side by side (the radius and the ulna, the
+    tibia and the fibula) without leaving them for the no-bone state over the few mm
+    of tissue between them: its convex pieces are then the two bones, and only the
+    piece with the most evidence was offered, so the other bone had no candidate in
+    that frame (simulated forearm, ulna 18 mm beside the radius swept: the radius had
+    none in frames 0-5 of seed 127, and the track followed the ulna there). A layer
+    running off the bone's shoulder, the other piece a path usually leaves, is flat or
+    falls one way: no dome. Offered as candidates of their own, each with its own
+    evidence, they let the sweep-level choice take the bone it follows in every frame.
+    Geometry of the contour alone, in mm: no grey level.
+    """
+    out = []
+    bx = pts[best[1], 0] * spacing[0]
+    for q in pieces:
+        if q[0] <= 0 or (q[1] & best[1]).any():
+            continue
+        x = pts[q[1], 0] * spacing[0]
+        z = pts[q[1], 1] * spacing[1]
+        if x.size < 3 or max(x[0] - bx[-1], bx[0] - x[-1]) < 2.0 * _GAP_MM:
+            continue  # beside best with no gap between: the same bone's relief (a crest)
+        if _is_dome(x, z, p.dome_mm):
+            out.append(q)
+    return out
+
+
+def _is_dome(x: np.ndarray, z: np.ndarray, dome_mm: float) -> bool:
+    """Whether a contour (lateral ``x``, depth ``z``, mm) has its apex (:func:`_apex`)
+    inside, with both its ends at least ``dome_mm`` deeper."""
+    if x.size < 3:
+        return False
+    k = _apex(x, z)
+    return 0 < k < x.size - 1 and min(z[0], z[-1]) - z[k] >= dome_mm
+
+
 def _fill_excursions(
     pts: np.ndarray, spacing: tuple[float, float], p: ShadowPathParams
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1864,7 +1928,11 @@ def _fill_excursions(
 
 
 def _valley_runs(
-    pts: np.ndarray, spacing: tuple[float, float], valley_mm: float, shadow: np.ndarray
+    pts: np.ndarray,
+    spacing: tuple[float, float],
+    valley_mm: float,
+    shadow: np.ndarray,
+    dome_mm: float = ShadowPathParams.dome_mm,
 ) -> list[np.ndarray]:
     """Index runs of a contour split where a layer meets the bone in a valley.
 
@@ -1880,6 +1948,17 @@ def _valley_runs(
     the image whose deep side's shadow windows reach the image bottom 0.43-0.46); a
     groove stays whole. Depths are in mm, so the rule holds at any pixel size. Each cut point is in
     both runs.
+
+    Nor is a dip whose sides both cast a shadow and are domes of their own (an apex
+    inside, both ends ``dome_mm`` deeper) and whose bottom (the points within ``_GAP_MM``
+    of its deepest, laterally) has less than a third of the lesser side's a groove: the
+    bone under a groove casts its shadow there too, while between two bones side by side
+    (the radius and the ulna, the tibia and the fibula) lies tissue. (A concave surface
+    spanning the image has no tissue beside its deepest stretch to measure the shadow
+    against, so its bottom reads as shadowless too; its sides are no domes.) On a
+    simulated forearm with the ulna 18 mm beside the radius swept, one path ran over
+    both (sides 0.45 and 0.42, the gap's bottom -0.5), and the track crossed from the
+    ulna to the radius over that one contour (seed 127, frames 0-6).
     """
     n = pts.shape[0]
     z = pts[:, 1] * float(spacing[1])
@@ -1895,6 +1974,16 @@ def _valley_runs(
         a, b = median1d(shadow[: k + 1]), median1d(shadow[k:])
         if min(a, b) < max(a, b) / 3.0:
             cuts.append(k)
+        elif min(a, b) > 0:
+            # Two shadows with tissue between: two bones side by side, not a groove.
+            x = pts[:, 0] * float(spacing[0])
+            near = np.abs(x - x[k]) <= _GAP_MM
+            if (
+                median1d(shadow[near]) < min(a, b) / 3.0
+                and _is_dome(x[: k + 1], z[: k + 1], dome_mm)
+                and _is_dome(x[k:], z[k:], dome_mm)
+            ):
+                cuts.append(k)
     bounds = [0, *cuts, n - 1]
     return [np.arange(a, b + 1) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
@@ -1920,7 +2009,8 @@ def _convex_pieces(
     n = pts.shape[0]
     runs = [np.arange(n)]
     if shadow is not None:
-        runs = [r for r in _valley_runs(pts, spacing, p.valley_mm, shadow) if r.size >= min_cols]
+        runs = _valley_runs(pts, spacing, p.valley_mm, shadow, p.dome_mm)
+        runs = [r for r in runs if r.size >= min_cols]
     for part in runs or [np.arange(n)]:
         keep = np.zeros(n, bool)
         keep[part[convex_part(pts[part], spacing, p)]] = True

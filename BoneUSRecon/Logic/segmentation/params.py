@@ -481,6 +481,8 @@ class ShadowPathParams:
     """Optimal-path passes per frame; each pass suppresses what the previous ones found (ours: bone, fascia, reverberation)."""
     max_candidates: int = 5
     """Largest number of candidate contours kept per frame."""
+    dome_mm: float = 0.5
+    """A piece of a path besides its strongest is offered as a candidate of its own when both its ends lie at least this much deeper than its apex, mm (a second bone the path ran on to, :func:`.candidates._separate_domes`; ours: a forearm bone's visible arc falls 1-3 mm from its top to its ends, a layer off the bone's shoulder is flat or falls one way)."""
     suppress_mm: float = 1.5
     """Half-height of the band suppressed around a found contour before the next pass, mm."""
     kink_slope: float = 0.6
@@ -538,6 +540,7 @@ class ShadowPathParams:
                 "min_length_mm",
                 "n_passes",
                 "max_candidates",
+                "dome_mm",
                 "suppress_mm",
                 "kink_mm",
                 "valley_mm",
