@@ -86,17 +86,18 @@ humerus's straight flank reaches below the centre of the circle fitted to it (th
 flank is straighter than that circle), yet its other end, and the rest of that flank
 past the arc tracer's stop, are on the outline; with the centre required below the
 deepest point no end of such a contour was followed (on the hard simulated humerus,
-tibia and radius of seed 53 at 475 x 405, 620 of the 2940 samples of the true
-contour steeper than 60 degrees with no point within 0.5 mm lay in such frames). Ends
+tibia and radius of seed 53 at 475 x 405, 620 of the 2930 samples of the true contour
+steeper than 60 degrees with no kept point within 0.5 mm lay beyond such ends). Ends
 below the centre are followed as far as ``max_deg`` and the slope limits allow. With
 it the true contour steeper than 60 degrees covered within 0.5 mm went 0.536 -> 0.577
 on 13 hard simulated sweeps (seeds 5, 7, 53) and 0.551 -> 0.593 on 8 unseen ones,
 kept points unchanged in accuracy (``Testing/benchmarks/README.md``, "Session 31,
 branch flank31"); the standard and grey-shadow sweeps and the L14 recording (whose
-contours keep their ends above the circle's centre) are unchanged. Applied per frame to every candidate
-(:func:`.flanks.extend_candidates`), so live and offline get the same contours.
-Vectorised over all traces of a frame (and their nulls); Python loops only over the
-steps of the path search. Figures: ``Testing/benchmarks/README.md`` ("Rim").
+contours keep their ends above the circle's centre) are unchanged.
+
+Applied per frame to every candidate (:func:`.flanks.extend_candidates`), so live and
+offline get the same contours. Vectorised over all traces of a frame (and their nulls);
+Python loops only over the steps of the path search. Figures: ``Testing/benchmarks/README.md`` ("Rim").
 """
 
 from __future__ import annotations
