@@ -339,6 +339,32 @@ def test_a_straight_flank_is_followed_past_the_fitted_circle(seed):
     assert old[:, 1].max() - shoulder <= 0.5
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_contour_reaching_below_its_circles_centre_is_followed(seed):
+    # The bullet's left flank already followed 4 mm below the shoulder (as the arc
+    # tracer leaves a crest's straight flank), its right end at 25 degrees on the top:
+    # the circle fitted to that contour (5.2 mm) has its centre 0.3 mm above the left
+    # end, the contour is convex seen from the probe. Its right end is followed down
+    # that flank too, on the outline (measured: 4.6 mm below the shoulder, 0.08 mm off
+    # it at most; with the centre required below the deepest point nothing was
+    # followed and the end stayed 1.25 mm above the shoulder).
+    img, outline = bullet_frame(seed)
+    cx, r = W * SPACING / 2, 3.0
+    shoulder = 10.0 - r * np.cos(np.radians(60.0))
+    part = outline[
+        (outline[:, 1] <= shoulder + 4.0) & (outline[:, 0] <= cx + r * np.sin(np.radians(25.0)))
+    ]
+    x = np.arange(np.ceil(part[:, 0].min() / SPACING), part[:, 0].max() / SPACING) * SPACING
+    order = np.argsort(part[:, 0])
+    contour = np.column_stack([x, np.interp(x, part[order, 0], part[order, 1])])
+    _, cz, _ = kasa_circle(*contour.T)
+    assert cz < contour[:, 1].max()  # the case: an end below the circle's centre
+    out = traced(img, contour / SPACING) * SPACING
+    assert out[-1, 1] - shoulder >= 3.0, out[-1]
+    assert out[0, 1] >= contour[0, 1]  # the followed flank is not cut back
+    assert cKDTree(outline).query(out)[0].max() <= 0.2
+
+
 @pytest.mark.parametrize(
     ("changes", "says"),
     [
