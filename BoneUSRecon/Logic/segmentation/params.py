@@ -221,8 +221,8 @@ class RimParams:
 
     enabled: bool = True
     """Follow the contours' ends on from where :mod:`.flanks` left them (off: they stay)."""
-    candidates: int = 3
-    """Only the strongest this many candidates of a frame (not reverberation copies) are followed (ours: on the hard simulated humerus and tibia, seed 53 at 475 x 405, the kept contour was the third to fifth strongest in 18 of 80 frames, the third in 12: layers over a faint bone are stronger; with 3, on the humerus, tibia and radius of that seed the true contour steeper than 60 degrees covered within 0.5 mm went from 0.48 to 0.58, the surface's gold distance 0.45 -> 0.40 mm; each candidate more costs ~1-1.5 ms per frame at 480 x 640)."""
+    candidates: int = 5
+    """Only the strongest this many candidates of a frame (not reverberation copies) are followed (ours: on the hard simulated humerus and tibia, seed 53 at 475 x 405, the kept contour was the third to fifth strongest in 18 of 80 frames, the third in 12: layers over a faint bone are stronger; with 3, on the humerus, tibia and radius of that seed the true contour steeper than 60 degrees covered within 0.5 mm went from 0.48 to 0.58, the surface's gold distance 0.45 -> 0.40 mm. From 3 to 5, session 31: that coverage on 13 hard sweeps 0.577 -> 0.593, unseen 0.593 -> 0.603; gold mean on unseen seeds 109/113 0.222 -> 0.219 mm, 127/131 0.227 -> 0.226, two bones in view 0.223 -> 0.212; recall, wrong share and the L14 recording unchanged; ~1.4 ms per frame more at 475 x 405)."""
     min_points: int = 12
     """Contours with fewer points are not followed (a circle fit needs an arc)."""
     max_start_deg: float = 20.0
