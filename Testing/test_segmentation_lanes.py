@@ -100,21 +100,18 @@ def test_a_bone_near_the_middle_is_never_second_guessed():
     assert _lane_of(frames, _both(frames, poses).chosen) == {115.0}
 
 
+def _beside(bone: str, **kw: object):
+    """A simulated forearm sweep of ``bone`` with the other forearm bone 18 mm beside it
+    (toward the wrist the two come that close; both show whole)."""
+    return simulate(SimulationParams(bone=bone, neighbour_mm=18.0, **kw))
+
+
 @pytest.mark.parametrize(("realism", "seed"), [("standard", 1), ("hard", 2)])
 def test_two_forearm_bones_in_view_the_swept_one_is_segmented(realism, seed):
     """The ulna swept in the middle of a 51 mm image, the radius 18 mm beside it (toward
     the wrist the two come that close): the radius's bigger echo had the track."""
-    sim = simulate(
-        SimulationParams(
-            bone="ulna",
-            n_frames=12,
-            width=160,
-            height=136,
-            spacing_mm=0.32,
-            realism=realism,
-            seed=seed,
-            neighbour_mm=18.0,
-        )
+    sim = _beside(
+        "ulna", n_frames=12, width=160, height=136, spacing_mm=0.32, realism=realism, seed=seed
     )
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["recall"] >= 0.8 and s["wrong_share"] == 0.0
@@ -190,17 +187,7 @@ def test_the_bone_swept_is_offered_in_every_frame_beside_its_neighbour(seed):
     """Radius swept, the ulna 18 mm beside it, at the cadaver's 0.108 mm: one path may run
     over both bones, and the radius was then no candidate of its frame (7 of 8 frames
     offered it before the valley between two shadows was cut and second domes offered)."""
-    s = simulate(
-        SimulationParams(
-            bone="radius",
-            n_frames=8,
-            width=475,
-            height=405,
-            spacing_mm=0.108,
-            seed=seed,
-            neighbour_mm=18.0,
-        )
-    )
+    s = _beside("radius", n_frames=8, width=475, height=405, spacing_mm=0.108, seed=seed)
     p = SegmentationParams().shadowpath
     for f in range(8):
         truth = np.asarray(s.true_contours_px[f]) * 0.108
