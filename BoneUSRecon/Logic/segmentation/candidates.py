@@ -1445,17 +1445,17 @@ def _frame_candidates_steps(
                 )
             )
     made.sort(key=lambda q: -q[1])
-    # Past the path's reach: each candidate kept followed down the bone's flanks
-    # (:mod:`.flanks`; strengths unchanged, so the same candidates are kept, in the same
-    # order, and those cut off are not traced).
-    # A candidate running on a layer just over the bone is first moved onto it where the
-    # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
     # The domes come on top of the budget: a second bone's piece takes no other
     # candidate's place (a weak near cortex of the bone swept, on a forearm), and the
     # room it takes is no other's either.
     made = made[: p.max_candidates]
     if domes:
         made = sorted(made + domes, key=lambda q: -q[1])
+    # Past the path's reach: each candidate kept followed down the bone's flanks
+    # (:mod:`.flanks`; strengths unchanged, so the same candidates are kept, in the same
+    # order, and those cut off are not traced).
+    # A candidate running on a layer just over the bone is first moved onto it where the
+    # shadow starts under it (:mod:`.settle`), so its flanks are followed from the bone.
     # The grey values of the kept candidates' points, sampled in one call (the same
     # values as one candidate at a time; those cut off are not sampled).
     grey = sample_bilinear(img, np.concatenate([q[0] for q in made]))

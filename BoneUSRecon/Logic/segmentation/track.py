@@ -581,7 +581,7 @@ def central_track(
 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The node values and the forward pass (``forward(value)``: scores, back-pointers
     and link deviations) the track is taken from: ``value`` as it is, or, when the best
-    track runs off the image's middle and another bone track runs nearer it, with the
+    track runs off the middle of the field of view and another bone track runs nearer it, with the
     first track's columns ruled out (value -inf).
 
     Two bones in view (the radius beside the ulna, the fibula beside the tibia, 15-30
