@@ -513,8 +513,10 @@ def select_bone_track(
                 score[kb], back[kb], link_dev[kb] = s, ka, dev
         return score, back, link_dev
 
-    value, (score, back, link_dev) = central_track(frames, nodes, value, forward, p)
-    return _finish(frames, poses, nodes, value, score, back, link_dev, reason, p, detail=detail)
+    value, (score, back, link_dev), path = central_track(frames, nodes, value, forward, p)
+    return _finish(
+        frames, poses, nodes, value, score, back, link_dev, reason, p, detail=detail, path=path
+    )
 
 
 def _path(score: np.ndarray, back: np.ndarray, need: int) -> list[int]:
@@ -578,9 +580,10 @@ def central_track(
     value: np.ndarray,
     forward: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
     p: RejectionParams,
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], list[int] | None]:
     """The node values and the forward pass (``forward(value)``: scores, back-pointers
-    and link deviations) the track is taken from: ``value`` as it is, or, when the best
+    and link deviations) the track is taken from, and its path (:func:`_path`; None when
+    not traced here): ``value`` as it is, or, when the best
     track runs off the middle of the field of view and another bone track runs nearer it, with the
     first track's columns ruled out (value -inf).
 
@@ -600,15 +603,15 @@ def central_track(
     """
     out = forward(value)
     if p.lane_offcentre >= 1.0:
-        return value, out
+        return value, out, None
     need = min(p.min_track_frames, len({f for f, _ in nodes}))
     path = _path(out[0], out[1], need)
     u1 = _offcentre(frames, nodes, path)
     if u1 is None or u1 <= p.lane_offcentre:
-        return value, out
+        return value, out, path
     lane = _in_lane(frames, nodes, path)
     if lane.all():
-        return value, out
+        return value, out, path
     other = np.where(lane, -np.inf, value)
     alt = forward(other)
     path2 = _path(alt[0], alt[1], need)
@@ -619,8 +622,8 @@ def central_track(
         and len(path2) >= p.lane_frames * len(path)
         and float(other[path2].sum()) >= p.lane_value * float(value[path].sum())
     ):
-        return other, alt
-    return value, out
+        return other, alt, path2
+    return value, out, path
 
 
 def _finish(
@@ -637,6 +640,7 @@ def _finish(
     details: dict[tuple[int, int, int, int], str] | None = None,
     explain: bool = True,
     detail: list[str] | None = None,
+    path: list[int] | None = None,
 ) -> TrackChoice:
     """The track from the dynamic programme's scores and back-pointers (``nodes`` in
     frame order), and why each frame off it is off it.
@@ -646,7 +650,8 @@ def _finish(
     solves: a detail depends only on the frame, its nearest frame on the track, that
     frame's choice and position. ``explain`` False leaves the details empty (a caller
     that only needs the choice). ``detail``: the details of the frames given a reason
-    beforehand (ruled out of the track; "" elsewhere).
+    beforehand (ruled out of the track; "" elsewhere). ``path``: the track's nodes, when
+    :func:`central_track` traced them already (None: traced here).
     """
     n = len(frames)
     chosen = np.full(n, -1, dtype=np.intp)
@@ -660,7 +665,7 @@ def _finish(
     # frames (fewer if the sweep has fewer): one frame alone, or two, can be speckle
     # that happens to look like a line; a bone continues through the sweep.
     need = min(p.min_track_frames, len(by_frame))
-    on_track = _path(score, back, need)
+    on_track = _path(score, back, need) if path is None else path
     if not (back >= 0).any() or (not on_track and len(by_frame) < 2 * need):
         # No two frames link, or a handful of frames (under twice ``need``) of which
         # none links ``need`` (scattered frames, tens of mm apart, where a chance pair

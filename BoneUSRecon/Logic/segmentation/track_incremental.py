@@ -395,7 +395,9 @@ class IncrementalTrack:
                             score[kb], back[kb], link_dev[kb] = s, ka, dev
             return np.array(score), np.array(back, dtype=np.intp), np.array(link_dev)
 
-        value_arr, (score_arr, back_arr, dev_arr) = central_track(fcs, nodes, value_arr, forward, p)
+        value_arr, (score_arr, back_arr, dev_arr), path = central_track(
+            fcs, nodes, value_arr, forward, p
+        )
         poses = np.stack([fr.pose for fr in frames])
         return _finish(
             fcs,
@@ -411,6 +413,7 @@ class IncrementalTrack:
             details=self._details,
             explain=explain,
             detail=detail,
+            path=path,
         )
 
     def memory_bytes(self) -> int:
