@@ -194,3 +194,85 @@ def test_the_bone_swept_is_offered_in_every_frame_beside_its_neighbour(seed):
         fc = frame_candidates(np.asarray(s.sweep.frames[f]), (0.108, 0.108), p)
         d = [np.median(cKDTree(truth).query(c.points_px * 0.108)[0]) for c in fc.usable]
         assert min(d) < 0.5, f
+
+
+def _lanes_of(frames: list[FrameCandidates], chosen: np.ndarray) -> list[float]:
+    """First column of each frame's chosen candidate (NaN: none)."""
+    return [
+        float(frames[k].candidates[c].points_px[0, 0]) if c >= 0 else np.nan
+        for k, c in enumerate(chosen)
+    ]
+
+
+def test_a_track_crossing_to_the_bone_beside_over_a_joining_contour_is_kept_to_one():
+    """The bone in the middle (columns 80-120) over 12 frames, weak in the last four; in
+    frame 8 a contour runs over both bones (columns 50-110, a fascia joining them at
+    their level) and a stronger bone beside (columns 20-70) shows in the last three.
+    Every link is within tolerance, so the best track crossed over; kept to one lane it
+    follows the bone in the middle in every frame."""
+    frames, poses = _lanes(
+        12,
+        [
+            (80, 120, 8.0, set(range(8))),
+            (80, 120, 2.0, {8, 9, 10, 11}),
+            (50, 110, 12.0, {8}),
+            (20, 70, 10.0, {9, 10, 11}),
+        ],
+    )
+    lanes = _lanes_of(frames, _both(frames, poses).chosen)
+    assert lanes[:8] == [80.0] * 8 and lanes[9:] == [80.0] * 3
+    off = RejectionParams(one_lane=False)
+    assert _lanes_of(frames, _both(frames, poses, off).chosen)[9:] == [20.0] * 3
+
+
+def test_a_bone_drifting_across_the_image_or_showing_one_flank_then_the_other_stays():
+    """Lateral drift (5 columns per frame, 1.4 mm of sweep) never leaves a contour's
+    columns within two frames; a bone showing its left flank, then all of it in one
+    frame, then its right flank, has no other candidate in the right flank's frames:
+    both tracks are as without the rule, over every frame."""
+    drift = [(20 + 5 * k, 60 + 5 * k, 8.0, {k}) for k in range(12)]
+    flanks = [(80, 98, 8.0, set(range(6))), (80, 122, 8.0, {6}), (104, 122, 8.0, set(range(7, 12)))]
+    for lanes in (drift, flanks):
+        frames, poses = _lanes(12, lanes)
+        on = _both(frames, poses).chosen
+        np.testing.assert_array_equal(
+            on, _both(frames, poses, RejectionParams(one_lane=False)).chosen
+        )
+        assert (on >= 0).all()
+
+
+def _radius_beside(seed: int):
+    """A hard radius swept in the middle of a 51 mm image, the ulna 18 mm beside it."""
+    return _beside(
+        "radius", n_frames=12, width=320, height=256, spacing_mm=0.16, realism="hard", seed=seed
+    )
+
+
+def test_the_track_does_not_cross_to_the_neighbour_over_a_fascia_joining_them():
+    """Hard radius seed 1: in frame 8 the contour ran along a fascia from the radius's
+    flank onto the ulna, and the track followed the ulna in frames 9-11 (wrong share
+    0.25); kept to one lane, every frame is on the radius."""
+    sim = _radius_beside(1)
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["recall"] == 1.0 and s["wrong_share"] == 0.0 and s["median_mm"] <= 0.2
+    p = SegmentationParams()
+    off = dataclasses.replace(p, rejection=dataclasses.replace(p.rejection, one_lane=False))
+    assert score_simulation(segment_sweep(sim.sweep, off), sim).summary()["wrong_share"] >= 0.2
+
+
+def test_the_far_cortex_under_the_bone_is_flagged_where_bright_tissue_covers_it():
+    """Hard radius seed 2: the interior between the near and the far cortex reads 0.81
+    of the frame's typical tissue (reverberation bands), 0.73-0.77 of the brighter
+    tissue over the bone. Judged against the frame's level alone the far cortex, 6-10
+    mm deep in the shadow, went unflagged and the track followed it in all 12 frames;
+    against the tissue the sound crossed it is flagged and the track is on the bone."""
+    sim = _radius_beside(2)
+    sp = SegmentationParams().shadowpath
+    for k in (7, 9):
+        t = np.asarray(sim.true_contours_px[k]) * 0.16
+        fc = frame_candidates(np.asarray(sim.sweep.frames[k]), (0.16, 0.16), sp)
+        far = [c for c in fc.usable if np.median(cKDTree(t).query(c.points_px * 0.16)[0]) > 5.0]
+        deep = [c for c in far if np.median(c.points_px[:, 1]) * 0.16 > t[:, 1].max()]
+        assert deep and all(c.echo_beneath for c in deep)
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["wrong_share"] == 0.0 and s["recall"] >= 0.7

@@ -642,6 +642,8 @@ class RejectionParams:
     """The more central track must link at least this share of the chosen track's frames (ours: a bone continues through the sweep; a look-alike in the middle, a vessel or a fascia, comes and goes)."""
     lane_value: float = 0.3
     """The more central track's summed node value must be at least this share of the chosen track's (ours: the ulna's evidence 0.6-0.8 of the bigger radius's beside it; a fascia's, with tissue and no shadow under it, a tenth)."""
+    one_lane: bool = True
+    """Keep the track to one bone: where two of its contours two frames apart share no column (it crossed to a neighbouring bone over a contour joining them), choose it again without the lanes of its shorter stretches, and take that if it links as many frames (:func:`.track._one_lane`; ours: a bone cannot leave its own columns within two frames of a sweep)."""
 
     def __post_init__(self) -> None:
         check_fields(
