@@ -642,11 +642,24 @@ class RejectionParams:
     """The more central track must link at least this share of the chosen track's frames (ours: a bone continues through the sweep; a look-alike in the middle, a vessel or a fascia, comes and goes)."""
     lane_value: float = 0.3
     """The more central track's summed node value must be at least this share of the chosen track's (ours: the ulna's evidence 0.6-0.8 of the bigger radius's beside it; a fascia's, with tissue and no shadow under it, a tenth)."""
+    bone_points: tuple[tuple[float, float, float], ...] = ()
+    """The user's bone points, reference mm (``ImageToReference``'s output: a markup placed on the bone in the reconstructed volume or a slice of it): the track must follow the bone through them, whatever ``lane_*`` prefers (:mod:`.bone_point`; empty: none). Points on one bone: the bone to follow where two are in view."""
+    point_plane_mm: float = 3.0
+    """A bone point's frames are those whose image plane passes within this distance of it, mm (ours: about twice the 1.4 mm between frames of issue 10's cadaver sweep, so a point has four frames there, and one still where frames lie up to 6 mm apart; a bone surface inclined 30 degrees to the sweep moves 1.7 mm in plane over it, within ``point_contour_mm``)."""
+    point_contour_mm: float = 3.0
+    """In a bone point's frames only candidates whose contour passes within this in-plane distance of the point (projected into the frame) may be on the track, mm (ours: a click on the bone's echo band, 1-2 mm thick on the L14 recording, with ``point_plane_mm``'s slope; a fifth of the 15-30 mm between the radius and the ulna or the tibia and the fibula, whose contours lie 5 mm or more apart at their nearest)."""
 
     def __post_init__(self) -> None:
         check_fields(
             self,
-            positive=("tolerance_mm", "max_deviation", "max_step_mm", "min_track_frames"),
+            positive=(
+                "tolerance_mm",
+                "max_deviation",
+                "max_step_mm",
+                "min_track_frames",
+                "point_plane_mm",
+                "point_contour_mm",
+            ),
             non_negative=(
                 "tolerance_per_mm",
                 "step_per_mm",
