@@ -105,7 +105,7 @@ def test_the_point_wins_over_a_stronger_bone_in_the_middle():
 
 def test_frames_of_the_point_without_a_contour_near_it_are_rejected():
     # The pointed bone (columns 10-60) is missed in frames 5 and 6; the point in frame 4
-    # has frames 2-6 (within 3 mm): 5 and 6 have only the other bone, 20 mm away.
+    # has frames 1-7 (within 5 mm): 5 and 6 have only the other bone, 11 mm away.
     frames, poses = _lanes(12, [(10, 60, 8.0, set(range(12)) - {5, 6}), (80, 120, 12.0, None)])
     choice = _both(frames, poses, RejectionParams(bone_points=(_at(35, 4),)))
     assert [choice.reason[k] for k in (5, 6)] == [OFF_POINT, OFF_POINT]
@@ -309,8 +309,8 @@ def test_segment_and_reconstruct_take_bone_points(forearm_file, tmp_path, capsys
         ("segment", ["1", "2", "x"], "'x' is not a finite number of mm"),
         ("reconstruct", ["1", "2", "inf"], "'inf' is not a finite number of mm"),
         ("reconstruct", ["1", "2"], "expected 3 arguments"),
-        ("segment", ["0", "0", "-500"], "from the nearest frame's plane"),
-        ("reconstruct", ["0", "0", "-500"], "from the nearest frame's plane"),
+        ("segment", ["0", "0", "-500"], "it is not on this sweep"),
+        ("reconstruct", ["0", "0", "-500"], "it is not on this sweep"),
     ],
 )
 def test_bad_bone_points_are_one_line_errors(

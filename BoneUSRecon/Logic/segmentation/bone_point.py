@@ -28,6 +28,10 @@ not on this sweep (the wrong sweep, or the wrong coordinates).
 
 Points all on one bone: two points on two bones whose frames overlap rule out
 every candidate of the frames they share.
+
+Live (:class:`~BoneUSRecon.Logic.live.LiveReconstructor`, the same incremental track):
+a point takes effect once frames pass near it; it is not checked against the sweep
+(its frames have not arrived) and no warning is made.
 """
 
 from __future__ import annotations

@@ -25,6 +25,10 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
 A caller may rule frames out beforehand (``exclude``: the frames :mod:`.ends` judged
 bone-free): their candidates are no nodes, and they keep the reason given.
 
+Where two bones are in view the track follows the one near the middle of the image
+(:func:`central_track`), or, given the user's bone points (``bone_points``), the one
+through them (:func:`pointed_track`, :mod:`.bone_point`).
+
 One decision over the whole sweep: no prior chained from an earlier frame, no rounds
 of rejection. Frames whose candidates are all off the track are rejected as "jump from
 neighbouring frames" (the distance to the track is in the frame's ``detail``).
