@@ -327,11 +327,14 @@ def segment_sweep(
         params.method,
         params,
         {"segment_s": t_seg, "frames_per_s": idx.size / max(t_seg, 1e-9)},
+        # Bone points the track does not reach (none given: nothing mapped).
         warnings=point_warnings(
             [(c.frame, sweep.to_reference(c.frame, c.points_px)) for c in contours if c.accepted],
             sweep.image_to_reference,
             params.rejection,
-        ),
+        )
+        if params.rejection.bone_points
+        else (),
     )
     if not result.accepted:
         raise BoneUSReconError("no bone contour found in any frame", sweep.source)
