@@ -117,6 +117,8 @@ class BoneSurfaceReconstructionParameterNode:
     rays - rays per frame when resampling (paper: 15).
     flankExtension - mm the surface is continued down the bone's flanks past the data
         (extrapolated, flagged by the point array "Extrapolated"; 0: off, the default).
+    bonePoints - optional point list on the bone to follow (world mm): where two bones
+        are in view, the track follows the one through its points.
     outputSurface, outputPoints - where the results go (created if empty).
     targetModel - optional bone model (CT/MRI, mm) to register the surface to;
         outputTransform (surface -> model) and registeredModel receive the result.
@@ -144,6 +146,7 @@ class BoneSurfaceReconstructionParameterNode:
     targetModel: vtkMRMLModelNode
     outputTransform: vtkMRMLLinearTransformNode
     registeredModel: vtkMRMLModelNode
+    bonePoints: vtkMRMLMarkupsFiducialNode
 
 
 #
@@ -340,6 +343,7 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         targetModel=None,
         outputTransform=None,
         registeredModel=None,
+        bonePoints=None,
     ):
         """Reconstruct the bone surface of a sweep in the scene (explicit arguments).
 
@@ -361,6 +365,8 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
         :param targetModel: bone model node to register the surface to (None: no registration).
         :param outputTransform: linear transform node for surface -> model (new if None).
         :param registeredModel: model node for the registered surface (new if None).
+        :param bonePoints: markups point list whose points lie on the bone to follow
+            (None: the default choice, the bone nearest the middle of the image).
         :return: BoneSurfaceReconstructionLib.mrml.MRMLReconstruction (its ``registration`` set
             when a target model was given), or None when cancelled (:meth:`requestCancel`).
         """
@@ -388,6 +394,10 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
                 "flankExtension": flankExtension,
             }
         )
+        if bonePoints is not None:
+            from BoneUSRecon.Logic.pipeline import params_with
+
+            params = params_with(params, bone_points=mrml.bone_points_from_node(bonePoints))
         startTime = time.time()
         logging.info("Bone surface reconstruction started")
         self._cancelRequested = False
@@ -458,6 +468,7 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
             targetModel=p.targetModel,
             outputTransform=p.outputTransform,
             registeredModel=p.registeredModel,
+            bonePoints=p.bonePoints,
         )
         if result is None:  # cancelled
             return None
@@ -471,7 +482,8 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
     @staticmethod
     def summaryText(result) -> str:
         """A line for the panel: frames used, points, fit residual; then how much of the
-        surface is extrapolated (flank extension) and the registration, if any."""
+        surface is extrapolated (flank extension), the warnings (a bone point the track
+        does not reach) and the registration, if any."""
         sweep = result.sweep
         points = result.points_node
         nPoints = (
@@ -496,6 +508,8 @@ class BoneSurfaceReconstructionLogic(ScriptedLoadableModuleLogic):
                 n=int(vtk_to_numpy(flags).astype(bool).sum()),
                 total=flags.GetNumberOfTuples(),
             )
+        for warning in result.reconstruction.summary.get("warnings", ()):
+            text += "\n" + warning  # e.g. a bone point the track does not reach
         if result.registration is not None:
             from BoneSurfaceReconstructionLib.registration import summaryText
 

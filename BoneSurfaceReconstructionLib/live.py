@@ -259,6 +259,12 @@ def addLiveSection(widget: Any) -> Any:
                 from BoneUSRecon.Logic.live import LiveParams
 
                 params = parameters_from_widget_values(widgetValues(node)) if node else None
+                if node and node.bonePoints:
+                    # The panel's Bone point, as placed when the session starts.
+                    from BoneSurfaceReconstructionLib.mrml import bone_points_from_node
+                    from BoneUSRecon.Logic.pipeline import params_with
+
+                    params = params_with(params, bone_points=bone_points_from_node(node.bonePoints))
                 cal = calibrationMatrix(node.calibrationFile) if node else None
                 self.live = LiveSurface(
                     volumeSelector.currentNode(),

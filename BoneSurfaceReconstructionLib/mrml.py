@@ -58,6 +58,7 @@ __all__ = [
     "show_surface",
     "show_points",
     "reconstruct_from_scene",
+    "bone_points_from_node",
 ]
 
 
@@ -76,6 +77,27 @@ class MRMLReconstruction:
     registration: Any = None
     """The registration to a bone model, when one was asked for (the Slicer module's
     ``BoneSurfaceReconstructionLib.registration.SceneRegistration``)."""
+
+
+def bone_points_from_node(node: Any) -> np.ndarray:
+    """The control points of a markups point list in world (RAS) mm, ``(K, 3)``.
+
+    The sweep's reference coordinates are Slicer's world (:mod:`.mrml_sweep`), so a
+    point placed on the bone in a slice or the reconstructed volume is a bone point as
+    it is (``RejectionParams.bone_points``). ``None``: no points, ``(0, 3)``.
+    """
+    if node is None:
+        return np.empty((0, 3))
+    pts = []
+    for k in range(node.GetNumberOfControlPoints()):
+        # A point still being placed (its position undefined) is no point yet.
+        status = getattr(node, "GetNthControlPointPositionStatus", None)
+        if status is not None and status(k) != getattr(node, "PositionDefined", status(k)):
+            continue
+        xyz = [0.0, 0.0, 0.0]
+        node.GetNthControlPointPositionWorld(k, xyz)
+        pts.append(xyz)
+    return np.array(pts, dtype=float).reshape(-1, 3)
 
 
 def reconstruct_from_scene(

@@ -75,6 +75,7 @@ NODE_PARAMETERS: dict[str, tuple[str, ...]] = {
     "targetModel": ("vtkMRMLModelNode",),
     "outputTransform": ("vtkMRMLLinearTransformNode",),
     "registeredModel": ("vtkMRMLModelNode",),
+    "bonePoints": ("vtkMRMLMarkupsFiducialNode",),
 }
 
 #: path parameters (a ctkPathLineEdit each).

@@ -219,6 +219,18 @@ def test_manifest_names_paths_and_overrides(cohort):
     assert [j.params.fit.n_control_points for j in read_manifest(m)] == [(9, 6), (15, 4)]
 
 
+def test_manifest_bone_points_are_per_sweep(cohort):
+    # reconstruct's --bone-point, one or several points per row (reference mm).
+    m = cohort / "points.csv"
+    m.write_text('sweep,bone-points\ndata/a.mha,"12.5 -3 40; 14, -3, 60"\ndata/a.mha,\n')
+    jobs = read_manifest(m)
+    assert jobs[0].params.segmentation.rejection.bone_points == (
+        (12.5, -3.0, 40.0),
+        (14.0, -3.0, 60.0),
+    )
+    assert jobs[1].params.segmentation.rejection.bone_points == ()
+
+
 @pytest.mark.parametrize(
     ("text", "match"),
     [
@@ -232,6 +244,8 @@ def test_manifest_names_paths_and_overrides(cohort):
         ("sweep,name\na.mha,x\nb.mha,x\n", "name 'x' is given to more than one sweep"),
         ("sweep,along,control-points\na.mha,9,9 5\n", "line 2: give 'control-points' or"),
         ("sweep,around\na.mha,0\n", "line 2: "),
+        ("sweep,bone-points\na.mha,1 2\n", "line 2: column 'bone-points' must be points of three"),
+        ("sweep,bone_points\na.mha,1 2 nan\n", "line 2: column 'bone-points' must be points"),
         ("sweep,name\na.mha,../up\n", "cannot be a folder name"),
         ("sweep,name\na.mha,summary.csv\n", "cannot be a folder name"),
         ("sweep,gold\n,g.csv\n", "line 2: empty 'sweep' cell"),

@@ -928,6 +928,7 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
         targetModel=None,
         outputTransform=None,
         registeredModel=None,
+        bonePoints=None,
     )
     via_node = logic.processParameterNode(p)
     assert p.outputSurface is via_node.surface_node and p.outputPoints is via_node.points_node
@@ -942,6 +943,37 @@ def test_module_logic_entry_points_agree(module_logic, small_sim, scene) -> None
     n_models = scene.GetNumberOfNodesByClass("vtkMRMLModelNode")
     logic.processParameterNode(p)
     assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == n_models
+
+
+def test_module_logic_bone_points_choose_the_bone(module_logic, scene) -> None:
+    # The panel's "Bone point" (a markups point list, parameter node bonePoints) reaches
+    # the track: a point placed on the radius beside the swept ulna makes the segmented
+    # points lie on the radius (the simulator's analytic neighbour, mm).
+    from BoneUSRecon.Logic.simulation import SimulationParams, simulate
+    from BoneUSRecon.Logic.simulation.sections import bone_sections
+
+    sim = simulate(
+        SimulationParams(
+            bone="ulna", neighbour_mm=18.0, n_frames=16, width=160, height=136, spacing_mm=0.32
+        )
+    )
+    sw = sim.sweep
+    s = sim.path.s - sim.geometry.length / 2 + sim.neighbour.length / 2  # as simulate()
+    top = bone_sections(sim.neighbour, sw.image_to_reference, s, sw.width).top_j[8]
+    i = int(np.nanargmin(top))
+    point = sw.to_reference(8, np.array([[i, top[i]]]))[0]
+    markups = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "BonePoint")
+    markups.AddControlPointWorld([float(v) for v in point])
+    np.testing.assert_allclose(mrml.bone_points_from_node(markups), [point])
+    nodes = mrml.sweep_to_scene(sw, scene)
+    logic = module_logic.BoneSurfaceReconstructionLogic()
+    got = {}
+    for name, bone_points in (("default", None), ("pointed", markups)):
+        result = logic.process(nodes.browser, controlPointsU=6, bonePoints=bone_points)
+        got[name] = slicer.util.arrayFromModelPoints(result.points_node)
+    assert np.median(sim.geometry.distance(got["default"])) <= 0.3
+    assert np.median(sim.neighbour.distance(got["pointed"])) <= 0.3
+    assert result.reconstruction.summary["bone_points"] == [pytest.approx(list(point))]
 
 
 def test_module_logic_flank_extension_reaches_the_model_node(
@@ -969,6 +1001,7 @@ def test_module_logic_flank_extension_reaches_the_model_node(
         targetModel=None,
         outputTransform=None,
         registeredModel=None,
+        bonePoints=None,
     )
     p.flankExtension = 1.5
     p.controlPointsV = 5
@@ -1068,6 +1101,7 @@ def test_module_logic_cancel_is_a_flag_not_a_failure(module_logic, small_sim, sc
         targetModel=None,
         outputTransform=None,
         registeredModel=None,
+        bonePoints=None,
     )
     logic.requestCancel()  # a stale request is cleared when a run starts
     steps.clear()
@@ -1106,6 +1140,7 @@ def test_module_logic_registers_to_a_target_model(module_logic, small_sim, scene
         targetModel=model,
         outputTransform=None,
         registeredModel=None,
+        bonePoints=None,
     )
     result = logic.processParameterNode(p)
     assert p.outputTransform is result.registration.transformNode

@@ -4,8 +4,9 @@ A *manifest* is a CSV file with a header. ``sweep`` is required; ``name``,
 ``calibration``, ``transform``, ``gold`` and ``target`` are optional, and so are
 per-row overrides of the reconstruction parameters, named as the ``reconstruct``
 command's options (``segmenter``, ``degree``, ``control-points`` or ``along`` /
-``around``, ``rays``, ``fit-method``, ``robust``, ``axis``; ``-`` or ``_`` alike;
-pairs as ``"15 5"``).
+``around``, ``rays``, ``fit-method``, ``robust``, ``axis``, ``bone-points``; ``-`` or
+``_`` alike; pairs as ``"15 5"``, bone points as ``"12.5 -3 40; 14 -3 60"``: reference mm
+of points on the bone to follow, the sweep's own, ``--bone-point``).
 Relative paths are relative to the manifest's folder. An empty cell means the
 default.
 
@@ -28,6 +29,7 @@ import csv
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -72,6 +74,7 @@ PARAMETER_COLUMNS: dict[str, str] = {
     "fit_method": "text",
     "robust": "text",
     "axis": "text",
+    "bone_points": "points",
 }
 #: Every column a manifest may have.
 MANIFEST_COLUMNS = ("name", *PATH_COLUMNS, "transform", *PARAMETER_COLUMNS)
@@ -214,8 +217,17 @@ def _parse_override(kind: str, text: str, column: str, where: str, manifest: Pat
             if len(values) != 2:
                 raise ValueError
             return tuple(values)
+        if kind == "points":  # reconstruct's --bone-point X Y Z, points apart by ';'
+            points = [tuple(float(v) for v in p.replace(",", " ").split()) for p in text.split(";")]
+            if any(len(p) != 3 or not all(math.isfinite(v) for v in p) for p in points):
+                raise ValueError
+            return points
     except ValueError:
-        expected = "an integer" if kind == "int" else "two integers such as '15 5'"
+        expected = {
+            "int": "an integer",
+            "pair": "two integers such as '15 5'",
+            "points": "points of three finite numbers (mm) such as '12.5 -3 40; 14 -3 60'",
+        }[kind]
         raise BoneUSReconError(
             f"{where}: column '{column}' must be {expected}, got {text!r}", manifest
         ) from None

@@ -117,6 +117,7 @@ def params_with(
     axis: str | None = None,
     control_points: Sequence[int] | None = None,
     flank_extension_mm: float | None = None,
+    bone_points: Sequence[Sequence[float]] | np.ndarray | None = None,
 ) -> ReconstructionParams:
     """``base`` with the user's choices: what the CLI options and the Slicer module set.
 
@@ -142,6 +143,11 @@ def params_with(
     flank_extension_mm : float, optional
         How far each cross-section of the surface is continued down its flanks past the
         data, mm (:class:`~BoneUSRecon.Logic.surface.SurfaceParams`; 0 is off).
+    bone_points : sequence of (x, y, z), optional
+        Points on the bone to follow, reference mm (a markup placed on the bone; where
+        two bones are in view, the one to segment): ``RejectionParams.bone_points``,
+        see :mod:`BoneUSRecon.Logic.segmentation.bone_point`. An empty sequence clears
+        them.
 
     Returns
     -------
@@ -152,12 +158,16 @@ def params_with(
     BoneUSReconError
         Unknown segmenter; absurd values, as refused by :class:`SegmentationParams`,
         :class:`FitParams`, :class:`ResamplingParams` and :class:`SurfaceParams` (e.g.
-        fewer control points than degree + 1, a negative flank extension).
+        fewer control points than degree + 1, a negative flank extension, a bone point
+        without three finite coordinates).
     """
     p = ReconstructionParams() if base is None else base
     seg = p.segmentation
     if segmenter is not None:
         seg = dataclasses.replace(seg, method=segmenter)  # SegmentationParams checks the name
+    if bone_points is not None:  # RejectionParams checks them (three finite numbers each)
+        rej = dataclasses.replace(seg.rejection, bone_points=bone_points)
+        seg = dataclasses.replace(seg, rejection=rej)
     if control_points is not None:
         warnings.warn(
             "params_with(control_points=...) is now n_control_points=...",
@@ -392,6 +402,8 @@ def _summary(
         "surface_triangles": int(surf.GetNumberOfCells()),
         "surface_area_mm2": area,
         "surface_triangles_per_mm2": surf.GetNumberOfCells() / area if area > 0 else 0.0,
+        "bone_points": [list(q) for q in params.segmentation.rejection.bone_points],
+        "warnings": list(seg.warnings),
     }
 
 

@@ -22,7 +22,8 @@ MANIFEST_HELP = (
     "CSV with a header: 'sweep' (required), optional 'name', 'calibration', 'transform', "
     "'gold', 'target', and per-row overrides named as reconstruct's options ('segmenter', "
     "'degree', 'control-points' or 'along'/'around', 'rays', 'fit-method', 'robust', "
-    "'axis'; pairs as '15 5'); paths relative to the manifest"
+    "'axis', 'bone-points'; pairs as '15 5', bone points as 'X Y Z; X Y Z' in the sweep's "
+    "reference mm); paths relative to the manifest"
 )
 
 

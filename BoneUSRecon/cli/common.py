@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -84,6 +85,37 @@ def add_calibration_option(parser: argparse.ArgumentParser) -> None:
         help="name of the per-frame pose to use, e.g. ImageToReference or "
         "ProbeToTracker (default: ImageToReference when present)",
     )
+
+
+def _finite_mm(text: str) -> float:
+    """A coordinate of ``--bone-point``: a finite number (argparse names the option)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number of mm")
+    return value
+
+
+def add_bone_point_option(parser: argparse.ArgumentParser) -> None:
+    """``--bone-point X Y Z`` (repeatable), for commands that segment."""
+    parser.add_argument(
+        "--bone-point",
+        nargs=3,
+        type=_finite_mm,
+        action="append",
+        metavar=("X", "Y", "Z"),
+        help="a point on the bone to follow, in the sweep's reference mm (e.g. a markup "
+        "placed on it in Slicer); where two bones are in view the track follows the one "
+        "through it (repeatable; points on one bone)",
+    )
+
+
+def print_warnings(warnings: Iterable[str]) -> None:
+    """One stderr line per warning of a result (e.g. a bone point the track missed)."""
+    for text in warnings:
+        print(f"{PROG}: warning: {text}", file=sys.stderr)
 
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:

@@ -10,6 +10,7 @@ from BoneUSRecon.cli.common import (
     GOLD_HELP,
     SWEEP_HELP,
     ProgressBar,
+    add_bone_point_option,
     add_calibration_option,
     add_common_options,
     add_json_option,
@@ -18,6 +19,7 @@ from BoneUSRecon.cli.common import (
     evaluation_rows,
     print_json,
     print_summary,
+    print_warnings,
     read_sweep_args,
     reconstruction_rows,
     removed_on_failure,
@@ -27,8 +29,8 @@ __all__ = ["register", "run", "add_reconstruction_options", "params_from_args"]
 
 
 def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bool = True) -> None:
-    """Stage options shared with ``table``: segmenter, degree, control points, rays,
-    fit method, robust weights, axis model, flank extension."""
+    """Stage options shared with ``table`` and ``live``: segmenter, degree, control
+    points, rays, fit method, robust weights, axis model, flank extension, bone points."""
     p.add_argument(
         "--segmenter",
         metavar="NAME",
@@ -79,6 +81,7 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
         help="continue each cross-section down its flanks MM past the segmented points "
         "(convex, at most 70 degrees; flagged by the point array 'Extrapolated'; default 0: off)",
     )
+    add_bone_point_option(p)
 
 
 def params_from_args(args: argparse.Namespace) -> Any:
@@ -96,6 +99,7 @@ def params_from_args(args: argparse.Namespace) -> Any:
         robust=getattr(args, "robust", None),
         axis=getattr(args, "axis", None),
         flank_extension_mm=getattr(args, "flank_extension", None),
+        bone_points=getattr(args, "bone_point", None),
     )
 
 
@@ -203,6 +207,7 @@ def run(args: argparse.Namespace) -> int:
             "registration": reg.as_dict() if reg is not None else None,
         }
         print_json(doc)
+        print_warnings(s["warnings"])
         if reg is not None:
             reg_cli.warn_unreliable(reg)
         return 0
@@ -227,6 +232,7 @@ def run(args: argparse.Namespace) -> int:
         rows += [(f"registration {k}", v) for k, v in reg.summary_rows()]
         rows.append(("transform", str(transform_out)))
     print_summary(f"Reconstructed {Path(args.sweep).name}", rows)
+    print_warnings(s["warnings"])
     if reg is not None:
         reg_cli.warn_unreliable(reg)
     return 0

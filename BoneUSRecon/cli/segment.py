@@ -10,6 +10,7 @@ from typing import Any
 from BoneUSRecon.cli.common import (
     SWEEP_HELP,
     ProgressBar,
+    add_bone_point_option,
     add_calibration_option,
     add_common_options,
     add_json_option,
@@ -17,6 +18,7 @@ from BoneUSRecon.cli.common import (
     check_sweep_args,
     print_json,
     print_summary,
+    print_warnings,
     read_sweep_args,
     removed_on_failure,
 )
@@ -64,6 +66,7 @@ def register(subparsers: Any) -> None:
         metavar="N",
         help="write one accepted frame's overlay in N (rejected frames always; default 1)",
     )
+    add_bone_point_option(p)
     add_json_option(p)
     add_common_options(p)
     p.set_defaults(func=run)
@@ -94,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
         raise BoneUSReconError(f"--overlay-every must be >= 1, got {args.overlay_every}")
 
     params = dataclasses.replace(SegmentationParams(), method=args.segmenter)
+    if args.bone_point:
+        rejection = dataclasses.replace(params.rejection, bone_points=args.bone_point)
+        params = dataclasses.replace(params, rejection=rejection)
     with ProgressBar(quiet=args.quiet or args.json) as bar:
         sweep = read_sweep_args(args, bar)
         result = segment_sweep(sweep, params, progress=bar)
@@ -121,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.json:
         print_json(summary)
+        print_warnings(result.warnings)
         return 0
     rows = [
         ("segmenter", summary["method"]),
@@ -137,4 +144,5 @@ def run(args: argparse.Namespace) -> int:
     if args.overlay:
         rows.append(("overlays", f"{len(overlays)} PNG in {args.overlay}"))
     print_summary(f"{Path(args.sweep).name}: bone contours", rows)
+    print_warnings(result.warnings)
     return 0

@@ -20,18 +20,26 @@ Groups of sweeps (40 frames each, per seed):
   with the other forearm bone 18 mm beside the one swept (toward the wrist; both show
   whole in the image).
 
+``--bone-point swept`` gives each sweep a bone point (``RejectionParams.bone_points``)
+on the swept bone: the middle of its true contour in the middle frame, as a user would
+click on it. ``--off-centre`` (``twobones`` only) simulates the sweeps 640 columns wide
+and keeps 360 of them, with the swept bone's middle 0.65 of the half-width off the
+image's middle and its neighbour near the middle: a bone swept near the image's edge,
+which the lane rule (``track.central_track``) trades for the neighbour.
+
 A seed nobody tuned on is the measure of a change; compare two checkouts on the same
 seeds (``PYTHONPATH`` set to each).
 
 Run::
 
     python Testing/benchmarks/bench_sweeps.py --seeds 53 59 [--groups real small]
-        [--reconstruct]
+        [--reconstruct] [--bone-point swept] [--off-centre]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 import warnings
 
@@ -39,9 +47,13 @@ import numpy as np
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.evaluation import evaluate_surface
-from BoneUSRecon.Logic.pipeline import ReconstructionParams, reconstruction_from_segmentation
+from BoneUSRecon.Logic.pipeline import (
+    ReconstructionParams,
+    params_with,
+    reconstruction_from_segmentation,
+)
 from BoneUSRecon.Logic.segmentation import segment_sweep
-from BoneUSRecon.Logic.simulation import BONES, SimulationParams, simulate
+from BoneUSRecon.Logic.simulation import BONES, Simulation, SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
 GEOMETRY = {
@@ -78,6 +90,43 @@ def cases(group: str, seed: int) -> list[tuple[str, SimulationParams]]:
     raise ValueError(f"unknown group {group!r}")
 
 
+#: ``--off-centre``: simulated width, kept width (columns) and the swept bone's offset
+#: from the kept image's middle, in its half-widths.
+OFF_CENTRE = (640, 360, 0.65)
+
+
+def off_centre(sim: Simulation) -> Simulation:
+    """The simulation with its frames cut to ``OFF_CENTRE[1]`` columns, the swept bone's
+    middle ``OFF_CENTRE[2]`` of the half-width off the middle, away from its neighbour;
+    poses and true contours moved with the first column kept."""
+    _, width, u = OFF_CENTRE
+    sw = sim.sweep
+    mid = float(np.median([0.5 * (c[0, 0] + c[-1, 0]) for c in sim.true_contours_px if len(c)]))
+    # The side of the neighbour along the image's columns (+1: toward higher columns).
+    assert sim.neighbour is not None
+    side = np.sign(float(sim.neighbour.offset @ sw.image_to_reference[len(sw.frames) // 2, :3, 0]))
+    at = width / 2 - side * u * width / 2  # the bone's column in the kept image
+    a = int(round(mid - at))
+    m = sw.image_to_reference.copy()
+    m[:, :3, 3] += a * m[:, :3, 0]
+    kept = sw.replace(
+        frames=np.ascontiguousarray(sw.frames[:, :, a : a + width]), image_to_reference=m
+    )
+    contours = [
+        c[(c[:, 0] >= a) & (c[:, 0] <= a + width - 1)] - (a, 0) for c in sim.true_contours_px
+    ]
+    return dataclasses.replace(sim, sweep=kept, true_contours_px=contours)
+
+
+def swept_point(sim: Simulation) -> np.ndarray:
+    """The middle of the swept bone's true contour in the middle frame (of those that
+    show it), reference mm: where a user clicks on the bone."""
+    shown = [k for k, c in enumerate(sim.true_contours_px) if len(c)]
+    k = shown[len(shown) // 2]
+    c = sim.true_contours_px[k]
+    return sim.sweep.to_reference(k, c[len(c) // 2][None])[0]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[53, 59])
@@ -88,6 +137,17 @@ def main() -> None:
         choices=["real", "small", "grey", "realstd", "twobones"],
     )
     ap.add_argument("--reconstruct", action="store_true", help="also the surface's gold distance")
+    ap.add_argument(
+        "--bone-point",
+        choices=["none", "swept"],
+        default="none",
+        help="a bone point on the swept bone (its true contour's middle, middle frame)",
+    )
+    ap.add_argument(
+        "--off-centre",
+        action="store_true",
+        help="twobones: the swept bone near the image's edge, its neighbour in the middle",
+    )
     args = ap.parse_args()
     warnings.simplefilter("ignore")
 
@@ -95,10 +155,16 @@ def main() -> None:
     for seed in args.seeds:
         for group in args.groups:
             for name, p in cases(group, seed):
+                if args.off_centre:
+                    p = dataclasses.replace(p, width=OFF_CENTRE[0])
                 s = simulate(p)
+                if args.off_centre:
+                    s = off_centre(s)
+                points = [swept_point(s)] if args.bone_point == "swept" else []
+                seg_params = params_with(bone_points=points).segmentation
                 t = time.process_time()
                 try:
-                    r = segment_sweep(s.sweep)
+                    r = segment_sweep(s.sweep, seg_params)
                 except BoneUSReconError as e:
                     print(f"{name:28} no contour: {e}", flush=True)
                     recall.append(0.0)

@@ -26,6 +26,7 @@ import numpy as np
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.progress import ProgressCallback, report
+from BoneUSRecon.Logic.segmentation.bone_point import check_bone_points, point_warnings
 from BoneUSRecon.Logic.segmentation.candidates import (
     BoneCandidate,
     FrameCandidates,
@@ -206,6 +207,10 @@ def segment_sweep(
     idx = sweep.valid_indices
     if idx.size == 0:
         raise BoneUSReconError("no valid frame to segment", sweep.source)
+    # The user's bone points must lie on the sweep: checked before any work.
+    check_bone_points(
+        sweep.image_to_reference[idx], (sweep.height, sweep.width), params.rejection, sweep.source
+    )
     spacing_all = pixel_spacing(sweep.image_to_reference)
     t0 = time.perf_counter()
     frames: list[FrameCandidates] = []
@@ -322,6 +327,14 @@ def segment_sweep(
         params.method,
         params,
         {"segment_s": t_seg, "frames_per_s": idx.size / max(t_seg, 1e-9)},
+        # Bone points the track does not reach (none given: nothing mapped).
+        warnings=point_warnings(
+            [(c.frame, sweep.to_reference(c.frame, c.points_px)) for c in contours if c.accepted],
+            sweep.image_to_reference,
+            params.rejection,
+        )
+        if params.rejection.bone_points
+        else (),
     )
     if not result.accepted:
         raise BoneUSReconError("no bone contour found in any frame", sweep.source)

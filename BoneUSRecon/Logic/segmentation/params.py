@@ -644,11 +644,24 @@ class RejectionParams:
     """The more central track's summed node value must be at least this share of the chosen track's (ours: the ulna's evidence 0.6-0.8 of the bigger radius's beside it; a fascia's, with tissue and no shadow under it, a tenth)."""
     one_lane: bool = True
     """Keep the track to one bone: where two of its contours two frames apart share no column (it crossed to a neighbouring bone over a contour joining them), choose it again without the lanes of its shorter stretches, and take that if it links as many frames (:func:`.track._one_lane`; ours: a bone cannot leave its own columns within two frames of a sweep)."""
+    bone_points: tuple[tuple[float, float, float], ...] = ()
+    """The user's bone points, reference mm (``ImageToReference``'s output: a markup placed on the bone in the reconstructed volume or a slice of it): the track must follow the bone through them, whatever ``lane_*`` prefers (:mod:`.bone_point`; empty: none). Points on one bone: the bone to follow where two are in view."""
+    point_plane_mm: float = 5.0
+    """A bone point's frames are those whose image plane passes within this distance of it, mm (ours: the simulated forearm sweeps at the cadaver's geometry have frames 1.8-2.6 mm apart, and a hard sweep's frame may miss the bone's top; at 3 mm a point on an ulna or radius swept near the image's edge had one or two frames, none showing the top, and was lost (seed 127, ``bench_sweeps.py --off-centre``); at 5 mm the bone was followed. Issue 10's cadaver sweep, 1.4 mm apart: seven frames. A bone's top moves in plane by at most ``tolerance_per_mm`` per mm along the sweep, 2 mm over 5 mm: within ``point_contour_mm``)."""
+    point_contour_mm: float = 3.0
+    """In a bone point's frames only candidates whose contour passes within this in-plane distance of the point (projected into the frame) may be on the track, mm (ours: a click on the bone's echo band, 1-2 mm thick on the L14 recording, and ``point_plane_mm``'s slope; on the simulated forearms with the neighbour 18 mm beside, the neighbour's contour lies 9-14 mm from the swept bone on median, 3 mm at its nearest flank end: a point on a bone's top is well clear of the other)."""
 
     def __post_init__(self) -> None:
         check_fields(
             self,
-            positive=("tolerance_mm", "max_deviation", "max_step_mm", "min_track_frames"),
+            positive=(
+                "tolerance_mm",
+                "max_deviation",
+                "max_step_mm",
+                "min_track_frames",
+                "point_plane_mm",
+                "point_contour_mm",
+            ),
             non_negative=(
                 "tolerance_per_mm",
                 "step_per_mm",

@@ -75,6 +75,9 @@ class SegmentationResult:
     method: str
     params: SegmentationParams
     timings: dict[str, float] = field(default_factory=dict)
+    #: What the user should know of the result, one sentence each (e.g. a bone point
+    #: the track does not reach, :func:`.bone_point.point_warnings`).
+    warnings: tuple[str, ...] = ()
 
     @property
     def accepted(self) -> tuple[FrameContour, ...]:
@@ -126,4 +129,5 @@ class SegmentationResult:
             "mean_confidence": float(np.mean([c.confidence for c in self.accepted]))
             if self.accepted
             else 0.0,
+            "warnings": list(self.warnings),
         }

@@ -25,6 +25,10 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
 A caller may rule frames out beforehand (``exclude``: the frames :mod:`.ends` judged
 bone-free): their candidates are no nodes, and they keep the reason given.
 
+Where two bones are in view the track follows the one near the middle of the image
+(:func:`central_track`), or, given the user's bone points (``bone_points``), the one
+through them (:func:`pointed_track`, :mod:`.bone_point`).
+
 One decision over the whole sweep: no prior chained from an earlier frame, no rounds
 of rejection. Frames whose candidates are all off the track are rejected as "jump from
 neighbouring frames" (the distance to the track is in the frame's ``detail``).
@@ -37,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from BoneUSRecon.Logic.segmentation.bone_point import OFF_POINT, point_marks
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
@@ -52,6 +57,7 @@ REASONS = {
     "reverb": "reverberation copy",
     "weak": "no bone evidence along the contour",
     "noshadow": "no bone shadow under it (sweep end)",
+    "offpoint": OFF_POINT,
 }
 
 _SAMPLE_MM = 0.5  # contours are compared at ~this point spacing (speed; 1-2 px apart)
@@ -513,7 +519,9 @@ def select_bone_track(
                 score[kb], back[kb], link_dev[kb] = s, ka, dev
         return score, back, link_dev
 
-    value, (score, back, link_dev), path = central_track(frames, nodes, value, forward, p)
+    value, (score, back, link_dev), path = pointed_track(
+        frames, poses, nodes, value, forward, p, reason, detail
+    )
     return _finish(
         frames, poses, nodes, value, score, back, link_dev, reason, p, detail=detail, path=path
     )
@@ -717,6 +725,45 @@ def _nearer_middle(
     ):
         return other, alt, path2
     return value, out, path
+
+
+def pointed_track(
+    frames: Sequence[FrameCandidates],
+    poses: np.ndarray,
+    nodes: list[tuple[int, int]],
+    value: np.ndarray,
+    forward: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    p: RejectionParams,
+    reason: list[str],
+    detail: list[str],
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], list[int] | None]:
+    """:func:`central_track`'s values, forward pass and path, or, with the user's bone
+    points (``p.bone_points``, :mod:`.bone_point`), the track through them.
+
+    In a point's frames the candidates away from it are ruled out (value -inf), and a
+    frame left without a candidate gets the reason :data:`.bone_point.OFF_POINT`
+    (``reason`` and ``detail`` are changed in place, frames without a reason only).
+    Each candidate near a point is worth more than any track could gain or lose
+    elsewhere in the forward pass, so the track is the best of those through the most
+    of them; the values returned (and so the confidences) are the plain ones. The lane
+    rule is not applied: the user said which bone. Points with no candidate near them
+    are left out (:func:`.bone_point.point_marks`); with none left, this is
+    :func:`central_track`.
+    """
+    mark, off = point_marks(frames, poses, nodes, p)
+    if not (mark > 0).any():
+        return central_track(frames, nodes, value, forward, p)
+    for f, (r, d) in off.items():
+        if not reason[f]:
+            reason[f], detail[f] = r, d
+    ruled = np.where(mark < 0, -np.inf, value)
+    # More than a track's value (at most strength_cap per frame) and its costs (links
+    # at most max_deviation tolerances long, skips) over all frames with nodes.
+    per_frame = p.strength_cap + p.max_deviation**2 + p.miss_cost * (p.max_skip + 1)
+    bonus = 1.0 + per_frame * len({f for f, _ in nodes})
+    out = forward(np.where(mark > 0, ruled + bonus, ruled))
+    need = min(p.min_track_frames, len({f for f, _ in nodes}))
+    return ruled, out, _path(out[0], out[1], need)
 
 
 def _finish(

@@ -48,7 +48,7 @@ from BoneUSRecon.Logic.segmentation.track import (
     _node_points,
     _node_value,
     _typical_strength,
-    central_track,
+    pointed_track,
 )
 from BoneUSRecon.Logic.sweep import frame_planes
 
@@ -395,10 +395,10 @@ class IncrementalTrack:
                             score[kb], back[kb], link_dev[kb] = s, ka, dev
             return np.array(score), np.array(back, dtype=np.intp), np.array(link_dev)
 
-        value_arr, (score_arr, back_arr, dev_arr), path = central_track(
-            fcs, nodes, value_arr, forward, p
-        )
         poses = np.stack([fr.pose for fr in frames])
+        value_arr, (score_arr, back_arr, dev_arr), path = pointed_track(
+            fcs, poses, nodes, value_arr, forward, p, reason, detail
+        )
         return _finish(
             fcs,
             poses,

@@ -1,0 +1,229 @@
+"""The bone the user points at: "bone points" make the track follow that bone.
+
+Where two bones are in view (the radius beside the ulna, the fibula beside the tibia,
+15-30 mm apart), the track follows the one near the middle of the image
+(:func:`.track.central_track`). A user who swept the bone off-centre, or who wants the
+other one, places a point on it (a markup fiducial on the bone in the reconstructed
+volume or a slice of it; reference mm, the coordinates ``ImageToReference`` maps
+pixels into): ``RejectionParams.bone_points``.
+
+* A point's frames are those whose image plane passes within
+  ``RejectionParams.point_plane_mm`` of it.
+* In those frames only candidates whose contour passes within ``point_contour_mm`` of
+  the point (projected into the frame's plane, in-plane distance) may be on the track;
+  a frame of the point without such a candidate is rejected as "no contour at the bone
+  point" (the distance of its nearest contour is its detail).
+* The track must pass through the allowed candidates: the track is chosen as the best
+  over those through the most of them (:func:`.track.pointed_track`), and the lane
+  rule does not second-guess it.
+* A point with no candidate near it in any of its frames (the bone missed there, or
+  the point placed off it) is left out, and the track chosen as without it:
+  :func:`point_warnings` says so in the segmentation's summary. Refusing the whole
+  sweep would lose a surface the default rules may well get right; following the
+  nearest contour would follow whatever lies nearest, maybe the other bone.
+
+A point that lies farther than ``point_plane_mm`` from every frame's plane, or whose
+projection falls outside every image, is an error (:func:`check_bone_points`): it is
+not on this sweep (the wrong sweep, or the wrong coordinates).
+
+Points all on one bone: two points on two bones whose frames overlap rule out
+every candidate of the frames they share.
+
+Live (:class:`~BoneUSRecon.Logic.live.LiveReconstructor`, the same incremental track):
+a point takes effect once frames pass near it; it is not checked against the sweep
+(its frames have not arrived) and no warning is made.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.params import RejectionParams
+from BoneUSRecon.Logic.sweep import frame_planes
+
+__all__ = ["OFF_POINT", "check_bone_points", "point_marks", "point_warnings"]
+
+#: Rejection reason of a frame of a bone point with no candidate near the point.
+OFF_POINT = "no contour at the bone point"
+
+
+def _in_planes(points: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point in each frame's plane: lateral, depth and |out of plane| mm, (N, P) each."""
+    origin, axes, normal = frame_planes(poses)
+    rel = points[None, :, :] - origin[:, None, :]
+    lateral = np.einsum("npk,nk->np", rel, axes[:, :, 0])
+    depth = np.einsum("npk,nk->np", rel, axes[:, :, 1])
+    return lateral, depth, np.abs(np.einsum("npk,nk->np", rel, normal))
+
+
+def _label(points: np.ndarray, q: int) -> str:
+    x, y, z = points[q]
+    return f"bone point {q + 1} ({x:.1f}, {y:.1f}, {z:.1f} mm)"
+
+
+def check_bone_points(
+    image_to_reference: np.ndarray,
+    shape: tuple[int, int],
+    params: RejectionParams,
+    source: str | Path | None = None,
+) -> None:
+    """Refuse bone points that are not on the sweep.
+
+    Parameters
+    ----------
+    image_to_reference : ndarray, shape (N, 4, 4)
+        The poses of the frames to segment.
+    shape : (int, int)
+        The frames' ``(height, width)`` in pixels.
+    params : RejectionParams
+        Its ``bone_points`` and ``point_plane_mm``.
+    source : path, optional
+        The sweep's file, named in the error.
+
+    Raises
+    ------
+    BoneUSReconError
+        A point farther than ``point_plane_mm`` from every frame's plane, or whose
+        projection into every frame that near lies outside the image.
+    """
+    if not params.bone_points:
+        return
+    pts = np.asarray(params.bone_points, dtype=float).reshape(-1, 3)
+    poses = np.asarray(image_to_reference, dtype=float).reshape(-1, 4, 4)
+    lateral, depth, z = _in_planes(pts, poses)
+    sx = np.linalg.norm(poses[:, :3, 0], axis=1)[:, None]
+    sy = np.linalg.norm(poses[:, :3, 1], axis=1)[:, None]
+    h, w = shape
+    inside = (lateral >= 0) & (lateral <= (w - 1) * sx) & (depth >= 0) & (depth <= (h - 1) * sy)
+    near = z <= params.point_plane_mm
+    for q in range(pts.shape[0]):
+        if not near[:, q].any():
+            raise BoneUSReconError(
+                f"{_label(pts, q)} lies {z[:, q].min():.1f} mm from the nearest frame's plane "
+                f"(at most {params.point_plane_mm:g} mm): it is not on this sweep",
+                source,
+            )
+        if not (near[:, q] & inside[:, q]).any():
+            raise BoneUSReconError(
+                f"{_label(pts, q)} lies outside the image of every frame within "
+                f"{params.point_plane_mm:g} mm of it: it is not on this sweep",
+                source,
+            )
+
+
+def _contour_distance(fc: FrameCandidates, c: int, lateral: float, depth: float) -> float:
+    """In-plane distance (mm) from ``(lateral, depth)`` mm to candidate ``c``'s contour."""
+    pts = fc.candidates[c].points_px
+    if pts.shape[0] == 0:
+        return np.inf
+    d = pts * np.asarray(fc.spacing, dtype=float) - (lateral, depth)
+    return float(np.sqrt((d * d).sum(axis=1).min()))
+
+
+def point_marks(
+    frames: Sequence[FrameCandidates],
+    poses: np.ndarray,
+    nodes: Sequence[tuple[int, int]],
+    params: RejectionParams,
+) -> tuple[np.ndarray, dict[int, tuple[str, str]]]:
+    """What the bone points say of each node of the track.
+
+    Parameters
+    ----------
+    frames : sequence of FrameCandidates
+    poses : ndarray, shape (N, 4, 4)
+    nodes : sequence of (frame, candidate)
+        The track's nodes.
+    params : RejectionParams
+
+    Returns
+    -------
+    mark : ndarray of int8, shape (len(nodes),)
+        1: a candidate near a point, in its frame (the track is to pass through such
+        nodes); -1: another candidate of such a frame (ruled out); 0: the points say
+        nothing of it. Points with no candidate near them in any of their frames are
+        left out (all 0: the track as without them).
+    off : dict of int to (str, str)
+        Frames of a point kept in which no candidate is near it: :data:`OFF_POINT`
+        and the distance of the nearest one.
+    """
+    mark = np.zeros(len(nodes), dtype=np.int8)
+    if not params.bone_points or not nodes:
+        return mark, {}
+    pts = np.asarray(params.bone_points, dtype=float).reshape(-1, 3)
+    lateral, depth, z = _in_planes(pts, np.asarray(poses, dtype=float).reshape(-1, 4, 4))
+    near_plane = z <= params.point_plane_mm
+    dist = np.full((len(nodes), pts.shape[0]), np.inf)
+    for k, (f, c) in enumerate(nodes):
+        for q in np.flatnonzero(near_plane[f]).tolist():
+            dist[k, q] = _contour_distance(frames[f], c, lateral[f, q], depth[f, q])
+    near = dist <= params.point_contour_mm
+    kept = near.any(axis=0)  # the points with a candidate near them somewhere
+    if not kept.any():
+        return mark, {}
+    node_frames = np.array([f for f, _ in nodes])
+    pointed = near_plane[node_frames][:, kept].any(axis=1)
+    mark[pointed] = -1
+    mark[near[:, kept].any(axis=1)] = 1
+    off: dict[int, tuple[str, str]] = {}
+    for f in np.unique(node_frames[pointed]).tolist():
+        ks = np.flatnonzero(node_frames == f)
+        if (mark[ks] == 1).any():
+            continue
+        q_near = np.flatnonzero(near_plane[f] & kept)
+        d = dist[np.ix_(ks, q_near)]
+        row, col = np.unravel_index(int(np.argmin(d)), d.shape)
+        off[f] = (OFF_POINT, f"{d[row, col]:.1f} mm from bone point {int(q_near[col]) + 1}")
+    return mark, off
+
+
+def point_warnings(
+    contours_mm: Sequence[tuple[int, np.ndarray]],
+    image_to_reference: np.ndarray,
+    params: RejectionParams,
+) -> tuple[str, ...]:
+    """Bone points the final track does not reach, one sentence each.
+
+    Parameters
+    ----------
+    contours_mm : sequence of (frame, ndarray (K, 3))
+        The accepted contours, reference mm, with the index of their frame in
+        ``image_to_reference``.
+    image_to_reference : ndarray, shape (N, 4, 4)
+        The poses of the sweep's frames.
+    params : RejectionParams
+
+    Returns
+    -------
+    tuple of str
+        Empty when every point has an accepted contour within ``point_contour_mm``
+        in one of its frames (in-plane distance).
+    """
+    if not params.bone_points:
+        return ()
+    pts = np.asarray(params.bone_points, dtype=float).reshape(-1, 3)
+    poses = np.asarray(image_to_reference, dtype=float).reshape(-1, 4, 4)
+    out = []
+    for q in range(pts.shape[0]):
+        best = np.inf
+        for f, xyz in contours_mm:
+            origin, axes, normal = (v[0] for v in frame_planes(poses[f]))
+            rel = pts[q] - origin
+            if abs(rel @ normal) > params.point_plane_mm or xyz.shape[0] == 0:
+                continue
+            # The contour lies in the frame's plane: in-plane distance = 3D distance to
+            # the point's projection.
+            foot = pts[q] - (rel @ normal) * normal
+            best = min(best, float(np.sqrt(((xyz - foot) ** 2).sum(axis=1).min())))
+        if not best <= params.point_contour_mm:
+            nearest = "none in its frames" if not np.isfinite(best) else f"nearest {best:.1f} mm"
+            out.append(
+                f"{_label(pts, q)}: no accepted contour within {params.point_contour_mm:g} mm "
+                f"of it ({nearest}): the track does not follow the bone there"
+            )
+    return tuple(out)

@@ -1,0 +1,341 @@
+"""The user's bone points (``RejectionParams.bone_points``, :mod:`.segmentation.bone_point`):
+where two bones are in view, the track follows the one through the points, in both
+solvers; points off the sweep are refused, points with no contour near them reported."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+import pytest
+
+from BoneUSRecon.cli import main
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.pipeline import params_with
+from BoneUSRecon.Logic.segmentation import segment_sweep
+from BoneUSRecon.Logic.segmentation.bone_point import OFF_POINT
+from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
+from BoneUSRecon.Logic.segmentation.params import RejectionParams, SegmentationParams
+from BoneUSRecon.Logic.segmentation.track import select_bone_track
+from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
+from BoneUSRecon.Logic.sequence_io import write_sweep
+from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
+from BoneUSRecon.Logic.simulation.sections import bone_sections
+from BoneUSRecon.Logic.sweep import Sweep, pixels_to_reference
+
+_S = 0.25  # mm per pixel of the synthetic frames
+_W = 200  # their width in pixels (50 mm)
+_DEPTH_PX = 8.0 / _S  # the synthetic contours lie 8 mm deep
+
+
+def _lanes(
+    n: int, lanes: list[tuple[float, float, float, set[int] | None]]
+) -> tuple[list[FrameCandidates], np.ndarray]:
+    """Frames 1.4 mm apart along z, each with one candidate per lane ``(first column,
+    last column, strength, frames it shows in or None for all)``, 8 mm deep."""
+    frames, poses = [], []
+    for k in range(n):
+        cands = []
+        for a, b, strength, where in lanes:
+            if where is not None and k not in where:
+                continue
+            i = np.arange(a, b + 1, 2.0)
+            pts = np.column_stack([i, np.full(i.size, _DEPTH_PX)])
+            cands.append(BoneCandidate(pts, np.full(i.size, 200.0), strength, 3.0, 2.0))
+        cands.sort(key=lambda c: -c.strength)
+        frames.append(FrameCandidates(tuple(cands), (_S, _S), fov_px=(0.0, _W - 1.0)))
+        m = np.eye(4)
+        m[0, 0] = m[1, 1] = _S
+        m[2, 3] = 1.4 * k
+        poses.append(m)
+    return frames, np.stack(poses)
+
+
+def _at(column: float, frame: int) -> tuple[float, float, float]:
+    """The reference point of a synthetic frame's column at the contours' depth."""
+    return (column * _S, 8.0, 1.4 * frame)
+
+
+def _both(frames, poses, params):
+    """The batch choice, checked equal to the incremental one (live's solver)."""
+    batch = select_bone_track(frames, poses, params)
+    track = IncrementalTrack(params)
+    for fc, pose in zip(frames, poses, strict=True):
+        track.add(fc, pose)
+    inc = track.solve()
+    np.testing.assert_array_equal(inc.chosen, batch.chosen)
+    np.testing.assert_array_equal(inc.confidence, batch.confidence)
+    assert inc.reason == batch.reason and inc.detail == batch.detail
+    return batch
+
+
+def _lane_of(frames, chosen) -> set[float]:
+    """First columns of the chosen candidates."""
+    return {float(frames[k].candidates[c].points_px[0, 0]) for k, c in enumerate(chosen) if c >= 0}
+
+
+# A neighbour toward the left edge (columns 10-60) with 1.5x the evidence of the bone in
+# the middle (columns 80-120): the lane rule follows the middle one.
+LANES = [(10, 60, 12.0, None), (80, 120, 8.0, None)]
+
+
+def test_a_bone_point_on_the_off_centre_bone_makes_the_track_follow_it():
+    frames, poses = _lanes(12, LANES)
+    assert _lane_of(frames, _both(frames, poses, RejectionParams()).chosen) == {80.0}
+    # A point on the off-centre bone in frame 6: the lane rule does not override it.
+    on_side = RejectionParams(bone_points=(_at(35, 6),))
+    choice = _both(frames, poses, on_side)
+    assert _lane_of(frames, choice.chosen) == {10.0}
+    assert (choice.chosen >= 0).all()
+    # A point on the middle bone keeps it; so do two points on it.
+    for pts in [(_at(100, 6),), (_at(100, 2), _at(90, 9))]:
+        choice = _both(frames, poses, RejectionParams(bone_points=pts))
+        assert _lane_of(frames, choice.chosen) == {80.0} and (choice.chosen >= 0).all()
+
+
+def test_the_point_wins_over_a_stronger_bone_in_the_middle():
+    # The weaker bone (a third of the evidence) off-centre and pointed at: without the
+    # point even the lane rule keeps the strong one in the middle.
+    frames, poses = _lanes(12, [(10, 60, 4.0, None), (80, 120, 12.0, None)])
+    assert _lane_of(frames, _both(frames, poses, RejectionParams()).chosen) == {80.0}
+    choice = _both(frames, poses, RejectionParams(bone_points=(_at(30, 3),)))
+    assert _lane_of(frames, choice.chosen) == {10.0} and (choice.chosen >= 0).all()
+
+
+def test_frames_of_the_point_without_a_contour_near_it_are_rejected():
+    # The pointed bone (columns 10-60) is missed in frames 5 and 6; the point in frame 4
+    # has frames 1-7 (within 5 mm): 5 and 6 have only the other bone, 11 mm away.
+    frames, poses = _lanes(12, [(10, 60, 8.0, set(range(12)) - {5, 6}), (80, 120, 12.0, None)])
+    choice = _both(frames, poses, RejectionParams(bone_points=(_at(35, 4),)))
+    assert [choice.reason[k] for k in (5, 6)] == [OFF_POINT, OFF_POINT]
+    assert choice.detail[5].endswith("mm from bone point 1")
+    assert float(choice.detail[5].split()[0]) == pytest.approx((80 - 35) * _S, abs=0.6)
+    assert _lane_of(frames, choice.chosen) == {10.0}
+    assert np.flatnonzero(choice.chosen >= 0).tolist() == [k for k in range(12) if k not in (5, 6)]
+
+
+def test_a_point_with_no_contour_near_it_is_left_out():
+    # A point in the tissue between the two bones (columns 60-80, 5 mm from either's
+    # end, 2 mm under them): the track is the one chosen without it.
+    frames, poses = _lanes(12, LANES)
+    left_out = RejectionParams(bone_points=((70 * _S, 10.0, 1.4 * 6),))
+    default = _both(frames, poses, RejectionParams())
+    choice = _both(frames, poses, left_out)
+    np.testing.assert_array_equal(choice.chosen, default.chosen)
+    assert OFF_POINT not in choice.reason
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("bone_points", ((1.0, 2.0),), "must have 3 values"),
+        ("bone_points", ((1.0, 2.0, float("nan")),), "must be finite"),
+        ("point_plane_mm", 0.0, "must be > 0"),
+        ("point_contour_mm", -1.0, "must be > 0"),
+    ],
+)
+def test_bone_point_parameters_are_checked(field, value, message):
+    with pytest.raises(BoneUSReconError, match=f"RejectionParams.{field} {message}"):
+        RejectionParams(**{field: value})
+
+
+# -- simulated forearms: the ulna swept, the radius 18 mm beside it ---------------------
+
+
+@functools.cache
+def _forearm(realism: str, seed: int, width: int = 160) -> Simulation:
+    return simulate(
+        SimulationParams(
+            bone="ulna",
+            neighbour_mm=18.0,
+            n_frames=12,
+            width=width,
+            height=136,
+            spacing_mm=0.32,
+            realism=realism,
+            seed=seed,
+        )
+    )
+
+
+def _neighbour_top(sim: Simulation, sweep: Sweep, frame: int) -> np.ndarray:
+    """The top of the neighbouring bone's section in a frame, reference mm (the point a
+    user clicks on it), from the simulator's analytic neighbour."""
+    s = sim.path.s - sim.geometry.length / 2 + sim.neighbour.length / 2  # as simulate()
+    top = bone_sections(sim.neighbour, sweep.image_to_reference, s, sweep.width).top_j[frame]
+    i = int(np.nanargmin(top))
+    return pixels_to_reference(sweep.image_to_reference[frame], np.array([[i, top[i]]]))[0]
+
+
+def _bone_top(sim: Simulation, sweep: Sweep, frame: int, shift: int = 0) -> np.ndarray:
+    """The middle of the swept bone's true contour in a frame, reference mm."""
+    c = sim.true_contours_px[frame] - (shift, 0)
+    return pixels_to_reference(sweep.image_to_reference[frame], c[len(c) // 2][None])[0]
+
+
+def _on(sim: Simulation, sweep: Sweep, result) -> tuple[float, float, int]:
+    """Median over the accepted frames of their points' median distance (mm) to the
+    swept bone and to its neighbour (the simulator's analytic surfaces), and how many."""
+    acc = result.accepted
+    to_bone = [np.median(sim.geometry.distance(c.points_mm(sweep))) for c in acc]
+    to_nb = [np.median(sim.neighbour.distance(c.points_mm(sweep))) for c in acc]
+    return float(np.median(to_bone)), float(np.median(to_nb)), len(acc)
+
+
+def _with_points(points) -> SegmentationParams:
+    return params_with(bone_points=points).segmentation
+
+
+@pytest.mark.parametrize(("realism", "seed"), [("standard", 1), ("hard", 2)])
+def test_a_bone_point_on_the_neighbour_makes_the_track_follow_it(realism, seed):
+    sim = _forearm(realism, seed)
+    sw = sim.sweep
+    bone, nb, n = _on(sim, sw, segment_sweep(sw))
+    assert bone <= 0.3 and nb >= 8.0 and n >= 10  # the default: the ulna, in the middle
+    got = segment_sweep(sw, _with_points([_neighbour_top(sim, sw, 6)]))
+    bone, nb, n = _on(sim, sw, got)
+    assert nb <= 0.3 and bone >= 8.0 and n >= 10, (bone, nb, n)
+    assert not got.warnings
+    # A point on the ulna keeps the ulna.
+    bone, nb, n = _on(sim, sw, segment_sweep(sw, _with_points([_bone_top(sim, sw, 6)])))
+    assert bone <= 0.3 and nb >= 8.0 and n >= 10
+
+
+def _off_centre(sim: Simulation) -> tuple[Sweep, int]:
+    """The sweep's frames cut to 128 columns with the ulna's middle at column 24 (0.62
+    of the half-width off the middle) and the radius 18 mm beside it near the middle:
+    a bone swept near the image's edge. The poses move with the first column kept."""
+    sw = sim.sweep
+    mid = np.median([0.5 * (c[0, 0] + c[-1, 0]) for c in sim.true_contours_px if len(c)])
+    a = int(round(mid)) - 24
+    m = sw.image_to_reference.copy()
+    m[:, :3, 3] += a * m[:, :3, 0]
+    frames = np.ascontiguousarray(sw.frames[:, :, a : a + 128])
+    return sw.replace(frames=frames, image_to_reference=m), a
+
+
+@pytest.mark.parametrize("seed", [2, 5])
+def test_a_bone_swept_off_centre_is_kept_with_a_point_on_it(seed):
+    sim = _forearm("hard", seed, width=224)
+    sw, shift = _off_centre(sim)
+    bone, nb, _ = _on(sim, sw, segment_sweep(sw))
+    assert nb <= 0.5 and bone >= 8.0  # the lane rule took the radius, in the middle
+    bone, nb, n = _on(sim, sw, segment_sweep(sw, _with_points([_bone_top(sim, sw, 6, shift)])))
+    assert bone <= 0.3 and nb >= 8.0 and n >= 8, (bone, nb, n)
+
+
+def test_the_incremental_solver_follows_the_point_as_the_batch_one():
+    from BoneUSRecon.Logic.segmentation import frame_candidates_for
+
+    sim = _forearm("hard", 2)
+    sw = sim.sweep
+    params = _with_points([_neighbour_top(sim, sw, 6)]).rejection
+    frames = [frame_candidates_for(image, (0.32, 0.32)) for _, image in sw.iter_frames()]
+    choice = _both(frames, sw.image_to_reference, params)
+    on = [frames[k].candidates[c].points_px for k, c in enumerate(choice.chosen.tolist()) if c >= 0]
+    assert len(on) >= 10
+    d = [np.median(sim.neighbour.distance(sw.to_reference(k, p))) for k, p in enumerate(on)]
+    assert np.median(d) <= 0.3
+
+
+def test_a_point_off_the_sweep_is_refused():
+    sw = _forearm("standard", 1).sweep
+    far = _neighbour_top(_forearm("standard", 1), sw, 6) + (0.0, 0.0, 0.0)
+    # Along the sweep past its last frame (the frames' normals are near the x axis).
+    normal = np.cross(sw.image_to_reference[-1, :3, 0], sw.image_to_reference[-1, :3, 1])
+    normal /= np.linalg.norm(normal)
+    past = sw.image_to_reference[-1, :3, 3] + 40.0 * normal * np.sign(
+        normal @ (sw.image_to_reference[-1, :3, 3] - sw.image_to_reference[0, :3, 3])
+    )
+    with pytest.raises(BoneUSReconError, match=r"bone point 1 .* from the nearest frame's plane"):
+        segment_sweep(sw, _with_points([past]))
+    # In the planes of the frames but 60 mm beside every image.
+    beside = far + 60.0 * sw.image_to_reference[6, :3, 0] / np.linalg.norm(
+        sw.image_to_reference[6, :3, 0]
+    )
+    with pytest.raises(BoneUSReconError, match="bone point 1 .* outside the image of every"):
+        segment_sweep(sw, _with_points([beside]))
+
+
+def test_a_point_with_no_contour_near_it_is_reported_in_the_summary():
+    sim = _forearm("standard", 1)
+    sw = sim.sweep
+    # Half way between the two bones' tops, in the tissue (5.2 mm from the nearest
+    # contour; a few mm deeper it would lie on the radius's flank).
+    between = 0.5 * (_bone_top(sim, sw, 6) + _neighbour_top(sim, sw, 6))
+    got = segment_sweep(sw, _with_points([between]))
+    bone, nb, n = _on(sim, sw, got)
+    assert bone <= 0.3 and n >= 10  # the track chosen without the point: the default
+    assert len(got.warnings) == 1 and "bone point 1" in got.warnings[0]
+    assert "no accepted contour within 3 mm" in got.summary()["warnings"][0]
+
+
+# -- the command line -------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def forearm_file(tmp_path_factory) -> tuple[str, np.ndarray]:
+    """The hard forearm sweep on disk and a point on the radius beside the ulna."""
+    sim = _forearm("hard", 2)
+    path = write_sweep(sim.sweep, tmp_path_factory.mktemp("bone_point") / "forearm.mha")
+    return str(path), _neighbour_top(sim, sim.sweep, 6)
+
+
+def test_segment_and_reconstruct_take_bone_points(forearm_file, tmp_path, capsys):
+    from BoneUSRecon.Logic.vtkio import read_points
+
+    path, point = forearm_file
+    sim = _forearm("hard", 2)
+    args = ["--bone-point", *(f"{v:.3f}" for v in point)]
+    assert main(["segment", path, "-o", str(tmp_path / "p.csv"), "-q", *args]) == 0
+    pts = read_points(str(tmp_path / "p.csv"))
+    assert np.median(sim.neighbour.distance(pts)) <= 0.3
+    capsys.readouterr()
+    out = tmp_path / "s.vtp"
+    argv = ["reconstruct", path, "-o", str(out), "--along", "5", "--json", "-q", *args]
+    assert main(argv) == 0
+    import json
+
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["summary"]["bone_points"] == [pytest.approx(list(point), abs=1e-3)]
+    assert doc["summary"]["warnings"] == []
+
+
+@pytest.mark.parametrize(
+    ("command", "values", "problem"),
+    [
+        ("segment", ["1", "2", "nan"], "'nan' is not a finite number of mm"),
+        ("segment", ["1", "2", "x"], "'x' is not a finite number of mm"),
+        ("reconstruct", ["1", "2", "inf"], "'inf' is not a finite number of mm"),
+        ("reconstruct", ["1", "2"], "expected 3 arguments"),
+        ("segment", ["0", "0", "-500"], "it is not on this sweep"),
+        ("reconstruct", ["0", "0", "-500"], "it is not on this sweep"),
+    ],
+)
+def test_bad_bone_points_are_one_line_errors(
+    forearm_file, tmp_path, capsys, command, values, problem
+):
+    path, _ = forearm_file
+    out = tmp_path / ("p.csv" if command == "segment" else "s.vtp")
+    argv = [command, path, "-o", str(out), "-q", "--bone-point", *values]
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's own refusals
+        code = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith("bone-us-recon")
+    assert "--bone-point" in err[0] or "bone point 1" in err[0]  # names the option
+    assert problem in err[0], err[0]
+    assert "Traceback" not in err[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_params_with_sets_and_clears_bone_points():
+    p = params_with(bone_points=np.array([[1.0, 2.0, 3.0]]))
+    assert p.segmentation.rejection.bone_points == ((1.0, 2.0, 3.0),)
+    assert params_with(p, bone_points=[]).segmentation.rejection.bone_points == ()
+    with pytest.raises(BoneUSReconError, match="bone_points must have 3 values"):
+        params_with(bone_points=[(1.0, 2.0)])
+    assert dataclasses.replace(p).segmentation.rejection.bone_points == ((1.0, 2.0, 3.0),)
