@@ -9,70 +9,23 @@ import functools
 
 import numpy as np
 import pytest
+from lane_frames import S, both_solvers, lane_of, make_lanes
 
 from BoneUSRecon.cli import main
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.pipeline import params_with
 from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.bone_point import OFF_POINT
-from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.params import RejectionParams, SegmentationParams
-from BoneUSRecon.Logic.segmentation.track import select_bone_track
-from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sequence_io import write_sweep
 from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.sections import bone_sections
 from BoneUSRecon.Logic.sweep import Sweep, pixels_to_reference
 
-_S = 0.25  # mm per pixel of the synthetic frames
-_W = 200  # their width in pixels (50 mm)
-_DEPTH_PX = 8.0 / _S  # the synthetic contours lie 8 mm deep
-
-
-def _lanes(
-    n: int, lanes: list[tuple[float, float, float, set[int] | None]]
-) -> tuple[list[FrameCandidates], np.ndarray]:
-    """Frames 1.4 mm apart along z, each with one candidate per lane ``(first column,
-    last column, strength, frames it shows in or None for all)``, 8 mm deep."""
-    frames, poses = [], []
-    for k in range(n):
-        cands = []
-        for a, b, strength, where in lanes:
-            if where is not None and k not in where:
-                continue
-            i = np.arange(a, b + 1, 2.0)
-            pts = np.column_stack([i, np.full(i.size, _DEPTH_PX)])
-            cands.append(BoneCandidate(pts, np.full(i.size, 200.0), strength, 3.0, 2.0))
-        cands.sort(key=lambda c: -c.strength)
-        frames.append(FrameCandidates(tuple(cands), (_S, _S), fov_px=(0.0, _W - 1.0)))
-        m = np.eye(4)
-        m[0, 0] = m[1, 1] = _S
-        m[2, 3] = 1.4 * k
-        poses.append(m)
-    return frames, np.stack(poses)
-
 
 def _at(column: float, frame: int) -> tuple[float, float, float]:
     """The reference point of a synthetic frame's column at the contours' depth."""
-    return (column * _S, 8.0, 1.4 * frame)
-
-
-def _both(frames, poses, params):
-    """The batch choice, checked equal to the incremental one (live's solver)."""
-    batch = select_bone_track(frames, poses, params)
-    track = IncrementalTrack(params)
-    for fc, pose in zip(frames, poses, strict=True):
-        track.add(fc, pose)
-    inc = track.solve()
-    np.testing.assert_array_equal(inc.chosen, batch.chosen)
-    np.testing.assert_array_equal(inc.confidence, batch.confidence)
-    assert inc.reason == batch.reason and inc.detail == batch.detail
-    return batch
-
-
-def _lane_of(frames, chosen) -> set[float]:
-    """First columns of the chosen candidates."""
-    return {float(frames[k].candidates[c].points_px[0, 0]) for k, c in enumerate(chosen) if c >= 0}
+    return (column * S, 8.0, 1.4 * frame)
 
 
 # A neighbour toward the left edge (columns 10-60) with 1.5x the evidence of the bone in
@@ -81,47 +34,47 @@ LANES = [(10, 60, 12.0, None), (80, 120, 8.0, None)]
 
 
 def test_a_bone_point_on_the_off_centre_bone_makes_the_track_follow_it():
-    frames, poses = _lanes(12, LANES)
-    assert _lane_of(frames, _both(frames, poses, RejectionParams()).chosen) == {80.0}
+    frames, poses = make_lanes(12, LANES)
+    assert lane_of(frames, both_solvers(frames, poses, RejectionParams()).chosen) == {80.0}
     # A point on the off-centre bone in frame 6: the lane rule does not override it.
     on_side = RejectionParams(bone_points=(_at(35, 6),))
-    choice = _both(frames, poses, on_side)
-    assert _lane_of(frames, choice.chosen) == {10.0}
+    choice = both_solvers(frames, poses, on_side)
+    assert lane_of(frames, choice.chosen) == {10.0}
     assert (choice.chosen >= 0).all()
     # A point on the middle bone keeps it; so do two points on it.
     for pts in [(_at(100, 6),), (_at(100, 2), _at(90, 9))]:
-        choice = _both(frames, poses, RejectionParams(bone_points=pts))
-        assert _lane_of(frames, choice.chosen) == {80.0} and (choice.chosen >= 0).all()
+        choice = both_solvers(frames, poses, RejectionParams(bone_points=pts))
+        assert lane_of(frames, choice.chosen) == {80.0} and (choice.chosen >= 0).all()
 
 
 def test_the_point_wins_over_a_stronger_bone_in_the_middle():
     # The weaker bone (a third of the evidence) off-centre and pointed at: without the
     # point even the lane rule keeps the strong one in the middle.
-    frames, poses = _lanes(12, [(10, 60, 4.0, None), (80, 120, 12.0, None)])
-    assert _lane_of(frames, _both(frames, poses, RejectionParams()).chosen) == {80.0}
-    choice = _both(frames, poses, RejectionParams(bone_points=(_at(30, 3),)))
-    assert _lane_of(frames, choice.chosen) == {10.0} and (choice.chosen >= 0).all()
+    frames, poses = make_lanes(12, [(10, 60, 4.0, None), (80, 120, 12.0, None)])
+    assert lane_of(frames, both_solvers(frames, poses, RejectionParams()).chosen) == {80.0}
+    choice = both_solvers(frames, poses, RejectionParams(bone_points=(_at(30, 3),)))
+    assert lane_of(frames, choice.chosen) == {10.0} and (choice.chosen >= 0).all()
 
 
 def test_frames_of_the_point_without_a_contour_near_it_are_rejected():
     # The pointed bone (columns 10-60) is missed in frames 5 and 6; the point in frame 4
     # has frames 1-7 (within 5 mm): 5 and 6 have only the other bone, 11 mm away.
-    frames, poses = _lanes(12, [(10, 60, 8.0, set(range(12)) - {5, 6}), (80, 120, 12.0, None)])
-    choice = _both(frames, poses, RejectionParams(bone_points=(_at(35, 4),)))
+    frames, poses = make_lanes(12, [(10, 60, 8.0, set(range(12)) - {5, 6}), (80, 120, 12.0, None)])
+    choice = both_solvers(frames, poses, RejectionParams(bone_points=(_at(35, 4),)))
     assert [choice.reason[k] for k in (5, 6)] == [OFF_POINT, OFF_POINT]
     assert choice.detail[5].endswith("mm from bone point 1")
-    assert float(choice.detail[5].split()[0]) == pytest.approx((80 - 35) * _S, abs=0.6)
-    assert _lane_of(frames, choice.chosen) == {10.0}
+    assert float(choice.detail[5].split()[0]) == pytest.approx((80 - 35) * S, abs=0.6)
+    assert lane_of(frames, choice.chosen) == {10.0}
     assert np.flatnonzero(choice.chosen >= 0).tolist() == [k for k in range(12) if k not in (5, 6)]
 
 
 def test_a_point_with_no_contour_near_it_is_left_out():
     # A point in the tissue between the two bones (columns 60-80, 5 mm from either's
     # end, 2 mm under them): the track is the one chosen without it.
-    frames, poses = _lanes(12, LANES)
-    left_out = RejectionParams(bone_points=((70 * _S, 10.0, 1.4 * 6),))
-    default = _both(frames, poses, RejectionParams())
-    choice = _both(frames, poses, left_out)
+    frames, poses = make_lanes(12, LANES)
+    left_out = RejectionParams(bone_points=((70 * S, 10.0, 1.4 * 6),))
+    default = both_solvers(frames, poses, RejectionParams())
+    choice = both_solvers(frames, poses, left_out)
     np.testing.assert_array_equal(choice.chosen, default.chosen)
     assert OFF_POINT not in choice.reason
 
@@ -232,7 +185,7 @@ def test_the_incremental_solver_follows_the_point_as_the_batch_one():
     sw = sim.sweep
     params = _with_points([_neighbour_top(sim, sw, 6)]).rejection
     frames = [frame_candidates_for(image, (0.32, 0.32)) for _, image in sw.iter_frames()]
-    choice = _both(frames, sw.image_to_reference, params)
+    choice = both_solvers(frames, sw.image_to_reference, params)
     on = [frames[k].candidates[c].points_px for k, c in enumerate(choice.chosen.tolist()) if c >= 0]
     assert len(on) >= 10
     d = [np.median(sim.neighbour.distance(sw.to_reference(k, p))) for k, p in enumerate(on)]

@@ -9,95 +9,48 @@ import dataclasses
 
 import numpy as np
 import pytest
+from lane_frames import both_solvers, lane_of, make_lanes
 from scipy.spatial import cKDTree
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import (
-    BoneCandidate,
     FrameCandidates,
     _separate_domes,
     _valley_runs,
     frame_candidates,
 )
 from BoneUSRecon.Logic.segmentation.params import RejectionParams, SegmentationParams
-from BoneUSRecon.Logic.segmentation.track import select_bone_track
-from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
-
-_S = 0.25  # mm per pixel of the synthetic frames
-_W = 200  # their width in pixels (50 mm)
-
-
-def _lanes(
-    n: int, lanes: list[tuple[float, float, float, set[int] | None]], fov: bool = True
-) -> tuple[list[FrameCandidates], np.ndarray]:
-    """Frames 1.4 mm apart, each with one candidate per lane ``(first column, last
-    column, strength, frames it shows in or None for all)``, 8 mm deep."""
-    frames, poses = [], []
-    for k in range(n):
-        cands = []
-        for a, b, strength, where in lanes:
-            if where is not None and k not in where:
-                continue
-            i = np.arange(a, b + 1, 2.0)
-            pts = np.column_stack([i, np.full(i.size, 8.0 / _S)])
-            cands.append(BoneCandidate(pts, np.full(i.size, 200.0), strength, 3.0, 2.0))
-        cands.sort(key=lambda c: -c.strength)
-        frames.append(
-            FrameCandidates(tuple(cands), (_S, _S), fov_px=(0.0, _W - 1.0) if fov else None)
-        )
-        m = np.eye(4)
-        m[0, 0] = m[1, 1] = _S
-        m[2, 3] = 1.4 * k
-        poses.append(m)
-    return frames, np.stack(poses)
-
-
-def _lane_of(frames: list[FrameCandidates], chosen: np.ndarray) -> set[float]:
-    """First columns of the chosen candidates."""
-    return {float(frames[k].candidates[c].points_px[0, 0]) for k, c in enumerate(chosen) if c >= 0}
-
-
-def _both(frames, poses, params=RejectionParams()):  # noqa: B008 (frozen dataclass)
-    """The batch choice, checked equal to the incremental one."""
-    batch = select_bone_track(frames, poses, params)
-    track = IncrementalTrack(params)
-    for fc, pose in zip(frames, poses, strict=True):
-        track.add(fc, pose)
-    inc = track.solve()
-    np.testing.assert_array_equal(inc.chosen, batch.chosen)
-    np.testing.assert_array_equal(inc.confidence, batch.confidence)
-    return batch
 
 
 def test_the_bone_in_the_middle_is_followed_over_a_stronger_one_beside_it():
     # A neighbour toward the left edge (columns 10-60: 0.65 of the half-width off the
     # middle) with 1.5x the evidence of the bone in the middle (columns 80-120).
-    frames, poses = _lanes(12, [(10, 60, 12.0, None), (80, 120, 8.0, None)])
-    assert _lane_of(frames, _both(frames, poses).chosen) == {80.0}
+    frames, poses = make_lanes(12, [(10, 60, 12.0, None), (80, 120, 8.0, None)])
+    assert lane_of(frames, both_solvers(frames, poses).chosen) == {80.0}
     # Without the rule the stronger one wins: the rule is what chose.
     off = RejectionParams(lane_offcentre=1.0)
-    assert _lane_of(frames, _both(frames, poses, off).chosen) == {10.0}
+    assert lane_of(frames, both_solvers(frames, poses, off).chosen) == {10.0}
 
 
 def test_an_off_centre_bone_stays_when_nothing_else_is_a_bone_track():
     # A look-alike in the middle in 3 of 12 frames (a vessel or a fascia comes and goes).
-    frames, poses = _lanes(12, [(10, 60, 12.0, None), (80, 120, 8.0, {3, 4, 5})])
-    assert _lane_of(frames, _both(frames, poses).chosen) == {10.0}
+    frames, poses = make_lanes(12, [(10, 60, 12.0, None), (80, 120, 8.0, {3, 4, 5})])
+    assert lane_of(frames, both_solvers(frames, poses).chosen) == {10.0}
     # A track in the middle with too little evidence (a tenth: a fascia).
-    frames, poses = _lanes(12, [(10, 60, 12.0, None), (80, 120, 1.0, None)])
-    assert _lane_of(frames, _both(frames, poses).chosen) == {10.0}
+    frames, poses = make_lanes(12, [(10, 60, 12.0, None), (80, 120, 1.0, None)])
+    assert lane_of(frames, both_solvers(frames, poses).chosen) == {10.0}
     # Frames whose field of view is not known: no preference.
-    frames, poses = _lanes(12, [(10, 60, 12.0, None), (80, 120, 8.0, None)], fov=False)
-    assert _lane_of(frames, _both(frames, poses).chosen) == {10.0}
+    frames, poses = make_lanes(12, [(10, 60, 12.0, None), (80, 120, 8.0, None)], fov=False)
+    assert lane_of(frames, both_solvers(frames, poses).chosen) == {10.0}
 
 
 def test_a_bone_near_the_middle_is_never_second_guessed():
     # The bone at 0.3 of the half-width, a weaker track nearer the middle beside it.
-    frames, poses = _lanes(12, [(115, 145, 12.0, None), (85, 105, 8.0, None)])
-    assert _lane_of(frames, _both(frames, poses).chosen) == {115.0}
+    frames, poses = make_lanes(12, [(115, 145, 12.0, None), (85, 105, 8.0, None)])
+    assert lane_of(frames, both_solvers(frames, poses).chosen) == {115.0}
 
 
 def _beside(bone: str, **kw: object):
@@ -210,7 +163,7 @@ def test_a_track_crossing_to_the_bone_beside_over_a_joining_contour_is_kept_to_o
     their level) and a stronger bone beside (columns 20-70) shows in the last three.
     Every link is within tolerance, so the best track crossed over; kept to one lane it
     follows the bone in the middle in every frame."""
-    frames, poses = _lanes(
+    frames, poses = make_lanes(
         12,
         [
             (80, 120, 8.0, set(range(8))),
@@ -219,10 +172,10 @@ def test_a_track_crossing_to_the_bone_beside_over_a_joining_contour_is_kept_to_o
             (20, 70, 10.0, {9, 10, 11}),
         ],
     )
-    lanes = _lanes_of(frames, _both(frames, poses).chosen)
+    lanes = _lanes_of(frames, both_solvers(frames, poses).chosen)
     assert lanes[:8] == [80.0] * 8 and lanes[9:] == [80.0] * 3
     off = RejectionParams(one_lane=False)
-    assert _lanes_of(frames, _both(frames, poses, off).chosen)[9:] == [20.0] * 3
+    assert _lanes_of(frames, both_solvers(frames, poses, off).chosen)[9:] == [20.0] * 3
 
 
 def test_a_bone_drifting_across_the_image_or_showing_one_flank_then_the_other_stays():
@@ -233,10 +186,10 @@ def test_a_bone_drifting_across_the_image_or_showing_one_flank_then_the_other_st
     drift = [(20 + 5 * k, 60 + 5 * k, 8.0, {k}) for k in range(12)]
     flanks = [(80, 98, 8.0, set(range(6))), (80, 122, 8.0, {6}), (104, 122, 8.0, set(range(7, 12)))]
     for lanes in (drift, flanks):
-        frames, poses = _lanes(12, lanes)
-        on = _both(frames, poses).chosen
+        frames, poses = make_lanes(12, lanes)
+        on = both_solvers(frames, poses).chosen
         np.testing.assert_array_equal(
-            on, _both(frames, poses, RejectionParams(one_lane=False)).chosen
+            on, both_solvers(frames, poses, RejectionParams(one_lane=False)).chosen
         )
         assert (on >= 0).all()
 

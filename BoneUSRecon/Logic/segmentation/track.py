@@ -527,6 +527,14 @@ def select_bone_track(
     )
 
 
+#: A forward pass: the nodes' best path scores, back-pointers and link deviations.
+Pass = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: The forward pass over given node values.
+Forward = Callable[[np.ndarray], Pass]
+#: Node values, their forward pass, and the track's path (None: not traced).
+Choice = tuple[np.ndarray, Pass, list[int] | None]
+
+
 def _path(score: np.ndarray, back: np.ndarray, need: int) -> list[int]:
     """The nodes of the best-valued path that links at least ``need`` frames, last
     first ([] if none): the track :func:`_finish` takes. Nodes ruled out (value -inf,
@@ -586,9 +594,9 @@ def central_track(
     frames: Sequence[FrameCandidates],
     nodes: list[tuple[int, int]],
     value: np.ndarray,
-    forward: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    forward: Forward,
     p: RejectionParams,
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], list[int] | None]:
+) -> Choice:
     """The node values and the forward pass (``forward(value)``: scores, back-pointers
     and link deviations) the track is taken from, and its path (:func:`_path`; None when
     not traced here): the best track, moved to the bone nearer the middle of the field
@@ -607,11 +615,11 @@ def _one_lane(
     frames: Sequence[FrameCandidates],
     nodes: list[tuple[int, int]],
     value: np.ndarray,
-    out: tuple[np.ndarray, np.ndarray, np.ndarray],
+    out: Pass,
     path: list[int],
-    forward: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    forward: Forward,
     p: RejectionParams,
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], list[int]]:
+) -> Choice:
     """:func:`central_track`'s second step (``one_lane``), keeping the track to one
     bone: where the track changes lanes (two of its contours two frames apart share no
     column), the track is chosen again
@@ -681,9 +689,9 @@ def _nearer_middle(
     frames: Sequence[FrameCandidates],
     nodes: list[tuple[int, int]],
     value: np.ndarray,
-    forward: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    forward: Forward,
     p: RejectionParams,
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], list[int] | None]:
+) -> Choice:
     """:func:`central_track`'s first step: ``value`` as it is, or, when the best
     track runs off the middle of the field of view and another bone track runs nearer it, with the
     first track's columns ruled out (value -inf).
@@ -732,11 +740,11 @@ def pointed_track(
     poses: np.ndarray,
     nodes: list[tuple[int, int]],
     value: np.ndarray,
-    forward: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    forward: Forward,
     p: RejectionParams,
     reason: list[str],
     detail: list[str],
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], list[int] | None]:
+) -> Choice:
     """:func:`central_track`'s values, forward pass and path, or, with the user's bone
     points (``p.bone_points``, :mod:`.bone_point`), the track through them.
 
