@@ -229,3 +229,26 @@ def test_the_far_cortex_under_the_bone_is_flagged_where_bright_tissue_covers_it(
         assert deep and all(c.echo_beneath for c in deep)
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["wrong_share"] == 0.0 and s["recall"] >= 0.7
+
+
+def test_a_track_on_one_bone_all_along_is_not_moved_to_the_bone_beside():
+    """The bone in the middle shows the left part of its top (columns 100-140, then
+    100-160 in frame 6), then the right part (142-180): contours two frames apart share
+    no column. The bone beside (20-70) shows in frames 8-11, linked to frame 6 over a
+    contour reaching both (frame 7, 40-150). Choosing the track without the right
+    part's lane would move it to the bone beside over as many frames; that track does
+    not reach the middle bone's lane there, so the track stays on the middle bone."""
+    frames, poses = make_lanes(
+        12,
+        [
+            (100, 140, 8.0, set(range(6))),
+            (100, 160, 8.0, {6}),
+            (142, 180, 8.0, set(range(7, 12))),
+            (40, 150, 4.0, {7}),
+            (20, 70, 6.0, {8, 9, 10, 11}),
+        ],
+    )
+    on = both_solvers(frames, poses).chosen
+    off = both_solvers(frames, poses, RejectionParams(one_lane=False)).chosen
+    np.testing.assert_array_equal(on, off)
+    assert _lanes_of(frames, on)[7:] == [142.0] * 5

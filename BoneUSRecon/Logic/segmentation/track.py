@@ -621,26 +621,31 @@ def _one_lane(
     p: RejectionParams,
 ) -> Choice:
     """:func:`central_track`'s second step (``one_lane``), keeping the track to one
-    bone: where the track changes lanes (two of its contours two frames apart share no
-    column), the track is chosen again
-    without the nodes over the columns of its shorter stretches (:func:`_in_lane`), and
-    that one is taken if it links at least as many frames and carries at least
-    ``lane_value`` of the first's value.
+    bone: where it changes lanes (two of its contours two frames apart share no
+    column), the track is chosen again without the nodes over the columns of its
+    stretches off the bone swept (:func:`_in_lane`), and that one is taken if it links
+    at least as many frames, its contours in those stretches' frames reach into the
+    bone swept's lane (:func:`_reaches`), and it carries at least ``lane_value`` of
+    the first's value.
 
     Two bones side by side (the radius and the ulna) can each be linked to a contour
     that runs over both, along a fascia between them at their level, and a track can
-    cross from one to the other over it; every link is within tolerance. A bone cannot
+    cross from one to the other over it: every link is within tolerance. A bone cannot
     leave its own columns within two frames (a few mm of sweep; a freehand sweep drifts
     laterally by far less than a bone's width in that time), so such a pair marks a
-    change of lane, whatever the contours' grey levels. The stretch the track spends
-    in the other lane is the shorter (the bone swept is the one followed over most of
-    the sweep). Taking the new track only where it links every frame the first one
-    did keeps a bone that drifts across the image, or that shows only one flank then
-    the other (no candidate left in those frames without the ruled-out ones), as it
-    was. Measured on 32 two-bone sweeps (radius and ulna, standard and hard, seeds 1-8,
-    320 x 256, the other bone 18 mm beside): hard radius seed 1 crossed to the ulna in
-    its last 3 frames over a fascia joining them in frame 8 (wrong share 0.25 -> 0,
-    recall 0.67 -> 1.0).
+    change of lane, whatever the contours' grey levels. The stretch on the bone swept
+    is the one nearest the middle of the field of view (the operator keeps it there;
+    :func:`_nearer_middle`), the longest where that is not known. The conditions keep
+    a bone that drifts across the image, or that shows one part of its top then
+    another, as it was (no other contour reaches its lane in those frames), and never
+    move a track that was on one bone all along to another: hard radius seed 1 with
+    the ulna 24 mm beside showed contours of the radius two frames apart at columns
+    112-154 and 156-214, and without the reach condition the track moved to the ulna
+    in its last 4 frames.
+
+    Measured on two-bone sweeps (radius and ulna, hard, seeds 1-8, 320 x 256 at 0.16
+    mm, the other bone 14, 18 or 24 mm beside): see ``Testing/benchmarks/README.md``,
+    "Session 32 (lead)".
     """
     on = sorted(path, key=lambda k: nodes[k][0])
     spans = [_span(frames, nodes[k]) for k in on]
@@ -658,17 +663,28 @@ def _one_lane(
     if not cuts:
         return value, out, path
     stretches = [on[a + 1 : b + 1] for a, b in zip([-1, *cuts], [*cuts, len(on) - 1], strict=True)]
-    main = max(stretches, key=len)
+    # The stretch on the bone swept: the one nearest the middle of the field of view
+    # (as :func:`_nearer_middle` judges), the longest where that is not known.
+    u = [_offcentre(frames, nodes, st) for st in stretches]
+    if all(v is not None for v in u):
+        main = stretches[int(np.argmin(u))]
+    else:
+        main = max(stretches, key=len)
+    main_spans = [(nodes[k][0], spans[on.index(k)]) for k in main]
     ruled = np.zeros(len(nodes), bool)
     for st in stretches:
         if st is not main and st:
             ruled |= _in_lane(frames, nodes, st)
-    ruled &= ~_in_lane(frames, nodes, main)
+    in_main = _in_lane(frames, nodes, main)
+    ruled &= ~in_main
     other = np.where(ruled, -np.inf, value)
     alt = forward(other)
     path2 = _path(alt[0], alt[1], min(p.min_track_frames, len({f for f, _ in nodes})))
-    if len(path2) >= len(path) and float(other[path2].sum()) >= p.lane_value * float(
-        value[path].sum()
+    moved = {nodes[k][0] for st in stretches if st is not main for k in st}
+    if (
+        len(path2) >= len(path)
+        and all(_reaches(frames, nodes[k], main_spans) for k in path2 if nodes[k][0] in moved)
+        and float(other[path2].sum()) >= p.lane_value * float(value[path].sum())
     ):
         return other, alt, path2
     return value, out, path
@@ -678,6 +694,20 @@ def _span(frames: Sequence[FrameCandidates], node: tuple[int, int]) -> tuple[flo
     """Lateral extent (image columns) of a node's contour core."""
     x = frames[node[0]].candidates[node[1]].core_px[:, 0]
     return float(x.min()), float(x.max())
+
+
+def _reaches(
+    frames: Sequence[FrameCandidates],
+    node: tuple[int, int],
+    lane: list[tuple[int, tuple[float, float]]],
+    k: int = 3,
+) -> bool:
+    """Whether ``node``'s contour shares a column with the lane: the columns the ``k``
+    contours of ``lane`` (frame, span) nearest its frame span together (a contour of
+    the bone may show only part of its top; three frames show it whole)."""
+    near = sorted(lane, key=lambda fs: abs(fs[0] - node[0]))[:k]
+    lane_span = (min(sp[0] for _, sp in near), max(sp[1] for _, sp in near))
+    return _overlap(_span(frames, node), lane_span) > 0
 
 
 def _overlap(a: tuple[float, float], b: tuple[float, float]) -> float:
