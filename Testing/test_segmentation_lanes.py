@@ -252,3 +252,34 @@ def test_a_track_on_one_bone_all_along_is_not_moved_to_the_bone_beside():
     off = both_solvers(frames, poses, RejectionParams(one_lane=False)).chosen
     np.testing.assert_array_equal(on, off)
     assert _lanes_of(frames, on)[7:] == [142.0] * 5
+
+
+def test_a_bone_top_under_a_fascia_is_not_taken_for_a_far_cortex():
+    """Hard radius seed 6 with the ulna 14 mm beside (the two almost touch), frame 5: a
+    fascia runs over the ulna's top with tissue between them reading 0.83 of the
+    frame's typical tissue and 0.74 of the bright tissue over the fascia, as the
+    radius's interior does over its far cortex (seed 2 above). The ulna's top is a dome,
+    not a far cortex's bowl: it is judged against the frame's level and not flagged (it
+    was, and the pieces over both bones were joined into one contour 4.2 mm off the
+    radius that the track followed in frames 2-5)."""
+    sim = simulate(
+        SimulationParams(
+            bone="radius",
+            neighbour_mm=14.0,
+            n_frames=12,
+            width=320,
+            height=256,
+            spacing_mm=0.16,
+            realism="hard",
+            seed=6,
+        )
+    )
+    sp = SegmentationParams().shadowpath
+    t = np.asarray(sim.true_contours_px[5]) * 0.16
+    fc = frame_candidates(np.asarray(sim.sweep.frames[5]), (0.16, 0.16), sp)
+    d = [np.median(cKDTree(t).query(c.points_px * 0.16)[0]) for c in fc.usable]
+    ulna = [
+        c for c, m in zip(fc.usable, d, strict=True) if m > 6.0 and c.points_px[:, 0].max() < 130
+    ]
+    assert ulna and not any(c.echo_beneath for c in ulna)
+    assert min(d) < 0.3  # the radius is offered on its own

@@ -1068,9 +1068,9 @@ def _mark_echo_beneath(
 
     * the region between them (under ``c``, following its shape,
       :func:`_underside_profile`) comes back darker than ``under_ratio`` of the
-      frame's typical tissue-to-level ratio, or of the tissue right over ``c`` where
-      that is brighter (geometric means: bright copies in the shadow do not outweigh
-      it), or ``c`` tops a reverberation series: ``b`` lies in
+      frame's typical tissue-to-level ratio, or, unless ``b`` is a dome, of the
+      tissue right over ``c`` where that is brighter (geometric means: bright copies in
+      the shadow do not outweigh it), or ``c`` tops a reverberation series: ``b`` lies in
       ``c``'s shadow and is flagged (the far cortex, a band) if it lies within ``c``'s
       columns (a shadow is as wide as its reflector); either way ``c`` is not flagged
       for it;
@@ -1085,9 +1085,13 @@ def _mark_echo_beneath(
     18 mm beside it read its interior, reverberation bands and all, at 0.81-0.82 of
     the typical tissue (``under_ratio`` 0.8) but 0.73-0.77 of the brighter tissue over
     it, so the far cortex under it went unflagged and carried the track in all 12
-    frames (wrong share 1.0 -> 0); on the lead's harness 3 sweeps of 44 changed, by at
-    most 0.034 mm. Candidates closer than two shadow gaps are judged on ``c``'s own shadow
-    z-score instead (no room between them to measure).
+    frames (wrong share 1.0 -> 0). A far cortex is a bowl (the back wall of a convex
+    bone); a dome under ``c`` is a bone's top under a fascia, with tissue between that
+    reads the same (a fascia over the ulna, the radius 14 mm beside: 0.83 of the
+    typical tissue, 0.74 of the tissue over the fascia), so a dome
+    (:func:`_is_dome`) is judged against the frame's level alone. Candidates
+    closer than two shadow gaps are judged on ``c``'s own shadow z-score instead (no
+    room between them to measure).
     """
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
     reach = mm_to_px(p.far_shadow_mm, ev.dy)
@@ -1130,13 +1134,20 @@ def _mark_echo_beneath(
                         prof = _underside_profile(lr, c, reach, common)
                     seg = prof[reach + gap : reach + min(reach, int(off) - gap) + 1]
                     seg = seg[np.isfinite(seg)]
-                    # Darker than the tissue the sound came through to c, where that
-                    # is brighter than the frame's typical tissue (its cover, the
-                    # rows over c along its shape).
-                    cover = prof[: reach - gap]
-                    cover = cover[np.isfinite(cover)]
-                    ref = max(0.0, median1d(cover)) if cover.size >= gap else 0.0
-                    shadowed = seg.size > 0 and median1d(seg) < dark + ref
+                    shadowed = seg.size > 0 and median1d(seg) < dark
+                    if (
+                        seg.size
+                        and not shadowed
+                        and not _is_dome(b["cols"] * ev.dx, b["rows"] * ev.dy, p.dome_mm)
+                    ):
+                        # Darker than the tissue the sound came through to c, where
+                        # that is brighter than the frame's typical tissue (its cover,
+                        # the rows over c along its shape); not for a dome under c (a
+                        # bone's top under a fascia, tissue between).
+                        cover = prof[: reach - gap]
+                        cover = cover[np.isfinite(cover)]
+                        if cover.size >= gap:
+                            shadowed = median1d(seg) < dark + max(0.0, median1d(cover))
                 else:
                     shadowed = c["shadow"] >= p.shadow_z_full
                 if shadowed:
