@@ -27,8 +27,7 @@ from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
 # The recheck measured on its own: the candidates not settled nor their flat ends
 # followed (settle.py and rim.py, branch onset, fix or change some of these frames
-# before the track is chosen; tibia 31 frame 18 and clavicle 53 frame 32 are no longer
-# capped with them).
+# before the track is chosen; clavicle 53 frame 32 is no longer capped with them).
 BASE = SegmentationParams(
     shadowpath=ShadowPathParams(settle=SettleParams(enabled=False), rim=RimParams(enabled=False))
 )
@@ -42,7 +41,9 @@ def _median_mm(sim, contour) -> float:
 # (sweep, frame, bound): measured without the recheck / with it, mm (frame median to
 # the bone); the median after must be under ``bound``.
 CAPPED = [
-    ({"bone": "tibia", "realism": "hard", "seed": 31}, 18, 0.5),  # 1.12 -> 0.09
+    # Tibia hard 31 frame 18 (1.12 -> 0.09) is on the bone without the recheck since
+    # session 32 (a far cortex under bright cover flagged, candidates._mark_echo_beneath).
+    ({"bone": "clavicle", "realism": "hard", "seed": 59}, 31, 0.5),  # 1.28 -> 0.33
     ({"bone": "clavicle", "seed": 53}, 32, 0.5),  # standard realism: 1.36 -> 0.05
     # 1.25 -> 0.58: a hump of speckle over the top stays (16 points over 1 mm, as
     # before); the guided contour's right end, a fascia leaving the shoulder (its 7
