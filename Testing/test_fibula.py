@@ -1,0 +1,124 @@
+"""The fibula beside a tibia (issue 10's lower-leg sweeps): the simulator shows it on
+request (``SimulationParams.neighbour_mm``), deep and to one side, and the segmenter
+keeps to the tibia."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from BoneUSRecon.Logic.errors import BoneUSReconError
+from BoneUSRecon.Logic.segmentation import segment_sweep
+from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
+from BoneUSRecon.Logic.simulation.bones import NEIGHBOURS, BoneGeometry
+from BoneUSRecon.Logic.simulation.scoring import score_simulation
+from BoneUSRecon.Logic.simulation.sections import bone_sections
+
+#: A small lower-leg sweep: 51 x 41 mm images (the cadaver's field of view) at 0.16 mm.
+_LEG = {"bone": "tibia", "n_frames": 12, "width": 320, "height": 256, "spacing_mm": 0.16}
+
+
+def _leg(**kw: object) -> Simulation:
+    return simulate(SimulationParams(**{**_LEG, **kw}))  # type: ignore[arg-type]
+
+
+def _fibula_top_j(sim: Simulation) -> np.ndarray:
+    """Row of the fibula's first surface under each column of each frame (NaN: none),
+    as the simulator lays it out."""
+    other = sim.neighbour
+    assert other is not None
+    s2 = sim.path.s - sim.geometry.length / 2 + other.length / 2
+    return bone_sections(other, sim.path.image_to_reference, s2, sim.sweep.width).top_j
+
+
+def _top(geom: BoneGeometry) -> float:
+    return float(geom.top_height(geom.length / 2)[0])
+
+
+@pytest.mark.parametrize("realism", ["standard", "hard"])
+def test_a_tibia_shows_its_fibula_only_when_asked_and_is_otherwise_unchanged(realism):
+    plain = _leg(realism=realism, n_frames=4, seed=5)
+    alone = _leg(realism=realism, n_frames=4, seed=5, neighbour=False)
+    fib = _leg(realism=realism, n_frames=4, seed=5, neighbour_mm=20.0)
+    # The default tibia sweep has no fibula: the same frames as without a neighbour.
+    assert plain.neighbour is None
+    assert np.array_equal(plain.sweep.frames, alone.sweep.frames)
+    # With the fibula: the same truth, gold, poses and contours (a distractor only)...
+    assert fib.neighbour is not None and fib.neighbour.spec.name == "fibula"
+    assert np.array_equal(fib.gold, plain.gold)
+    assert np.array_equal(fib.sweep.image_to_reference, plain.sweep.image_to_reference)
+    for a, b in zip(fib.true_contours_px, plain.true_contours_px, strict=True):
+        assert np.array_equal(a, b)
+    # ...and the image changes only beside the tibia, on the fibula's side.
+    for k in range(4):
+        diff = np.flatnonzero((fib.sweep.frames[k] != plain.sweep.frames[k]).any(axis=0))
+        tibia = np.flatnonzero(np.isfinite(plain.sections.top_j[k]))
+        assert diff.size > 20
+        assert np.intersect1d(diff, tibia[: tibia.size // 2]).size == 0
+
+
+def test_the_fibula_lies_deep_and_lateral_to_the_tibia_and_shows_in_the_image():
+    sim = _leg(seed=1, neighbour_mm=20.0)
+    fib, tib = sim.neighbour, sim.geometry
+    assert fib is not None
+    pair = NEIGHBOURS["tibia"]
+    # 20 mm lateral on the pair's side, its top the pair's 15 mm under the tibia's top.
+    assert fib.offset[1] == pytest.approx(np.copysign(20.0, pair.lateral_mm))
+    assert _top(tib) - _top(fib) == pytest.approx(pair.deeper_mm, abs=1e-9)
+    # A smaller bone: 10-15 mm across (the tibia: 25-30 mm).
+    a, b = fib.semi_axes(np.linspace(0, fib.length, 50))
+    assert 10.0 <= 2 * a.min() and 2 * a.max() <= 15.0 and 2 * b.max() <= 15.0
+    # The two do not touch: every fibula surface point lies outside the tibia.
+    s, phi = np.linspace(5, 145, 29), np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    pts = fib.surface(s[:, None], phi[None, :]).reshape(-1, 3)
+    ts, tphi, foot, _ = tib.closest_points(pts)
+    assert np.einsum("ki,ki->k", pts - foot, tib.normals(ts, tphi)).min() > 0.5
+    # In view, deeper than the tibia, with a bright echo over its top in every frame.
+    j = _fibula_top_j(sim)
+    sp = sim.params.spacing_mm
+    for k in range(sim.sweep.n_frames):
+        cols = np.flatnonzero(np.isfinite(j[k]) & (j[k] < sim.sweep.height - 1))
+        assert cols.size * sp >= 8.0  # at least 8 mm of its top in the image
+        tibia_top = np.nanmin(sim.sections.top_j[k])
+        assert np.nanmin(j[k]) - tibia_top >= 10.0 / sp
+        f = sim.sweep.frames[k].astype(float)
+        rows = np.round(j[k, cols]).astype(int)
+        echo = np.median([f[r : r + 3, c].max() for r, c in zip(rows, cols, strict=True)])
+        above = np.median(
+            [
+                f[r - int(2.5 / sp) : r - int(1 / sp), c].mean()
+                for r, c in zip(rows, cols, strict=True)
+            ]
+        )
+        assert echo > 1.5 * above
+
+
+@pytest.mark.parametrize(("realism", "seed"), [("standard", 1), ("hard", 2), ("hard", 3)])
+def test_a_tibia_sweep_with_the_fibula_in_view_keeps_to_the_tibia(realism, seed):
+    """The fibula 20 mm lateral, 15 mm deeper than the tibia's top, in every frame:
+    a second bone echo with its own shadow. The kept contours lie on the tibia."""
+    sim = _leg(realism=realism, seed=seed, neighbour_mm=20.0)
+    r = segment_sweep(sim.sweep)
+    s = score_simulation(r, sim).summary()
+    assert s["recall"] >= 0.9 and s["wrong_share"] == 0.0
+    assert s["median_mm"] <= 0.3
+    # No kept point on the fibula (all nearer the tibia than 3 mm, none within 2 mm of
+    # the fibula).
+    assert sim.neighbour is not None
+    for c in r.contours:
+        if c.accepted:
+            pts = c.points_mm(sim.sweep)
+            assert sim.neighbour.distance(pts).min() > 2.0
+            assert np.median(sim.distance_to_truth(pts)) < 1.0
+
+
+@pytest.mark.parametrize(
+    ("kw", "message"),
+    [
+        ({"bone": "humerus", "neighbour_mm": 20.0}, "no bone beside the humerus"),
+        ({"bone": "tibia", "neighbour_mm": 12.0}, "at least 18 mm"),
+    ],
+)
+def test_a_neighbour_where_there_is_none_or_cutting_into_the_tibia_is_refused(kw, message):
+    with pytest.raises(BoneUSReconError, match=message):
+        simulate(SimulationParams(n_frames=2, width=64, height=64, spacing_mm=0.7, **kw))
