@@ -4,11 +4,19 @@ keeps to the tibia."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import segment_sweep
+from BoneUSRecon.Logic.segmentation.candidates import (
+    BoneCandidate,
+    _cut_climbing_ends,
+    frame_candidates,
+)
+from BoneUSRecon.Logic.segmentation.params import SegmentationParams
 from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.bones import NEIGHBOURS, BoneGeometry
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
@@ -122,3 +130,86 @@ def test_a_tibia_sweep_with_the_fibula_in_view_keeps_to_the_tibia(realism, seed)
 def test_a_neighbour_where_there_is_none_or_cutting_into_the_tibia_is_refused(kw, message):
     with pytest.raises(BoneUSReconError, match=message):
         simulate(SimulationParams(n_frames=2, width=64, height=64, spacing_mm=0.7, **kw))
+
+
+def _cand(x_mm: np.ndarray, z_mm: np.ndarray, **kw: object) -> BoneCandidate:
+    """A candidate at 0.1 mm pixels through ``(x, z)`` mm."""
+    pts = np.column_stack([x_mm, z_mm]) / 0.1
+    return BoneCandidate(pts, np.full(len(pts), 200.0), 10.0, 3.0, 2.0, **kw)  # type: ignore[arg-type]
+
+
+def _tibia_then_fibula() -> tuple[np.ndarray, np.ndarray, int]:
+    """A 13 mm round top down its flank to 8 mm under it, then up 2 mm onto a deeper
+    bone beside it; and the index of the flank's deepest point."""
+    x1 = np.linspace(-12.0, 12.0, 97)
+    z1 = 20.0 - np.sqrt(13.0**2 - x1**2) + 13.0 - 5.0  # top at 8 mm, flank to ~15 mm
+    x2 = np.linspace(12.25, 15.0, 12)
+    z2 = z1[-1] - (x2 - 12.0) * 0.8  # climbs ~2.2 mm onto the neighbour's side
+    return np.r_[x1, x2], np.r_[z1, z2], x1.size - 1
+
+
+def test_a_flank_running_on_up_onto_a_deeper_bone_beside_it_is_cut_at_its_deepest():
+    x, z, deepest = _tibia_then_fibula()
+    cut = _cut_climbing_ends(_cand(x, z, rim_ends=(0, 20)), (0.1, 0.1))
+    assert cut.points_px.shape[0] == deepest + 1
+    assert np.array_equal(cut.points_px, _cand(x, z).points_px[: deepest + 1])
+    assert cut.rim_ends == (0, 8) and cut.intensity.shape[0] == deepest + 1
+    # Mirrored: the left end.
+    left = _cut_climbing_ends(_cand(-x[::-1], z[::-1]), (0.1, 0.1))
+    assert left.points_px.shape[0] == deepest + 1 and left.points_px[0, 0] == -x[deepest] / 0.1
+
+
+def test_a_flank_that_goes_on_down_a_switching_contour_a_bowl_or_a_far_line_stay_whole():
+    sp = (0.1, 0.1)
+    x, z, deepest = _tibia_then_fibula()
+    # The flank goes on down past a short step up (a fascia for a few columns).
+    z_on = z.copy()
+    z_on[deepest + 1 :] = z[deepest] + np.linspace(0.5, 3.0, z.size - deepest - 1)
+    z_on[deepest + 1 : deepest + 4] = z[deepest] - 1.5
+    for c in (
+        _cand(x, z_on),
+        # A contour switching between a layer and the bone: one jump down and up.
+        _cand(np.linspace(0, 10, 40), np.where(np.arange(40) % 8 < 4, 5.5, 7.8)),
+        # A concave line (a bowl, a far cortex seen from above).
+        _cand(np.linspace(-10, 10, 81), 20.0 - 0.05 * np.linspace(-10, 10, 81) ** 2),
+        # Lines that are not bone tops.
+        _cand(x, z, echo_beneath=True),
+        _cand(x, z, reverberation=True),
+    ):
+        assert _cut_climbing_ends(c, sp) is c
+
+
+def test_a_tibia_contour_does_not_run_onto_a_fibula_10mm_deeper(monkeypatch):
+    """The fibula at the shallow end of issue 10's range (10 mm under the tibia's top),
+    22 mm lateral: the tibia's flank ends ~2 mm over its medial side. Standard seed 6,
+    frame 34 at the cadaver geometry: the path ran from the tibia's flank across the
+    gap and on up over the fibula's top (cols 380-396: 8 points within 0.5 mm of the
+    fibula and 1.6-2.9 mm off the tibia); now it stops at the deepest point, where
+    the two nearly meet (2 points left there)."""
+    monkeypatch.setitem(
+        NEIGHBOURS, "tibia", dataclasses.replace(NEIGHBOURS["tibia"], deeper_mm=10.0)
+    )
+    sim = simulate(
+        SimulationParams(
+            bone="tibia",
+            n_frames=40,
+            width=475,
+            height=405,
+            spacing_mm=0.108,
+            seed=6,
+            neighbour_mm=22.0,
+        )
+    )
+    assert sim.neighbour is not None
+    k = 34
+    fc = frame_candidates(sim.sweep.frames[k], (0.108, 0.108), SegmentationParams().shadowpath)
+    tibia = [
+        c
+        for c in fc.usable
+        if np.median(sim.distance_to_truth(sim.sweep.to_reference(k, c.points_px))) < 0.3
+    ]
+    assert tibia
+    for c in tibia:
+        p = sim.sweep.to_reference(k, c.points_px)
+        on_fibula = sim.neighbour.distance(p) < 0.5
+        assert np.sum(on_fibula & (sim.distance_to_truth(p) > 1.0)) <= 3
