@@ -213,3 +213,29 @@ def test_a_tibia_contour_does_not_run_onto_a_fibula_10mm_deeper(monkeypatch):
         p = sim.sweep.to_reference(k, c.points_px)
         on_fibula = sim.neighbour.distance(p) < 0.5
         assert np.sum(on_fibula & (sim.distance_to_truth(p) > 1.0)) <= 3
+
+
+def test_a_contour_running_from_the_ulna_up_onto_the_radius_is_cut_at_the_valley():
+    """Standard radius, the ulna 18 mm beside it, seed 109 (the harness's R radius stan
+    18mm s109): in frame 1 one contour ran from the ulna's top down its flank and up
+    onto the radius (columns 0-302), and the track kept it (median 4 mm off the
+    radius). Cut where it climbs back, no candidate spans both bones."""
+    sim = simulate(
+        SimulationParams(
+            bone="radius",
+            n_frames=40,
+            width=475,
+            height=405,
+            spacing_mm=0.108,
+            seed=109,
+            neighbour_mm=18.0,
+        )
+    )
+    assert sim.neighbour is not None
+    k = 1
+    fc = frame_candidates(sim.sweep.frames[k], (0.108, 0.108), SegmentationParams().shadowpath)
+    for c in fc.usable:
+        p = sim.sweep.to_reference(k, c.points_px)
+        on_radius = np.sum(sim.distance_to_truth(p) < 0.5)
+        on_ulna = np.sum(sim.neighbour.distance(p) < 0.5)
+        assert min(on_radius, on_ulna) <= 3
