@@ -39,6 +39,11 @@ Look-alikes handled per frame (each with a simulated test in
   (:func:`_mark_series`): under a grey shadow the copies, with the darkest shadow
   beneath them, outscore the faint reflector itself.
 
+* **a bone beside it joined on** (the fibula 10-15 mm under the tibia's top, the ulna
+  beside a radius): a contour whose flank, past its deepest point, climbs back up
+  onto the neighbour is cut at that point (:func:`_cut_climbing_ends`; tests in
+  ``Testing/test_fibula.py``).
+
 Layers over the bone: a candidate that runs on a fascia or a run of speckle just over
 the bone (its shadow windows, 1.5 mm under it, hold the bone's own shadow) is moved down
 onto the bone where the shadow starts under it (:mod:`.settle`), before its flanks are
