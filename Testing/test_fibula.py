@@ -16,7 +16,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     _cut_climbing_ends,
     frame_candidates,
 )
-from BoneUSRecon.Logic.segmentation.params import SegmentationParams
+from BoneUSRecon.Logic.segmentation.params import SegmentationParams, ShadowPathParams
 from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.bones import NEIGHBOURS, BoneGeometry
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
@@ -176,7 +176,7 @@ def test_a_flank_that_goes_on_down_a_switching_contour_a_bowl_or_a_far_line_stay
         _cand(x, z, echo_beneath=True),
         _cand(x, z, reverberation=True),
     ):
-        assert _cut_climbing_ends(c, sp) is c
+        assert _cut_climbing_ends(c, sp, 1.0) is c
 
 
 def test_a_tibia_contour_does_not_run_onto_a_fibula_10mm_deeper(monkeypatch):
@@ -239,3 +239,11 @@ def test_a_contour_running_from_the_ulna_up_onto_the_radius_is_cut_at_the_valley
         on_radius = np.sum(sim.distance_to_truth(p) < 0.5)
         on_ulna = np.sum(sim.neighbour.distance(p) < 0.5)
         assert min(on_radius, on_ulna) <= 3
+
+
+def test_the_climbing_cut_is_off_at_zero_and_a_negative_climb_is_refused():
+    x, z, _ = _tibia_then_fibula()
+    c = _cand(x, z)
+    assert _cut_climbing_ends(c, (0.1, 0.1), 0.0) is c
+    with pytest.raises(BoneUSReconError, match="climb_mm"):
+        ShadowPathParams(climb_mm=-1.0)
