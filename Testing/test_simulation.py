@@ -537,6 +537,8 @@ def test_cli_simulate_writes_and_reports(tmp_path, capsys) -> None:
         (["ulna", "--corrupt", "2"], "between 0 and 1"),
         (["ulna", "--spacing", "-0.1"], "spacing"),
         (["ulna", "--neighbour-mm", "0"], "neighbour_mm must be > 0"),
+        (["humerus", "--neighbour-mm", "20"], "no bone beside the humerus"),
+        (["tibia", "--neighbour-mm", "12"], "at least 18 mm"),
     ],
 )
 def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, args: list[str], message: str) -> None:

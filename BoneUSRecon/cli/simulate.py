@@ -114,7 +114,8 @@ def register(subparsers: Any) -> None:
         "--no-neighbour",
         dest="neighbour",
         action="store_false",
-        help="forearm bones: do not show the other bone (radius/ulna) beside the target",
+        help="forearm bones: do not show the other bone (radius/ulna) beside the target "
+        "(nor the fibula beside a tibia given --neighbour-mm)",
     )
     p.add_argument(
         "--neighbour-mm",
@@ -122,7 +123,8 @@ def register(subparsers: Any) -> None:
         default=None,
         metavar="MM",
         help="forearm bones: the other bone's distance from the target, axis to axis "
-        "(default 26 mm, mid-shaft; 15-20 toward the wrist, where both show whole)",
+        "(default 26 mm, mid-shaft; 15-20 toward the wrist, where both show whole); "
+        "tibia: show the fibula MM lateral, 15 mm deeper (default: no fibula)",
     )
     add_json_option(p)
     add_common_options(p)

@@ -19,6 +19,10 @@ Groups of sweeps (40 frames each, per seed):
 * ``twobones``: the radius and the ulna, standard and hard, at the cadaver geometry
   with the other forearm bone 18 mm beside the one swept (toward the wrist; both show
   whole in the image).
+* ``tibiafibula``: the tibia, standard and hard, at the cadaver geometry with the
+  fibula (:data:`.simulation.bones.NEIGHBOURS`: 15 mm deeper than the tibia's top)
+  20 mm lateral (nearly whole in the 51 mm wide image) and 24 mm (its medial half), as
+  in issue 10's lower-leg sweeps.
 
 ``--bone-point swept`` gives each sweep a bone point (``RejectionParams.bone_points``)
 on the swept bone: the middle of its true contour in the middle frame, as a user would
@@ -87,6 +91,12 @@ def cases(group: str, seed: int) -> list[tuple[str, SimulationParams]]:
             for b in ("radius", "ulna")
             for r in ("standard", "hard")
         ]
+    if group == "tibiafibula":
+        return [
+            (f"R tibia {r[:4]} fib{mm:g} s{seed}", sim("tibia", "R", realism=r, neighbour_mm=mm))
+            for r in ("standard", "hard")
+            for mm in (20.0, 24.0)
+        ]
     raise ValueError(f"unknown group {group!r}")
 
 
@@ -134,7 +144,7 @@ def main() -> None:
         "--groups",
         nargs="+",
         default=["real", "small"],
-        choices=["real", "small", "grey", "realstd", "twobones"],
+        choices=["real", "small", "grey", "realstd", "twobones", "tibiafibula"],
     )
     ap.add_argument("--reconstruct", action="store_true", help="also the surface's gold distance")
     ap.add_argument(

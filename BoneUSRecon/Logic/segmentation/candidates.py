@@ -39,6 +39,11 @@ Look-alikes handled per frame (each with a simulated test in
   (:func:`_mark_series`): under a grey shadow the copies, with the darkest shadow
   beneath them, outscore the faint reflector itself.
 
+* **a bone beside it joined on** (the fibula 10-15 mm under the tibia's top, the ulna
+  beside a radius): a contour whose flank, past its deepest point, climbs back up
+  onto the neighbour is cut at that point (:func:`_cut_climbing_ends`; tests in
+  ``Testing/test_fibula.py``).
+
 Layers over the bone: a candidate that runs on a fascia or a run of speckle just over
 the bone (its shadow windows, 1.5 mm under it, hold the bone's own shadow) is moved down
 onto the bone where the shadow starts under it (:mod:`.settle`), before its flanks are
@@ -1489,10 +1494,72 @@ def _frame_candidates_steps(
     settled = settle_candidates(img, ev, out, sp, p.settle)
     out = [_past_the_settled_wall(a, b, sp, p, min_cols) for a, b in zip(out, settled, strict=True)]
     out = yield from extend_candidates_steps(img, ev, out, sp, p.flanks, p.rim)
+    out = [_cut_climbing_ends(c, sp, p.climb_mm) for c in out]
     # Each piece judged on its settled contour before a layer beyond its wall was
     # dropped (that drop found the same layer; the extension keeps order and count).
     out = _mark_branches(out, [c.points_px for c in settled], ev, sp, p)
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)}, _fov_px(ev))
+
+
+def _cut_climbing_ends(
+    cand: BoneCandidate, spacing: tuple[float, float], climb: float = 1.0
+) -> BoneCandidate:
+    """``cand`` without the end of a flank that climbs back towards the probe.
+
+    Seen from above, the upper surface of a convex bone only goes deeper from its top
+    outward, down to the widest point of its section. A contour that, on one side of
+    its top, went down a flank by at least ``2 * climb`` and then climbs back by more
+    than ``climb`` mm (``ShadowPathParams.climb_mm``; 0: off) past its deepest point
+    has left the bone there: it ran across the gap onto the top of a bone beside it
+    (the fibula 10-15 mm under the tibia's top and ~20 mm lateral: the tibia's flank
+    ends just above the fibula's medial side, and the path or the rim went on up over
+    it, in one contour; the radius beside an ulna) or onto a layer. That side is cut
+    back to its deepest point. :func:`convex_part` misses it when the climb is short
+    and follows a steep drop (its windows then straddle the gap). The descent must be
+    a flank followed down, no step of it more than half of it: a contour switching
+    between two lines (a layer over the bone, the bone) jumps down and up again
+    without having left the bone. And the side must not go on down past the climb: a
+    path that stepped up onto a fascia for a few columns, after which the rim followed
+    the flank on down, is on the bone again. The top must be one (neither side climbs
+    within ``2 * climb`` of it laterally), so a concave line (a far cortex, a bowl) is
+    left whole; and lines flagged as copies or as lying over an echo are not bone tops
+    and are left as they are. Geometry alone, in mm: no grey level, so it holds at any
+    gain or contrast.
+    """
+    pts = cand.points_px
+    n = pts.shape[0]
+    if climb <= 0 or n < 6 or cand.reverberation or cand.echo_beneath:
+        return cand
+    x = pts[:, 0] * float(spacing[0])
+    z = pts[:, 1] * float(spacing[1])
+    top = _apex(x, z)
+    near = np.abs(x - x[top]) <= 2 * climb
+    if z[top] - z[near].min() > climb:
+        return cand  # not a top: a concave line's shallowest point in its middle
+    keep = [0, n]
+    for side in (-1, 1):
+        zs = z[top::-1] if side < 0 else z[top:]
+        deepest = np.maximum.accumulate(zs)
+        up = np.flatnonzero(deepest - zs > climb)
+        if up.size == 0:
+            continue
+        j = int(np.argmax(zs[: up[0]]))  # the deepest point before the climb
+        drop = zs[j] - zs[0]
+        if drop < 2 * climb or np.diff(zs[: j + 1]).max() > 0.5 * drop:
+            continue  # no flank followed down before it (none, or a jump between lines)
+        if zs[up[0] :].max() > zs[j] + climb:
+            continue  # the flank goes on deeper past the climb: an excursion onto a layer
+        if side < 0:
+            keep[0] = top - j
+        else:
+            keep[1] = top + j + 1
+    a, b = keep
+    if (a, b) == (0, n):
+        return cand
+    rim = (max(0, cand.rim_ends[0] - a), max(0, cand.rim_ends[1] - (n - b)))
+    return dataclasses.replace(
+        cand, points_px=pts[a:b], intensity=cand.intensity[a:b], rim_ends=rim
+    )
 
 
 def _mark_branches(

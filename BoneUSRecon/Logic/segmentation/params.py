@@ -499,6 +499,8 @@ class ShadowPathParams:
     """Least median underside step (candidates._underside_step: the log ratio of the grey over the contour to that under it, each relative to the tissue at its depth) under the part inside a turn for a shorter layer beyond it to be cut (0.3: the bone's shadow at most ~0.74 of the tissue over it, the cadaver's 0.65 passes; a bone that passes sound, the L14 forearm, has 0.02-0.25 under most of its turns and keeps ``shoulder_min_mm``. Measured at 0.2 / 0.3 / 0.45: L14 reconstruction 0.359 / 0.352 / 0.352 mm from the reference, kept points over 1 mm from the bone on the hard 0.3 mm sweeps, seeds 5 and 7, 0.032 / 0.032 / 0.034)."""
     shoulder_step_ratio: float = 0.25
     """The part beyond such a turn is a layer when the step from the tissue over it to what lies under it (candidates._underside_step) is, on median, under this fraction of the step under the part inside (a ratio of the contour's own values: shadow under the bone's wall, tissue or the bone's echo under a layer; ours: hard sweeps seeds 5, 7, 29, both geometries, kept 1-3 mm off 18 -> 10 / 6 / 6 frames at 0 / 0.25 / 0.5, flank coverage 0.794 -> 0.796 / 0.787 / 0.779)."""
+    climb_mm: float = 1.0
+    """A contour's side that went down a flank and then climbs back by more than this past its deepest point is cut there, mm (:func:`.candidates._cut_climbing_ends`: it ran on up onto a bone beside it, the fibula 10 mm under the tibia's top, the radius beside an ulna; 0: off. Ours: twice the ~0.5 mm the path's and the rim's points wander about a flank. Measured: harness seeds 109/113, 52 sweeps, wrong 0.001 -> 0, gold 0.216 -> 0.215 mm; Testing/benchmarks/README.md, branch fibula)."""
     valley_mm: float = 0.5
     """A contour is split where it dips deeper than this below its shallowest point on each side of the dip, with less than a third of the shadow on one side than on the other, mm (ours: a layer meeting the bone's flank and climbing away, tissue beneath it; a groove in the bone has the shadow on both sides and stays whole; 0.5 mm is five times the refined contour's jitter)."""
     beneath_ratio: float = 0.8
@@ -568,6 +570,7 @@ class ShadowPathParams:
                 "shoulder_min_mm",
                 "shoulder_short_mm",
                 "shoulder_short_step",
+                "climb_mm",
                 "reverb_tolerance",
                 "refine_sigma_mm",
                 "cover_min_mm",

@@ -31,7 +31,17 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["BoneSpec", "BONE_SPECS", "NEIGHBOURS", "BoneGeometry", "crest_shape"]
+__all__ = [
+    "BoneSpec",
+    "BONE_SPECS",
+    "NEIGHBOUR_SPECS",
+    "Neighbour",
+    "NEIGHBOURS",
+    "bone_spec",
+    "shows_neighbour",
+    "BoneGeometry",
+    "crest_shape",
+]
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -87,13 +97,82 @@ BONE_SPECS: dict[str, BoneSpec] = {
 }
 
 
-#: The other bone a transverse scan shows beside the target, and its lateral distance
-#: (mm, axis to axis, along +y): the forearm's radius and ulna lie side by side, ~26 mm
-#: apart mid-shaft, so a 48 mm wide image catches the edge of the other one.
-NEIGHBOURS: dict[str, tuple[str, float]] = {
-    "radius": ("ulna", -26.0),
-    "ulna": ("radius", 26.0),
+#: Bones the simulator shows only beside a swept bone, never sweeps (not in
+#: :data:`BONE_SPECS`, so not in the CLI's choice of bones).
+NEIGHBOUR_SPECS: dict[str, BoneSpec] = {
+    # Fibula shaft: a slender bone with a rounded-triangular section, ~10-15 mm across
+    # mid-shaft (Gray's Anatomy, 41st ed., ch. 83: "long and slender"; CT morphometry of
+    # adult fibulae gives mid-shaft diameters of ~11-14 mm, the antero-posterior one
+    # the larger), narrowest in its lower third. It lies posterolateral to the tibia,
+    # under the peroneal and posterior muscles: on a transverse scan over the tibia's
+    # anterior face its top is 10-25 mm deeper than the tibia's (issue 10's lower-leg
+    # sweeps), hence the large depth here (only the depth offset of
+    # :data:`NEIGHBOURS` places it). Here 13 -> 11 mm wide and 14 -> 12 mm high (an
+    # oval; the section's three borders are left out), a slight bow, little twist. As
+    # long as the tibia's segment, so every probe position finds it beside the tibia.
+    "fibula": BoneSpec(
+        "fibula", 150.0, (13.0, 11.0), (14.0, 12.0), 27.0, 1.5, 0.5, 1.0, 10.0, 0.04
+    ),
 }
+
+
+def bone_spec(name: str) -> BoneSpec:
+    """The :class:`BoneSpec` of a swept bone or of a neighbour-only bone ``name``."""
+    return BONE_SPECS[name] if name in BONE_SPECS else NEIGHBOUR_SPECS[name]
+
+
+@dataclass(frozen=True)
+class Neighbour:
+    """The other bone a transverse scan shows beside a swept bone, and where it lies.
+
+    Each pair states its own lateral and depth offsets: the forearm's two bones lie
+    side by side at about the same depth, the fibula lies well deeper than the tibia.
+    """
+
+    #: The neighbouring bone (a key of :data:`BONE_SPECS` or :data:`NEIGHBOUR_SPECS`).
+    bone: str
+    #: Axis-to-axis distance along +y (mm; its sign is the side).
+    lateral_mm: float
+    #: How far the neighbour's top lies below the swept bone's top, mid-segment (mm).
+    deeper_mm: float
+    #: Shown by default (``SimulationParams.neighbour`` True); when False, only when
+    #: ``SimulationParams.neighbour_mm`` asks for it (so that sweeps made before the
+    #: pair existed stay byte-identical).
+    by_default: bool = True
+    #: Smallest lateral distance a sweep may ask for (``neighbour_mm``, mm): nearer,
+    #: the two simulated bones would cut into each other (0: not checked).
+    min_lateral_mm: float = 0.0
+
+
+#: The other bone a transverse scan shows beside the target (along +y).
+#:
+#: * Forearm: the radius and ulna lie side by side, ~26 mm apart axis to axis
+#:   mid-shaft, so a 48 mm wide image catches the edge of the other one. The
+#:   neighbour's top lies 2 mm under its own nominal depth (:attr:`BoneSpec.depth_mm`)
+#:   below the swept bone's skin (the rule before the pairs had their own offsets):
+#:   beside a radius (8 mm deep) the ulna's top (6 + 2 mm) is level with the radius's,
+#:   beside an ulna (6 mm) the radius's (8 + 2 mm) is 4 mm deeper.
+#: * Lower leg: the fibula lies posterolateral to the tibia. Over the tibia's
+#:   anterior face a 40-50 mm wide image shows it 20-35 mm lateral to the tibia's
+#:   middle and 10-25 mm deeper than the tibia's top (issue 10's lower-leg sweeps):
+#:   28 mm (its medial half in a 51 mm wide image) and 15 mm deeper here. Not shown
+#:   by default: a tibia sweep shows the fibula only when ``neighbour_mm`` is given,
+#:   so every tibia sweep simulated before the fibula existed is unchanged. At 18 mm
+#:   the two surfaces come within ~1 mm of each other (their smallest gap over the
+#:   segment, standard and crest-shaped tibia); at 16 mm they cut into each other,
+#:   hence ``min_lateral_mm``. (The forearm pair is not checked, as before: its
+#:   bones meet below ~16 mm.)
+NEIGHBOURS: dict[str, Neighbour] = {
+    "radius": Neighbour("ulna", -26.0, 6.0 + 2.0 - 8.0),
+    "ulna": Neighbour("radius", 26.0, 8.0 + 2.0 - 6.0),
+    "tibia": Neighbour("fibula", 28.0, 15.0, by_default=False, min_lateral_mm=18.0),
+}
+
+
+def shows_neighbour(bone: str, neighbour: bool, neighbour_mm: float | None) -> bool:
+    """Whether a sweep of ``bone`` shows its neighbour (see :class:`Neighbour`)."""
+    pair = NEIGHBOURS.get(bone)
+    return bool(neighbour) and pair is not None and (pair.by_default or neighbour_mm is not None)
 
 
 #: Corners of the crest cross-section (units of the semi-axes ``a``, ``b``; counter-

@@ -17,7 +17,14 @@ from BoneUSRecon import __version__
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.fileio import atomic_path, can_create_file_in
 from BoneUSRecon.Logic.progress import ProgressCallback, report
-from BoneUSRecon.Logic.simulation.bones import BONE_SPECS, NEIGHBOURS, UP, BoneGeometry
+from BoneUSRecon.Logic.simulation.bones import (
+    BONE_SPECS,
+    NEIGHBOURS,
+    UP,
+    BoneGeometry,
+    bone_spec,
+    shows_neighbour,
+)
 from BoneUSRecon.Logic.simulation.corruption import choose_corrupted
 from BoneUSRecon.Logic.simulation.hard import HardScene, crest_of, effective_params, hard_scene
 from BoneUSRecon.Logic.simulation.hard import echo_strength as hard_echo_strength
@@ -75,8 +82,9 @@ class Simulation:
     swept_range_mm : (float, float)
         Range of the bone axis parameter the sweep imaged.
     neighbour : BoneGeometry or None
-        The other forearm bone shown beside the target (a distractor; not in the
-        truth, the gold points or the contours), when there is one.
+        The other bone shown beside the target (:data:`.bones.NEIGHBOURS`: the other
+        forearm bone, or the fibula beside a tibia when ``params.neighbour_mm`` asks
+        for it); a distractor, not in the truth, the gold points or the contours.
     hard_scene : HardScene or None
         With ``realism="hard"``: where the hard conditions were drawn, in pixels per
         frame (fascia, no-contact gap, vessel, far cortex; see :mod:`.hard`): the
@@ -229,6 +237,19 @@ def check_params(params: SimulationParams) -> None:
         )
     if p.gold_points < 0 or p.gold_noise_mm < 0:
         raise BoneUSReconError("gold points and gold noise must not be negative")
+    if p.neighbour_mm is not None:
+        pair = NEIGHBOURS.get(p.bone)
+        if pair is None:
+            raise BoneUSReconError(
+                f"neighbour_mm: the simulator shows no bone beside the {p.bone} "
+                f"(only beside the {', '.join(NEIGHBOURS)}); got {p.neighbour_mm:g} mm"
+            )
+        if p.neighbour_mm < pair.min_lateral_mm:
+            raise BoneUSReconError(
+                f"neighbour_mm: the {pair.bone} must lie at least {pair.min_lateral_mm:g} mm "
+                f"from the {p.bone} (nearer, the two bones would cut into each other); "
+                f"got {p.neighbour_mm:g} mm"
+            )
     spec = BONE_SPECS[p.bone]
     if 2 * p.sweep_margin_mm >= spec.length_mm:
         raise BoneUSReconError(
@@ -368,16 +389,25 @@ def _bone_free_mask(params: SimulationParams) -> np.ndarray:
 
 
 def _neighbour(geom: BoneGeometry, params: SimulationParams) -> BoneGeometry | None:
-    """The other forearm bone beside the target, its top ~2 mm deeper than the target's."""
-    if not params.neighbour or params.bone not in NEIGHBOURS:
+    """The other bone beside the target (:data:`.bones.NEIGHBOURS`), or None.
+
+    Its axis lies the pair's lateral distance (or ``params.neighbour_mm``, on the
+    pair's side) from the target's, and its top the pair's ``deeper_mm`` below the
+    target's top, both mid-segment; with the target's nominal skin written out, as
+    before the pairs had their own depth offsets, so the forearm's bones lie where
+    they always did, to the last bit.
+    """
+    if not shows_neighbour(params.bone, params.neighbour, params.neighbour_mm):
         return None
-    name, dy = NEIGHBOURS[params.bone]
+    pair = NEIGHBOURS[params.bone]
+    dy = pair.lateral_mm
     if params.neighbour_mm is not None:
         dy = float(np.copysign(params.neighbour_mm, dy))
-    spec2 = BONE_SPECS[name]
+    spec2 = bone_spec(pair.bone)
     plain = BoneGeometry(spec2)
-    skin = float(geom.top_height(geom.length / 2)[0]) + geom.spec.depth_mm
-    dz = skin - (spec2.depth_mm + 2.0) - float(plain.top_height(plain.length / 2)[0])
+    depth = geom.spec.depth_mm
+    skin = float(geom.top_height(geom.length / 2)[0]) + depth
+    dz = skin - (depth + pair.deeper_mm) - float(plain.top_height(plain.length / 2)[0])
     return BoneGeometry(spec2, offset=(0.0, dy, dz))
 
 

@@ -109,9 +109,17 @@ class HardScene:
 
 
 def _vessel_side(params: SimulationParams, rng: np.random.Generator) -> float:
-    """Lateral side (+1 / -1, along +y) of the vessel: away from a neighbouring bone."""
-    if params.neighbour and params.bone in NEIGHBOURS:
-        return -float(np.sign(NEIGHBOURS[params.bone][1]))
+    """Lateral side (+1 / -1, along +y) of the vessel: away from a neighbouring bone.
+
+    Only a neighbour shown by default moves it (the forearm's). A tibia's fibula,
+    shown on request, leaves the draw as it was, so that a tibia sweep with the
+    fibula is the same sweep plus the fibula (the look-alikes unchanged): what the
+    fibula costs is measured alone. The vessel may then lie on the fibula's side, as
+    the anterior tibial vessels do (on the interosseous membrane between the two).
+    """
+    pair = NEIGHBOURS.get(params.bone)
+    if params.neighbour and pair is not None and pair.by_default:
+        return -float(np.sign(pair.lateral_mm))
     return float(rng.choice([-1.0, 1.0]))
 
 

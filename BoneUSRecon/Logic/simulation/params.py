@@ -334,12 +334,16 @@ class SimulationParams:
     #: Show the forearm's other bone beside the target (radius <-> ulna), as a
     #: transverse forearm scan does: a second bone echo with its own shadow at the
     #: side of the image. It is not part of the truth, the gold points or the contours.
+    #: A tibia shows its fibula only when ``neighbour_mm`` is given (see there).
     neighbour: bool = True
     #: Axis-to-axis distance of that other bone (mm; None: :data:`.bones.NEIGHBOURS`'
     #: 26 mm, mid-shaft, where a 48-51 mm wide image catches only its edge). The two
     #: come to 15-20 mm of each other toward the wrist, where both show whole and the
     #: segmentation must tell the bone swept from its neighbour (:func:`.segmentation.
-    #: track.central_track`).
+    #: track.central_track`). For a tibia, a number shows the fibula that far lateral
+    #: (its top 15 mm deeper than the tibia's; 20-35 mm in issue 10's lower-leg
+    #: sweeps); None (default) shows no fibula, as every tibia sweep simulated before
+    #: the fibula existed (they stay byte-identical). Other bones have no neighbour.
     neighbour_mm: float | None = None
     #: Width (pixels) of the black margin left and right of the imaged area, as in a
     #: scan-converted recording (the real L14 sweep: 176 columns of 820 on the left).
