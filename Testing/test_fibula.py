@@ -43,6 +43,22 @@ def _top(geom: BoneGeometry) -> float:
     return float(geom.top_height(geom.length / 2)[0])
 
 
+def _cadaver_geometry(bone: str, seed: int, neighbour_mm: float):
+    """A standard sweep of ``bone`` at the cadaver's geometry (40 frames, 475 x 405 at
+    0.108 mm), its neighbour ``neighbour_mm`` beside it."""
+    return simulate(
+        SimulationParams(
+            bone=bone,
+            n_frames=40,
+            width=475,
+            height=405,
+            spacing_mm=0.108,
+            seed=seed,
+            neighbour_mm=neighbour_mm,
+        )
+    )
+
+
 @pytest.mark.parametrize("realism", ["standard", "hard"])
 def test_a_tibia_shows_its_fibula_only_when_asked_and_is_otherwise_unchanged(realism):
     plain = _leg(realism=realism, n_frames=4, seed=5)
@@ -189,17 +205,7 @@ def test_a_tibia_contour_does_not_run_onto_a_fibula_10mm_deeper(monkeypatch):
     monkeypatch.setitem(
         NEIGHBOURS, "tibia", dataclasses.replace(NEIGHBOURS["tibia"], deeper_mm=10.0)
     )
-    sim = simulate(
-        SimulationParams(
-            bone="tibia",
-            n_frames=40,
-            width=475,
-            height=405,
-            spacing_mm=0.108,
-            seed=6,
-            neighbour_mm=22.0,
-        )
-    )
+    sim = _cadaver_geometry("tibia", 6, 22.0)
     assert sim.neighbour is not None
     k = 34
     fc = frame_candidates(sim.sweep.frames[k], (0.108, 0.108), SegmentationParams().shadowpath)
@@ -220,17 +226,7 @@ def test_a_contour_running_from_the_ulna_up_onto_the_radius_is_cut_at_the_valley
     18mm s109): in frame 1 one contour ran from the ulna's top down its flank and up
     onto the radius (columns 0-302), and the track kept it (median 4 mm off the
     radius). Cut where it climbs back, no candidate spans both bones."""
-    sim = simulate(
-        SimulationParams(
-            bone="radius",
-            n_frames=40,
-            width=475,
-            height=405,
-            spacing_mm=0.108,
-            seed=109,
-            neighbour_mm=18.0,
-        )
-    )
+    sim = _cadaver_geometry("radius", 109, 18.0)
     assert sim.neighbour is not None
     k = 1
     fc = frame_candidates(sim.sweep.frames[k], (0.108, 0.108), SegmentationParams().shadowpath)

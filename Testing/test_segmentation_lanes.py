@@ -53,10 +53,10 @@ def test_a_bone_near_the_middle_is_never_second_guessed():
     assert lane_of(frames, both_solvers(frames, poses).chosen) == {115.0}
 
 
-def _beside(bone: str, **kw: object):
-    """A simulated forearm sweep of ``bone`` with the other forearm bone 18 mm beside it
-    (toward the wrist the two come that close; both show whole)."""
-    return simulate(SimulationParams(bone=bone, neighbour_mm=18.0, **kw))
+def _beside(bone: str, neighbour_mm: float = 18.0, **kw: object):
+    """A simulated forearm sweep of ``bone`` with the other forearm bone ``neighbour_mm``
+    beside it (toward the wrist the two come 18 mm close; both show whole)."""
+    return simulate(SimulationParams(bone=bone, neighbour_mm=neighbour_mm, **kw))
 
 
 @pytest.mark.parametrize(("realism", "seed"), [("standard", 1), ("hard", 2)])
@@ -194,10 +194,18 @@ def test_a_bone_drifting_across_the_image_or_showing_one_flank_then_the_other_st
         assert (on >= 0).all()
 
 
-def _radius_beside(seed: int):
-    """A hard radius swept in the middle of a 51 mm image, the ulna 18 mm beside it."""
+def _radius_beside(seed: int, neighbour_mm: float = 18.0):
+    """A hard radius swept in the middle of a 51 mm image (320 x 256 at 0.16 mm, 12
+    frames), the ulna ``neighbour_mm`` beside it."""
     return _beside(
-        "radius", n_frames=12, width=320, height=256, spacing_mm=0.16, realism="hard", seed=seed
+        "radius",
+        neighbour_mm,
+        n_frames=12,
+        width=320,
+        height=256,
+        spacing_mm=0.16,
+        realism="hard",
+        seed=seed,
     )
 
 
@@ -262,18 +270,7 @@ def test_a_bone_top_under_a_fascia_is_not_taken_for_a_far_cortex():
     not a far cortex's bowl: it is judged against the frame's level and not flagged (it
     was, and the pieces over both bones were joined into one contour 4.2 mm off the
     radius that the track followed in frames 2-5)."""
-    sim = simulate(
-        SimulationParams(
-            bone="radius",
-            neighbour_mm=14.0,
-            n_frames=12,
-            width=320,
-            height=256,
-            spacing_mm=0.16,
-            realism="hard",
-            seed=6,
-        )
-    )
+    sim = _radius_beside(6, 14.0)
     sp = SegmentationParams().shadowpath
     t = np.asarray(sim.true_contours_px[5]) * 0.16
     fc = frame_candidates(np.asarray(sim.sweep.frames[5]), (0.16, 0.16), sp)
