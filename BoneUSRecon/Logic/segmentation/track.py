@@ -535,6 +535,12 @@ Forward = Callable[[np.ndarray], Pass]
 Choice = tuple[np.ndarray, Pass, list[int] | None]
 
 
+def _need(nodes: list[tuple[int, int]], p: RejectionParams) -> int:
+    """Frames a track must link: ``min_track_frames``, or every frame with a node if
+    fewer."""
+    return min(p.min_track_frames, len({f for f, _ in nodes}))
+
+
 def _path(score: np.ndarray, back: np.ndarray, need: int) -> list[int]:
     """The nodes of the best-valued path that links at least ``need`` frames, last
     first ([] if none): the track :func:`_finish` takes. Nodes ruled out (value -inf,
@@ -577,16 +583,12 @@ def _in_lane(
     nearest frame on it)."""
     on = sorted((nodes[k][0], nodes[k][1]) for k in path)
     track_f = np.array([f for f, _ in on])
-    spans = []
-    for f, c in on:
-        x = frames[f].candidates[c].core_px[:, 0]
-        spans.append((float(x.min()), float(x.max())))
+    spans = [_span(frames, node) for node in on]
     out = np.zeros(len(nodes), bool)
-    for k, (f, c) in enumerate(nodes):
-        a, b = spans[int(np.argmin(np.abs(track_f - f)))]
-        x = frames[f].candidates[c].core_px[:, 0]
-        lo, hi = float(x.min()), float(x.max())
-        out[k] = min(hi, b) - max(lo, a) >= 0.5 * max(hi - lo, 1.0)
+    for k, node in enumerate(nodes):
+        lane = spans[int(np.argmin(np.abs(track_f - node[0])))]
+        lo, hi = own = _span(frames, node)
+        out[k] = _overlap(own, lane) >= 0.5 * max(hi - lo, 1.0)
     return out
 
 
@@ -607,7 +609,7 @@ def central_track(
     if not p.one_lane:
         return value, out, path
     if path is None:
-        path = _path(out[0], out[1], min(p.min_track_frames, len({f for f, _ in nodes})))
+        path = _path(out[0], out[1], _need(nodes, p))
     return _one_lane(frames, nodes, value, out, path, forward, p)
 
 
@@ -670,16 +672,16 @@ def _one_lane(
         main = stretches[int(np.argmin(u))]
     else:
         main = max(stretches, key=len)
-    main_spans = [(nodes[k][0], spans[on.index(k)]) for k in main]
+    span_of = dict(zip(on, spans, strict=True))
+    main_spans = [(nodes[k][0], span_of[k]) for k in main]
     ruled = np.zeros(len(nodes), bool)
     for st in stretches:
         if st is not main and st:
             ruled |= _in_lane(frames, nodes, st)
-    in_main = _in_lane(frames, nodes, main)
-    ruled &= ~in_main
+    ruled &= ~_in_lane(frames, nodes, main)
     other = np.where(ruled, -np.inf, value)
     alt = forward(other)
-    path2 = _path(alt[0], alt[1], min(p.min_track_frames, len({f for f, _ in nodes})))
+    path2 = _path(alt[0], alt[1], _need(nodes, p))
     moved = {nodes[k][0] for st in stretches if st is not main for k in st}
     if (
         len(path2) >= len(path)
@@ -723,8 +725,8 @@ def _nearer_middle(
     p: RejectionParams,
 ) -> Choice:
     """:func:`central_track`'s first step: ``value`` as it is, or, when the best
-    track runs off the middle of the field of view and another bone track runs nearer it, with the
-    first track's columns ruled out (value -inf).
+    track runs off the middle of the field of view and another bone track runs nearer
+    it, with the first track's columns ruled out (value -inf).
 
     Two bones in view (the radius beside the ulna, the fibula beside the tibia, 15-30
     mm apart, in a 40-50 mm wide image): both are continuous tracks of bone echo over
@@ -743,7 +745,7 @@ def _nearer_middle(
     out = forward(value)
     if p.lane_offcentre >= 1.0:
         return value, out, None
-    need = min(p.min_track_frames, len({f for f, _ in nodes}))
+    need = _need(nodes, p)
     path = _path(out[0], out[1], need)
     u1 = _offcentre(frames, nodes, path)
     if u1 is None or u1 <= p.lane_offcentre:
@@ -800,7 +802,7 @@ def pointed_track(
     per_frame = p.strength_cap + p.max_deviation**2 + p.miss_cost * (p.max_skip + 1)
     bonus = 1.0 + per_frame * len({f for f, _ in nodes})
     out = forward(np.where(mark > 0, ruled + bonus, ruled))
-    need = min(p.min_track_frames, len({f for f, _ in nodes}))
+    need = _need(nodes, p)
     return ruled, out, _path(out[0], out[1], need)
 
 
