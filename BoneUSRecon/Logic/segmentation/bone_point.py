@@ -208,18 +208,18 @@ def point_warnings(
         return ()
     pts = np.asarray(params.bone_points, dtype=float).reshape(-1, 3)
     poses = np.asarray(image_to_reference, dtype=float).reshape(-1, 4, 4)
+    _, _, off_plane = _in_planes(pts, poses)
     out = []
     for q in range(pts.shape[0]):
         best = np.inf
         for f, xyz in contours_mm:
-            origin, axes, normal = (v[0] for v in frame_planes(poses[f]))
-            rel = pts[q] - origin
-            if abs(rel @ normal) > params.point_plane_mm or xyz.shape[0] == 0:
+            z = off_plane[f, q]
+            if z > params.point_plane_mm or xyz.shape[0] == 0:
                 continue
-            # The contour lies in the frame's plane: in-plane distance = 3D distance to
-            # the point's projection.
-            foot = pts[q] - (rel @ normal) * normal
-            best = min(best, float(np.sqrt(((xyz - foot) ** 2).sum(axis=1).min())))
+            # The contour lies in the frame's plane: its in-plane distance to the
+            # point's projection is the 3D distance with the out-of-plane part taken off.
+            d2 = float(((xyz - pts[q]) ** 2).sum(axis=1).min()) - z * z
+            best = min(best, float(np.sqrt(max(d2, 0.0))))
         if not best <= params.point_contour_mm:
             nearest = "none in its frames" if not np.isfinite(best) else f"nearest {best:.1f} mm"
             out.append(
