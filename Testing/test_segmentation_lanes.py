@@ -123,9 +123,16 @@ def test_a_second_dome_of_one_path_is_offered_a_flat_run_is_not():
     best = (5.0, left, cols, rows)
     dome = (3.0, right, cols, rows)
     assert _separate_domes([best, dome], best, pts, (0.1, 0.1), p) == [dome]
-    # A dome touching the best piece: one bone's relief (a crest's corner), not offered.
+    # A dome touching the best piece (two bones 14 mm apart meet at the valley): offered.
     touching = (3.0, pts[:, 0] > 80.0, cols, rows)
-    assert _separate_domes([best, touching], best, pts, (0.1, 0.1), p) == []
+    assert _separate_domes([best, touching], best, pts, (0.1, 0.1), p) == [touching]
+    # A crest: its top is the best piece, its flank touching it falls one way: not offered.
+    crest = np.column_stack([pts[:, 0], (6.0 + 0.08 * np.abs(pts[:, 0] - 50.0)) / 0.1])
+    top, flank = (
+        (5.0, np.abs(pts[:, 0] - 50.0) <= 20.0, cols, rows),
+        (3.0, pts[:, 0] > 70.0, cols, rows),
+    )
+    assert _separate_domes([top, flank], top, crest, (0.1, 0.1), p) == []
     # No evidence above the null level: not offered.
     weak = (-0.5, right, cols, rows)
     assert _separate_domes([best, weak], best, pts, (0.1, 0.1), p) == []
@@ -147,6 +154,27 @@ def test_the_bone_swept_is_offered_in_every_frame_beside_its_neighbour(seed):
         fc = frame_candidates(np.asarray(s.sweep.frames[f]), (0.108, 0.108), p)
         d = [np.median(cKDTree(truth).query(c.points_px * 0.108)[0]) for c in fc.usable]
         assert min(d) < 0.5, f
+
+
+@pytest.mark.parametrize(("seed", "before"), [(8, 1.0), (3, 0.58)])
+def test_two_bones_that_touch_are_two_candidates_and_the_swept_one_is_followed(seed, before):
+    """The ulna swept, the radius 14 mm beside it (the two touch in the image, no tissue
+    between their tops), standard realism, 320 x 256 at 0.16 mm. One path runs over both
+    bones; its pieces met at the valley, so the ulna's was not offered (a gap of 2 mm was
+    asked between two domes), and the far line under both joined them into one contour
+    (pieces over one shadow). Before: wrong share ``before``, the track on the radius."""
+    sim = _beside(
+        "ulna",
+        neighbour_mm=14.0,
+        n_frames=12,
+        width=320,
+        height=256,
+        spacing_mm=0.16,
+        seed=seed,
+    )
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["recall"] >= 0.9 and s["wrong_share"] == 0.0, (s, before)
+    assert s["median_mm"] <= 0.1
 
 
 def _lanes_of(frames: list[FrameCandidates], chosen: np.ndarray) -> list[float]:

@@ -1433,9 +1433,13 @@ def _frame_candidates_steps(
             # (a tibia under a grey shadow, score near the null level) whose path steps
             # ~1 mm at its flank is otherwise cut there and only the short bright piece
             # offered; a layer meeting the bone runs past the shadow and stays cut off.
-            # Geometry and flags only: no grey level (benchmarks README, branch tibia).
+            # Unless two of them are domes: two bones side by side (radius and ulna 14
+            # mm apart) cast one wide shadow whose far line runs under both, yet are two
+            # reflectors; a crest's or a flank's pieces fall one way, only its top is a
+            # dome. Geometry and flags only: no grey level (benchmarks README, branches
+            # tibia and lead s33).
             inside = [q for q in pieces if np.mean((q[2] >= span[0]) & (q[2] <= span[1])) >= 0.8]
-            if len(inside) > 1:
+            if len(inside) > 1 and sum(_piece_is_dome(pts, q, sp, p) for q in inside) < 2:
                 jm = np.logical_or.reduce([q[1] for q in inside])
                 jc, jr = c["cols"][jm], c["rows"][jm]
                 best = (float((ev.score[jr, jc] - p.null_z).sum() * ev.dx), jm, jc, jr)
@@ -1925,9 +1929,8 @@ def _separate_domes(
     p: ShadowPathParams,
 ) -> list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]:
     """The pieces of one path, besides ``best``, that are domes of their own: evidence
-    above the null level, both ends at least ``dome_mm`` deeper than the piece's apex
-    (:func:`_apex`), and a gap of at least twice ``_GAP_MM`` from ``best`` (the tissue
-    between two bones; a crest's corners part its contour into pieces that touch).
+    above the null level, beside ``best`` (no column in common), and both ends at least
+    ``dome_mm`` deeper than the piece's apex (:func:`_apex`).
 
     One optimal path may run over two bones side by side (the radius and the ulna, the
     tibia and the fibula) without leaving them for the no-bone state over the few mm
@@ -1938,20 +1941,29 @@ def _separate_domes(
     running off the bone's shoulder, the other piece a path usually leaves, is flat or
     falls one way: no dome. Offered as candidates of their own, each with its own
     evidence, they let the sweep-level choice take the bone it follows in every frame.
-    Geometry of the contour alone, in mm: no grey level.
+    No gap is asked between the two: bones 14 mm apart touch in the image, and the
+    path's pieces over them met at the valley (radius and ulna, 320 x 256 at 0.16 mm:
+    an ulna 0.1 of the half-width off the middle had no candidate in 11 of 12 frames
+    with a gap of 2 mm asked). A crest's corners part its contour into pieces that touch
+    too, but of those only the top is a dome: at worst its top is offered besides its
+    flank, both on the bone. Geometry of the contour alone, in mm: no grey level.
     """
-    out = []
-    bx = pts[best[1], 0] * spacing[0]
-    for q in pieces:
-        if q[0] <= 0 or (q[1] & best[1]).any():
-            continue
-        x = pts[q[1], 0] * spacing[0]
-        z = pts[q[1], 1] * spacing[1]
-        if x.size < 3 or max(x[0] - bx[-1], bx[0] - x[-1]) < 2.0 * _GAP_MM:
-            continue  # beside best with no gap between: the same bone's relief (a crest)
-        if _is_dome(x, z, p.dome_mm):
-            out.append(q)
-    return out
+    return [
+        q
+        for q in pieces
+        if q[0] > 0 and not (q[1] & best[1]).any() and _piece_is_dome(pts, q, spacing, p)
+    ]
+
+
+def _piece_is_dome(
+    pts: np.ndarray,
+    piece: tuple[float, np.ndarray, np.ndarray, np.ndarray],
+    spacing: tuple[float, float],
+    p: ShadowPathParams,
+) -> bool:
+    """:func:`_is_dome` of a convex piece (its mask into ``pts``, points in pixels)."""
+    m = piece[1]
+    return _is_dome(pts[m, 0] * spacing[0], pts[m, 1] * spacing[1], p.dome_mm)
 
 
 def _is_dome(x: np.ndarray, z: np.ndarray, dome_mm: float) -> bool:
