@@ -65,6 +65,7 @@ from BoneUSRecon.Logic.segmentation import (
     SegmentationParams,
     SegmentationResult,
 )
+from BoneUSRecon.Logic.segmentation.bone_point import off_sweep_points, point_warnings
 from BoneUSRecon.Logic.segmentation.candidates import (
     BoneCandidate,
     FrameCandidates,
@@ -428,6 +429,26 @@ def _select(
     )
 
 
+def _point_warnings(
+    seg: SegmentationResult, sweep: Sweep, params: ReconstructionParams, final: bool
+) -> tuple[str, ...]:
+    """The user's bone points judged against the frames so far, one sentence each.
+
+    A point no accepted contour reaches in the frames near it is reported at every
+    refit, as offline (:func:`~BoneUSRecon.Logic.segmentation.bone_point.point_warnings`).
+    A point off every frame so far is reported only at the ``final`` refit, with the
+    offline error's sentence (:func:`~BoneUSRecon.Logic.segmentation.bone_point.
+    off_sweep_points`): during the scan the probe may not have reached it yet, and at
+    the end the scan cannot be given again, so its surface (made as without the point)
+    is kept and the point reported rather than refused.
+    """
+    rej = params.segmentation.rejection
+    poses = sweep.image_to_reference
+    off = off_sweep_points(poses, (sweep.height, sweep.width), rej)
+    unreached = point_warnings(seg.contours_mm(sweep), poses, rej, skip=off)
+    return (tuple(off[q] for q in sorted(off)) if final else ()) + unreached
+
+
 # ------------------------------------------------------------------------------------
 # The reconstructor
 # ------------------------------------------------------------------------------------
@@ -692,7 +713,8 @@ class LiveReconstructor:
             the dynamic programme runs here, over the links made as frames arrived,
             ~10 ms for 400 frames, then the search of the frames off the track whose
             neighbours changed and the programme again with what it found;
-            ``max_frames`` bounds the frames kept).
+            ``max_frames`` bounds the frames kept). The final refit also reports
+            the user's bone points that lie off every kept frame (see below).
         with_points : bool
             Build :attr:`Reconstruction.points` (the segmented points as polydata);
             False leaves it empty, which saves a fifth of a live refit that only
@@ -701,6 +723,12 @@ class LiveReconstructor:
         Returns
         -------
         Reconstruction
+            Its ``summary["warnings"]`` (and ``segmentation.warnings``) name the bone
+            points (``RejectionParams.bone_points``) no accepted contour reaches in
+            the frames near them, as offline, and at the ``final`` refit also those off
+            every frame: offline an error, here a warning, the scan being over
+            (:func:`_point_warnings`; during the scan a point not reached yet is no
+            fault).
 
         Raises
         ------
@@ -725,6 +753,8 @@ class LiveReconstructor:
         )
         if not seg.accepted:
             raise BoneUSReconError("no bone contour found yet")
+        if self.params.segmentation.rejection.bone_points:
+            seg = replace(seg, warnings=_point_warnings(seg, sweep, self.params, final))
         t_seg = self._segment_s + time.perf_counter() - t0
         return reconstruction_from_segmentation(
             sweep, seg, self.params, segment_s=t_seg, with_points=with_points
