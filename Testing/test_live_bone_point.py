@@ -68,6 +68,32 @@ def test_a_live_session_follows_a_point_on_the_off_centre_bone(seed):
         np.testing.assert_array_equal(a.points_px, b.points_px)
 
 
+def test_frames_keep_their_pixels_until_the_probe_reaches_the_point():
+    # A point on the off-centre ulna in frame 9 of 12: the refit at frame 8 follows the
+    # radius (the lane rule; the point not reached) and the track then moves to the
+    # ulna. The frames the move leaves off the track are searched as offline: every
+    # frame kept its pixels meanwhile (dropping them cost 2 of 9 frames here).
+    sim = forearm("hard", 2, width=224)
+    sw, shift = off_centre(sim)
+    point = bone_top(sim, sw, 9, shift)
+    live = _live([point])
+    _feed(live, sw, np.arange(8))
+    early = live.refit()
+    bone, nb, _ = on_bones(sim, sw, early.segmentation)
+    assert nb <= 1.0 and bone >= 8.0 and early.summary["warnings"] == [], (bone, nb)
+    assert live.pixels_kept == 8
+    for k in range(8, 12):
+        _feed(live, sw, np.array([k]))
+        live.refit()
+    final = live.refit(final=True)
+    assert live.recovery_counts["no_pixels"] == 0
+    bone, nb, n = on_bones(sim, sw, final.segmentation)
+    assert bone <= 0.3 and nb >= 8.0 and n >= 9, (bone, nb, n)
+    offline = segment_sweep(sw, params_with(bone_points=[point]).segmentation)
+    assert [c.frame for c in final.segmentation.accepted] == [c.frame for c in offline.accepted]
+    assert live.pixels_kept < 12  # reached: the track frames gave theirs up
+
+
 def test_a_point_the_probe_has_not_reached_is_no_fault_until_the_end():
     # A point on the radius in frame 10 of 12 (22 mm from frame 7's plane): with frames
     # 0-7 in, a refit follows the ulna (the default) and says nothing of the point; the
