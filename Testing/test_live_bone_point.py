@@ -16,6 +16,7 @@ from two_bones import bone_top, forearm, neighbour_top, off_centre, on_bones
 
 from BoneUSRecon.cli import main
 from BoneUSRecon.cli.igtl import SweepServer
+from BoneUSRecon.cli.live import SessionResult
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.live import LiveReconstructor
 from BoneUSRecon.Logic.pipeline import params_with
@@ -140,6 +141,9 @@ def test_a_point_off_the_whole_scan_is_a_warning_at_the_end():
     warnings = final.summary["warnings"]
     assert len(warnings) == 1 and warnings[0].startswith("bone point 2 (")
     assert "40.0 mm from the nearest frame's plane" in warnings[0]
+    assert final.segmentation.warnings == tuple(warnings)
+    assert SessionResult(final=final).warnings == tuple(warnings)  # the CLI's session
+    assert SessionResult().warnings == ()
     # Point 1 still rules: the track on the radius.
     bone, nb, n = on_bones(sim, sw, final.segmentation)
     assert nb <= 0.3 and bone >= 8.0 and n >= 10, (bone, nb, n)
