@@ -250,8 +250,8 @@ def point_warnings(
     Returns
     -------
     tuple of str
-        In point order; empty when every point has an accepted contour within ``point_contour_mm``
-        in one of its frames (in-plane distance).
+        In point order; empty when every point has an accepted contour within
+        ``point_contour_mm`` in one of its frames (in-plane distance).
     """
     if not params.bone_points:
         return ()
