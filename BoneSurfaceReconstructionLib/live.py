@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from BoneUSRecon.Logic.live import LiveParams
     from BoneUSRecon.Logic.pipeline import Reconstruction, ReconstructionParams
 
-__all__ = ["LiveSurface", "addLiveSection"]
+__all__ = ["LiveSurface", "addLiveSection", "liveParameters"]
 
 
 def _qt_schedule(fn: Callable[[], None]) -> None:
@@ -178,7 +178,8 @@ class LiveSurface:
         mrml.show_surface(self.result.surface, self.scene, node=self.model)
 
     def statusText(self) -> str:
-        """One line: frames, surface coverage or what it waits for."""
+        """One line: frames, surface coverage or what it waits for; then the surface's
+        warnings, one line each (e.g. a bone point off the scan, after :meth:`stop`)."""
         skipped = sum(self.skipped.values())
         text = f"{self.frames} frames, {skipped} skipped"
         if self.waiting:
@@ -189,7 +190,39 @@ class LiveSurface:
                 f"; surface from {s['segmented_frames']} frames, "
                 f"{100 * s['grid_coverage']:.0f}% of the grid covered"
             )
+            for warning in s.get("warnings", ()):
+                text += "\n" + warning  # as the module's summary shows them
         return text
+
+
+def liveParameters(parameterNode: Any) -> ReconstructionParams:
+    """The live session's reconstruction parameters: the module's, as Apply takes them
+    (:func:`~BoneSurfaceReconstructionLib.parameters.parameters_from_widget_values`),
+    with the points of the panel's *Bone point* list as placed when the session starts
+    (``RejectionParams.bone_points``; a point placed later is not seen).
+
+    Parameters
+    ----------
+    parameterNode
+        The module's parameter node (its reconstruction values and ``bonePoints``).
+
+    Returns
+    -------
+    ReconstructionParams
+    """
+    from BoneSurfaceReconstructionLib.parameters import (
+        parameters_from_widget_values,
+        widgetValues,
+    )
+
+    params = parameters_from_widget_values(widgetValues(parameterNode))
+    node = getattr(parameterNode, "bonePoints", None)
+    if node is None:
+        return params
+    from BoneSurfaceReconstructionLib.mrml import bone_points_from_node
+    from BoneUSRecon.Logic.pipeline import params_with
+
+    return params_with(params, bone_points=bone_points_from_node(node))
 
 
 def addLiveSection(widget: Any) -> Any:
@@ -247,24 +280,14 @@ def addLiveSection(widget: Any) -> Any:
 
         def start(self) -> None:
             from BoneSurfaceReconstructionLib import dependencies
-            from BoneSurfaceReconstructionLib.parameters import (
-                calibrationMatrix,
-                parameters_from_widget_values,
-                widgetValues,
-            )
+            from BoneSurfaceReconstructionLib.parameters import calibrationMatrix
 
             node = widget._parameterNode
             try:
                 dependencies.requireBoneUSRecon()
                 from BoneUSRecon.Logic.live import LiveParams
 
-                params = parameters_from_widget_values(widgetValues(node)) if node else None
-                if node and node.bonePoints:
-                    # The panel's Bone point, as placed when the session starts.
-                    from BoneSurfaceReconstructionLib.mrml import bone_points_from_node
-                    from BoneUSRecon.Logic.pipeline import params_with
-
-                    params = params_with(params, bone_points=bone_points_from_node(node.bonePoints))
+                params = liveParameters(node) if node else None
                 cal = calibrationMatrix(node.calibrationFile) if node else None
                 self.live = LiveSurface(
                     volumeSelector.currentNode(),

@@ -5,11 +5,11 @@ solvers; points off the sweep are refused, points with no contour near them repo
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 import pytest
 from lane_frames import S, both_solvers, lane_of, make_lanes
+from two_bones import bone_top, forearm, neighbour_top, off_centre, on_bones
 
 from BoneUSRecon.cli import main
 from BoneUSRecon.Logic.errors import BoneUSReconError
@@ -18,9 +18,6 @@ from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.bone_point import OFF_POINT
 from BoneUSRecon.Logic.segmentation.params import RejectionParams, SegmentationParams
 from BoneUSRecon.Logic.sequence_io import write_sweep
-from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
-from BoneUSRecon.Logic.simulation.sections import bone_sections
-from BoneUSRecon.Logic.sweep import Sweep, pixels_to_reference
 
 
 def _at(column: float, frame: int) -> tuple[float, float, float]:
@@ -96,96 +93,43 @@ def test_bone_point_parameters_are_checked(field, value, message):
 # -- simulated forearms: the ulna swept, the radius 18 mm beside it ---------------------
 
 
-@functools.cache
-def _forearm(realism: str, seed: int, width: int = 160) -> Simulation:
-    return simulate(
-        SimulationParams(
-            bone="ulna",
-            neighbour_mm=18.0,
-            n_frames=12,
-            width=width,
-            height=136,
-            spacing_mm=0.32,
-            realism=realism,
-            seed=seed,
-        )
-    )
-
-
-def _neighbour_top(sim: Simulation, sweep: Sweep, frame: int) -> np.ndarray:
-    """The top of the neighbouring bone's section in a frame, reference mm (the point a
-    user clicks on it), from the simulator's analytic neighbour."""
-    s = sim.path.s - sim.geometry.length / 2 + sim.neighbour.length / 2  # as simulate()
-    top = bone_sections(sim.neighbour, sweep.image_to_reference, s, sweep.width).top_j[frame]
-    i = int(np.nanargmin(top))
-    return pixels_to_reference(sweep.image_to_reference[frame], np.array([[i, top[i]]]))[0]
-
-
-def _bone_top(sim: Simulation, sweep: Sweep, frame: int, shift: int = 0) -> np.ndarray:
-    """The middle of the swept bone's true contour in a frame, reference mm."""
-    c = sim.true_contours_px[frame] - (shift, 0)
-    return pixels_to_reference(sweep.image_to_reference[frame], c[len(c) // 2][None])[0]
-
-
-def _on(sim: Simulation, sweep: Sweep, result) -> tuple[float, float, int]:
-    """Median over the accepted frames of their points' median distance (mm) to the
-    swept bone and to its neighbour (the simulator's analytic surfaces), and how many."""
-    acc = result.accepted
-    to_bone = [np.median(sim.geometry.distance(c.points_mm(sweep))) for c in acc]
-    to_nb = [np.median(sim.neighbour.distance(c.points_mm(sweep))) for c in acc]
-    return float(np.median(to_bone)), float(np.median(to_nb)), len(acc)
-
-
 def _with_points(points) -> SegmentationParams:
     return params_with(bone_points=points).segmentation
 
 
 @pytest.mark.parametrize(("realism", "seed"), [("standard", 1), ("hard", 2)])
 def test_a_bone_point_on_the_neighbour_makes_the_track_follow_it(realism, seed):
-    sim = _forearm(realism, seed)
+    sim = forearm(realism, seed)
     sw = sim.sweep
-    bone, nb, n = _on(sim, sw, segment_sweep(sw))
+    bone, nb, n = on_bones(sim, sw, segment_sweep(sw))
     assert bone <= 0.3 and nb >= 8.0 and n >= 10  # the default: the ulna, in the middle
-    got = segment_sweep(sw, _with_points([_neighbour_top(sim, sw, 6)]))
-    bone, nb, n = _on(sim, sw, got)
+    got = segment_sweep(sw, _with_points([neighbour_top(sim, sw, 6)]))
+    bone, nb, n = on_bones(sim, sw, got)
     assert nb <= 0.3 and bone >= 8.0 and n >= 10, (bone, nb, n)
     assert not got.warnings
     # A point on the ulna keeps the ulna.
-    bone, nb, n = _on(sim, sw, segment_sweep(sw, _with_points([_bone_top(sim, sw, 6)])))
+    bone, nb, n = on_bones(sim, sw, segment_sweep(sw, _with_points([bone_top(sim, sw, 6)])))
     assert bone <= 0.3 and nb >= 8.0 and n >= 10
-
-
-def _off_centre(sim: Simulation) -> tuple[Sweep, int]:
-    """The sweep's frames cut to 128 columns with the ulna's middle at column 24 (0.62
-    of the half-width off the middle) and the radius 18 mm beside it near the middle:
-    a bone swept near the image's edge. The poses move with the first column kept."""
-    sw = sim.sweep
-    mid = np.median([0.5 * (c[0, 0] + c[-1, 0]) for c in sim.true_contours_px if len(c)])
-    a = int(round(mid)) - 24
-    m = sw.image_to_reference.copy()
-    m[:, :3, 3] += a * m[:, :3, 0]
-    frames = np.ascontiguousarray(sw.frames[:, :, a : a + 128])
-    return sw.replace(frames=frames, image_to_reference=m), a
 
 
 @pytest.mark.parametrize("seed", [2, 5])
 def test_a_bone_swept_off_centre_is_kept_with_a_point_on_it(seed):
-    sim = _forearm("hard", seed, width=224)
-    sw, shift = _off_centre(sim)
-    bone, nb, _ = _on(sim, sw, segment_sweep(sw))
+    sim = forearm("hard", seed, width=224)
+    sw, shift = off_centre(sim)
+    bone, nb, _ = on_bones(sim, sw, segment_sweep(sw))
     # The lane rule took the radius, in the middle (its hard small frames give short
     # pieces over a fascia crossing it: within 1 mm of it, 12 mm from the ulna).
     assert nb <= 1.0 and bone >= 8.0
-    bone, nb, n = _on(sim, sw, segment_sweep(sw, _with_points([_bone_top(sim, sw, 6, shift)])))
+    bone, nb, n = on_bones(sim, sw, segment_sweep(sw, _with_points([bone_top(sim, sw, 6, shift)])))
     assert bone <= 0.3 and nb >= 8.0 and n >= 8, (bone, nb, n)
 
 
 def test_the_incremental_solver_follows_the_point_as_the_batch_one():
     from BoneUSRecon.Logic.segmentation import frame_candidates_for
 
-    sim = _forearm("hard", 2)
+    sim = forearm("hard", 2)
     sw = sim.sweep
-    params = _with_points([_neighbour_top(sim, sw, 6)]).rejection
+    params = _with_points([neighbour_top(sim, sw, 6)]).rejection
     frames = [frame_candidates_for(image, (0.32, 0.32)) for _, image in sw.iter_frames()]
     choice = both_solvers(frames, sw.image_to_reference, params)
     on = [frames[k].candidates[c].points_px for k, c in enumerate(choice.chosen.tolist()) if c >= 0]
@@ -195,8 +139,8 @@ def test_the_incremental_solver_follows_the_point_as_the_batch_one():
 
 
 def test_a_point_off_the_sweep_is_refused():
-    sw = _forearm("standard", 1).sweep
-    far = _neighbour_top(_forearm("standard", 1), sw, 6) + (0.0, 0.0, 0.0)
+    sw = forearm("standard", 1).sweep
+    far = neighbour_top(forearm("standard", 1), sw, 6) + (0.0, 0.0, 0.0)
     # Along the sweep past its last frame (the frames' normals are near the x axis).
     normal = np.cross(sw.image_to_reference[-1, :3, 0], sw.image_to_reference[-1, :3, 1])
     normal /= np.linalg.norm(normal)
@@ -214,13 +158,13 @@ def test_a_point_off_the_sweep_is_refused():
 
 
 def test_a_point_with_no_contour_near_it_is_reported_in_the_summary():
-    sim = _forearm("standard", 1)
+    sim = forearm("standard", 1)
     sw = sim.sweep
     # Half way between the two bones' tops, in the tissue (5.2 mm from the nearest
     # contour; a few mm deeper it would lie on the radius's flank).
-    between = 0.5 * (_bone_top(sim, sw, 6) + _neighbour_top(sim, sw, 6))
+    between = 0.5 * (bone_top(sim, sw, 6) + neighbour_top(sim, sw, 6))
     got = segment_sweep(sw, _with_points([between]))
-    bone, nb, n = _on(sim, sw, got)
+    bone, nb, n = on_bones(sim, sw, got)
     assert bone <= 0.3 and n >= 10  # the track chosen without the point: the default
     assert len(got.warnings) == 1 and "bone point 1" in got.warnings[0]
     assert "no accepted contour within 3 mm" in got.summary()["warnings"][0]
@@ -232,16 +176,16 @@ def test_a_point_with_no_contour_near_it_is_reported_in_the_summary():
 @pytest.fixture(scope="module")
 def forearm_file(tmp_path_factory) -> tuple[str, np.ndarray]:
     """The hard forearm sweep on disk and a point on the radius beside the ulna."""
-    sim = _forearm("hard", 2)
+    sim = forearm("hard", 2)
     path = write_sweep(sim.sweep, tmp_path_factory.mktemp("bone_point") / "forearm.mha")
-    return str(path), _neighbour_top(sim, sim.sweep, 6)
+    return str(path), neighbour_top(sim, sim.sweep, 6)
 
 
 def test_segment_and_reconstruct_take_bone_points(forearm_file, tmp_path, capsys):
     from BoneUSRecon.Logic.vtkio import read_points
 
     path, point = forearm_file
-    sim = _forearm("hard", 2)
+    sim = forearm("hard", 2)
     args = ["--bone-point", *(f"{v:.3f}" for v in point)]
     assert main(["segment", path, "-o", str(tmp_path / "p.csv"), "-q", *args]) == 0
     pts = read_points(str(tmp_path / "p.csv"))

@@ -65,6 +65,7 @@ from BoneUSRecon.Logic.segmentation import (
     SegmentationParams,
     SegmentationResult,
 )
+from BoneUSRecon.Logic.segmentation.bone_point import off_sweep_points, point_warnings
 from BoneUSRecon.Logic.segmentation.candidates import (
     BoneCandidate,
     FrameCandidates,
@@ -428,6 +429,29 @@ def _select(
     )
 
 
+def _point_warnings(
+    seg: SegmentationResult, sweep: Sweep, params: ReconstructionParams, final: bool
+) -> tuple[tuple[str, ...], bool]:
+    """The user's bone points judged against the frames so far, one sentence each, and
+    whether one of them is not reached yet (off every frame so far, or no accepted
+    contour near it).
+
+    A point no accepted contour reaches in the frames near it is reported at every
+    refit, as offline (:func:`~BoneUSRecon.Logic.segmentation.bone_point.point_warnings`).
+    A point off every frame so far is reported only at the ``final`` refit, with the
+    offline error's sentence (:func:`~BoneUSRecon.Logic.segmentation.bone_point.
+    off_sweep_points`): during the scan the probe may not have reached it yet, and at
+    the end the scan cannot be given again, so its surface (made as without the point)
+    is kept and the point reported rather than refused.
+    """
+    rej = params.segmentation.rejection
+    poses = sweep.image_to_reference
+    off = off_sweep_points(poses, (sweep.height, sweep.width), rej)
+    unreached = point_warnings(seg.contours_mm(sweep), poses, rej, skip=off)
+    said = (tuple(off[q] for q in sorted(off)) if final else ()) + unreached
+    return said, bool(off or unreached)
+
+
 # ------------------------------------------------------------------------------------
 # The reconstructor
 # ------------------------------------------------------------------------------------
@@ -510,6 +534,17 @@ class LiveReconstructor:
     :attr:`Reconstruction.sweep` of a refit carries blank frames (a zero-stride
     array) with the real poses.
 
+    Bone points (``params.segmentation.rejection.bone_points``) steer the track as
+    offline once frames pass near them; the track before that may lie on the other
+    bone, and moves when the probe reaches a point. So while a point is not reached
+    (off every frame so far, or no accepted contour near it) every frame keeps its
+    pixels, as with ``LiveParams.keep_all_pixels`` (at most ``max_frames`` frames,
+    123 MB at 480x640), and the frames the move leaves off the track are searched as
+    offline. Without that, a point on the swept bone 90 % of the way through off-centre
+    forearm sweeps gave a final recall of 0.90 against offline's 0.98
+    (``Testing/benchmarks/README.md``). Each refit's warnings judge the points against
+    the frames so far (:func:`_point_warnings`).
+
     Examples
     --------
     >>> from BoneUSRecon.Logic.simulation import SimulationParams, simulate
@@ -546,6 +581,9 @@ class LiveReconstructor:
         #: and straying track frames searched again (:func:`_rechecked`).
         self.recovery_counts = {"searched": 0, "reused": 0, "no_pixels": 0, "rechecked": 0}
         self._keep_pixels = recovery_applies(params.segmentation)
+        #: A bone point the track does not reach yet (:func:`_point_warnings`): every
+        #: frame keeps its pixels meanwhile.
+        self._points_open = bool(params.segmentation.rejection.bone_points)
 
     @property
     def n_frames(self) -> int:
@@ -692,7 +730,8 @@ class LiveReconstructor:
             the dynamic programme runs here, over the links made as frames arrived,
             ~10 ms for 400 frames, then the search of the frames off the track whose
             neighbours changed and the programme again with what it found;
-            ``max_frames`` bounds the frames kept).
+            ``max_frames`` bounds the frames kept). The final refit also reports
+            the user's bone points that lie off every kept frame (see below).
         with_points : bool
             Build :attr:`Reconstruction.points` (the segmented points as polydata);
             False leaves it empty, which saves a fifth of a live refit that only
@@ -701,6 +740,12 @@ class LiveReconstructor:
         Returns
         -------
         Reconstruction
+            Its ``summary["warnings"]`` (and ``segmentation.warnings``) name the bone
+            points (``RejectionParams.bone_points``) no accepted contour reaches in
+            the frames near them, as offline, and at the ``final`` refit also those off
+            every frame: offline an error, here a warning, the scan being over
+            (:func:`_point_warnings`; during the scan a point not reached yet is no
+            fault).
 
         Raises
         ------
@@ -721,10 +766,16 @@ class LiveReconstructor:
             self.params.segmentation,
             self._segment_s,
             self.recovery_counts,
-            self.live.keep_all_pixels,
+            # Until the track reaches every bone point, it may move to another bone
+            # when the probe reaches one: the frames off that track are then to be
+            # searched, so every frame keeps its pixels (see the class's notes).
+            self.live.keep_all_pixels or self._points_open,
         )
         if not seg.accepted:
             raise BoneUSReconError("no bone contour found yet")
+        if self.params.segmentation.rejection.bone_points:
+            said, self._points_open = _point_warnings(seg, sweep, self.params, final)
+            seg = replace(seg, warnings=said)
         t_seg = self._segment_s + time.perf_counter() - t0
         return reconstruction_from_segmentation(
             sweep, seg, self.params, segment_s=t_seg, with_points=with_points

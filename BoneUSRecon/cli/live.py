@@ -6,6 +6,12 @@ seconds from all frames so far, writes it (atomically) and optionally sends it b
 as a POLYDATA message. Ctrl-C, ``--duration`` or the server going away ends the
 session: the final surface (the same as an offline ``reconstruct`` of the received
 frames) is written, and with ``--record`` the received frames as a PLUS sequence.
+
+``--bone-point X Y Z`` (as for ``reconstruct``) makes the track follow the bone through
+the point once the probe reaches it. A point cannot be checked against a sweep that has
+not arrived, so a point off the scan is reported at the end, as a warning on stderr and
+in the JSON summary's ``warnings`` (``reconstruct`` refuses it, exit 2): the scan is
+over and its surface, made as without the point, is kept.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from BoneUSRecon.cli.common import (
     add_json_option,
     print_json,
     print_summary,
+    print_warnings,
 )
 from BoneUSRecon.cli.reconstruct import add_reconstruction_options, params_from_args
 
@@ -136,6 +143,12 @@ class SessionResult:
     elapsed_s: float = 0.0
     interrupted: bool = False
     counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        """The final surface's warnings, one sentence each (e.g. a bone point off the
+        scan or that no contour reaches); empty without a final surface."""
+        return tuple(self.final.summary["warnings"]) if self.final is not None else ()
 
 
 class _Status:
@@ -428,10 +441,11 @@ def summary_doc(res: SessionResult, out: Path, where: str) -> dict[str, Any]:
 
 def _report(args: argparse.Namespace, res: SessionResult, out: Path, where: str) -> int:
     doc = summary_doc(res, out, where)
+    s = res.final.summary
     if args.json:
         print_json(doc)
+        print_warnings(s["warnings"])
         return 0
-    s = res.final.summary
     rows: list[tuple[str, Any]] = [
         (
             "frames received",
@@ -463,6 +477,9 @@ def _report(args: argparse.Namespace, res: SessionResult, out: Path, where: str)
         rows.append(("skipped because", f"{problem} ({n})"))
     end = "interrupted" if res.interrupted else "ended"
     print_summary(f"Live session with {where} {end}", rows)
+    # Bone points no contour reaches, or off the whole scan: warned, not refused (the
+    # scan cannot be given again; :func:`BoneUSRecon.Logic.live._point_warnings`).
+    print_warnings(s["warnings"])
     return 0
 
 

@@ -15,6 +15,7 @@ from BoneUSRecon.cli.common import (
     check_distinct_paths,
     check_sweep_args,
     print_json,
+    print_warnings,
     read_sweep_args,
 )
 from BoneUSRecon.cli.reconstruct import add_reconstruction_options, params_from_args
@@ -57,7 +58,7 @@ def register(subparsers: Any) -> None:
         "--around",
         type=int,
         metavar="F",
-        help="control points around the bone, kept fixed (default 5)",
+        help="control points around the bone, kept fixed (default 6; the paper: 5)",
     )
     p.add_argument("--plot", metavar="PNG", help="also plot the table to this PNG file")
     add_json_option(p)
@@ -114,8 +115,10 @@ def run(args: argparse.Namespace) -> int:
                 "control_points_around": params.fit.n_control_points[1],
                 "gold_points": int(gold.shape[0]),
                 "plot": str(plot) if plot else None,
+                "warnings": recon.summary["warnings"],
             }
         )
+        print_warnings(recon.summary["warnings"])
         return 0
     print("TABLE I  AVERAGE RECONSTRUCTION ERROR")
     print(f"  {'Number of control points':>24}  {'Average distance (mm)':>21}")
@@ -123,4 +126,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {e:>24d}  {d:>21.3f}")
     if plot:
         print(f"  plot: {plot}")
+    print_warnings(recon.summary["warnings"])  # e.g. a bone point the track does not reach
     return 0

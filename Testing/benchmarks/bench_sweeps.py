@@ -26,10 +26,18 @@ Groups of sweeps (40 frames each, per seed):
 
 ``--bone-point swept`` gives each sweep a bone point (``RejectionParams.bone_points``)
 on the swept bone: the middle of its true contour in the middle frame, as a user would
-click on it. ``--off-centre`` (``twobones`` only) simulates the sweeps 640 columns wide
+click on it (``swept-late``: in the frame 90 % of the way through those showing it,
+which a live session reaches late). ``--off-centre`` (``twobones`` only) simulates the sweeps 640 columns wide
 and keeps 360 of them, with the swept bone's middle 0.65 of the half-width off the
 image's middle and its neighbour near the middle: a bone swept near the image's edge,
 which the lane rule (``track.central_track``) trades for the neighbour.
+
+``--live N`` segments each sweep as a live session does: its frames fed one at a
+time to a :class:`~BoneUSRecon.Logic.live.LiveReconstructor` (no network: the same
+reconstructor ``bone-us-recon live`` feeds), a refit every ``N`` frames, and the final
+refit scored; the line adds, over the refits during the scan, the share of their kept
+frames whose points lie on the swept bone (median < 1 mm) before and after the frames
+reached the bone point, and the final refit's warnings.
 
 A seed nobody tuned on is the measure of a change; compare two checkouts on the same
 seeds (``PYTHONPATH`` set to each).
@@ -37,7 +45,7 @@ seeds (``PYTHONPATH`` set to each).
 Run::
 
     python Testing/benchmarks/bench_sweeps.py --seeds 53 59 [--groups real small]
-        [--reconstruct] [--bone-point swept] [--off-centre]
+        [--reconstruct] [--bone-point swept] [--off-centre] [--live N]
 """
 
 from __future__ import annotations
@@ -128,13 +136,41 @@ def off_centre(sim: Simulation) -> Simulation:
     return dataclasses.replace(sim, sweep=kept, true_contours_px=contours)
 
 
-def swept_point(sim: Simulation) -> np.ndarray:
+def swept_point(sim: Simulation, at: float = 0.5) -> np.ndarray:
     """The middle of the swept bone's true contour in the middle frame (of those that
-    show it), reference mm: where a user clicks on the bone."""
+    show it; ``at``: that fraction of the way through them), reference mm: where a
+    user clicks on the bone."""
     shown = [k for k, c in enumerate(sim.true_contours_px) if len(c)]
-    k = shown[len(shown) // 2]
+    k = shown[min(int(at * len(shown)), len(shown) - 1)]
     c = sim.true_contours_px[k]
     return sim.sweep.to_reference(k, c[len(c) // 2][None])[0]
+
+
+def live_segment(
+    sim: Simulation, seg_params: object, every: int
+) -> tuple[object, list[tuple[int, float]], list[str]]:
+    """The sweep fed frame by frame to a live reconstructor, a refit every ``every``
+    frames: the final refit's segmentation, per refit (frames received, share of its
+    kept frames on the swept bone: median distance < 1 mm), and the final warnings."""
+    from BoneUSRecon.Logic.live import LiveReconstructor
+
+    params = dataclasses.replace(ReconstructionParams(), segmentation=seg_params)
+    live = LiveReconstructor(params)
+    sw = sim.sweep
+    on: list[tuple[int, float]] = []
+    for n, (k, image) in enumerate(sw.iter_frames(), start=1):
+        live.add_frame(image, sw.image_to_reference[k], sw.timestamps[k])
+        if n % every == 0 and n < sw.n_frames:
+            try:
+                acc = live.refit(with_points=False).segmentation.accepted
+            except BoneUSReconError:
+                continue  # not enough frames yet
+            d = [
+                np.median(sim.distance_to_truth(sw.to_reference(c.frame, c.points_px))) for c in acc
+            ]
+            on.append((n, float(np.mean(np.array(d) < 1.0))))
+    final = live.refit(final=True)
+    return final.segmentation, on, list(final.summary["warnings"])
 
 
 def main() -> None:
@@ -149,17 +185,26 @@ def main() -> None:
     ap.add_argument("--reconstruct", action="store_true", help="also the surface's gold distance")
     ap.add_argument(
         "--bone-point",
-        choices=["none", "swept"],
+        choices=["none", "swept", "swept-late"],
         default="none",
-        help="a bone point on the swept bone (its true contour's middle, middle frame)",
+        help="a bone point on the swept bone (its true contour's middle, middle frame; "
+        "swept-late: 90 %% of the way through the frames showing it)",
     )
     ap.add_argument(
         "--off-centre",
         action="store_true",
         help="twobones: the swept bone near the image's edge, its neighbour in the middle",
     )
+    ap.add_argument(
+        "--live",
+        type=int,
+        default=0,
+        metavar="N",
+        help="segment as a live session does, a refit every N frames (0: batch)",
+    )
     args = ap.parse_args()
     warnings.simplefilter("ignore")
+    from BoneUSRecon.Logic.sweep import frame_planes
 
     recall, wrong, gold = [], [], []
     for seed in args.seeds:
@@ -170,11 +215,15 @@ def main() -> None:
                 s = simulate(p)
                 if args.off_centre:
                     s = off_centre(s)
-                points = [swept_point(s)] if args.bone_point == "swept" else []
+                at = {"swept": 0.5, "swept-late": 0.9}.get(args.bone_point)
+                points = [swept_point(s, at)] if at is not None else []
                 seg_params = params_with(bone_points=points).segmentation
                 t = time.process_time()
                 try:
-                    r = segment_sweep(s.sweep, seg_params)
+                    if args.live:
+                        r, on, warned = live_segment(s, seg_params, args.live)
+                    else:
+                        r = segment_sweep(s.sweep, seg_params)
                 except BoneUSReconError as e:
                     print(f"{name:28} no contour: {e}", flush=True)
                     recall.append(0.0)
@@ -189,6 +238,23 @@ def main() -> None:
                     f"wrong {sc['wrong_share']:.2f} med {sc['median_mm']:.3f} "
                     f"cover {sc['coverage']:.2f} {dt:5.1f} s"
                 )
+                if args.live:
+                    # The first frame whose plane passes near the point (the whole sweep
+                    # without one): refits before it, and from it on.
+                    reach = s.sweep.n_frames
+                    if points:
+                        o, _, nrm = frame_planes(s.sweep.image_to_reference)
+                        z = np.abs(np.einsum("nk,nk->n", points[0] - o, nrm))
+                        near = z <= seg_params.rejection.point_plane_mm
+                        reach = int(np.argmax(near)) + 1 if near.any() else reach
+                    before = [f for n, f in on if n < reach]
+                    after = [f for n, f in on if n >= reach]
+                    line += (
+                        f"  live refits on bone: before the point "
+                        f"{np.mean(before) if before else float('nan'):.2f} ({len(before)}), "
+                        f"after {np.mean(after) if after else float('nan'):.2f} ({len(after)})"
+                        f"; warnings {len(warned)}"
+                    )
                 if args.reconstruct:
                     try:
                         rec = reconstruction_from_segmentation(s.sweep, r, ReconstructionParams())

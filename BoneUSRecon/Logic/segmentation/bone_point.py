@@ -30,13 +30,20 @@ Points all on one bone: two points on two bones whose frames overlap rule out
 every candidate of the frames they share.
 
 Live (:class:`~BoneUSRecon.Logic.live.LiveReconstructor`, the same incremental track):
-a point takes effect once frames pass near it; it is not checked against the sweep
-(its frames have not arrived) and no warning is made.
+a point takes effect once frames pass near it, and is judged against the frames
+received so far. A refit during the scan says nothing of a point off those frames
+(the probe may not have reached it yet) and warns of a point they reach but no
+contour does (:func:`point_warnings`, as offline). The final refit (the scan over)
+reports a point off the whole sweep as a warning with the batch error's sentence
+(:func:`off_sweep_points`), not as an error: offline the sweep file can be run again
+with the point corrected, while a live scan cannot be given again, and its surface,
+built as without the point (a point off the sweep rules out no candidate), is worth
+keeping.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +53,13 @@ from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.sweep import frame_planes
 
-__all__ = ["OFF_POINT", "check_bone_points", "point_marks", "point_warnings"]
+__all__ = [
+    "OFF_POINT",
+    "check_bone_points",
+    "off_sweep_points",
+    "point_marks",
+    "point_warnings",
+]
 
 #: Rejection reason of a frame of a bone point with no candidate near the point.
 OFF_POINT = "no contour at the bone point"
@@ -66,13 +79,64 @@ def _label(points: np.ndarray, q: int) -> str:
     return f"bone point {q + 1} ({x:.1f}, {y:.1f}, {z:.1f} mm)"
 
 
+def off_sweep_points(
+    image_to_reference: np.ndarray,
+    shape: tuple[int, int],
+    params: RejectionParams,
+) -> dict[int, str]:
+    """The bone points that are not on the sweep, each with why (one sentence).
+
+    Parameters
+    ----------
+    image_to_reference : ndarray, shape (N, 4, 4)
+        The poses of the frames.
+    shape : (int, int)
+        The frames' ``(height, width)`` in pixels.
+    params : RejectionParams
+        Its ``bone_points`` and ``point_plane_mm``.
+
+    Returns
+    -------
+    dict of int to str
+        Index of the point in ``params.bone_points`` -> why it is not on the sweep: it
+        lies farther than ``point_plane_mm`` from every frame's plane, or its
+        projection into every frame that near lies outside the image. Empty when all
+        are on it (or there are none).
+    """
+    if not params.bone_points:
+        return {}
+    pts = np.asarray(params.bone_points, dtype=float).reshape(-1, 3)
+    poses = np.asarray(image_to_reference, dtype=float).reshape(-1, 4, 4)
+    if poses.shape[0] == 0:
+        return {q: f"{_label(pts, q)}: no frame to place it in" for q in range(pts.shape[0])}
+    lateral, depth, z = _in_planes(pts, poses)
+    sx = np.linalg.norm(poses[:, :3, 0], axis=1)[:, None]
+    sy = np.linalg.norm(poses[:, :3, 1], axis=1)[:, None]
+    h, w = shape
+    inside = (lateral >= 0) & (lateral <= (w - 1) * sx) & (depth >= 0) & (depth <= (h - 1) * sy)
+    near = z <= params.point_plane_mm
+    out: dict[int, str] = {}
+    for q in range(pts.shape[0]):
+        if not near[:, q].any():
+            out[q] = (
+                f"{_label(pts, q)} lies {z[:, q].min():.1f} mm from the nearest frame's plane "
+                f"(at most {params.point_plane_mm:g} mm): it is not on this sweep"
+            )
+        elif not (near[:, q] & inside[:, q]).any():
+            out[q] = (
+                f"{_label(pts, q)} lies outside the image of every frame within "
+                f"{params.point_plane_mm:g} mm of it: it is not on this sweep"
+            )
+    return out
+
+
 def check_bone_points(
     image_to_reference: np.ndarray,
     shape: tuple[int, int],
     params: RejectionParams,
     source: str | Path | None = None,
 ) -> None:
-    """Refuse bone points that are not on the sweep.
+    """Refuse bone points that are not on the sweep (:func:`off_sweep_points`).
 
     Parameters
     ----------
@@ -88,32 +152,12 @@ def check_bone_points(
     Raises
     ------
     BoneUSReconError
-        A point farther than ``point_plane_mm`` from every frame's plane, or whose
-        projection into every frame that near lies outside the image.
+        The first point farther than ``point_plane_mm`` from every frame's plane, or
+        whose projection into every frame that near lies outside the image.
     """
-    if not params.bone_points:
-        return
-    pts = np.asarray(params.bone_points, dtype=float).reshape(-1, 3)
-    poses = np.asarray(image_to_reference, dtype=float).reshape(-1, 4, 4)
-    lateral, depth, z = _in_planes(pts, poses)
-    sx = np.linalg.norm(poses[:, :3, 0], axis=1)[:, None]
-    sy = np.linalg.norm(poses[:, :3, 1], axis=1)[:, None]
-    h, w = shape
-    inside = (lateral >= 0) & (lateral <= (w - 1) * sx) & (depth >= 0) & (depth <= (h - 1) * sy)
-    near = z <= params.point_plane_mm
-    for q in range(pts.shape[0]):
-        if not near[:, q].any():
-            raise BoneUSReconError(
-                f"{_label(pts, q)} lies {z[:, q].min():.1f} mm from the nearest frame's plane "
-                f"(at most {params.point_plane_mm:g} mm): it is not on this sweep",
-                source,
-            )
-        if not (near[:, q] & inside[:, q]).any():
-            raise BoneUSReconError(
-                f"{_label(pts, q)} lies outside the image of every frame within "
-                f"{params.point_plane_mm:g} mm of it: it is not on this sweep",
-                source,
-            )
+    off = off_sweep_points(image_to_reference, shape, params)
+    if off:
+        raise BoneUSReconError(off[min(off)], source)
 
 
 def _contour_distance(fc: FrameCandidates, c: int, lateral: float, depth: float) -> float:
@@ -186,6 +230,8 @@ def point_warnings(
     contours_mm: Sequence[tuple[int, np.ndarray]],
     image_to_reference: np.ndarray,
     params: RejectionParams,
+    *,
+    skip: Collection[int] = (),
 ) -> tuple[str, ...]:
     """Bone points the final track does not reach, one sentence each.
 
@@ -197,12 +243,15 @@ def point_warnings(
     image_to_reference : ndarray, shape (N, 4, 4)
         The poses of the sweep's frames.
     params : RejectionParams
+    skip : collection of int
+        Indices of points in ``params.bone_points`` not to judge (e.g. those
+        :func:`off_sweep_points` already reports).
 
     Returns
     -------
     tuple of str
-        Empty when every point has an accepted contour within ``point_contour_mm``
-        in one of its frames (in-plane distance).
+        In point order; empty when every point has an accepted contour within
+        ``point_contour_mm`` in one of its frames (in-plane distance).
     """
     if not params.bone_points:
         return ()
@@ -211,6 +260,8 @@ def point_warnings(
     _, _, off_plane = _in_planes(pts, poses)
     out = []
     for q in range(pts.shape[0]):
+        if q in skip:
+            continue
         best = np.inf
         for f, xyz in contours_mm:
             z = off_plane[f, q]
