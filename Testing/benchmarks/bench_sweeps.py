@@ -19,6 +19,8 @@ Groups of sweeps (40 frames each, per seed):
 * ``twobones``: the radius and the ulna, standard and hard, at the cadaver geometry
   with the other forearm bone 18 mm beside the one swept (toward the wrist; both show
   whole in the image).
+* ``touching``: as ``twobones`` with the other bone 14 mm beside (the two bones' tops
+  touch in the image: no tissue between them at their level).
 * ``tibiafibula``: the tibia, standard and hard, at the cadaver geometry with the
   fibula (:data:`.simulation.bones.NEIGHBOURS`: 15 mm deeper than the tibia's top)
   20 mm lateral (nearly whole in the 51 mm wide image) and 24 mm (its medial half), as
@@ -96,6 +98,12 @@ def cases(group: str, seed: int) -> list[tuple[str, SimulationParams]]:
     if group == "twobones":
         return [
             (f"R {b} {r[:4]} 18mm s{seed}", sim(b, "R", realism=r, neighbour_mm=18.0))
+            for b in ("radius", "ulna")
+            for r in ("standard", "hard")
+        ]
+    if group == "touching":
+        return [
+            (f"R {b} {r[:4]} 14mm s{seed}", sim(b, "R", realism=r, neighbour_mm=14.0))
             for b in ("radius", "ulna")
             for r in ("standard", "hard")
         ]
@@ -180,7 +188,7 @@ def main() -> None:
         "--groups",
         nargs="+",
         default=["real", "small"],
-        choices=["real", "small", "grey", "realstd", "twobones", "tibiafibula"],
+        choices=["real", "small", "grey", "realstd", "twobones", "touching", "tibiafibula"],
     )
     ap.add_argument("--reconstruct", action="store_true", help="also the surface's gold distance")
     ap.add_argument(
