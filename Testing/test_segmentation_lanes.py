@@ -163,15 +163,8 @@ def test_two_bones_that_touch_are_two_candidates_and_the_swept_one_is_followed(s
     bones; its pieces met at the valley, so the ulna's was not offered (a gap of 2 mm was
     asked between two domes), and the far line under both joined them into one contour
     (pieces over one shadow). Before: wrong share ``before``, the track on the radius."""
-    sim = _beside(
-        "ulna",
-        neighbour_mm=14.0,
-        n_frames=12,
-        width=320,
-        height=256,
-        spacing_mm=0.16,
-        seed=seed,
-    )
+    geometry = {"width": 320, "height": 256, "spacing_mm": 0.16}
+    sim = _beside("ulna", neighbour_mm=14.0, n_frames=12, seed=seed, **geometry)
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["recall"] >= 0.9 and s["wrong_share"] == 0.0, (s, before)
     assert s["median_mm"] <= 0.1
