@@ -112,7 +112,7 @@ def test_fascia_under_a_skin_gap_is_not_the_bone(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(
         cand_mod, "_fill_excursions", lambda pts, sp, p: (np.ones(len(pts), bool), pts)
     )
-    monkeypatch.setattr(cand_mod, "_separate_domes", lambda pieces, best, pts, sp, p: [])
+    monkeypatch.setattr(cand_mod, "_separate_domes", lambda pieces, best, pts, sp, p, n: [])
     on = run(shoulder_min_mm=1e6)
     off = run(shoulder_min_mm=1e6, gap_shade=False)
     assert off["wrong_share"] >= 0.1  # the failure the rule is for

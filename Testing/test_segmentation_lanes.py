@@ -117,29 +117,34 @@ def test_a_valley_with_tissue_under_it_between_two_shadows_parts_two_bones():
 def test_a_second_dome_of_one_path_is_offered_a_flat_run_is_not():
     pts = _two_domes()
     p = SegmentationParams().shadowpath
-    # The pieces a path over two bones leaves once the valley between them is cut.
+
+    def piece(strength: float, mask: np.ndarray) -> tuple:
+        # The pieces a path over two bones leaves (columns: one per point here).
+        return (strength, mask, np.flatnonzero(mask), np.zeros(int(mask.sum()), np.intp))
+
+    def offered(pieces: list, best: tuple, contour: np.ndarray = pts) -> list:
+        return _separate_domes(pieces, best, contour, (0.1, 0.1), p, 20)
+
     left, right = pts[:, 0] <= 80.0, pts[:, 0] >= 120.0
-    cols = rows = np.zeros(0, np.intp)  # not read
-    best = (5.0, left, cols, rows)
-    dome = (3.0, right, cols, rows)
-    assert _separate_domes([best, dome], best, pts, (0.1, 0.1), p) == [dome]
+    best, dome = piece(5.0, left), piece(3.0, right)
+    assert offered([best, dome], best) == [dome]
     # A dome touching the best piece (two bones 14 mm apart meet at the valley): offered.
-    touching = (3.0, pts[:, 0] > 80.0, cols, rows)
-    assert _separate_domes([best, touching], best, pts, (0.1, 0.1), p) == [touching]
+    touching = piece(3.0, pts[:, 0] > 80.0)
+    assert offered([best, touching], best) == [touching]
+    # A hump narrower than three times the passes' fewest columns: a grain, not offered.
+    grain = piece(3.0, np.abs(pts[:, 0] - 150.0) <= 25.0)
+    assert offered([best, grain], best) == []
     # A crest: its top is the best piece, its flank touching it falls one way: not offered.
     crest = np.column_stack([pts[:, 0], (6.0 + 0.08 * np.abs(pts[:, 0] - 50.0)) / 0.1])
-    top, flank = (
-        (5.0, np.abs(pts[:, 0] - 50.0) <= 20.0, cols, rows),
-        (3.0, pts[:, 0] > 70.0, cols, rows),
-    )
-    assert _separate_domes([top, flank], top, crest, (0.1, 0.1), p) == []
+    top, flank = piece(5.0, np.abs(pts[:, 0] - 50.0) <= 20.0), piece(3.0, pts[:, 0] > 70.0)
+    assert offered([top, flank], top, crest) == []
     # No evidence above the null level: not offered.
-    weak = (-0.5, right, cols, rows)
-    assert _separate_domes([best, weak], best, pts, (0.1, 0.1), p) == []
+    weak = piece(-0.5, right)
+    assert offered([best, weak], best) == []
     # A layer running on flat (or falling one way) from the bone's shoulder.
     flat = pts.copy()
     flat[right, 1] = pts[100, 1]
-    assert _separate_domes([best, (3.0, right, cols, rows)], best, flat, (0.1, 0.1), p) == []
+    assert offered([best, dome], best, flat) == []
 
 
 @pytest.mark.parametrize("seed", [127, 3])
