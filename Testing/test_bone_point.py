@@ -210,6 +210,9 @@ def test_segment_and_reconstruct_take_bone_points(forearm_file, tmp_path, capsys
         ("reconstruct", ["1", "2"], "expected 3 arguments"),
         ("segment", ["0", "0", "-500"], "it is not on this sweep"),
         ("reconstruct", ["0", "0", "-500"], "it is not on this sweep"),
+        # Exponent form is a number too (argparse alone took "-5e2" for an option).
+        ("segment", ["0", "0", "-5e2"], "it is not on this sweep"),
+        ("segment", ["1", "2", "-inf"], "expected 3 arguments"),
     ],
 )
 def test_bad_bone_points_are_one_line_errors(
@@ -238,3 +241,25 @@ def test_params_with_sets_and_clears_bone_points():
     with pytest.raises(BoneUSReconError, match="bone_points must have 3 values"):
         params_with(bone_points=[(1.0, 2.0)])
     assert dataclasses.replace(p).segmentation.rejection.bone_points == ((1.0, 2.0, 3.0),)
+
+
+def test_bone_point_numbers_in_exponent_form_are_written_out():
+    from BoneUSRecon.cli.common import plain_bone_point_numbers
+
+    argv = ["segment", "a.mha", "--bone-point", "1e1", "-2.5E-1", "-3e2", "-q", "-1e3"]
+    assert plain_bone_point_numbers(argv) == [
+        "segment",
+        "a.mha",
+        "--bone-point",
+        "1e1",
+        "-0.25",
+        "-300",
+        "-q",
+        "-1e3",
+    ]
+    assert plain_bone_point_numbers(["--bone-point", "-x", "-inf", "-1"]) == [
+        "--bone-point",
+        "-x",
+        "-inf",
+        "-1",
+    ]

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from BoneUSRecon import __version__
-from BoneUSRecon.cli.common import PROG, run_guarded
+from BoneUSRecon.cli.common import PROG, plain_bone_point_numbers, run_guarded
 
 __all__ = ["main", "entry_point", "build_parser"]
 
@@ -73,7 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"\n{PROG}: interrupted; no output was written", file=sys.stderr)
         return 130
-    args = parser.parse_args(argv)
+    args = parser.parse_args(plain_bone_point_numbers(sys.argv[1:] if argv is None else argv))
     return run_guarded(args.func, args)
 
 

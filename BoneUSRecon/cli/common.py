@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import decimal
 import json
 import math
 import os
@@ -18,7 +19,7 @@ import signal
 import sys
 import threading
 import traceback
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -110,6 +111,29 @@ def add_bone_point_option(parser: argparse.ArgumentParser) -> None:
         "placed on it in Slicer); where two bones are in view the track follows the one "
         "through it (repeatable; points on one bone)",
     )
+
+
+def plain_bone_point_numbers(argv: Sequence[str]) -> list[str]:
+    """``argv`` with the three values after each ``--bone-point`` written out in plain
+    decimals where they are finite numbers in exponent form (``-1e3`` -> ``-1000``).
+
+    argparse takes a word starting with ``-`` for an option unless it reads as a plain
+    negative number, so ``--bone-point 1 2 -1e3`` stopped with "expected 3 arguments";
+    a coordinate a user pastes from another tool may well be written so. Anything else
+    (a word, ``-inf``) is left for the option's own check to name.
+    """
+    out = list(argv)
+    for i, word in enumerate(out):
+        if word != "--bone-point":
+            continue
+        for j in range(i + 1, min(i + 4, len(out))):
+            try:
+                value = decimal.Decimal(out[j])
+            except decimal.InvalidOperation:
+                continue
+            if value.is_finite() and out[j].startswith("-"):
+                out[j] = format(value, "f")
+    return out
 
 
 def print_warnings(warnings: Iterable[str]) -> None:
