@@ -1945,7 +1945,7 @@ def _separate_domes(
     evidence, they let the sweep-level choice take the bone it follows in every frame.
     No gap is asked between the two: bones 14 mm apart touch in the image, and the
     path's pieces over them met at the valley (radius and ulna, 320 x 256 at 0.16 mm:
-    an ulna 0.1 of the half-width off the middle had no candidate in 11 of 12 frames
+    an ulna 0.1 of the half-width off the middle had no candidate in 8 of 12 frames
     with a gap of 2 mm asked). A crest's corners part its contour into pieces that touch
     too, but of those only the top is a dome: at worst its top is offered besides its
     flank, both on the bone. Geometry of the contour alone, in mm: no grey level.
