@@ -131,8 +131,8 @@ def test_a_second_dome_of_one_path_is_offered_a_flat_run_is_not():
     # A dome touching the best piece (two bones 14 mm apart meet at the valley): offered.
     touching = piece(3.0, pts[:, 0] > 80.0)
     assert offered([best, touching], best) == [touching]
-    # A hump narrower than three times the passes' fewest columns: a grain, not offered.
-    grain = piece(3.0, np.abs(pts[:, 0] - 150.0) <= 25.0)
+    # A hump shorter than the passes' shortest contour: a grain, not offered.
+    grain = piece(3.0, np.abs(pts[:, 0] - 150.0) <= 5.0)
     assert offered([best, grain], best) == []
     # A crest: its top is the best piece, its flank touching it falls one way: not offered.
     crest = np.column_stack([pts[:, 0], (6.0 + 0.08 * np.abs(pts[:, 0] - 50.0)) / 0.1])

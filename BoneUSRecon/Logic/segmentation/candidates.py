@@ -1433,11 +1433,11 @@ def _frame_candidates_steps(
             # (a tibia under a grey shadow, score near the null level) whose path steps
             # ~1 mm at its flank is otherwise cut there and only the short bright piece
             # offered; a layer meeting the bone runs past the shadow and stays cut off.
-            # Unless two of them are domes: two bones side by side (radius and ulna 14
-            # mm apart) cast one wide shadow whose far line runs under both, yet are two
-            # reflectors; a crest's or a flank's pieces fall one way, only its top is a
-            # dome. Geometry and flags only: no grey level (benchmarks README, branches
-            # tibia and lead s33).
+            # Unless two of them are domes (_piece_is_dome): two bones side by side
+            # (radius and ulna 14 mm apart) cast one wide shadow whose far line runs
+            # under both, yet are two reflectors; a crest's or a flank's pieces fall
+            # one way, only its top is a dome. Geometry and flags only: no grey level
+            # (benchmarks README, branches tibia and lead s33).
             inside = [q for q in pieces if np.mean((q[2] >= span[0]) & (q[2] <= span[1])) >= 0.8]
             if len(inside) > 1 and sum(_piece_is_dome(pts, q, sp, p, min_cols) for q in inside) < 2:
                 jm = np.logical_or.reduce([q[1] for q in inside])
@@ -1931,8 +1931,8 @@ def _separate_domes(
 ) -> list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]:
     """The pieces of one path, besides ``best``, that are domes of their own: evidence
     above the null level, beside ``best`` (no column in common), both ends at least
-    ``dome_mm`` deeper than the piece's apex (:func:`_apex`), over at least three
-    times ``min_cols`` working columns (:func:`_piece_is_dome`).
+    ``dome_mm`` deeper than the piece's apex (:func:`_apex`), over at least ``min_cols``
+    working columns (:func:`_piece_is_dome`).
 
     One optimal path may run over two bones side by side (the radius and the ulna, the
     tibia and the fibula) without leaving them for the no-bone state over the few mm
@@ -1943,10 +1943,10 @@ def _separate_domes(
     running off the bone's shoulder, the other piece a path usually leaves, is flat or
     falls one way: no dome. Offered as candidates of their own, each with its own
     evidence, they let the sweep-level choice take the bone it follows in every frame.
-    No gap is asked between the two: bones 14 mm apart touch in the image, and the
-    path's pieces over them met at the valley (radius and ulna, 320 x 256 at 0.16 mm:
-    an ulna 0.1 of the half-width off the middle had no candidate in 8 of 12 frames
-    with a gap of 2 mm asked). A crest's corners part its contour into pieces that touch
+    No gap is asked between the two pieces: bones 14 mm apart touch in the image, and
+    the path's pieces over them met at the valley (radius and ulna, 320 x 256 at 0.16
+    mm: an ulna 0.1 of the half-width off the middle had no candidate in 8 of 12 frames
+    with a 2 mm gap asked). A crest's corners part its contour into pieces that touch
     too, but of those only the top is a dome: at worst its top is offered besides its
     flank, both on the bone. Geometry of the contour alone, in mm: no grey level.
     """
@@ -1964,15 +1964,15 @@ def _piece_is_dome(
     p: ShadowPathParams,
     min_cols: int,
 ) -> bool:
-    """Whether a convex piece (its mask into ``pts``, points in pixels) is a bone's top
-    of its own: a dome (:func:`_is_dome`) over at least three times the passes' fewest
-    columns (``min_length_mm`` x 3: 6 mm; the visible top of the narrowest long bone
-    in view, the fibula 11-13 mm wide, spans 6-8 mm; the radius and ulna's 12-15 mm in
-    the touching forearms measured). A narrower hump is a grain or a bump on the bone's
-    own flank: offered, a 2.8 mm one beside a hard tibia's top took the track and was
-    rejected as too short, and a 4.1 mm one at a hard radius's end (its flank and a
-    fascia) took it 1.2 mm off."""
-    if piece[2].size < 3 * min_cols:
+    """Whether a convex piece of a path (its mask into ``pts``, points in pixels) may be
+    a bone's top of its own: a dome (:func:`_is_dome`) over at least ``min_cols`` working
+    columns (the passes' shortest contour). A shorter hump is a grain: offered, a 2.8 mm
+    one of 4 points beside a hard tibia's top took the track and was rejected as too
+    short. (A distance asked between two tops was tried and dropped: a path's pieces
+    need not part at the valley; one ran from the ulna's top over the valley up the
+    radius's flank, its shallowest point beside the radius's top.) Geometry in mm: no
+    grey level."""
+    if piece[2].size < min_cols:
         return False
     m = piece[1]
     return _is_dome(pts[m, 0] * spacing[0], pts[m, 1] * spacing[1], p.dome_mm)
