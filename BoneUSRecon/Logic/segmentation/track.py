@@ -621,6 +621,9 @@ def _one_lane(
     path: list[int],
     forward: Forward,
     p: RejectionParams,
+    *,
+    pointed: np.ndarray | None = None,
+    plain: np.ndarray | None = None,
 ) -> Choice:
     """:func:`central_track`'s second step (``one_lane``), keeping the track to one
     bone: where it changes lanes (two of its contours two frames apart share no
@@ -648,6 +651,14 @@ def _one_lane(
     Measured on two-bone sweeps (radius and ulna, hard, seeds 1-8, 320 x 256 at 0.16
     mm, the other bone 14, 18 or 24 mm beside): see ``Testing/benchmarks/README.md``,
     "Session 32 (lead)".
+
+    ``pointed`` (bool per node, :func:`pointed_track`): the nodes near the user's bone
+    points. The stretch on the bone swept is then the one through the most of them
+    (the user said which bone), they are never ruled out, the track chosen again
+    must pass through as many, and it need only link ``lane_frames`` of the first's
+    frames (a stretch off the pointed bone is dropped even where nothing replaces
+    it). ``plain``: the node values the value condition compares (``value`` carries
+    the points' bonus); None: ``value``.
     """
     on = sorted(path, key=lambda k: nodes[k][0])
     spans = [_span(frames, nodes[k]) for k in on]
@@ -668,7 +679,9 @@ def _one_lane(
     # The stretch on the bone swept: the one nearest the middle of the field of view
     # (as :func:`_nearer_middle` judges), the longest where that is not known.
     u = [_offcentre(frames, nodes, st) for st in stretches]
-    if all(v is not None for v in u):
+    if pointed is not None:
+        main = max(stretches, key=lambda st: (int(pointed[st].sum()), len(st)))
+    elif all(v is not None for v in u):
         main = stretches[int(np.argmin(u))]
     else:
         main = max(stretches, key=len)
@@ -679,14 +692,19 @@ def _one_lane(
         if st is not main and st:
             ruled |= _in_lane(frames, nodes, st)
     ruled &= ~_in_lane(frames, nodes, main)
+    if pointed is not None:
+        ruled &= ~pointed
     other = np.where(ruled, -np.inf, value)
     alt = forward(other)
     path2 = _path(alt[0], alt[1], _need(nodes, p))
     moved = {nodes[k][0] for st in stretches if st is not main for k in st}
+    worth = value if plain is None else plain
     if (
-        len(path2) >= len(path)
+        len(path2) >= (len(path) if pointed is None else p.lane_frames * len(path))
         and all(_reaches(frames, nodes[k], main_spans) for k in path2 if nodes[k][0] in moved)
-        and float(other[path2].sum()) >= p.lane_value * float(value[path].sum())
+        and float(np.where(ruled, -np.inf, worth)[path2].sum())
+        >= p.lane_value * float(worth[path].sum())
+        and (pointed is None or int(pointed[path2].sum()) >= int(pointed[path].sum()))
     ):
         return other, alt, path2
     return value, out, path
@@ -783,12 +801,30 @@ def pointed_track(
     In a point's frames the candidates away from it are ruled out (value -inf), and a
     frame left without a candidate gets the reason :data:`.bone_point.OFF_POINT`
     (``reason`` and ``detail`` are changed in place, frames without a reason only).
-    Each candidate near a point is worth more than any track could gain or lose
-    elsewhere in the forward pass, so the track is the best of those through the most
-    of them; the values returned (and so the confidences) are the plain ones. The lane
-    rule is not applied: the user said which bone. Points with no candidate near them
-    are left out (:func:`.bone_point.point_marks`); with none left, this is
-    :func:`central_track`.
+    Points with no candidate near them are left out (:func:`.bone_point.point_marks`);
+    with none left, this is :func:`central_track`.
+
+    The track the points ask for:
+
+    * :func:`central_track`'s own where it agrees with them (through a candidate near
+      a point, through none they rule out), unless the track through them (below) is
+      that track and more frames: a point on the bone the default track follows
+      changes nothing. The points say which bone; elsewhere the default's rules know
+      best, and without them a track through the points crossed to the other bone
+      away from them (hard radius seed 127 at the cadaver's geometry, the ulna 18 mm
+      beside, a point in frame 20: the track crossed to the ulna in its last 3
+      frames, recall 1.00 -> 0.93; ``Testing/benchmarks/README.md``);
+    * otherwise the best track through the most candidates near a point: each is
+      worth more than any track could gain or lose elsewhere in the forward pass.
+      It is kept to the pointed bone as the default track is kept to the one in the
+      middle: :func:`_nearer_point` (the bone swept lies where the points are in the
+      image, which may be off its middle), then :func:`_one_lane` with the stretch
+      through the points as the bone swept (and a stretch in another lane dropped
+      even where nothing replaces it, down to ``lane_frames`` of the track: the user
+      said which bone). :func:`_nearer_middle` is not applied.
+
+    The values returned (and so the confidences) are the plain ones, ruled-out nodes
+    -inf.
     """
     mark, off = point_marks(frames, poses, nodes, p)
     if not (mark > 0).any():
@@ -801,9 +837,103 @@ def pointed_track(
     # at most max_deviation tolerances long, skips) over all frames with nodes.
     per_frame = p.strength_cap + p.max_deviation**2 + p.miss_cost * (p.max_skip + 1)
     bonus = 1.0 + per_frame * len({f for f, _ in nodes})
-    out = forward(np.where(mark > 0, ruled + bonus, ruled))
-    need = _need(nodes, p)
-    return ruled, out, _path(out[0], out[1], need)
+    boosted = np.where(mark > 0, ruled + bonus, ruled)
+    out = forward(boosted)
+    path = _path(out[0], out[1], _need(nodes, p))
+    # The default track, where it agrees with the points (through a candidate near one,
+    # through none they rule out), unless the track through them is that track and more.
+    plain_value, plain_out, plain_path = central_track(frames, nodes, value, forward, p)
+    if plain_path is None:
+        plain_path = _path(plain_out[0], plain_out[1], _need(nodes, p))
+    agrees = (mark[plain_path] > 0).any() and not (mark[plain_path] < 0).any()
+    if agrees and not set(plain_path) < set(path):
+        return plain_value, plain_out, plain_path
+    if not path:
+        return ruled, out, path
+    boosted, out, path = _nearer_point(
+        frames, nodes, boosted, out, path, forward, p, pointed=mark > 0, plain=ruled
+    )
+    if not p.one_lane:
+        return np.where(np.isneginf(boosted), -np.inf, ruled), out, path
+    kept, out, path = _one_lane(
+        frames, nodes, boosted, out, path, forward, p, pointed=mark > 0, plain=ruled
+    )
+    return np.where(np.isneginf(kept), -np.inf, ruled), out, path
+
+
+def _mid_column(frames: Sequence[FrameCandidates], node: tuple[int, int]) -> float:
+    """The lateral middle (image column) of a node's contour core."""
+    lo, hi = _span(frames, node)
+    return 0.5 * (lo + hi)
+
+
+def _nearer_point(
+    frames: Sequence[FrameCandidates],
+    nodes: list[tuple[int, int]],
+    value: np.ndarray,
+    out: Pass,
+    path: list[int],
+    forward: Forward,
+    p: RejectionParams,
+    *,
+    pointed: np.ndarray,
+    plain: np.ndarray,
+) -> Choice:
+    """:func:`_nearer_middle` for a track through the user's bone points
+    (:func:`pointed_track`): the bone swept lies where the points are in the image,
+    not necessarily in its middle.
+
+    ``value`` carries the points' bonus, ``plain`` not; ``pointed`` (bool per node):
+    the nodes near a point. The reference column is the median lateral middle of the
+    track's contours near a point. Where contours of the track lie farther than
+    ``lane_offcentre`` of the half-width from it (the operator keeps the bone swept
+    where it is in the image, as :func:`_nearer_middle` reads the middle), the track
+    is chosen again without the nodes over their columns (:func:`_in_lane`; never
+    those near a point nor those over the columns of the track's contours near the
+    reference), and that one is taken if it passes through as many nodes near a
+    point, lies at least ``lane_gain`` nearer the reference on median over its
+    frames, has a contour in at least ``lane_frames`` of the frames whose contours
+    were away (the bone is replaced there, not dropped: a bone drifting across the
+    image has nothing else in its lane) and carries at least ``lane_value`` of the
+    first's plain value: :func:`_nearer_middle`'s conditions with the reference at the
+    points. Two bones that touch (radius and ulna 14 mm apart) share columns, so
+    :func:`_one_lane` sees no change of lane where the track crosses between them:
+    hard radius seed 4 (320 x 256 at 0.16 mm, 20 frames) with a point in frame 15
+    followed the ulna in frames 0-13 (recall 0.30, wrong 0.70; 0.70 and 0 without the
+    point, 1.00 and 0 with it now).
+    """
+    on = sorted(path, key=lambda k: nodes[k][0])
+    at = [k for k in on if pointed[k]]
+    half = []
+    for k in on:
+        fov = frames[nodes[k][0]].fov_px
+        if fov is not None and fov[1] > fov[0]:
+            half.append(0.5 * (fov[1] - fov[0]))
+    if not at or not half or p.lane_offcentre >= 1.0:
+        return value, out, path
+    h = float(np.median(half))
+    ref = float(np.median([_mid_column(frames, nodes[k]) for k in at]))
+    u = {k: abs(_mid_column(frames, nodes[k]) - ref) / h for k in on}
+    away = [k for k in on if u[k] > p.lane_offcentre and not pointed[k]]
+    if not away:
+        return value, out, path
+    near = [k for k in on if k not in set(away)]
+    ruled = _in_lane(frames, nodes, away) & ~_in_lane(frames, nodes, near) & ~pointed
+    other = np.where(ruled, -np.inf, value)
+    alt = forward(other)
+    path2 = _path(alt[0], alt[1], _need(nodes, p))
+    away_f = {nodes[k][0] for k in away}
+    u2 = [abs(_mid_column(frames, nodes[k]) - ref) / h for k in path2]
+    if (
+        path2
+        and int(pointed[path2].sum()) >= int(pointed[path].sum())
+        and float(np.median(u2)) <= float(np.median(list(u.values()))) - p.lane_gain
+        and len([k for k in path2 if nodes[k][0] in away_f]) >= p.lane_frames * len(away_f)
+        and float(np.where(ruled, -np.inf, plain)[path2].sum())
+        >= p.lane_value * float(plain[path].sum())
+    ):
+        return other, alt, path2
+    return value, out, path
 
 
 def _finish(
