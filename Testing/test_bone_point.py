@@ -65,6 +65,23 @@ def test_frames_of_the_point_without_a_contour_near_it_are_rejected():
     assert np.flatnonzero(choice.chosen >= 0).tolist() == [k for k in range(12) if k not in (5, 6)]
 
 
+def test_a_point_whose_frames_miss_its_bone_is_taken_to_the_nearest_frames_showing_it():
+    # The pointed bone (10-60) is missed in frames 3-9, all the frames of a point in
+    # frame 6 (within 5 mm): the nearest frames beyond them showing it near the point
+    # (2 and 10, 5.6 mm away) stand for them, so the track follows that bone, not the
+    # stronger one in the middle, and the point's own frames say why they are empty.
+    frames, poses = make_lanes(
+        12, [(10, 60, 8.0, set(range(12)) - set(range(3, 10))), (80, 120, 12.0, None)]
+    )
+    choice = both_solvers(frames, poses, RejectionParams(bone_points=(_at(35, 6),)))
+    assert _lanes(frames, choice.chosen) == [10.0] * 3 + [None] * 7 + [10.0] * 2
+    assert choice.reason[3:10] == [OFF_POINT] * 7
+    # Farther than the bone's drift allows (point_contour_mm / tolerance_per_mm past
+    # the point's frames: 0.3 mm at 10 mm per mm) nothing stands for them: left out.
+    far = RejectionParams(bone_points=(_at(35, 6),), tolerance_per_mm=10.0)
+    assert lane_of(frames, both_solvers(frames, poses, far).chosen) == {80.0}
+
+
 def test_a_point_with_no_contour_near_it_is_left_out():
     # A point in the tissue between the two bones (columns 60-80, 5 mm from either's
     # end, 2 mm under them): the track is the one chosen without it.
@@ -174,6 +191,19 @@ def test_a_bone_swept_off_centre_is_kept_with_a_point_on_it(seed):
     # pieces over a fascia crossing it: within 1 mm of it, 12 mm from the ulna).
     assert nb <= 1.0 and bone >= 8.0
     bone, nb, n = on_bones(sim, sw, segment_sweep(sw, _with_points([bone_top(sim, sw, 6, shift)])))
+    assert bone <= 0.3 and nb >= 8.0 and n >= 8, (bone, nb, n)
+
+
+@pytest.mark.parametrize(("seed", "frame"), [(2, 10), (5, 9)])
+def test_a_point_near_the_end_of_an_off_centre_sweep_is_followed(seed, frame):
+    # The ulna's faint top, 6-7 mm deep near the sweep's end, is no candidate in the
+    # point's frames (only its far cortex, 11 mm under the point): the point used to be
+    # left out and the track followed the radius in the middle. The nearest frame
+    # showing the top near the point stands for them.
+    sim = forearm("hard", seed, width=224)
+    sw, shift = off_centre(sim)
+    got = segment_sweep(sw, _with_points([bone_top(sim, sw, frame, shift)]))
+    bone, nb, n = on_bones(sim, sw, got)
     assert bone <= 0.3 and nb >= 8.0 and n >= 8, (bone, nb, n)
 
 
