@@ -655,10 +655,12 @@ def _one_lane(
     ``pointed`` (bool per node, :func:`pointed_track`): the nodes near the user's bone
     points. The stretch on the bone swept is then the one through the most of them
     (the user said which bone), they are never ruled out, the track chosen again
-    must pass through as many, and it need only link ``lane_frames`` of the first's
-    frames (a stretch off the pointed bone is dropped even where nothing replaces
-    it). ``plain``: the node values the value condition compares (``value`` carries
-    the points' bonus); None: ``value``.
+    must pass through as many; instead of linking as many frames it need only have a
+    contour in ``lane_frames`` of the frames of the stretches off the bone swept (a
+    stretch on the other bone is replaced where the pointed one shows, not kept for
+    want of as many frames; a bone showing one part of its top then another has
+    nothing else there, and stays). ``plain``: the node values the value condition
+    compares (``value`` carries the points' bonus); None: ``value``.
     """
     on = sorted(path, key=lambda k: nodes[k][0])
     spans = [_span(frames, nodes[k]) for k in on]
@@ -700,7 +702,11 @@ def _one_lane(
     moved = {nodes[k][0] for st in stretches if st is not main for k in st}
     worth = value if plain is None else plain
     if (
-        len(path2) >= (len(path) if pointed is None else p.lane_frames * len(path))
+        (
+            len(path2) >= len(path)
+            if pointed is None
+            else len({nodes[k][0] for k in path2} & moved) >= p.lane_frames * len(moved)
+        )
         and all(_reaches(frames, nodes[k], main_spans) for k in path2 if nodes[k][0] in moved)
         and float(np.where(ruled, -np.inf, worth)[path2].sum())
         >= p.lane_value * float(worth[path].sum())
@@ -819,9 +825,10 @@ def pointed_track(
       It is kept to the pointed bone as the default track is kept to the one in the
       middle: :func:`_nearer_point` (the bone swept lies where the points are in the
       image, which may be off its middle), then :func:`_one_lane` with the stretch
-      through the points as the bone swept (and a stretch in another lane dropped
-      even where nothing replaces it, down to ``lane_frames`` of the track: the user
-      said which bone). :func:`_nearer_middle` is not applied.
+      through the points as the bone swept (a stretch in another lane replaced
+      where the pointed bone shows in ``lane_frames`` of its frames, even if the
+      track links fewer frames: the user said which bone). :func:`_nearer_middle` is
+      not applied.
 
     The values returned (and so the confidences) are the plain ones, ruled-out nodes
     -inf.
@@ -851,7 +858,16 @@ def pointed_track(
     if not path:
         return ruled, out, path
     boosted, out, path = _nearer_point(
-        frames, nodes, boosted, out, path, forward, p, pointed=mark > 0, plain=ruled
+        frames,
+        nodes,
+        boosted,
+        out,
+        path,
+        forward,
+        p,
+        pointed=mark > 0,
+        plain=ruled,
+        column=_point_column(frames, poses, nodes, [k for k in path if mark[k] > 0], p),
     )
     if not p.one_lane:
         return np.where(np.isneginf(boosted), -np.inf, ruled), out, path
@@ -859,6 +875,26 @@ def pointed_track(
         frames, nodes, boosted, out, path, forward, p, pointed=mark > 0, plain=ruled
     )
     return np.where(np.isneginf(kept), -np.inf, ruled), out, path
+
+
+def _point_column(
+    frames: Sequence[FrameCandidates],
+    poses: np.ndarray,
+    nodes: list[tuple[int, int]],
+    at: list[int],
+    p: RejectionParams,
+) -> float | None:
+    """The image column of the bone points, on median over the frames of the nodes
+    ``at`` (in each, the point nearest its plane, projected into it); None if none."""
+    pts = np.asarray(p.bone_points, dtype=float).reshape(-1, 3)
+    cols = []
+    for k in at:
+        f = nodes[k][0]
+        origin, axes, normal = frame_planes(np.asarray(poses[f], dtype=float)[None])
+        rel = pts - origin[0]
+        q = int(np.argmin(np.abs(rel @ normal[0])))
+        cols.append(float(rel[q] @ axes[0][:, 0]) / float(frames[f].spacing[0]))
+    return float(np.median(cols)) if cols else None
 
 
 def _mid_column(frames: Sequence[FrameCandidates], node: tuple[int, int]) -> float:
@@ -878,19 +914,21 @@ def _nearer_point(
     *,
     pointed: np.ndarray,
     plain: np.ndarray,
+    column: float | None,
 ) -> Choice:
     """:func:`_nearer_middle` for a track through the user's bone points
     (:func:`pointed_track`): the bone swept lies where the points are in the image,
     not necessarily in its middle.
 
     ``value`` carries the points' bonus, ``plain`` not; ``pointed`` (bool per node):
-    the nodes near a point. The reference column is the median lateral middle of the
-    track's contours near a point. Where contours of the track lie farther than
-    ``lane_offcentre`` of the half-width from it (the operator keeps the bone swept
-    where it is in the image, as :func:`_nearer_middle` reads the middle), the track
-    is chosen again without the nodes over their columns (:func:`_in_lane`; never
-    those near a point nor those over the columns of the track's contours near the
-    reference), and that one is taken if it passes through as many nodes near a
+    the nodes near a point; ``column``: the reference, the points' image column in
+    the frames of the track's nodes near them (:func:`_point_column`; the point's,
+    not its contour's: a contour near the point may run along a fascia over both
+    bones). Where contours of the track lie farther than ``lane_offcentre`` of the
+    half-width from it (the operator keeps the bone swept where it is in the image,
+    as :func:`_nearer_middle` reads the middle), the track is chosen again without
+    the nodes over their columns (:func:`_in_lane`; never those near a point), and
+    that one is taken if it passes through as many nodes near a
     point, lies at least ``lane_gain`` nearer the reference on median over its
     frames, has a contour in at least ``lane_frames`` of the frames whose contours
     were away (the bone is replaced there, not dropped: a bone drifting across the
@@ -903,22 +941,19 @@ def _nearer_point(
     point, 1.00 and 0 with it now).
     """
     on = sorted(path, key=lambda k: nodes[k][0])
-    at = [k for k in on if pointed[k]]
     half = []
     for k in on:
         fov = frames[nodes[k][0]].fov_px
         if fov is not None and fov[1] > fov[0]:
             half.append(0.5 * (fov[1] - fov[0]))
-    if not at or not half or p.lane_offcentre >= 1.0:
+    if column is None or not half or p.lane_offcentre >= 1.0:
         return value, out, path
-    h = float(np.median(half))
-    ref = float(np.median([_mid_column(frames, nodes[k]) for k in at]))
+    h, ref = float(np.median(half)), column
     u = {k: abs(_mid_column(frames, nodes[k]) - ref) / h for k in on}
     away = [k for k in on if u[k] > p.lane_offcentre and not pointed[k]]
     if not away:
         return value, out, path
-    near = [k for k in on if k not in set(away)]
-    ruled = _in_lane(frames, nodes, away) & ~_in_lane(frames, nodes, near) & ~pointed
+    ruled = _in_lane(frames, nodes, away) & ~pointed
     other = np.where(ruled, -np.inf, value)
     alt = forward(other)
     path2 = _path(alt[0], alt[1], _need(nodes, p))
