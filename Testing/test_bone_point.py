@@ -18,6 +18,9 @@ from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.bone_point import OFF_POINT
 from BoneUSRecon.Logic.segmentation.params import RejectionParams, SegmentationParams
 from BoneUSRecon.Logic.sequence_io import write_sweep
+from BoneUSRecon.Logic.simulation import SimulationParams, simulate
+from BoneUSRecon.Logic.simulation.scoring import score_simulation
+from BoneUSRecon.Logic.sweep import pixels_to_reference
 
 
 def _at(column: float, frame: int) -> tuple[float, float, float]:
@@ -65,6 +68,23 @@ def test_frames_of_the_point_without_a_contour_near_it_are_rejected():
     assert np.flatnonzero(choice.chosen >= 0).tolist() == [k for k in range(12) if k not in (5, 6)]
 
 
+def test_a_point_whose_frames_miss_its_bone_is_taken_to_the_nearest_frames_showing_it():
+    # The pointed bone (10-60) is missed in frames 3-9, all the frames of a point in
+    # frame 6 (within 5 mm): the nearest frames beyond them showing it near the point
+    # (2 and 10, 5.6 mm away) stand for them, so the track follows that bone, not the
+    # stronger one in the middle, and the point's own frames say why they are empty.
+    frames, poses = make_lanes(
+        12, [(10, 60, 8.0, set(range(12)) - set(range(3, 10))), (80, 120, 12.0, None)]
+    )
+    choice = both_solvers(frames, poses, RejectionParams(bone_points=(_at(35, 6),)))
+    assert _lanes(frames, choice.chosen) == [10.0] * 3 + [None] * 7 + [10.0] * 2
+    assert choice.reason[3:10] == [OFF_POINT] * 7
+    # Farther than the bone's drift allows (point_contour_mm / tolerance_per_mm past
+    # the point's frames: 0.3 mm at 10 mm per mm) nothing stands for them: left out.
+    far = RejectionParams(bone_points=(_at(35, 6),), tolerance_per_mm=10.0)
+    assert lane_of(frames, both_solvers(frames, poses, far).chosen) == {80.0}
+
+
 def test_a_point_with_no_contour_near_it_is_left_out():
     # A point in the tissue between the two bones (columns 60-80, 5 mm from either's
     # end, 2 mm under them): the track is the one chosen without it.
@@ -74,6 +94,59 @@ def test_a_point_with_no_contour_near_it_is_left_out():
     choice = both_solvers(frames, poses, left_out)
     np.testing.assert_array_equal(choice.chosen, default.chosen)
     assert OFF_POINT not in choice.reason
+
+
+def _lanes(frames, chosen) -> list[float | None]:
+    """First column of each frame's chosen candidate (None: off the track)."""
+    return [
+        float(frames[k].candidates[c].points_px[0, 0]) if c >= 0 else None
+        for k, c in enumerate(chosen)
+    ]
+
+
+# The bone in the middle (80-120) over 12 frames, weak in the last four; in frame 8 a
+# contour over both bones (a fascia joining them at their level) and a stronger bone
+# beside in the last three (test_segmentation_lanes: the lane rule keeps the middle one).
+CROSSING = [
+    (80, 120, 8.0, set(range(8))),
+    (80, 120, 2.0, {8, 9, 10, 11}),
+    (50, 110, 12.0, {8}),
+    (20, 70, 10.0, {9, 10, 11}),
+]
+
+
+def test_a_point_on_the_bone_the_track_follows_changes_nothing():
+    # A point on the middle bone in frame 3 (frames 0-6 are its): the track through it
+    # used to skip the lane rule and crossed to the bone beside in frames 9-11 (hard
+    # radius seed 127 at the cadaver's geometry: recall 1.00 -> 0.93 with the point).
+    frames, poses = make_lanes(12, CROSSING)
+    default = both_solvers(frames, poses, RejectionParams())
+    assert _lanes(frames, default.chosen)[9:] == [80.0] * 3
+    choice = both_solvers(frames, poses, RejectionParams(bone_points=(_at(100, 3),)))
+    np.testing.assert_array_equal(choice.chosen, default.chosen)
+    np.testing.assert_array_equal(choice.confidence, default.confidence)
+
+
+def test_the_track_through_a_point_is_kept_to_the_pointed_bone():
+    # The pointed bone off-centre (10-60), weak in frames 8-11; a contour joining it to
+    # the bone in the middle (80-120) in frame 8, that bone stronger in 9-11. Without a
+    # point the lane rule takes the middle bone; with one on the side bone in frame 3
+    # the track follows it in every frame, not crossing over the joining contour.
+    frames, poses = make_lanes(
+        12,
+        [
+            (10, 60, 8.0, set(range(8))),
+            (10, 60, 2.0, {8, 9, 10, 11}),
+            (40, 110, 12.0, {8}),
+            (80, 120, 10.0, set(range(12)) - {8}),
+        ],
+    )
+    assert _lanes(frames, both_solvers(frames, poses, RejectionParams()).chosen)[:8] == [80.0] * 8
+    pointed = RejectionParams(bone_points=(_at(35, 3),))
+    assert _lanes(frames, both_solvers(frames, poses, pointed).chosen) == [10.0] * 12
+    # The lane rule off: the track through the point crosses over (what the rule stops).
+    crossing = dataclasses.replace(pointed, one_lane=False)
+    assert _lanes(frames, both_solvers(frames, poses, crossing).chosen)[9:] == [80.0] * 3
 
 
 @pytest.mark.parametrize(
@@ -122,6 +195,45 @@ def test_a_bone_swept_off_centre_is_kept_with_a_point_on_it(seed):
     assert nb <= 1.0 and bone >= 8.0
     bone, nb, n = on_bones(sim, sw, segment_sweep(sw, _with_points([bone_top(sim, sw, 6, shift)])))
     assert bone <= 0.3 and nb >= 8.0 and n >= 8, (bone, nb, n)
+
+
+@pytest.mark.parametrize(("seed", "frame"), [(2, 10), (5, 9)])
+def test_a_point_near_the_end_of_an_off_centre_sweep_is_followed(seed, frame):
+    # The ulna's faint top, 6-7 mm deep near the sweep's end, is no candidate in the
+    # point's frames (only its far cortex, 11 mm under the point): the point used to be
+    # left out and the track followed the radius in the middle. The nearest frame
+    # showing the top near the point stands for them.
+    sim = forearm("hard", seed, width=224)
+    sw, shift = off_centre(sim)
+    got = segment_sweep(sw, _with_points([bone_top(sim, sw, frame, shift)]))
+    bone, nb, n = on_bones(sim, sw, got)
+    assert bone <= 0.3 and nb >= 8.0 and n >= 8, (bone, nb, n)
+
+
+@pytest.mark.parametrize(("seed", "frame"), [(4, 15), (1, 5)])
+def test_a_point_on_the_swept_bone_of_two_that_touch_is_no_worse(seed, frame):
+    # The radius swept, the ulna 14 mm beside it (their flanks touch: they share
+    # columns), a point on the radius's top. The track through the point used to cross
+    # to the ulna away from it (s4: recall 0.70 -> 0.30, wrong 0 -> 0.70; s1: 0.95 ->
+    # 0.55, wrong 0.40); now it is kept to the radius.
+    sim = simulate(
+        SimulationParams(
+            bone="radius",
+            neighbour_mm=14.0,
+            n_frames=20,
+            width=320,
+            height=256,
+            spacing_mm=0.16,
+            realism="hard",
+            seed=seed,
+        )
+    )
+    sw = sim.sweep
+    top = sim.true_contours_px[frame]
+    point = pixels_to_reference(sw.image_to_reference[frame], top[len(top) // 2][None])[0]
+    plain = score_simulation(segment_sweep(sw), sim).summary()
+    pointed = score_simulation(segment_sweep(sw, _with_points([point])), sim).summary()
+    assert pointed["recall"] >= plain["recall"] and pointed["wrong_share"] == 0.0, pointed
 
 
 def test_the_incremental_solver_follows_the_point_as_the_batch_one():

@@ -16,7 +16,14 @@ pixels into): ``RejectionParams.bone_points``.
 * The track must pass through the allowed candidates: the track is chosen as the best
   over those through the most of them (:func:`.track.pointed_track`), and the lane
   rule does not second-guess it.
-* A point with no candidate near it in any of its frames (the bone missed there, or
+* A point with no candidate near it in any of its frames is taken to the nearest
+  frame before them and the nearest after them that has one, up to the track's
+  reach and as far along the sweep as the bone's top may drift by at most
+  ``point_contour_mm`` (:func:`_frames_beyond`): those frames are the point's too.
+  A bone's faint top may be no candidate in a few frames while its far cortex, 10 mm
+  under it, is (small off-centre forearm sweeps near their end, where the bone lies
+  6-7 mm deep): the point was left out and the track followed the other bone.
+* A point with no candidate near it in any of those frames (the bone missed there, or
   the point placed off it) is left out, and the track chosen as without it:
   :func:`point_warnings` says so in the segmentation's summary. Refusing the whole
   sweep would lose a surface the default rules may well get right; following the
@@ -169,6 +176,51 @@ def _contour_distance(fc: FrameCandidates, c: int, lateral: float, depth: float)
     return float(np.sqrt((d * d).sum(axis=1).min()))
 
 
+def _frames_beyond(
+    frames: Sequence[FrameCandidates],
+    nodes: Sequence[tuple[int, int]],
+    lateral: np.ndarray,
+    depth: np.ndarray,
+    z: np.ndarray,
+    q: int,
+    near_plane: np.ndarray,
+    params: RejectionParams,
+) -> list[int]:
+    """For a point none of whose frames has a candidate near it: the nearest frame
+    before them and the nearest after them that has one (none, one or two frames).
+
+    A frame is looked for up to ``max_skip + 1`` frames beyond the point's (the track's
+    own reach), whose plane lies within ``point_plane_mm + point_contour_mm /
+    tolerance_per_mm`` of the point: past its frames the bone's top drifts in plane by
+    up to ``tolerance_per_mm`` per mm along the sweep (the track's link tolerance), so
+    a contour still within ``point_contour_mm`` of the point that far is on the bone
+    the point is on (12.5 mm with the defaults).
+    """
+    p = params
+    reach_mm = (
+        p.point_plane_mm + p.point_contour_mm / p.tolerance_per_mm
+        if p.tolerance_per_mm > 0
+        else np.inf
+    )
+    own = np.flatnonzero(near_plane[:, q])
+    by_frame: dict[int, list[int]] = {}
+    for f, c in nodes:
+        by_frame.setdefault(f, []).append(c)
+    out = []
+    for side in (
+        range(int(own[0]) - 1, max(-1, int(own[0]) - p.max_skip - 2), -1),
+        range(int(own[-1]) + 1, min(z.shape[0], int(own[-1]) + p.max_skip + 2)),
+    ):
+        for f in side:
+            if z[f, q] > reach_mm or f not in by_frame:
+                continue
+            d = [_contour_distance(frames[f], c, lateral[f, q], depth[f, q]) for c in by_frame[f]]
+            if min(d) <= p.point_contour_mm:
+                out.append(f)
+                break
+    return out
+
+
 def point_marks(
     frames: Sequence[FrameCandidates],
     poses: np.ndarray,
@@ -190,8 +242,10 @@ def point_marks(
     mark : ndarray of int8, shape (len(nodes),)
         1: a candidate near a point, in its frame (the track is to pass through such
         nodes); -1: another candidate of such a frame (ruled out); 0: the points say
-        nothing of it. Points with no candidate near them in any of their frames are
-        left out (all 0: the track as without them).
+        nothing of it. A point with no candidate near it in any of its frames has
+        the nearest frames beyond them that have one (:func:`_frames_beyond`) as
+        frames too; points with none even there are left out (all 0: the track as
+        without them).
     off : dict of int to (str, str)
         Frames of a point kept in which no candidate is near it: :data:`OFF_POINT`
         and the distance of the nearest one.
@@ -206,6 +260,12 @@ def point_marks(
     for k, (f, c) in enumerate(nodes):
         for q in np.flatnonzero(near_plane[f]).tolist():
             dist[k, q] = _contour_distance(frames[f], c, lateral[f, q], depth[f, q])
+    near = dist <= params.point_contour_mm
+    for q in np.flatnonzero(~near.any(axis=0) & near_plane.any(axis=0)).tolist():
+        for f in _frames_beyond(frames, nodes, lateral, depth, z, q, near_plane, params):
+            near_plane[f, q] = True
+            for k in (k for k, (g, _) in enumerate(nodes) if g == f):
+                dist[k, q] = _contour_distance(frames[f], nodes[k][1], lateral[f, q], depth[f, q])
     near = dist <= params.point_contour_mm
     kept = near.any(axis=0)  # the points with a candidate near them somewhere
     if not kept.any():

@@ -621,6 +621,9 @@ def _one_lane(
     path: list[int],
     forward: Forward,
     p: RejectionParams,
+    *,
+    pointed: np.ndarray | None = None,
+    plain: np.ndarray | None = None,
 ) -> Choice:
     """:func:`central_track`'s second step (``one_lane``), keeping the track to one
     bone: where it changes lanes (two of its contours two frames apart share no
@@ -648,6 +651,16 @@ def _one_lane(
     Measured on two-bone sweeps (radius and ulna, hard, seeds 1-8, 320 x 256 at 0.16
     mm, the other bone 14, 18 or 24 mm beside): see ``Testing/benchmarks/README.md``,
     "Session 32 (lead)".
+
+    ``pointed`` (bool per node, :func:`pointed_track`): the nodes near the user's bone
+    points. The stretch on the bone swept is then the one through the most of them
+    (the user said which bone), they are never ruled out, the track chosen again
+    must pass through as many; instead of linking as many frames it need only have a
+    contour in ``lane_frames`` of the frames of the stretches off the bone swept (a
+    stretch on the other bone is replaced where the pointed one shows, not kept for
+    want of as many frames; a bone showing one part of its top then another has
+    nothing else there, and stays). ``plain``: the node values the value condition
+    compares (``value`` carries the points' bonus); None: ``value``.
     """
     on = sorted(path, key=lambda k: nodes[k][0])
     spans = [_span(frames, nodes[k]) for k in on]
@@ -668,7 +681,9 @@ def _one_lane(
     # The stretch on the bone swept: the one nearest the middle of the field of view
     # (as :func:`_nearer_middle` judges), the longest where that is not known.
     u = [_offcentre(frames, nodes, st) for st in stretches]
-    if all(v is not None for v in u):
+    if pointed is not None:
+        main = max(stretches, key=lambda st: (int(pointed[st].sum()), len(st)))
+    elif all(v is not None for v in u):
         main = stretches[int(np.argmin(u))]
     else:
         main = max(stretches, key=len)
@@ -679,14 +694,23 @@ def _one_lane(
         if st is not main and st:
             ruled |= _in_lane(frames, nodes, st)
     ruled &= ~_in_lane(frames, nodes, main)
+    if pointed is not None:
+        ruled &= ~pointed
     other = np.where(ruled, -np.inf, value)
     alt = forward(other)
     path2 = _path(alt[0], alt[1], _need(nodes, p))
     moved = {nodes[k][0] for st in stretches if st is not main for k in st}
+    worth = value if plain is None else plain
     if (
-        len(path2) >= len(path)
+        (
+            len(path2) >= len(path)
+            if pointed is None
+            else len({nodes[k][0] for k in path2} & moved) >= p.lane_frames * len(moved)
+        )
         and all(_reaches(frames, nodes[k], main_spans) for k in path2 if nodes[k][0] in moved)
-        and float(other[path2].sum()) >= p.lane_value * float(value[path].sum())
+        and float(np.where(ruled, -np.inf, worth)[path2].sum())
+        >= p.lane_value * float(worth[path].sum())
+        and (pointed is None or int(pointed[path2].sum()) >= int(pointed[path].sum()))
     ):
         return other, alt, path2
     return value, out, path
@@ -783,12 +807,31 @@ def pointed_track(
     In a point's frames the candidates away from it are ruled out (value -inf), and a
     frame left without a candidate gets the reason :data:`.bone_point.OFF_POINT`
     (``reason`` and ``detail`` are changed in place, frames without a reason only).
-    Each candidate near a point is worth more than any track could gain or lose
-    elsewhere in the forward pass, so the track is the best of those through the most
-    of them; the values returned (and so the confidences) are the plain ones. The lane
-    rule is not applied: the user said which bone. Points with no candidate near them
-    are left out (:func:`.bone_point.point_marks`); with none left, this is
-    :func:`central_track`.
+    Points with no candidate near them are left out (:func:`.bone_point.point_marks`);
+    with none left, this is :func:`central_track`.
+
+    The track the points ask for:
+
+    * :func:`central_track`'s own where it agrees with them (through a candidate near
+      a point, through none they rule out), unless the track through them (below) is
+      that track and more frames: a point on the bone the default track follows
+      changes nothing. The points say which bone; elsewhere the default's rules know
+      best, and without them a track through the points crossed to the other bone
+      away from them (hard radius seed 127 at the cadaver's geometry, the ulna 18 mm
+      beside, a point in frame 20: the track crossed to the ulna in its last 3
+      frames, recall 1.00 -> 0.93; ``Testing/benchmarks/README.md``);
+    * otherwise the best track through the most candidates near a point: each is
+      worth more than any track could gain or lose elsewhere in the forward pass.
+      It is kept to the pointed bone as the default track is kept to the one in the
+      middle: :func:`_nearer_point` (the bone swept lies where the points are in the
+      image, which may be off its middle), then :func:`_one_lane` with the stretch
+      through the points as the bone swept (a stretch in another lane replaced
+      where the pointed bone shows in ``lane_frames`` of its frames, even if the
+      track links fewer frames: the user said which bone). :func:`_nearer_middle` is
+      not applied.
+
+    The values returned (and so the confidences) are the plain ones, ruled-out nodes
+    -inf.
     """
     mark, off = point_marks(frames, poses, nodes, p)
     if not (mark > 0).any():
@@ -801,9 +844,131 @@ def pointed_track(
     # at most max_deviation tolerances long, skips) over all frames with nodes.
     per_frame = p.strength_cap + p.max_deviation**2 + p.miss_cost * (p.max_skip + 1)
     bonus = 1.0 + per_frame * len({f for f, _ in nodes})
-    out = forward(np.where(mark > 0, ruled + bonus, ruled))
-    need = _need(nodes, p)
-    return ruled, out, _path(out[0], out[1], need)
+    boosted = np.where(mark > 0, ruled + bonus, ruled)
+    out = forward(boosted)
+    path = _path(out[0], out[1], _need(nodes, p))
+    # The default track, where it agrees with the points (through a candidate near one,
+    # through none they rule out), unless the track through them is that track and more.
+    plain_value, plain_out, plain_path = central_track(frames, nodes, value, forward, p)
+    if plain_path is None:
+        plain_path = _path(plain_out[0], plain_out[1], _need(nodes, p))
+    agrees = (mark[plain_path] > 0).any() and not (mark[plain_path] < 0).any()
+    if agrees and not set(plain_path) < set(path):
+        return plain_value, plain_out, plain_path
+    if not path:
+        return ruled, out, path
+    boosted, out, path = _nearer_point(
+        frames,
+        nodes,
+        boosted,
+        out,
+        path,
+        forward,
+        p,
+        pointed=mark > 0,
+        plain=ruled,
+        column=_point_column(frames, poses, nodes, [k for k in path if mark[k] > 0], p),
+    )
+    if not p.one_lane:
+        return np.where(np.isneginf(boosted), -np.inf, ruled), out, path
+    kept, out, path = _one_lane(
+        frames, nodes, boosted, out, path, forward, p, pointed=mark > 0, plain=ruled
+    )
+    return np.where(np.isneginf(kept), -np.inf, ruled), out, path
+
+
+def _point_column(
+    frames: Sequence[FrameCandidates],
+    poses: np.ndarray,
+    nodes: list[tuple[int, int]],
+    at: list[int],
+    p: RejectionParams,
+) -> float | None:
+    """The image column of the bone points, on median over the frames of the nodes
+    ``at`` (in each, the point nearest its plane, projected into it); None if none."""
+    pts = np.asarray(p.bone_points, dtype=float).reshape(-1, 3)
+    cols = []
+    for k in at:
+        f = nodes[k][0]
+        origin, axes, normal = frame_planes(np.asarray(poses[f], dtype=float)[None])
+        rel = pts - origin[0]
+        q = int(np.argmin(np.abs(rel @ normal[0])))
+        cols.append(float(rel[q] @ axes[0][:, 0]) / float(frames[f].spacing[0]))
+    return float(np.median(cols)) if cols else None
+
+
+def _mid_column(frames: Sequence[FrameCandidates], node: tuple[int, int]) -> float:
+    """The lateral middle (image column) of a node's contour core."""
+    lo, hi = _span(frames, node)
+    return 0.5 * (lo + hi)
+
+
+def _nearer_point(
+    frames: Sequence[FrameCandidates],
+    nodes: list[tuple[int, int]],
+    value: np.ndarray,
+    out: Pass,
+    path: list[int],
+    forward: Forward,
+    p: RejectionParams,
+    *,
+    pointed: np.ndarray,
+    plain: np.ndarray,
+    column: float | None,
+) -> Choice:
+    """:func:`_nearer_middle` for a track through the user's bone points
+    (:func:`pointed_track`): the bone swept lies where the points are in the image,
+    not necessarily in its middle.
+
+    ``value`` carries the points' bonus, ``plain`` not; ``pointed`` (bool per node):
+    the nodes near a point; ``column``: the reference, the points' image column in
+    the frames of the track's nodes near them (:func:`_point_column`; the point's,
+    not its contour's: a contour near the point may run along a fascia over both
+    bones). Where contours of the track lie farther than ``lane_offcentre`` of the
+    half-width from it (the operator keeps the bone swept where it is in the image,
+    as :func:`_nearer_middle` reads the middle), the track is chosen again without
+    the nodes over their columns (:func:`_in_lane`; never those near a point), and
+    that one is taken if it passes through as many nodes near a
+    point, lies at least ``lane_gain`` nearer the reference on median over its
+    frames, has a contour in at least ``lane_frames`` of the frames whose contours
+    were away (the bone is replaced there, not dropped: a bone drifting across the
+    image has nothing else in its lane) and carries at least ``lane_value`` of the
+    first's plain value: :func:`_nearer_middle`'s conditions with the reference at the
+    points. Two bones that touch (radius and ulna 14 mm apart) share columns, so
+    :func:`_one_lane` sees no change of lane where the track crosses between them:
+    hard radius seed 4 (320 x 256 at 0.16 mm, 20 frames) with a point in frame 15
+    followed the ulna in frames 0-13 (recall 0.30, wrong 0.70; 0.70 and 0 without the
+    point, 1.00 and 0 with it now).
+    """
+    on = sorted(path, key=lambda k: nodes[k][0])
+    half = []
+    for k in on:
+        fov = frames[nodes[k][0]].fov_px
+        if fov is not None and fov[1] > fov[0]:
+            half.append(0.5 * (fov[1] - fov[0]))
+    if column is None or not half or p.lane_offcentre >= 1.0:
+        return value, out, path
+    h, ref = float(np.median(half)), column
+    u = {k: abs(_mid_column(frames, nodes[k]) - ref) / h for k in on}
+    away = [k for k in on if u[k] > p.lane_offcentre and not pointed[k]]
+    if not away:
+        return value, out, path
+    ruled = _in_lane(frames, nodes, away) & ~pointed
+    other = np.where(ruled, -np.inf, value)
+    alt = forward(other)
+    path2 = _path(alt[0], alt[1], _need(nodes, p))
+    away_f = {nodes[k][0] for k in away}
+    u2 = [abs(_mid_column(frames, nodes[k]) - ref) / h for k in path2]
+    if (
+        path2
+        and int(pointed[path2].sum()) >= int(pointed[path].sum())
+        and float(np.median(u2)) <= float(np.median(list(u.values()))) - p.lane_gain
+        and len([k for k in path2 if nodes[k][0] in away_f]) >= p.lane_frames * len(away_f)
+        and float(np.where(ruled, -np.inf, plain)[path2].sum())
+        >= p.lane_value * float(plain[path].sum())
+    ):
+        return other, alt, path2
+    return value, out, path
 
 
 def _finish(
