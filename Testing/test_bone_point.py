@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 from lane_frames import S, both_solvers, lane_of, make_lanes
-from two_bones import bone_top, forearm, neighbour_top, off_centre, on_bones
+from two_bones import bone_top, forearm, forearm_beside, neighbour_top, off_centre, on_bones
 
 from BoneUSRecon.cli import main
 from BoneUSRecon.Logic.errors import BoneUSReconError
@@ -18,7 +18,6 @@ from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.bone_point import OFF_POINT
 from BoneUSRecon.Logic.segmentation.params import RejectionParams, SegmentationParams
 from BoneUSRecon.Logic.sequence_io import write_sweep
-from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 from BoneUSRecon.Logic.sweep import pixels_to_reference
 
@@ -216,18 +215,7 @@ def test_a_point_on_the_swept_bone_of_two_that_touch_is_no_worse(seed, frame):
     # columns), a point on the radius's top. The track through the point used to cross
     # to the ulna away from it (s4: recall 0.70 -> 0.30, wrong 0 -> 0.70; s1: 0.95 ->
     # 0.55, wrong 0.40); now it is kept to the radius.
-    sim = simulate(
-        SimulationParams(
-            bone="radius",
-            neighbour_mm=14.0,
-            n_frames=20,
-            width=320,
-            height=256,
-            spacing_mm=0.16,
-            realism="hard",
-            seed=seed,
-        )
-    )
+    sim = forearm_beside("radius", 14.0, seed, n_frames=20)
     sw = sim.sweep
     top = sim.true_contours_px[frame]
     point = pixels_to_reference(sw.image_to_reference[frame], top[len(top) // 2][None])[0]

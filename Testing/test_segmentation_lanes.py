@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from lane_frames import both_solvers, lane_of, make_lanes
 from scipy.spatial import cKDTree
+from two_bones import forearm_beside
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import segment_sweep
@@ -168,8 +169,7 @@ def test_two_bones_that_touch_are_two_candidates_and_the_swept_one_is_followed(s
     bones; its pieces met at the valley, so the ulna's was not offered (a gap of 2 mm was
     asked between two domes), and the far line under both joined them into one contour
     (pieces over one shadow). Before: wrong share ``before``, the track on the radius."""
-    geometry = {"width": 320, "height": 256, "spacing_mm": 0.16}
-    sim = _beside("ulna", neighbour_mm=14.0, n_frames=12, seed=seed, **geometry)
+    sim = forearm_beside("ulna", 14.0, seed, realism="standard")
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["recall"] >= 0.9 and s["wrong_share"] == 0.0, (s, before)
     assert s["median_mm"] <= 0.1
@@ -223,16 +223,7 @@ def test_a_bone_drifting_across_the_image_or_showing_one_flank_then_the_other_st
 def _radius_beside(seed: int, neighbour_mm: float = 18.0):
     """A hard radius swept in the middle of a 51 mm image (320 x 256 at 0.16 mm, 12
     frames), the ulna ``neighbour_mm`` beside it."""
-    return _beside(
-        "radius",
-        neighbour_mm,
-        n_frames=12,
-        width=320,
-        height=256,
-        spacing_mm=0.16,
-        realism="hard",
-        seed=seed,
-    )
+    return forearm_beside("radius", neighbour_mm, seed)
 
 
 def test_the_track_does_not_cross_to_the_neighbour_over_a_fascia_joining_them():

@@ -29,6 +29,26 @@ def forearm(realism: str, seed: int, width: int = 160, n_frames: int = 12) -> Si
     )
 
 
+@functools.cache
+def forearm_beside(
+    bone: str, neighbour_mm: float, seed: int, realism: str = "hard", n_frames: int = 12
+) -> Simulation:
+    """A forearm bone swept in the middle of a 51 mm image (320 x 256 at 0.16 mm), the
+    other forearm bone ``neighbour_mm`` beside it (14: their tops touch; cached)."""
+    return simulate(
+        SimulationParams(
+            bone=bone,
+            neighbour_mm=neighbour_mm,
+            n_frames=n_frames,
+            width=320,
+            height=256,
+            spacing_mm=0.16,
+            realism=realism,
+            seed=seed,
+        )
+    )
+
+
 def neighbour_top(sim: Simulation, sweep: Sweep, frame: int) -> np.ndarray:
     """The top of the neighbouring bone's section in a frame, reference mm (the point a
     user clicks on it), from the simulator's analytic neighbour."""
