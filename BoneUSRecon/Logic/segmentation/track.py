@@ -566,11 +566,9 @@ def _offcentre(
     its field of view)."""
     u = []
     for k in path:
-        f, c = nodes[k]
-        fov = frames[f].fov_px
+        fov = frames[nodes[k][0]].fov_px
         if fov is not None and fov[1] > fov[0]:
-            x = frames[f].candidates[c].core_px[:, 0]
-            mid = 0.5 * (float(x.min()) + float(x.max()))
+            mid = _mid_column(frames, nodes[k])
             u.append(abs(mid - 0.5 * (fov[0] + fov[1])) / (0.5 * (fov[1] - fov[0])))
     return median1d(np.asarray(u)) if u else None
 
