@@ -13,9 +13,10 @@ pixels into): ``RejectionParams.bone_points``.
   the point (projected into the frame's plane, in-plane distance) may be on the track;
   a frame of the point without such a candidate is rejected as "no contour at the bone
   point" (the distance of its nearest contour is its detail).
-* The track must pass through the allowed candidates: the track is chosen as the best
-  over those through the most of them (:func:`.track.pointed_track`), and the lane
-  rule does not second-guess it.
+* The track must pass through the allowed candidates: the default track where it
+  already does, else the best over those through the most of them, kept to the pointed
+  bone away from the points by the lane rules measured from the points' own image
+  column (:func:`.track.pointed_track`).
 * A point with no candidate near it in any of its frames is taken to the nearest
   frame before them and the nearest after them that has one, up to the track's
   reach and as far along the sweep as the bone's top may drift by at most
