@@ -186,9 +186,10 @@ def _frames_beyond(
     q: int,
     near_plane: np.ndarray,
     params: RejectionParams,
-) -> list[int]:
+) -> dict[int, dict[int, float]]:
     """For a point none of whose frames has a candidate near it: the nearest frame
-    before them and the nearest after them that has one (none, one or two frames).
+    before them and the nearest after them that has one (none, one or two frames),
+    each with its candidates' distances to the point (node index -> mm).
 
     A frame is looked for up to ``max_skip + 1`` frames beyond the point's (the track's
     own reach), whose plane lies within ``point_plane_mm + point_contour_mm /
@@ -205,9 +206,9 @@ def _frames_beyond(
     )
     own = np.flatnonzero(near_plane[:, q])
     by_frame: dict[int, list[int]] = {}
-    for f, c in nodes:
-        by_frame.setdefault(f, []).append(c)
-    out = []
+    for k, (f, _) in enumerate(nodes):
+        by_frame.setdefault(f, []).append(k)
+    out: dict[int, dict[int, float]] = {}
     for side in (
         range(int(own[0]) - 1, max(-1, int(own[0]) - p.max_skip - 2), -1),
         range(int(own[-1]) + 1, min(z.shape[0], int(own[-1]) + p.max_skip + 2)),
@@ -215,9 +216,12 @@ def _frames_beyond(
         for f in side:
             if z[f, q] > reach_mm or f not in by_frame:
                 continue
-            d = [_contour_distance(frames[f], c, lateral[f, q], depth[f, q]) for c in by_frame[f]]
-            if min(d) <= p.point_contour_mm:
-                out.append(f)
+            d = {
+                k: _contour_distance(frames[f], nodes[k][1], lateral[f, q], depth[f, q])
+                for k in by_frame[f]
+            }
+            if min(d.values()) <= p.point_contour_mm:
+                out[f] = d
                 break
     return out
 
@@ -263,10 +267,10 @@ def point_marks(
             dist[k, q] = _contour_distance(frames[f], c, lateral[f, q], depth[f, q])
     near = dist <= params.point_contour_mm
     for q in np.flatnonzero(~near.any(axis=0) & near_plane.any(axis=0)).tolist():
-        for f in _frames_beyond(frames, nodes, lateral, depth, z, q, near_plane, params):
+        for f, d in _frames_beyond(frames, nodes, lateral, depth, z, q, near_plane, params).items():
             near_plane[f, q] = True
-            for k in (k for k, (g, _) in enumerate(nodes) if g == f):
-                dist[k, q] = _contour_distance(frames[f], nodes[k][1], lateral[f, q], depth[f, q])
+            for k, mm in d.items():
+                dist[k, q] = mm
     near = dist <= params.point_contour_mm
     kept = near.any(axis=0)  # the points with a candidate near them somewhere
     if not kept.any():
