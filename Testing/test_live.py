@@ -86,7 +86,10 @@ def test_live_recovery_equals_offline_on_hard_sweep(sim_factory):
     offline surface: refits along the way search each frame once per prior, keep
     pixels only for frames off the track, and the final refit is the offline
     reconstruction point for point, the same frames recovered."""
-    sim = sim_factory(bone="humerus", realism="hard", seed=7)
+    # Ulna seed 3 (5 frames recovered) since session 34: humerus seed 7 had one left
+    # to recovery once a grain at an apex stopped cutting domes and tracks kept to the
+    # bone in the middle.
+    sim = sim_factory(bone="ulna", realism="hard", seed=3)
     sweep = sim.sweep
     offline = reconstruct(sweep)
     off = ReconstructionParams(
@@ -169,9 +172,10 @@ def test_live_recovery_reads_kept_evidence(sim_factory, monkeypatch):
     import BoneUSRecon.Logic.live as live_mod
     import BoneUSRecon.Logic.segmentation.recovery as recovery
 
-    # Tibia seed 24 (seed 11 until session 29's series rules put its frames on the first
+    # Tibia seed 19 (seed 24 until session 34, whose first track then left one frame to
+    # recovery; seed 11 until session 29's series rules put its frames on the first
     # track; humerus seed 7 until the shadow's z-score was centred on the tissue).
-    sweep = sim_factory(bone="tibia", realism="hard", seed=24).sweep
+    sweep = sim_factory(bone="tibia", realism="hard", seed=19).sweep
     size = recovery.bone_evidence(sweep.frames[0], sweep.spacing_mm).nbytes
     computed = []
     real = recovery.bone_evidence
@@ -215,8 +219,9 @@ def test_live_recovery_after_thinning_equals_offline(sim_factory):
     refit the offline one again.
 
     Sweeps (hard, 0.3 mm): tibia seed 5 at max_frames 24 thins with no search missed
-    (2 frames recovered); tibia seed 1 at 24 misses 5 searches, 1 frame recovered with
-    every pixel kept (seed 11, 9 missed, recovered none there since session 29's series
+    (2 frames recovered); tibia seed 14 at 24 misses searches, a frame recovered with
+    every pixel kept (seed 1 until session 34, when its first track kept the frames it
+    missed; seed 11, 9 missed, recovered none there since session 29's series
     rules put its frames on the first track; seed 14 missed 5 until
     shorter layers off the shoulder were cut, branch fascia; seed 11 missed 9 before the
     candidates were settled and their flat ends followed, branch onset; tibia seed 2
@@ -229,14 +234,15 @@ def test_live_recovery_after_thinning_equals_offline(sim_factory):
     assert len(_recovered(r)) >= 1 and _same_contours(r.segmentation, batch)
     # A frame on the track at an earlier refit fell off it after the thinning (its
     # search missed, counted; here the search would not have found a contour either).
-    sweep = sim_factory(bone="tibia", realism="hard", seed=1).sweep
+    sweep = sim_factory(bone="tibia", realism="hard", seed=14).sweep
     live = LiveReconstructor(live=LiveParams(max_frames=24))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] > 0
     live = LiveReconstructor(live=LiveParams(max_frames=24, keep_all_pixels=True))
     r, batch = _thinned(sweep, live)
     assert live.recovery_counts["no_pixels"] == 0 and live.pixels_kept == live.n_frames
-    # One recovered frame here since narrow excursions stopped splitting domes (two before).
+    # At least one recovered frame here (tibia seed 1 had one, two before narrow
+    # excursions stopped splitting domes).
     assert len(_recovered(r)) >= 1 and _same_contours(r.segmentation, batch)
 
 

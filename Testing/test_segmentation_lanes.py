@@ -22,6 +22,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     frame_candidates,
 )
 from BoneUSRecon.Logic.segmentation.params import RejectionParams, SegmentationParams
+from BoneUSRecon.Logic.segmentation.track import _in_lane
 from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
@@ -200,8 +201,53 @@ def test_a_track_crossing_to_the_bone_beside_over_a_joining_contour_is_kept_to_o
     )
     lanes = _lanes_of(frames, both_solvers(frames, poses).chosen)
     assert lanes[:8] == [80.0] * 8 and lanes[9:] == [80.0] * 3
-    off = RejectionParams(one_lane=False)
+    # The control, with neither rule: the track crosses. (With one_lane off alone the
+    # nearer-middle step moves its three contours off the middle since session 34.)
+    off = RejectionParams(one_lane=False, lane_offcentre=1.0)
     assert _lanes_of(frames, both_solvers(frames, poses, off).chosen)[9:] == [20.0] * 3
+    no_lane = RejectionParams(one_lane=False)
+    assert _lanes_of(frames, both_solvers(frames, poses, no_lane).chosen)[9:] == [80.0] * 3
+
+
+def test_a_track_crossing_from_the_bone_beside_to_the_middle_one_keeps_the_middle_one() -> None:
+    """The bone in the middle (columns 80-120) in all 24 frames, faint in frames 0-12;
+    the bone off the middle (150-195) strong in those, faint after; a contour joining
+    them in frame 13. The best track crosses from the bone beside to the middle one
+    there. Moved to the middle, it keeps the middle bone over the whole sweep: only the
+    lane of the track's contours off the middle is ruled out. Before, the whole track's
+    lane was, the middle bone's frames after the crossing with it, the track so chosen
+    linked too few frames, and the crossing stayed (the simulated ulna with the radius
+    14 mm beside, seed 151: recall 0.57)."""
+    early, late = set(range(13)), set(range(14, 24))
+    frames, poses = make_lanes(
+        24,
+        [
+            (80, 120, 3.0, early),
+            (80, 120, 6.0, late),
+            (150, 195, 10.0, early),
+            (150, 195, 2.0, late),
+            (85, 195, 12.0, {13}),
+        ],
+    )
+    lanes = _lanes_of(frames, both_solvers(frames, poses).chosen)
+    # Frame 13 has only the joining contour, ruled out with the bone beside's lane.
+    assert lanes[:13] == [80.0] * 13 and np.isnan(lanes[13]) and lanes[14:] == [80.0] * 10
+
+
+def test_one_contour_over_both_bones_does_not_put_the_bone_beside_in_the_lane() -> None:
+    """The lane in a frame is the median span of the track's three nearest contours: a
+    track on the bone beside (columns 150-195) whose contour in frame 5 runs over both
+    bones (85-195) has the middle bone (80-120) outside its lane there."""
+    frames, poses = make_lanes(
+        10,
+        [(80, 120, 3.0, None), (150, 195, 10.0, set(range(10)) - {5}), (85, 195, 12.0, {5})],
+    )
+    nodes = [(k, c) for k, fc in enumerate(frames) for c in range(len(fc.candidates))]
+    path = [q for q, (k, c) in enumerate(nodes) if frames[k].candidates[c].points_px[0, 0] > 84]
+    lane = _in_lane(frames, nodes, path)
+    middle = [q for q, (k, c) in enumerate(nodes) if frames[k].candidates[c].points_px[0, 0] == 80]
+    assert not lane[middle].any()
+    assert lane[path].all()  # the path's own contours, the joining one too
 
 
 def test_a_bone_drifting_across_the_image_or_showing_one_flank_then_the_other_stays():
@@ -233,8 +279,11 @@ def test_the_track_does_not_cross_to_the_neighbour_over_a_fascia_joining_them():
     sim = _radius_beside(1)
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["recall"] == 1.0 and s["wrong_share"] == 0.0 and s["median_mm"] <= 0.2
+    # The control, with neither lane rule (the nearer-middle step alone also keeps it
+    # to the radius since session 34).
     p = SegmentationParams()
-    off = dataclasses.replace(p, rejection=dataclasses.replace(p.rejection, one_lane=False))
+    rej = dataclasses.replace(p.rejection, one_lane=False, lane_offcentre=1.0)
+    off = dataclasses.replace(p, rejection=rej)
     assert score_simulation(segment_sweep(sim.sweep, off), sim).summary()["wrong_share"] >= 0.2
 
 

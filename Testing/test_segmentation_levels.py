@@ -72,6 +72,10 @@ def test_a_sweep_with_a_darker_shadow_keeps_its_near_cortex(radius_pair) -> None
         segment_sweep(clean.sweep, SegmentationParams(shadowpath=TISSUE_NULL)), clean
     )
     assert s.recall >= 0.95 and s.wrong_share == 0.0
-    # With the nulls over every pixel (the default): the last frames lost.
-    assert score_simulation(segment_sweep(clean.sweep), clean).recall < 0.9
     assert s.summary()["median_mm"] < 0.15
+    # With the nulls over every pixel (the default) the per-frame step loses the last
+    # frames; since session 34 the track-guided search past its end, one side vouching
+    # (recovery.guided_candidate), brings them back (recall 0.875 -> 1.0).
+    off = SegmentationParams(recovery=replace(SegmentationParams().recovery, enabled=False))
+    assert score_simulation(segment_sweep(clean.sweep, off), clean).recall < 0.9
+    assert score_simulation(segment_sweep(clean.sweep), clean).recall >= 0.95

@@ -45,8 +45,9 @@ def _recovered_medians(sim, after) -> list[float]:
 # the 4 left to recovery are the harder ones (0.07-0.37 mm, median 0.303 mm: no frame
 # worse than before, the easy ones gone). Tibia 11 missed as many on its first track
 # until session 29's series rules put all but one there (0.975 -> 1.00); tibia 24 leaves
-# 6 to recovery.
-@pytest.mark.parametrize(("bone", "seed"), [("ulna", 31), ("tibia", 24)])
+# 6 to recovery, until session 34 (a grain at an apex no longer cuts a dome: 1 left);
+# tibia 19 leaves 3 (0.925 -> 1.00).
+@pytest.mark.parametrize(("bone", "seed"), [("ulna", 31), ("tibia", 19)])
 def test_recovery_raises_recall_on_the_bone(bone, seed):
     """Hard sweeps: frames the per-frame step missed come back, every one on the bone."""
     sim = _hard(bone, seed)

@@ -531,7 +531,9 @@ def test_onset_on_some_columns_matches_the_whole_width() -> None:
 
 def _plain_convex_part(points_px, spacing, p):  # type: ignore[no-untyped-def]
     """candidates.convex_part as it was before branch ``speed2`` (session 25): index
-    arrays for each side, every quantity gathered by them."""
+    arrays for each side, every quantity gathered by them; with the inward window's
+    span asked as the outward one's, or a drop of valley_mm (session 34: a grain over
+    the top is no flank)."""
     n = points_px.shape[0]
     keep = np.ones(n, bool)
     if n < 6:
@@ -552,6 +554,7 @@ def _plain_convex_part(points_px, spacing, p):  # type: ignore[no-untyped-def]
         s_in = (zo[k] - zo[lo]) / np.maximum(xo[k] - xo[lo], 1e-6)
         s_out = (zo[hi] - zo[k]) / np.maximum(xo[hi] - xo[k], 1e-6)
         ok = (k - lo >= 1) & (hi - k >= 1) & (xo[hi] - xo[k] >= 0.5 * p.kink_mm)
+        ok &= (xo[k] - xo[lo] >= 0.5 * p.kink_mm) | (zo[k] - zo[lo] >= p.valley_mm)
         cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
         if cut.size:
             keep[idx[k[cut[0]] + 1 :]] = False
@@ -654,11 +657,13 @@ def test_segment_sweep_track_and_kept_evidence_match_plain(monkeypatch) -> None:
 
     # Hard tibia (grey shadow) with bone-free ends: the first track leaves frames for
     # recovery to search (past its ends too), and the ends cut has frames to judge.
+    # Seed 2 since session 34 (seed 7's track then had a frame the recheck of straying
+    # track frames replaces, a step this plain flow does not take).
     sim = simulate(
         SimulationParams(
             bone="tibia",
             realism="hard",
-            seed=7,
+            seed=2,
             n_frames=40,
             width=160,
             height=128,

@@ -638,11 +638,11 @@ class RejectionParams:
     min_points: int = 5
     """Tracked contours with fewer points are rejected ("contour too short")."""
     lane_offcentre: float = 0.4
-    """When the chosen track's contours lie, on median over its frames, farther than this share of the field of view's half-width from its middle, a track avoiding their columns is sought, and taken if it lies nearer the middle (``lane_gain``) and is a bone track too (``lane_frames``, ``lane_value``); 1 or more: never (:func:`.track.central_track`; ours: the operator keeps the bone swept in the middle of the image, where it stays in view, and a neighbouring bone shows toward an edge: the radius 18-27 mm beside a centred ulna lies 0.56-0.81 of the half-width off the middle of 51-96 mm wide simulated images; the L14 recording's bone 0.23 on median, 0.38 at most)."""
+    """When at least three of the chosen track's contours lie farther than this share of the field of view's half-width from its middle, a track avoiding their columns is sought, and taken if it lies nearer the middle in their frames (``lane_gain``) and is a bone track too (``lane_frames``, ``lane_value``); 1 or more: never (:func:`.track.central_track`; ours: the operator keeps the bone swept in the middle of the image, where it stays in view, and a neighbouring bone shows toward an edge: the radius 18-27 mm beside a centred ulna lies 0.56-0.81 of the half-width off the middle of 51-96 mm wide simulated images; the L14 recording's bone 0.23 on median, 0.38 at most)."""
     lane_gain: float = 0.25
-    """The more central track must lie nearer the middle by at least this share of the half-width, on median over its frames (ours: the centred ulna lies within 0.1 of the middle, its neighbour 0.56 or more off it)."""
+    """The more central track must lie nearer the middle by at least this share of the half-width, on median over the frames of the contours off the middle (ours: the centred ulna lies within 0.1 of the middle, its neighbour 0.56 or more off it)."""
     lane_frames: float = 0.5
-    """The more central track must link at least this share of the chosen track's frames (ours: a bone continues through the sweep; a look-alike in the middle, a vessel or a fascia, comes and goes)."""
+    """The more central track must link at least this share of the chosen track's frames, and of the frames of its contours off the middle (ours: a bone continues through the sweep; a look-alike in the middle, a vessel or a fascia, comes and goes)."""
     lane_value: float = 0.3
     """The more central track's summed node value must be at least this share of the chosen track's (ours: the ulna's evidence 0.6-0.8 of the bigger radius's beside it; a fascia's, with tissue and no shadow under it, a tenth)."""
     one_lane: bool = True

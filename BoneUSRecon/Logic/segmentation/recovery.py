@@ -24,7 +24,8 @@ level along at least ``min_share`` of the band.
 Between two track frames the frame's own shadow is not asked to prove the bone anew
 where the search on its score finds nothing: a second search opens the shadow gate
 from the tissue level on (:func:`vouched_evidence`), for a top over a grey shadow whose
-reverberation bands read at the tissue level under it.
+reverberation bands read at the tissue level under it. Past the track's ends, where
+the nearer track frame alone vouches, too: :mod:`.ends` judges what it finds.
 
 Why it generalises: nothing here reads a grey level. The band is the track's own
 continuity tolerance, the evidence is the frame's robust z-scores (:mod:`.evidence`),
@@ -224,10 +225,18 @@ def guided_candidate(
     0.5 mm of it (0.40 and 0.15 mm with the nearer band). No grey level and no new
     constant: the band is the nearer link's own tolerance.
 
-    Where the frame's own score holds no such run and a track frame on each side
-    vouches for the bone, the band is searched again on :func:`vouched_evidence` (the
-    shadow gate open from the tissue level on): a top over a grey shadow whose
-    reverberation bands fill the shadow windows (see there).
+    Where the frame's own score holds no such run, the band is searched again on
+    :func:`vouched_evidence` (the shadow gate open from the tissue level on): a top
+    over a grey shadow whose reverberation bands fill the shadow windows (see there).
+    Between two track frames both vouch for the bone; past the track's ends (searched
+    one-sided only with the ends cut on, ``EndsParams.search_past_ends``) the nearer
+    track frame does, and the cut judges the contour by its shadow as any found
+    there. One-sided too since session 34: a hard tibia rising to 5 mm under the skin
+    in its last frames (160 x 128, seed 157) lost its last three, the top's shadow
+    z-score 0.3-0.8 under reverberation bands, and the surface was 0.65 mm from gold
+    (0.34 with them); with the last quarter or the first 3 frames of 70 hard sweeps
+    bone-free (160 x 128, seeds 5-19; 475 x 405, seeds 5 and 151), no bone-free frame
+    was kept either way (benchmarks README, lead session 34).
 
     ``evidence``: the frame's :func:`.evidence.bone_evidence` with ``shadowpath``, if
     the caller kept it (the same result; None: computed here).
@@ -239,12 +248,14 @@ def guided_candidate(
     if ev is None:
         return None
     found = _guided_in_band(img, spc, ev, prior, sp, rp, min_share, max_offset)
-    if found is None and len(prior) > 1:
-        # Nothing on the frame's own score, and a track frame on each side vouches for
-        # the bone's shadow: searched again asking only that the frame's shadow not
-        # refute it (:func:`vouched_evidence`). What that search finds counts only if
-        # the gate is what hid it: its shadow, on median, short of the gate's full
-        # opening (over a shadow the frame proves, the echo alone did not pay off).
+    if found is None:
+        # Nothing on the frame's own score, and the track vouches for the bone's
+        # shadow: searched again asking only that the frame's shadow not refute it
+        # (:func:`vouched_evidence`). What that search finds counts only if the gate is
+        # what hid it: its shadow, on median, short of the gate's full opening (over a
+        # shadow the frame proves, the echo alone did not pay off). Past the track's
+        # ends one side vouches, and :mod:`.ends` then judges what is found by its
+        # shadow against the track's typical frame, as any contour found there.
         found = _guided_in_band(
             img, spc, vouched_evidence(ev, sp), prior, sp, rp, min_share, max_offset
         )
@@ -353,8 +364,9 @@ def vouched_evidence(ev: EvidenceMaps, shadowpath: ShadowPathParams) -> Evidence
     (z = 0, the tissue at that depth): darker-than-tissue is no longer asked of the
     frame, brighter-than-tissue still closes the gate as before.
 
-    Used by :func:`guided_candidate`, where a track frame on each side vouches for the
-    bone and the search on the frame's own score found nothing: the neighbours'
+    Used by :func:`guided_candidate`, where the track vouches for the bone (a track
+    frame on each side, or past its ends the nearer one, the ends cut judging what is
+    found) and the search on the frame's own score found nothing: the neighbours'
     contours were chosen on their own frames' shadow, and what is left to ask of this
     frame is where its echo runs in the band and that no layer with tissue beneath it
     takes its place. A contour so found is kept only if its median shadow z-score is
