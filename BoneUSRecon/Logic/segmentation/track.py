@@ -64,6 +64,9 @@ _SAMPLE_MM = 0.5  # contours are compared at ~this point spacing (speed; 1-2 px 
 #: Fewest contours off the middle that make :func:`_nearer_middle` look for a track
 #: nearer it (one or two are a bone's edge or a layer for a frame or two, not a lane).
 _MIN_OFF = 3
+#: Shift of a track's contours' lateral middles over two frames, mm, over which a
+#: shift of more than half their width is a change of lane (:func:`_shifted`).
+_LANE_SHIFT_MM = 6.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -642,7 +645,8 @@ def _one_lane(
 ) -> Choice:
     """:func:`central_track`'s second step (``one_lane``), keeping the track to one
     bone: where it changes lanes (two of its contours two frames apart share no
-    column), the track is chosen again without the nodes over the columns of its
+    column, or their lateral middles lie farther apart than half their mean width:
+    :func:`_shifted`), the track is chosen again without the nodes over the columns of its
     stretches off the bone swept (:func:`_in_lane`), and that one is taken if it links
     at least as many frames, its contours in those stretches' frames reach into the
     bone swept's lane (:func:`_reaches`), and it carries at least ``lane_value`` of
@@ -679,10 +683,36 @@ def _one_lane(
     """
     on = sorted(path, key=lambda k: nodes[k][0])
     spans = [_span(frames, nodes[k]) for k in on]
+    sx = [float(frames[nodes[k][0]].spacing[0]) for k in on]
+    # Changes of lane where two contours two frames apart share no column; first also
+    # where their middles moved apart (:func:`_shifted`), and if the track so chosen
+    # again is not taken, with the first kind alone (a bone showing one part of its top
+    # then another cuts its own track into stretches too short to stand for it).
+    tried: list[list[int]] = []
+    for shifted in (True, False):
+        cuts = _lane_cuts(spans, sx, shifted)
+        if not cuts or cuts in tried:
+            continue
+        tried.append(cuts)
+        moved_to = _lane_kept(
+            frames, nodes, value, path, on, spans, cuts, forward, p, pointed, plain
+        )
+        if moved_to is not None:
+            return moved_to
+    return value, out, path
+
+
+def _lane_cuts(spans: list[tuple[float, float]], sx: list[float], shifted: bool) -> list[int]:
+    """Where a track (its contours' spans in frame order, columns of ``sx`` mm) changes
+    lanes: after index ``j`` of each cut, for :func:`_one_lane`. Two contours two
+    frames apart that share no column (or, with ``shifted``, whose middles moved apart,
+    :func:`_shifted`) change lanes; the contour between goes with the side it shares
+    more columns with."""
     cuts: list[int] = []
-    for i in range(len(on) - 2):
-        if _overlap(spans[i], spans[i + 2]) <= 0:
-            # The contour between goes with the side it shares more columns with.
+    for i in range(len(spans) - 2):
+        if _overlap(spans[i], spans[i + 2]) <= 0 or (
+            shifted and _shifted(spans[i], spans[i + 2], sx[i])
+        ):
             j = (
                 i + 1
                 if _overlap(spans[i + 1], spans[i]) >= _overlap(spans[i + 1], spans[i + 2])
@@ -690,8 +720,26 @@ def _one_lane(
             )
             if not cuts or cuts[-1] != j:
                 cuts.append(j)
-    if not cuts:
-        return value, out, path
+    return cuts
+
+
+def _lane_kept(
+    frames: Sequence[FrameCandidates],
+    nodes: list[tuple[int, int]],
+    value: np.ndarray,
+    path: list[int],
+    on: list[int],
+    spans: list[tuple[float, float]],
+    cuts: list[int],
+    forward: Forward,
+    p: RejectionParams,
+    pointed: np.ndarray | None,
+    plain: np.ndarray | None,
+) -> Choice | None:
+    """:func:`_one_lane`'s track chosen again with the lanes of the stretches off the
+    bone swept ruled out (``on``: ``path`` in frame order, ``spans`` its contours'
+    spans, ``cuts`` its changes of lane), if taken by :func:`_one_lane`'s conditions;
+    else None."""
     stretches = [on[a + 1 : b + 1] for a, b in zip([-1, *cuts], [*cuts, len(on) - 1], strict=True)]
     # The stretch on the bone swept: the one nearest the middle of the field of view
     # (as :func:`_nearer_middle` judges), the longest where that is not known.
@@ -728,7 +776,29 @@ def _one_lane(
         and (pointed is None or int(pointed[path2].sum()) >= int(pointed[path].sum()))
     ):
         return other, alt, path2
-    return value, out, path
+    return None
+
+
+def _shifted(a: tuple[float, float], b: tuple[float, float], sx: float) -> bool:
+    """Whether two contours' lateral middles (columns of ``sx`` mm) lie farther apart
+    than half their mean width (more than half of each lies beside the other) and than
+    ``_LANE_SHIFT_MM``.
+
+    Two bones that touch in the image show wide partial contours that share columns
+    across the valley, so a track crossing from one to the other two frames apart is no
+    change of lane by shared columns alone: on the simulated radius with the ulna 14
+    mm beside (475 x 405, hard, seed 109) the track held the ulna in frames 0-15
+    (columns ~95-220) and the radius after (~180-300), the contours of frames 15 and
+    18 sharing 32 columns (recall 0.57, wrong share 0.40; 1.00 and 0 with this). A
+    sweep's drift moves a contour by a small part of its width in two frames (a few mm
+    of sweep). A bone showing one part of its top then another moves its contours'
+    middles too, by up to half its width: hence the floor in mm, over which two bones
+    side by side lie apart (their centres 14 mm or more; a hard ulna at 320 x 256,
+    seed 15, showed parts of its top 4.5 mm apart, and cut there its track fell into
+    short stretches of which none linked as many frames).
+    """
+    d = abs(0.5 * (a[0] + a[1] - b[0] - b[1]))
+    return d > 0.25 * ((a[1] - a[0]) + (b[1] - b[0])) and d * sx > _LANE_SHIFT_MM
 
 
 def _span(frames: Sequence[FrameCandidates], node: tuple[int, int]) -> tuple[float, float]:
