@@ -209,6 +209,25 @@ def test_a_track_crossing_to_the_bone_beside_over_a_joining_contour_is_kept_to_o
     assert _lanes_of(frames, both_solvers(frames, poses, no_lane).chosen)[9:] == [80.0] * 3
 
 
+def _handover(
+    middle: tuple[int, int],
+    beside: tuple[int, int],
+    early: set[int],
+    late: set[int],
+    s_middle: tuple[float, float],
+    s_beside: tuple[float, float],
+) -> list[tuple[int, int, float, set[int]]]:
+    """Lanes of :func:`make_lanes` for two bones handing the evidence over: the bone in
+    the middle and the one beside (first and last columns), each with its strength in
+    the ``early`` and the ``late`` frames."""
+    return [
+        (*middle, s_middle[0], early),
+        (*middle, s_middle[1], late),
+        (*beside, s_beside[0], early),
+        (*beside, s_beside[1], late),
+    ]
+
+
 def test_a_track_crossing_from_the_bone_beside_to_the_middle_one_keeps_the_middle_one() -> None:
     """The bone in the middle (columns 80-120) in all 24 frames, faint in frames 0-12;
     the bone off the middle (150-195) strong in those, faint after; a contour joining
@@ -218,17 +237,10 @@ def test_a_track_crossing_from_the_bone_beside_to_the_middle_one_keeps_the_middl
     lane was, the middle bone's frames after the crossing with it, the track so chosen
     linked too few frames, and the crossing stayed (the simulated ulna with the radius
     14 mm beside, seed 151: recall 0.57)."""
-    early, late = set(range(13)), set(range(14, 24))
-    frames, poses = make_lanes(
-        24,
-        [
-            (80, 120, 3.0, early),
-            (80, 120, 6.0, late),
-            (150, 195, 10.0, early),
-            (150, 195, 2.0, late),
-            (85, 195, 12.0, {13}),
-        ],
+    lanes = _handover(
+        (80, 120), (150, 195), set(range(13)), set(range(14, 24)), (3.0, 6.0), (10.0, 2.0)
     )
+    frames, poses = make_lanes(24, [*lanes, (85, 195, 12.0, {13})])
     lanes = _lanes_of(frames, both_solvers(frames, poses).chosen)
     # Frame 13 has only the joining contour, ruled out with the bone beside's lane.
     assert lanes[:13] == [80.0] * 13 and np.isnan(lanes[13]) and lanes[14:] == [80.0] * 10
@@ -241,16 +253,10 @@ def test_a_crossing_between_bones_that_share_columns_is_a_change_of_lane() -> No
     than half their width: a change of lane, and kept to one the track holds the bone
     nearer the middle in every frame (it crossed before: the simulated radius with the
     ulna 14 mm beside, seed 109, recall 0.57)."""
-    early, late = set(range(8)), set(range(8, 16))
-    frames, poses = make_lanes(
-        16,
-        [
-            (90, 150, 3.0, early),
-            (90, 150, 10.0, late),
-            (40, 115, 10.0, early),
-            (40, 115, 3.0, late),
-        ],
+    lanes = _handover(
+        (90, 150), (40, 115), set(range(8)), set(range(8, 16)), (3.0, 10.0), (10.0, 3.0)
     )
+    frames, poses = make_lanes(16, lanes)
     assert _lanes_of(frames, both_solvers(frames, poses).chosen) == [90.0] * 16
     crossing = RejectionParams(one_lane=False)
     assert _lanes_of(frames, both_solvers(frames, poses, crossing).chosen)[:8] == [40.0] * 8
