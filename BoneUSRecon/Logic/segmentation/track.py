@@ -67,6 +67,9 @@ _MIN_OFF = 3
 #: Shift of a track's contours' lateral middles over two frames, mm, over which a
 #: shift of more than half their width is a change of lane (:func:`_shifted`).
 _LANE_SHIFT_MM = 6.0
+#: Track contours nearest a frame whose median span is the track's lane there
+#: (:func:`_in_lane`: one contour over two bones is outvoted by its two neighbours).
+_LANE_NEAREST = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -580,24 +583,24 @@ def _offcentre(
 
 
 def _in_lane(
-    frames: Sequence[FrameCandidates], nodes: list[tuple[int, int]], path: list[int], k: int = 3
+    frames: Sequence[FrameCandidates], nodes: list[tuple[int, int]], path: list[int]
 ) -> np.ndarray:
     """Nodes lying over the columns of ``path``'s contours, and the path's own: at
     least half their width inside the lane of the path in their frame.
 
     The lane in a frame is the median start and end of the spans of the path's
-    contours in the ``k`` frames on it nearest that frame (the frame's own among them
-    when it is on the path): one contour running over two bones side by side (along a
-    fascia between them at their level, where a track may cross from one to the other)
-    is wider than the bone's lane, and with its two neighbours on one bone the lane
-    stays that bone's (on a simulated forearm with the radius 14 mm beside the ulna
+    contours in the ``_LANE_NEAREST`` frames on it nearest that frame (the frame's own
+    among them when it is on the path): one contour running over two bones side by
+    side (along a fascia between them at their level, where a track may cross from one
+    to the other) is wider than the bone's lane, and with its two neighbours on one
+    bone the lane stays that bone's (on a simulated forearm with the radius 14 mm beside the ulna
     swept, seed 151, such a contour in the frames where the track crossed put the
     whole of the other bone in the lane).
     """
     on = sorted((nodes[k][0], nodes[k][1]) for k in path)
     track_f = np.array([f for f, _ in on])
     spans = np.array([_span(frames, node) for node in on])
-    n_near = min(k, len(on))
+    n_near = min(_LANE_NEAREST, len(on))
     out = np.zeros(len(nodes), bool)
     for q, node in enumerate(nodes):
         near = np.argsort(np.abs(track_f - node[0]), kind="stable")[:n_near]
@@ -792,10 +795,11 @@ def _shifted(a: tuple[float, float], b: tuple[float, float], sx: float) -> bool:
     18 sharing 32 columns (recall 0.57, wrong share 0.40; 1.00 and 0 with this). A
     sweep's drift moves a contour by a small part of its width in two frames (a few mm
     of sweep). A bone showing one part of its top then another moves its contours'
-    middles too, by up to half its width: hence the floor in mm, over which two bones
-    side by side lie apart (their centres 14 mm or more; a hard ulna at 320 x 256,
-    seed 15, showed parts of its top 4.5 mm apart, and cut there its track fell into
-    short stretches of which none linked as many frames).
+    middles too, by up to half its width: hence the floor in mm, under what two bones
+    side by side lie apart (their centres 14 mm or more). Where it still cuts a bone's
+    own track (a hard ulna at 320 x 256, seed 15: parts of its top 6.1 mm apart two
+    frames apart, the track then in stretches none of which linked as many frames),
+    :func:`_one_lane` falls back to the plain cuts.
     """
     d = abs(0.5 * (a[0] + a[1] - b[0] - b[1]))
     return d > 0.25 * ((a[1] - a[0]) + (b[1] - b[0])) and d * sx > _LANE_SHIFT_MM
