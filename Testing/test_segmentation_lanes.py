@@ -290,6 +290,23 @@ def test_one_contour_over_both_bones_does_not_put_the_bone_beside_in_the_lane() 
     assert lane[path].all()  # the path's own contours, the joining one too
 
 
+def test_a_contour_covering_the_lane_and_running_on_beside_it_is_in_the_lane() -> None:
+    """A contour over the lane of the bone beside (columns 150-195) and on over the
+    middle bone (60-195, frame 2) lies two thirds outside the lane, yet covers all of
+    it: it is in the lane (ruled out with it, a track chosen again cannot take it and
+    with it the bone beside; the simulated ulna with the radius 14 mm beside, seed 163,
+    went back to the radius in its last frames over two such contours). The middle
+    bone's own contours are not."""
+    frames, poses = make_lanes(
+        6, [(80, 120, 3.0, None), (150, 195, 10.0, None), (60, 195, 5.0, {2})]
+    )
+    nodes = [(k, c) for k, fc in enumerate(frames) for c in range(len(fc.candidates))]
+    first = {q: frames[k].candidates[c].points_px[0, 0] for q, (k, c) in enumerate(nodes)}
+    lane = _in_lane(frames, nodes, [q for q, x in first.items() if x == 150])
+    assert all(lane[q] for q, x in first.items() if x == 60)
+    assert not any(lane[q] for q, x in first.items() if x == 80)
+
+
 def test_a_bone_drifting_across_the_image_or_showing_one_flank_then_the_other_stays():
     """Lateral drift (5 columns per frame, 1.4 mm of sweep) never leaves a contour's
     columns within two frames; a bone showing its left flank, then all of it in one
