@@ -607,9 +607,12 @@ def _in_lane(
     spans = np.array([_span(frames, node) for node in on])
     n_near = min(_LANE_NEAREST, len(on))
     out = np.zeros(len(nodes), bool)
+    lanes: dict[int, tuple[float, float]] = {}  # by frame: a frame's nodes share its lane
     for q, node in enumerate(nodes):
-        near = np.argsort(np.abs(track_f - node[0]), kind="stable")[:n_near]
-        lane = (median1d(spans[near, 0]), median1d(spans[near, 1]))
+        lane = lanes.get(node[0])
+        if lane is None:
+            near = np.argsort(np.abs(track_f - node[0]), kind="stable")[:n_near]
+            lane = lanes[node[0]] = (median1d(spans[near, 0]), median1d(spans[near, 1]))
         lo, hi = own = _span(frames, node)
         cover = _overlap(own, lane)
         out[q] = cover >= 0.5 * max(hi - lo, 1.0) or cover >= 0.5 * max(lane[1] - lane[0], 1.0)
