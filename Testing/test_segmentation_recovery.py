@@ -15,13 +15,17 @@ from BoneUSRecon.Logic.segmentation import (
     RecoveryParams,
     SegmentationParams,
     recover_frames,
+    recovery,
     segment_sweep,
     select_bone_track,
 )
 from BoneUSRecon.Logic.segmentation.candidates import frame_candidates_many
+from BoneUSRecon.Logic.segmentation.evidence import bone_evidence
 from BoneUSRecon.Logic.segmentation.params import RimParams, SettleParams, ShadowPathParams
-from BoneUSRecon.Logic.segmentation.recovery import guided_candidate, track_prior
+from BoneUSRecon.Logic.segmentation.recovery import across_field, guided_candidate, track_prior
+from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
+from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
 OFF = SegmentationParams(recovery=RecoveryParams(enabled=False))
 
@@ -227,3 +231,58 @@ def test_guided_search_between_track_frames_finds_a_top_over_reverberation_bands
     # at the tissue level, and speckle holds no run over half the band.
     moved = [(lat, depth - 4.0, z) for lat, depth, z in prior]
     assert guided_candidate(sim.sweep.frames[14], sim.sweep.spacing_mm, moved) is None
+
+
+def _true_prior(sim, f: int) -> list:
+    """A prior for frame ``f`` from the bone's true contours in frames ``f - 1`` and
+    ``f + 1`` (a track on the bone there), in ``f``'s plane."""
+    sw = sim.sweep
+    o, ax, n = frame_planes(sw.image_to_reference[f][None])
+    out = []
+    for g in (f - 1, f + 1):
+        ref = pixels_to_reference(sw.image_to_reference[g], sim.true_contours_px[g][::4])
+        a = recovery._project(ref, o[0], ax[0], n[0])
+        k = np.argsort(a[:, 0])
+        out.append((a[k, 0], a[k, 1], float(np.median(a[:, 2]))))
+    return out
+
+
+def test_a_band_across_the_field_is_no_guided_contour(monkeypatch):
+    """With the probe off the skin a frame holds only the lens's reverberation: equally
+    spaced bands across the whole image (the simulator's contact loss). Guided by the
+    bone in the frames on either side, the band search finds one of the bands at the
+    bone's depth; its line runs on over the whole field at that depth, so it is no bone
+    (``recovery.across_field``). A frame showing the bone, guided the same way, is found
+    on it, and its contour is no such line. Hard ulna at the cadaver's geometry (475 x
+    405 at 0.108 mm), seed 173, frame 30: kept 0.5-1.1 mm from where the bone would be
+    in 4 of the 5 bones of that seed before the rule, in 1 after (the radius, whose
+    guided contour steps down over three bands, the deeper two fading over half the
+    field on one side)."""
+    sim = simulate(
+        SimulationParams(
+            bone="ulna",
+            seed=173,
+            realism="hard",
+            n_frames=40,
+            width=475,
+            height=405,
+            spacing_mm=0.108,
+            corrupted_fraction=0.15,
+        )
+    )
+    sw = sim.sweep
+    sp = sw.spacing_mm
+    assert sim.corruption_kinds[30] == "contact_loss"
+    assert not {27, 28, 29} & set(sim.corruption_kinds)
+    assert guided_candidate(sw.frames[30], sp, _true_prior(sim, 30)) is None
+    with monkeypatch.context() as m:
+        m.setattr(recovery, "across_field", lambda *a: False)
+        band = guided_candidate(sw.frames[30], sp, _true_prior(sim, 30))
+    assert band is not None  # the rule is what drops it
+    lo, hi = np.percentile(band.core_px[:, 1], (10.0, 90.0))
+    assert (hi - lo) * sp[1] < 1.0  # level over the middle 80 % of its depths, mm
+    bone = guided_candidate(sw.frames[28], sp, _true_prior(sim, 28))
+    assert bone is not None
+    assert np.median(sim.distance_to_truth(sw.to_reference(28, bone.points_px))) < 0.3  # mm
+    ev = bone_evidence(sw.frames[28], sp)
+    assert not across_field(bone.core_px, ev, sp)
