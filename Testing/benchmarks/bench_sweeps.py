@@ -26,6 +26,15 @@ Groups of sweeps (40 frames each, per seed):
   20 mm lateral (nearly whole in the 51 mm wide image) and 24 mm (its medial half), as
   in issue 10's lower-leg sweeps.
 
+* ``motion``: the five bones, hard, at the cadaver geometry, swept by an unsteady
+  hand: the probe tilted up to 12 degrees, 4 mm of lateral and 2 mm of depth jitter,
+  its speed varying by 0.8 (:data:`MOTION`; the simulator's defaults are 4 degrees,
+  1.5 mm, 0.7 mm and 0.4).
+* ``corrupted``: the five bones, hard, at the cadaver geometry, 15 % of the frames
+  corrupted (:mod:`.simulation.corruption`: clutter in the shadow, a false echo over
+  the bone, the probe off the skin). Frames with the probe off the skin show no bone;
+  a contour kept there counts as a wrong structure.
+
 ``--bone-point swept`` gives each sweep a bone point (``RejectionParams.bone_points``)
 on the swept bone: the middle of its true contour in the middle frame, as a user would
 click on it (``swept-late``: in the frame 90 % of the way through those showing it,
@@ -113,7 +122,26 @@ def cases(group: str, seed: int) -> list[tuple[str, SimulationParams]]:
             for r in ("standard", "hard")
             for mm in (20.0, 24.0)
         ]
+    if group == "motion":
+        return [
+            (f"R {b} hard motion s{seed}", sim(b, "R", realism="hard", **MOTION)) for b in BONES
+        ]
+    if group == "corrupted":
+        return [
+            (f"R {b} hard corrupt s{seed}", sim(b, "R", realism="hard", corrupted_fraction=0.15))
+            for b in BONES
+        ]
     raise ValueError(f"unknown group {group!r}")
+
+
+#: ``motion``: a freehand hand steadier than none (the simulator's defaults: tilt 4
+#: degrees, lateral jitter 1.5 mm, depth jitter 0.7 mm, speed varying by 0.4).
+MOTION = {
+    "tilt_deg": 12.0,
+    "lateral_jitter_mm": 4.0,
+    "depth_jitter_mm": 2.0,
+    "speed_variation": 0.8,
+}
 
 
 #: ``--off-centre``: simulated width, kept width (columns) and the swept bone's offset
@@ -188,7 +216,17 @@ def main() -> None:
         "--groups",
         nargs="+",
         default=["real", "small"],
-        choices=["real", "small", "grey", "realstd", "twobones", "touching", "tibiafibula"],
+        choices=[
+            "real",
+            "small",
+            "grey",
+            "realstd",
+            "twobones",
+            "touching",
+            "tibiafibula",
+            "motion",
+            "corrupted",
+        ],
     )
     ap.add_argument("--reconstruct", action="store_true", help="also the surface's gold distance")
     ap.add_argument(
