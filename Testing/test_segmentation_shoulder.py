@@ -24,6 +24,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     _convex_pieces,
     _fill_excursions,
     _shoulder_cut,
+    frame_candidates,
 )
 from BoneUSRecon.Logic.segmentation.params import (
     RecoveryParams,
@@ -31,6 +32,7 @@ from BoneUSRecon.Logic.segmentation.params import (
     SettleParams,
     ShadowPathParams,
 )
+from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
 SP = (0.15, 0.15)  # mm per pixel of the drawn contours
@@ -424,3 +426,32 @@ def test_a_layer_branching_off_the_bone_contour_is_flagged() -> None:
     cands = [bone, layer, apex, far]
     got = cand_mod._mark_branches(cands, [c.points_px for c in cands], ev, SP, p)
     assert [c.echo_beneath for c in got] == [False, True, False, False]
+
+
+def test_every_candidate_keeps_points_of_its_own_path():
+    """Hard humerus at the cadaver's geometry swept by an unsteady hand
+    (``bench_sweeps.py --groups motion``), seed 197, frame 12: a rim trace climbed over
+    the contour it started from, and the climbing-end cut then kept the trace alone (32
+    rim points, none of the path's). The track compares the path's points and stopped
+    on it with a traceback; such a candidate is now dropped, and the sweep segments."""
+    # bench_sweeps.MOTION: tilt 12 degrees, 4 mm lateral and 2 mm depth jitter, speed
+    # varying by 0.8.
+    motion = {"tilt_deg": 12.0, "lateral_jitter_mm": 4.0, "depth_jitter_mm": 2.0}
+    sim = simulate(
+        SimulationParams(
+            bone="humerus",
+            seed=197,
+            realism="hard",
+            n_frames=40,
+            width=475,
+            height=405,
+            spacing_mm=0.108,
+            speed_variation=0.8,
+            **motion,
+        )
+    )
+    sp = tuple(sim.sweep.spacing_mm)
+    fc = frame_candidates(sim.sweep.frames[12], sp, ShadowPathParams())
+    assert fc.candidates and all(c.core_px.shape[0] > 0 for c in fc.candidates)
+    result = segment_sweep(sim.sweep)
+    assert result.contours[12].accepted

@@ -1510,6 +1510,14 @@ def _frame_candidates_steps(
     # Each piece judged on its settled contour before a layer beyond its wall was
     # dropped (that drop found the same layer; the extension keeps order and count).
     out = _mark_branches(out, [c.points_px for c in settled], ev, sp, p)
+    # A candidate none of whose own path's points survived the cuts is no candidate: a
+    # rim trace that climbed over the contour it started from, the contour then cut
+    # away as a climbing end (hard humerus at 475 x 405 swept by an unsteady hand,
+    # ``bench_sweeps.py --groups motion``, seed 197, frame 12: 32 rim points and no
+    # path point left; the track, which compares the path's points, stopped on it).
+    out = [c for c in out if c.core_px.shape[0]]
+    if not out:
+        return FrameCandidates((), sp, "no bone found")
     return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)}, _fov_px(ev))
 
 
