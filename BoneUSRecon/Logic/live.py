@@ -78,6 +78,7 @@ from BoneUSRecon.Logic.segmentation.ends import (
     shadow_step,
 )
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
+from BoneUSRecon.Logic.segmentation.reach import trim_beyond, with_cut
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import (
     prior_frames,
@@ -397,6 +398,10 @@ def _select(
             frames[n].evidence = None  # 6x the pixels: never kept for all frames
             if not keep_pixels:
                 frames[n].image = None
+    # A level run past the reach of the track frames on either side cut off, as offline
+    # (:mod:`~BoneUSRecon.Logic.segmentation.reach`).
+    cut = trim_beyond(fcs, choice, [fr.pose for fr in frames], params.rejection)
+    fcs, choice = with_cut(fcs, choice, cut)
     verdicts = [
         (
             n,
@@ -406,6 +411,7 @@ def _select(
             float(choice.confidence[n]),
             _prior_key(frames[n]) if n in extra else None,
             frames[n].recheck[0] if n in again else None,  # type: ignore[index]
+            _cut_key(cut[n]) if n in cut else None,
         )
         for n in range(len(frames))
     ]
@@ -427,6 +433,14 @@ def _select(
         params,
         {"segment_s": t_seg, "frames_per_s": len(frames) / max(t_seg, 1e-9)},
     )
+
+
+def _cut_key(cand: BoneCandidate) -> tuple[int, float, float]:
+    """What a contour cut by :func:`~BoneUSRecon.Logic.segmentation.reach.trim_beyond`
+    keeps (its points' count and first and last columns): its record is made again
+    when the cut changes."""
+    pts = cand.points_px
+    return (int(pts.shape[0]), float(pts[0, 0]), float(pts[-1, 0]))
 
 
 def _point_warnings(

@@ -653,6 +653,14 @@ class RejectionParams:
     """A bone point's frames are those whose image plane passes within this distance of it, mm (ours: the simulated forearm sweeps at the cadaver's geometry have frames 1.8-2.6 mm apart, and a hard sweep's frame may miss the bone's top; at 3 mm a point on an ulna or radius swept near the image's edge had one or two frames, none showing the top, and was lost (seed 127, ``bench_sweeps.py --off-centre``); at 5 mm the bone was followed. Issue 10's cadaver sweep, 1.4 mm apart: seven frames. A bone's top moves in plane by at most ``tolerance_per_mm`` per mm along the sweep, 2 mm over 5 mm: within ``point_contour_mm``)."""
     point_contour_mm: float = 3.0
     """In a bone point's frames only candidates whose contour passes within this in-plane distance of the point (projected into the frame) may be on the track, mm (ours: a click on the bone's echo band, 1-2 mm thick on the L14 recording, and ``point_plane_mm``'s slope; on the simulated forearms with the neighbour 18 mm beside, the neighbour's contour lies 9-14 mm from the swept bone on median, 3 mm at its nearest flank end: a point on a bone's top is well clear of the other)."""
+    trim_beyond: bool = True
+    """Cut a track contour's level run past the reach of the track frames on either side (:mod:`.reach`; ours, session 35: a layer leaving the bone's top at its level, which no turn of the contour marks. Over 166 simulated sweeps at both geometries, seeds 173-199, every harness group with two new ones (unsteady hand, corrupted frames): wrong-structure share 0.0039 -> 0.0030, recall 0.9903 -> 0.9906, gold 0.2528 -> 0.2530 mm; the two frames it was made for (hard ulna s197 frame 21, 3.6 mm off; hard radius with the ulna 18 mm beside, s173 frame 13, 7.1 mm) on the bone; the L14 recording and its copies unchanged)."""
+    beyond_margin_mm: float = 2.0
+    """Points more than this past the neighbours' outermost lateral reach are judged, mm (ours: a few speckle grains; the ends of neighbouring contours on the bone vary by about this much)."""
+    beyond_level_mm: float = 1.0
+    """... and cut when, to their 80th percentile, they lie no deeper than this under the contour's depth at the reach's edge, mm (ours: past its widest point a bone only descends; a flank 3 mm past the reach at 20 degrees descends 1.1 mm; the 80th percentile: a flank tracer may bend a layer's last points down)."""
+    beyond_min_mm: float = 3.0
+    """... and run on for at least this far past the margin, mm (ours: a broad flat shoulder a frame sees 1 mm further than its neighbours, as on the L14 recording's cadaver-level copy, is kept; the layers cut on the simulated sweeps ran 4-18 mm)."""
 
     def __post_init__(self) -> None:
         check_fields(
@@ -676,6 +684,9 @@ class RejectionParams:
                 "min_points",
                 "lane_offcentre",
                 "lane_gain",
+                "beyond_margin_mm",
+                "beyond_level_mm",
+                "beyond_min_mm",
             ),
             within={"min_overlap_share": "[0, 1]", "lane_frames": "[0, 1]", "lane_value": "[0, 1]"},
         )

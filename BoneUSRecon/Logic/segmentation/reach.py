@@ -1,0 +1,135 @@
+"""Sweep-level step: a track contour's level run past its neighbours' reach cut off.
+
+The per-frame step may carry a contour from the bone's top on along a layer that leaves
+it at its level: a fascia running off the crest (issue 10's cadaver: "bright fascia runs
+off the crest at the bone's level"), or a fascia over the valley onto the bone beside.
+Where the layer leaves the bone near its apex, before the bone has turned down, no
+turn of the contour marks where the bone ends (:func:`.candidates.convex_part` cuts at
+a flank that turns flat), and the contour links to its neighbours over the bone's
+part: the track keeps it whole, and the layer's points lie 1-10 mm off the bone (hard
+ulna at 475 x 405, seed 197, frame 21: 10.6 mm of fascia past the bone's shoulder, the
+contour 3.6 mm off the bone on median; hard radius with the ulna 18 mm beside, seed
+173, frame 13: 17.8 mm of fascia and ulna, 7.1 mm).
+
+The frames on either side say how far the bone reaches: a bone's width changes little
+between neighbouring frames (the sweep moves along it). :func:`trim_beyond` takes, for
+each track frame with a track frame on each side (within ``max_skip + 1`` frames), the
+lateral reach of those two contours in its plane (the outermost either reaches, whole
+contours) and looks at the frame's points more than ``beyond_margin_mm`` past it. Past
+its widest point a bone's outline only descends, so a run there that does not (its
+depths, to their 80th percentile, within ``beyond_level_mm`` of the contour's depth at
+the reach's edge) and that runs on for at least ``beyond_min_mm`` is no bone: it is cut
+off. A flank that one frame follows further down than its neighbours descends, and is
+kept; so is a short run past the reach (a neighbour's end a little short).
+
+Why it generalises: the poses, the contours' own extents and depths in mm; no grey
+level. Applied offline and live alike, after the track's rechecked contours
+(:mod:`.recovery`), before the contours are made.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
+from BoneUSRecon.Logic.segmentation.params import RejectionParams
+from BoneUSRecon.Logic.segmentation.recovery import prior_frames, with_candidate
+from BoneUSRecon.Logic.segmentation.track import TrackChoice, _project
+from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
+
+__all__ = ["beyond_reach", "trim_beyond", "with_cut"]
+
+
+def beyond_reach(
+    cand: BoneCandidate,
+    spacing: tuple[float, float],
+    reach: tuple[float, float],
+    params: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+) -> np.ndarray | None:
+    """The mask of ``cand``'s points kept when its level runs past ``reach`` (lateral mm,
+    the neighbours' outermost extent in the frame's plane) are cut off; None when
+    nothing is cut. See the module docstring."""
+    pts = cand.points_px
+    if pts.shape[0] < 3:
+        return None
+    x = pts[:, 0] * float(spacing[0])
+    z = pts[:, 1] * float(spacing[1])
+    keep = np.ones(x.size, bool)
+    m = params.beyond_margin_mm
+    for side, edge in ((-1, reach[0] - m), (1, reach[1] + m)):
+        past = x < edge if side < 0 else x > edge
+        inner = np.flatnonzero(~past)
+        if not past.any() or inner.size == 0:
+            continue
+        at = inner[0] if side < 0 else inner[-1]  # the contour at the reach's edge
+        level = np.percentile(z[past], 80.0) <= z[at] + params.beyond_level_mm
+        if level and np.abs(x[past] - edge).max() >= params.beyond_min_mm:
+            keep &= ~past
+    if keep.all():
+        return None
+    # The path's own points (not only a rim trace) must remain: the sweep-level steps
+    # compare those (:attr:`.candidates.BoneCandidate.core_px`).
+    a, b = cand.rim_ends
+    return keep if keep[a : keep.size - b].any() else None
+
+
+def _trimmed(cand: BoneCandidate, keep: np.ndarray) -> BoneCandidate:
+    """``cand`` with only the points ``keep`` (a contiguous run), its rim ends adjusted."""
+    idx = np.flatnonzero(keep)
+    a, b, n = int(idx[0]), int(idx[-1]) + 1, keep.size
+    rim = (max(0, cand.rim_ends[0] - a), max(0, cand.rim_ends[1] - (n - b)))
+    return replace(cand, points_px=cand.points_px[a:b], intensity=cand.intensity[a:b], rim_ends=rim)
+
+
+def trim_beyond(
+    frames: Sequence[FrameCandidates],
+    choice: TrackChoice,
+    poses: np.ndarray | Sequence[np.ndarray],
+    params: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
+) -> dict[int, BoneCandidate]:
+    """The track frames whose chosen contour is cut (:func:`beyond_reach`), with the cut
+    contour: ``{frame index: candidate}`` (the others as they are; empty with
+    ``params.trim_beyond`` off).
+
+    Every frame is judged against the track as given (a cut does not move its
+    neighbours' reach).
+    """
+    out: dict[int, BoneCandidate] = {}
+    if not params.trim_beyond:
+        return out
+    chosen = np.asarray(choice.chosen)
+    reach_frames = params.max_skip + 1
+    for f in np.flatnonzero(chosen >= 0).tolist():
+        near = prior_frames(chosen, f, reach_frames, True)
+        if near is None:
+            continue
+        origin, axes, normal = frame_planes(np.asarray(poses[f], dtype=float)[None])
+        lo, hi = np.inf, -np.inf
+        for g in near:
+            cand = frames[g].candidates[int(chosen[g])]
+            ref = pixels_to_reference(poses[g], cand.points_px)
+            lat = _project(ref, origin[0], axes[0], normal[0])[:, 0]
+            lo, hi = min(lo, float(lat.min())), max(hi, float(lat.max()))
+        own = frames[f].candidates[int(chosen[f])]
+        keep = beyond_reach(own, frames[f].spacing, (lo, hi), params)
+        if keep is not None:
+            out[f] = _trimmed(own, keep)
+    return out
+
+
+def with_cut(
+    frames: Sequence[FrameCandidates], choice: TrackChoice, cut: dict[int, BoneCandidate]
+) -> tuple[list[FrameCandidates], TrackChoice]:
+    """``frames`` and ``choice`` with each cut contour appended to its frame's candidates
+    and chosen (:func:`.recovery.with_candidate`, as a rechecked contour is)."""
+    out = list(frames)
+    if not cut:
+        return out, choice
+    chosen = np.array(choice.chosen, copy=True)
+    for n, cand in cut.items():
+        out[n] = with_candidate(out[n], cand)
+        chosen[n] = len(out[n].candidates) - 1
+    return out, replace(choice, chosen=chosen)
