@@ -45,6 +45,10 @@ def sample_data(name: str) -> Path:
 REAL_MHA = sample_data("BoneUltrasound_L14.igs.mha")
 REAL_XML = sample_data("BoneUltrasound_L14_config.xml")
 
+#: The geometry of issue 10's cadaver sweep (475 x 405 pixels at 0.108 mm), for
+#: ``small_simulation(**CADAVER, ...)``.
+CADAVER: dict[str, Any] = {"width": 475, "height": 405, "spacing_mm": 0.108}
+
 _CACHE: dict[tuple[tuple[str, Any], ...], Simulation] = {}
 
 

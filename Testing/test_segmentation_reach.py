@@ -12,11 +12,11 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import CADAVER, small_simulation
 
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate
 from BoneUSRecon.Logic.segmentation.reach import beyond_reach
-from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 
 SP = (0.1, 0.1)  # mm per pixel
 
@@ -62,17 +62,7 @@ def test_a_fascia_off_the_shoulder_is_cut_from_a_track_frame():
     session 35), frame 21: the contour ran from the bone's top on along a fascia leaving
     its right shoulder at its level, 10.6 mm past the frames on either side, 3.6 mm off
     the bone on median. Cut, it lies on the bone; no other frame moves off it."""
-    sim = simulate(
-        SimulationParams(
-            bone="ulna",
-            seed=197,
-            realism="hard",
-            n_frames=40,
-            width=475,
-            height=405,
-            spacing_mm=0.108,
-        )
-    )
+    sim = small_simulation(bone="ulna", seed=197, realism="hard", **CADAVER)
     sw = sim.sweep
     on = segment_sweep(sw)
     base = SegmentationParams()

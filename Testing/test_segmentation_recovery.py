@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import small_simulation
+from conftest import CADAVER, small_simulation
 
 from BoneUSRecon.Logic.segmentation import (
     RecoveryParams,
@@ -23,7 +23,6 @@ from BoneUSRecon.Logic.segmentation.candidates import frame_candidates_many
 from BoneUSRecon.Logic.segmentation.evidence import bone_evidence
 from BoneUSRecon.Logic.segmentation.params import RimParams, SettleParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.recovery import across_field, guided_candidate, track_prior
-from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
@@ -258,17 +257,8 @@ def test_a_band_across_the_field_is_no_guided_contour(monkeypatch):
     in 4 of the 5 bones of that seed before the rule, in 1 after (the radius, whose
     guided contour steps down over three bands, the deeper two fading over half the
     field on one side)."""
-    sim = simulate(
-        SimulationParams(
-            bone="ulna",
-            seed=173,
-            realism="hard",
-            n_frames=40,
-            width=475,
-            height=405,
-            spacing_mm=0.108,
-            corrupted_fraction=0.15,
-        )
+    sim = small_simulation(
+        bone="ulna", seed=173, realism="hard", corrupted_fraction=0.15, **CADAVER
     )
     sw = sim.sweep
     sp = sw.spacing_mm

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import small_simulation
+from conftest import CADAVER, small_simulation
 
 from BoneUSRecon.Logic.evaluation import evaluate_surface
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
@@ -32,7 +32,6 @@ from BoneUSRecon.Logic.segmentation.params import (
     SettleParams,
     ShadowPathParams,
 )
-from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
 SP = (0.15, 0.15)  # mm per pixel of the drawn contours
@@ -437,18 +436,8 @@ def test_every_candidate_keeps_points_of_its_own_path():
     # bench_sweeps.MOTION: tilt 12 degrees, 4 mm lateral and 2 mm depth jitter, speed
     # varying by 0.8.
     motion = {"tilt_deg": 12.0, "lateral_jitter_mm": 4.0, "depth_jitter_mm": 2.0}
-    sim = simulate(
-        SimulationParams(
-            bone="humerus",
-            seed=197,
-            realism="hard",
-            n_frames=40,
-            width=475,
-            height=405,
-            spacing_mm=0.108,
-            speed_variation=0.8,
-            **motion,
-        )
+    sim = small_simulation(
+        bone="humerus", seed=197, realism="hard", speed_variation=0.8, **motion, **CADAVER
     )
     sp = tuple(sim.sweep.spacing_mm)
     fc = frame_candidates(sim.sweep.frames[12], sp, ShadowPathParams())
