@@ -78,7 +78,7 @@ from BoneUSRecon.Logic.segmentation.ends import (
     shadow_step,
 )
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
-from BoneUSRecon.Logic.segmentation.reach import trim_beyond, with_cut
+from BoneUSRecon.Logic.segmentation.reach import trim_beyond
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import (
     prior_frames,
@@ -86,6 +86,7 @@ from BoneUSRecon.Logic.segmentation.recovery import (
     recheck_prior,
     recover_frame,
     with_candidate,
+    with_chosen,
 )
 from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
 from BoneUSRecon.Logic.segmentation.result import FrameContour
@@ -386,12 +387,7 @@ def _select(
         # The track's straying contours searched again and replaced where the search
         # agrees with their neighbours, as offline (after the ends cut).
         again, keep = _rechecked(frames, fcs, choice, params, counts)
-        if again:
-            chosen = choice.chosen.copy()
-            for n, cand in again.items():
-                fcs[n] = with_candidate(fcs[n], cand)
-                chosen[n] = len(fcs[n].candidates) - 1
-            choice = replace(choice, chosen=chosen)
+        fcs, choice = with_chosen(fcs, choice, again)
         for n in np.flatnonzero(first.chosen >= 0).tolist():
             if n in keep:
                 continue
@@ -401,7 +397,7 @@ def _select(
     # A level run past the reach of the track frames on either side cut off, as offline
     # (:mod:`~BoneUSRecon.Logic.segmentation.reach`).
     cut = trim_beyond(fcs, choice, [fr.pose for fr in frames], params.rejection)
-    fcs, choice = with_cut(fcs, choice, cut)
+    fcs, choice = with_chosen(fcs, choice, cut)
     verdicts = [
         (
             n,

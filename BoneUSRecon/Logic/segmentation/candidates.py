@@ -2180,9 +2180,7 @@ def candidates_from_points(
     ev = bone_evidence(image, sp, params)
     if ev is None:
         return FrameCandidates((), sp, "image too small", ex)
-    h, w = ev.score.shape
-    ci = np.clip(((pts[:, 0] + 0.5) / ev.fx - 0.5).round().astype(np.intp), 0, w - 1)
-    rj = np.clip(((pts[:, 1] + 0.5) / ev.fy - 0.5).round().astype(np.intp), 0, h - 1)
+    rj, ci = ev.work_index(pts)
     s = ev.score[rj, ci]
     length = float(np.ptp(pts[:, 0]) * sp[0]) if len(pts) > 1 else 0.0
     strength = float(np.mean(s - params.null_z) * length)

@@ -38,9 +38,9 @@ from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
 from BoneUSRecon.Logic.segmentation.ends import cut_ends_and_choose_again, shadow_step
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
-from BoneUSRecon.Logic.segmentation.reach import trim_beyond, with_cut
+from BoneUSRecon.Logic.segmentation.reach import trim_beyond
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
-from BoneUSRecon.Logic.segmentation.recovery import recheck_track, recover_frames
+from BoneUSRecon.Logic.segmentation.recovery import recheck_track, recover_frames, with_chosen
 from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
@@ -323,7 +323,9 @@ def segment_sweep(
     kept.clear()
     # A level run past the reach of the track frames on either side cut off (a layer
     # leaving the bone's top at its level, :mod:`.reach`).
-    frames, choice = with_cut(frames, choice, trim_beyond(frames, choice, poses, params.rejection))
+    frames, choice = with_chosen(
+        frames, choice, trim_beyond(frames, choice, poses, params.rejection)
+    )
     contours = contours_from_track(idx, frames, choice, params)
     t_seg = time.perf_counter() - t0
     result = SegmentationResult(

@@ -144,6 +144,16 @@ class EvidenceMaps:
     log_tissue_ratio: float
     fov: np.ndarray | None = None
 
+    def work_index(self, points_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The working pixel nearest to each image point ``(i, j)``: its rows and
+        columns, clipped to the working image (a block's centre lies at image pixel
+        ``(index + 0.5) * f - 0.5``)."""
+        pts = np.asarray(points_px, float)
+        h, w = self.score.shape
+        col = np.clip(np.rint((pts[:, 0] + 0.5) / self.fx - 0.5).astype(np.intp), 0, w - 1)
+        row = np.clip(np.rint((pts[:, 1] + 0.5) / self.fy - 0.5).astype(np.intp), 0, h - 1)
+        return row, col
+
     @property
     def nbytes(self) -> int:
         """Bytes held by the maps (~1.8 MB for a 480x640 frame at 0.15 mm per pixel)."""

@@ -36,11 +36,11 @@ import numpy as np
 
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
-from BoneUSRecon.Logic.segmentation.recovery import prior_frames, with_candidate
+from BoneUSRecon.Logic.segmentation.recovery import prior_frames
 from BoneUSRecon.Logic.segmentation.track import TrackChoice, _project
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
-__all__ = ["beyond_reach", "trim_beyond", "with_cut"]
+__all__ = ["beyond_reach", "trim_beyond"]
 
 
 def beyond_reach(
@@ -118,18 +118,3 @@ def trim_beyond(
         if keep is not None:
             out[f] = _trimmed(own, keep)
     return out
-
-
-def with_cut(
-    frames: Sequence[FrameCandidates], choice: TrackChoice, cut: dict[int, BoneCandidate]
-) -> tuple[list[FrameCandidates], TrackChoice]:
-    """``frames`` and ``choice`` with each cut contour appended to its frame's candidates
-    and chosen (:func:`.recovery.with_candidate`, as a rechecked contour is)."""
-    out = list(frames)
-    if not cut:
-        return out, choice
-    chosen = np.array(choice.chosen, copy=True)
-    for n, cand in cut.items():
-        out[n] = with_candidate(out[n], cand)
-        chosen[n] = len(out[n].candidates) - 1
-    return out, replace(choice, chosen=chosen)

@@ -101,6 +101,7 @@ __all__ = [
     "recheck_candidate",
     "recheck_track",
     "with_candidate",
+    "with_chosen",
 ]
 
 #: A prior: per neighbouring track contour, its (lateral mm, depth mm) in the frame's
@@ -292,8 +293,9 @@ def across_field(points_px: np.ndarray, ev: EvidenceMaps, spacing: tuple[float, 
     band, 0.1-0.2 mm deep from end to end but for a flank tracer's bent end, or three,
     with 0.65-1.1 of its echo on both sides; the sweeps' own bone contours there are 2-9
     mm deep end to end; with the rule 3 of the 4 no longer keep it: the radius's two
-    deeper bands fade over half the field's columns on one side). A bone's top meets at most a fascia running off one side of it,
-    not lines across the image on both, and its flanks are no level runs.
+    deeper bands fade over half the field's columns on one side). A bone's top meets at
+    most a fascia running off one side of it, not lines across the image on both, and
+    its flanks are no level runs.
 
     Why it generalises: the shape in mm, the echo as this frame's z-score relative to
     the contour's own, the columns the frame's own usable field: no grey level.
@@ -302,17 +304,16 @@ def across_field(points_px: np.ndarray, ev: EvidenceMaps, spacing: tuple[float, 
     n = pts.shape[0]
     if n < 3:
         return False
-    h, w = ev.echo_z.shape
     pts = pts[np.argsort(pts[:, 0], kind="stable")]
-    wi = np.clip(np.rint((pts[:, 0] + 0.5) / ev.fx - 0.5).astype(np.intp), 0, w - 1)
-    wj = np.clip(np.rint((pts[:, 1] + 0.5) / ev.fy - 0.5).astype(np.intp), 0, h - 1)
-    cols = np.arange(w)
+    wj, wi = ev.work_index(pts)
+    cols = np.arange(ev.echo_z.shape[1])
     beside = [(cols < wi.min()) & ev.usable, (cols > wi.max()) & ev.usable]
     if not (beside[0].any() and beside[1].any()):
         return False
     k = max(1, int(round(0.3 / ev.dy)))
     z = pts[:, 1] * float(spacing[1])
-    # Level runs, left to right (a few per contour: a loop over runs, not pixels).
+    # Level runs, left to right (a loop over the contour's points: guided contours only,
+    # a few per sweep).
     starts = [0]
     for i in range(1, n):
         if abs(z[i] - z[starts[-1]]) > _LEVEL_MM:
@@ -690,26 +691,36 @@ def recheck_track(
     its neighbours' priors). Returns the frames (a replaced frame's guided contour
     appended, :func:`with_candidate`), the choice naming it, and the frames replaced.
     """
-    out = list(frames)
-    changed: list[int] = []
     if not params.recheck:
-        return out, choice, changed
+        return list(frames), choice, []
     poses = np.asarray(poses, dtype=float)
-    chosen = np.array(choice.chosen, copy=True)
+    found: dict[int, BoneCandidate] = {}
     for f in np.flatnonzero(np.asarray(choice.chosen) >= 0).tolist():
         cand = recheck_frame(
             frames, choice, poses, f, image_of, shadowpath, rejection, params, evidence_of
         )
-        if cand is None:
-            continue
-        out[f] = with_candidate(frames[f], cand)
-        chosen[f] = len(out[f].candidates) - 1
-        changed.append(f)
-    if not changed:
-        return out, choice, changed
-    return out, replace(choice, chosen=chosen), changed
+        if cand is not None:
+            found[f] = cand
+    out, choice = with_chosen(frames, choice, found)
+    return out, choice, list(found)
 
 
 def with_candidate(fc: FrameCandidates, cand: BoneCandidate) -> FrameCandidates:
     """``fc`` with a guided candidate appended (the last candidate; the frame then has one)."""
     return replace(fc, candidates=(*fc.candidates, cand), reason="")
+
+
+def with_chosen(
+    frames: Sequence[FrameCandidates], choice: TrackChoice, cands: dict[int, BoneCandidate]
+) -> tuple[list[FrameCandidates], TrackChoice]:
+    """``frames`` with each of ``cands`` (by frame) appended (:func:`with_candidate`), and
+    ``choice`` with it chosen in its frame: a track frame's contour replaced (rechecked
+    here, cut by :mod:`.reach`)."""
+    out = list(frames)
+    if not cands:
+        return out, choice
+    chosen = np.array(choice.chosen, copy=True)
+    for n, cand in cands.items():
+        out[n] = with_candidate(out[n], cand)
+        chosen[n] = len(out[n].candidates) - 1
+    return out, replace(choice, chosen=chosen)
