@@ -135,6 +135,15 @@ class BoneCandidate:
     guided: bool = False
     rim_ends: tuple[int, int] = (0, 0)
 
+    def kept_run(self, a: int, b: int) -> BoneCandidate:
+        """The candidate with only its points ``a .. b - 1`` (a cut at its ends), the rim's
+        points among them still counted as the rim's."""
+        n = self.points_px.shape[0]
+        rim = (max(0, self.rim_ends[0] - a), max(0, self.rim_ends[1] - (n - b)))
+        return dataclasses.replace(
+            self, points_px=self.points_px[a:b], intensity=self.intensity[a:b], rim_ends=rim
+        )
+
     @property
     def core_px(self) -> np.ndarray:
         """``points_px`` without the rim's points: what the sweep-level steps compare.
@@ -1576,10 +1585,7 @@ def _cut_climbing_ends(
     a, b = keep
     if (a, b) == (0, n):
         return cand
-    rim = (max(0, cand.rim_ends[0] - a), max(0, cand.rim_ends[1] - (n - b)))
-    return dataclasses.replace(
-        cand, points_px=pts[a:b], intensity=cand.intensity[a:b], rim_ends=rim
-    )
+    return cand.kept_run(a, b)
 
 
 def _mark_branches(

@@ -30,7 +30,6 @@ level. Applied offline and live alike, after the track's rechecked contours
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 
@@ -76,14 +75,6 @@ def beyond_reach(
     return keep if keep[a : keep.size - b].any() else None
 
 
-def _trimmed(cand: BoneCandidate, keep: np.ndarray) -> BoneCandidate:
-    """``cand`` with only the points ``keep`` (a contiguous run), its rim ends adjusted."""
-    idx = np.flatnonzero(keep)
-    a, b, n = int(idx[0]), int(idx[-1]) + 1, keep.size
-    rim = (max(0, cand.rim_ends[0] - a), max(0, cand.rim_ends[1] - (n - b)))
-    return replace(cand, points_px=cand.points_px[a:b], intensity=cand.intensity[a:b], rim_ends=rim)
-
-
 def trim_beyond(
     frames: Sequence[FrameCandidates],
     choice: TrackChoice,
@@ -116,5 +107,6 @@ def trim_beyond(
         own = frames[f].candidates[int(chosen[f])]
         keep = beyond_reach(own, frames[f].spacing, (lo, hi), params)
         if keep is not None:
-            out[f] = _trimmed(own, keep)
+            idx = np.flatnonzero(keep)  # a contiguous run: the cuts are at the ends
+            out[f] = own.kept_run(int(idx[0]), int(idx[-1]) + 1)
     return out
