@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from BoneUSRecon.Logic.simulation.bones import UP, BoneGeometry
 from BoneUSRecon.Logic.simulation.params import SimulationParams
+from BoneUSRecon.Logic.simulation.sections import bone_sections
 
 __all__ = ["ProbePath", "probe_path", "smooth_noise"]
 
@@ -57,7 +58,7 @@ def probe_path(geom: BoneGeometry, params: SimulationParams, rng: np.random.Gene
     geom : BoneGeometry
     params : SimulationParams
         Uses ``n_frames, width, height, spacing_mm, reverse, tilt_deg,
-        lateral_jitter_mm, depth_jitter_mm, speed_variation, frame_rate_hz,
+        lateral_jitter_mm, depth_jitter_mm, min_depth_mm, speed_variation, frame_rate_hz,
         sweep_margin_mm``.
     rng : numpy Generator
 
@@ -124,6 +125,18 @@ def probe_path(geom: BoneGeometry, params: SimulationParams, rng: np.random.Gene
     m[:, :3, 2] = 0.5 * (sx + sy) * ez
     m[:, :3, 3] = origin
     m[:, 3, 3] = 1.0
+    # Pressure compresses the tissue over the bone only so far: where the bone comes
+    # nearer the probe face than ``min_depth_mm`` anywhere in the image (tilted, rocked
+    # or off to one side, the bone's top under the face's centre is not its nearest
+    # point), the probe is lifted along its beam by the difference. A shift along the
+    # beam moves every section point by the same depth, so one pass is exact.
+    top_j = bone_sections(geom, m, s, int(params.width)).top_j
+    seen = np.isfinite(top_j).any(axis=1)
+    nearest = np.full(n, np.inf)
+    nearest[seen] = np.nanmin(top_j[seen], axis=1) * sy
+    lift = np.clip(params.min_depth_mm - nearest, 0.0, None)
+    m[:, :3, 3] -= lift[:, None] * ey
+    depth = depth + lift
     # Frame clock: a fixed frame rate with a little acquisition jitter.
     dt = 1.0 / params.frame_rate_hz
     ts = np.arange(n) * dt + rng.uniform(-0.05, 0.05, n) * dt

@@ -316,6 +316,13 @@ class SimulationParams:
     lateral_jitter_mm: float = 1.5
     #: Standard deviation of the probe pressure variation, i.e. of the bone depth (mm).
     depth_jitter_mm: float = 0.7
+    #: Least skin-to-bone-top distance (mm) the probe's pressure leaves: the depth with
+    #: its jitter is clamped here. The skin alone is 1-2 mm thick (the hard preset draws
+    #: its line at 1.2 mm) and the subcutis over a subcutaneous bone compresses to a few
+    #: mm, not to nothing; without the floor a 2 mm pressure jitter on the hard
+    #: preset's 5 mm end put the bone's top 1.0 mm under the probe, above the skin line
+    #: (issue 10's cadaver leg: 5 mm at its shallowest).
+    min_depth_mm: float = 3.0
     #: Relative standard deviation of the sweep speed (unitless): uneven hand speed.
     speed_variation: float = 0.4
     #: Frame rate (Hz), for the timestamps.
@@ -381,6 +388,7 @@ class SimulationParams:
                 "tilt_deg",
                 "lateral_jitter_mm",
                 "depth_jitter_mm",
+                "min_depth_mm",
                 "speed_variation",
                 "sweep_margin_mm",
                 "bone_free_frames",
