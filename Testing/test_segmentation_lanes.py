@@ -6,6 +6,7 @@ the track follows the one in the middle of the image (``track.central_track``,
 from __future__ import annotations
 
 import dataclasses
+import types
 
 import numpy as np
 import pytest
@@ -17,6 +18,8 @@ from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import (
     FrameCandidates,
+    _dense_rows,
+    _mark_echo_beneath,
     _separate_domes,
     _valley_runs,
     frame_candidates,
@@ -330,10 +333,14 @@ def _radius_beside(seed: int, neighbour_mm: float = 18.0):
 
 
 def test_the_track_does_not_cross_to_the_neighbour_over_a_fascia_joining_them():
-    """Hard radius seed 1: in frame 8 the contour ran along a fascia from the radius's
-    flank onto the ulna, and the track followed the ulna in frames 9-11 (wrong share
-    0.25); kept to one lane, every frame is on the radius."""
-    sim = _radius_beside(1)
+    """Hard radius seed 1, the ulna 14 mm beside it (their tops touch): in frame 6 a
+    contour runs from the radius's top along the fascia off its flank onto the ulna
+    (columns 26-172; the fascia ends on the ulna's flank), and with neither lane rule
+    the track follows the ulna in frames 7-11 (wrong share 0.42); kept to one lane,
+    every frame is on the radius. (The ulna 18 mm beside, seed 1, showed this while the
+    simulated fascia ran on under the ulna; with it ending at the ulna, none of seeds
+    1-16 crosses there.)"""
+    sim = _radius_beside(1, 14.0)
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["recall"] == 1.0 and s["wrong_share"] == 0.0 and s["median_mm"] <= 0.2
     # The control, with neither lane rule (the nearer-middle step alone also keeps it
@@ -344,20 +351,24 @@ def test_the_track_does_not_cross_to_the_neighbour_over_a_fascia_joining_them():
     assert score_simulation(segment_sweep(sim.sweep, off), sim).summary()["wrong_share"] >= 0.2
 
 
-def test_the_far_cortex_under_the_bone_is_flagged_where_bright_tissue_covers_it():
-    """Hard radius seed 2: the interior between the near and the far cortex reads 0.81
-    of the frame's typical tissue (reverberation bands), 0.73-0.77 of the brighter
-    tissue over the bone. Judged against the frame's level alone the far cortex, 6-10
-    mm deep in the shadow, went unflagged and the track followed it in all 12 frames;
-    against the tissue the sound crossed it is flagged and the track is on the bone."""
-    sim = _radius_beside(2)
+@pytest.mark.parametrize(("seed", "frame"), [(2, 7), (6, 9), (7, 4)])
+def test_the_far_cortex_under_the_bone_is_flagged_where_bright_tissue_covers_it(seed, frame):
+    """Hard radius, the ulna 18 mm beside it: in these frames the interior between the
+    near and the far cortex reads 0.82 of the frame's typical tissue (reverberation
+    bands), 0.73-0.77 of the brighter tissue over the bone. Judged against the frame's
+    level alone the far cortex, 9-12 mm under the bone's top in the shadow, goes
+    unflagged (in seed 2 the track then follows it in all 12 frames); against the
+    tissue the sound crossed it is flagged and the track is on the bone. (Seed 2 frame
+    9 showed it too while the simulated fascia ran on under the ulna: the far cortex
+    there is now brighter than the faint near cortex over it and not flagged, yet
+    never chosen.)"""
+    sim = _radius_beside(seed)
     sp = SegmentationParams().shadowpath
-    for k in (7, 9):
-        t = np.asarray(sim.true_contours_px[k]) * 0.16
-        fc = frame_candidates(np.asarray(sim.sweep.frames[k]), (0.16, 0.16), sp)
-        far = [c for c in fc.usable if np.median(cKDTree(t).query(c.points_px * 0.16)[0]) > 5.0]
-        deep = [c for c in far if np.median(c.points_px[:, 1]) * 0.16 > t[:, 1].max()]
-        assert deep and all(c.echo_beneath for c in deep)
+    t = np.asarray(sim.true_contours_px[frame]) * 0.16
+    fc = frame_candidates(np.asarray(sim.sweep.frames[frame]), (0.16, 0.16), sp)
+    far = [c for c in fc.usable if np.median(cKDTree(t).query(c.points_px * 0.16)[0]) > 5.0]
+    deep = [c for c in far if np.median(c.points_px[:, 1]) * 0.16 > t[:, 1].max()]
+    assert deep and all(c.echo_beneath for c in deep)
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["wrong_share"] == 0.0 and s["recall"] >= 0.7
 
@@ -385,21 +396,43 @@ def test_a_track_on_one_bone_all_along_is_not_moved_to_the_bone_beside():
     assert _lanes_of(frames, on)[7:] == [142.0] * 5
 
 
+def _line_over(lower: np.ndarray) -> list[bool]:
+    """``echo_beneath`` of a flat line (working row 100, columns 10-109, 0.16 mm
+    pixels) and of a contour ``lower`` under it (rows per column), as
+    :func:`candidates._mark_echo_beneath` flags them: bright tissue over the line (1.12
+    of the frame's typical), tissue between the two reading 0.83 of it (0.74 of that
+    cover), shadow under the lower one, whose grey is 0.9 of the line's."""
+    cols = np.arange(10, 110)
+    lower = np.rint(lower).astype(np.intp)
+    lr = np.zeros((300, 120))
+    lr[25:100, cols] = np.log(1.12)
+    lr[100, cols] = np.log(3.0)
+    for i, r in zip(cols, lower, strict=True):
+        lr[101:r, i] = np.log(0.83)
+        lr[r, i] = np.log(2.5)
+        lr[r + 1 :, i] = np.log(0.4)
+    line = {"cols": cols, "rows": np.full(cols.size, 100), "grey": 1.0, "shadow": 0.0}
+    under = {"cols": cols, "rows": lower, "grey": 0.9, "shadow": 0.0}
+    cands = [line, under]
+    _dense_rows(cands)
+    ev = types.SimpleNamespace(dx=0.16, dy=0.16)
+    _mark_echo_beneath(cands, ev, lr, SegmentationParams().shadowpath)
+    return [bool(c.get("beneath")) for c in cands]
+
+
 def test_a_bone_top_under_a_fascia_is_not_taken_for_a_far_cortex():
-    """Hard radius seed 6 with the ulna 14 mm beside (the two almost touch), frame 5: a
-    fascia runs over the ulna's top with tissue between them reading 0.83 of the
-    frame's typical tissue and 0.74 of the bright tissue over the fascia, as the
-    radius's interior does over its far cortex (seed 2 above). The ulna's top is a dome,
-    not a far cortex's bowl: it is judged against the frame's level and not flagged (it
-    was, and the pieces over both bones were joined into one contour 4.2 mm off the
-    radius that the track followed in frames 2-5)."""
-    sim = _radius_beside(6, 14.0)
-    sp = SegmentationParams().shadowpath
-    t = np.asarray(sim.true_contours_px[5]) * 0.16
-    fc = frame_candidates(np.asarray(sim.sweep.frames[5]), (0.16, 0.16), sp)
-    d = [np.median(cKDTree(t).query(c.points_px * 0.16)[0]) for c in fc.usable]
-    ulna = [
-        c for c, m in zip(fc.usable, d, strict=True) if m > 6.0 and c.points_px[:, 0].max() < 130
-    ]
-    assert ulna and not any(c.echo_beneath for c in ulna)
-    assert min(d) < 0.3  # the radius is offered on its own
+    """A dome (a bone's top) under a bright line (a fascia over it), tissue between
+    reading 0.83 of the frame's typical tissue and 0.74 of the bright tissue over the
+    line, as a radius's interior reads over its far cortex (seed 2 above): the dome is
+    judged against the frame's level, is not flagged, and the line over it is (the
+    sound went through it). A bowl in its place (the back wall of a convex bone: a far
+    cortex) is judged against the tissue over the line and flagged. (This stood on the
+    hard radius seed 6 with the ulna 14 mm beside, frame 5, while the simulated fascia
+    ran on under the ulna: the "dome" was that fascia, 2.5 mm under the ulna's top in
+    its shadow; no radius sweep of seeds 1-36, the ulna 14 or 18 mm beside, shows a
+    bone's top the rule keeps unflagged since.)"""
+    x = np.arange(10, 110) - 59.5
+    dome = 150.0 + 0.004 * x**2  # apex 150, ends 10 rows (1.6 mm) deeper
+    bowl = 160.0 - 0.004 * x**2
+    assert _line_over(dome) == [True, False]
+    assert _line_over(bowl) == [False, True]

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from BoneUSRecon.Logic.simulation import HARD_CONDITIONS, SimulationParams, echo_levels, simulate
+from BoneUSRecon.Logic.simulation.sections import bone_sections
 
 SMALL = dict(n_frames=24, width=160, height=128, spacing_mm=0.3, seed=1)
 
@@ -183,6 +184,42 @@ def test_fascia_runs_off_the_bone_with_tissue_beneath() -> None:
     i0 = np.flatnonzero(np.isfinite(sc.fascia_j[k]))
     end = i0[0] if np.isfinite(sim.sections.top_j[k, i0[0]]) else i0[-1]
     assert abs(sc.fascia_j[k, end] - sim.sections.top_j[k, end]) < 1.0
+
+
+def test_fascia_ends_where_it_meets_the_neighbouring_bone() -> None:
+    # The radius with the ulna 14 mm beside it (their tops touch): the fascia leaves the
+    # radius's flank toward the ulna (away from the vessel) and, 14 mm long, reaches it.
+    # A fascia cannot run into or under a bone: it ends on the ulna's surface.
+    sim = simulate(
+        SimulationParams(
+            bone="radius",
+            neighbour_mm=14.0,
+            realism="hard",
+            hard_conditions=("fascia",),
+            n_frames=6,
+            width=320,
+            height=256,
+            spacing_mm=0.16,
+            seed=1,
+        )
+    )
+    sc, sw = sim.hard_scene, sim.sweep
+    s2 = sim.path.s - sim.geometry.length / 2 + sim.neighbour.length / 2  # as simulate()
+    ulna = bone_sections(sim.neighbour, sw.image_to_reference, s2, sw.width).top_j
+    full = sim.params.hard.fascia_length_mm / 0.16
+    ended = 0
+    for k in range(sw.n_frames):
+        on = np.flatnonzero(np.isfinite(sc.fascia_j[k]))
+        assert on.size and not (sc.fascia_j[k, on] >= ulna[k, on]).any(), k
+        # The ulna's side, the fascia's last column there, and the next one: in (or
+        # under) the ulna, within one fascia step deeper.
+        d = 1 if np.nanargmin(ulna[k]) > np.nanargmin(sim.sections.top_j[k]) else -1
+        end = on[-1] if d > 0 else on[0]
+        if on.size < full - 1:
+            ended += 1
+            step = sc.fascia_j[k, end] + abs(np.diff(sc.fascia_j[k, on])).max()
+            assert ulna[k, end + d] <= step, k
+    assert ended == sw.n_frames
 
 
 def test_skin_gap_is_dark_with_equally_spaced_copies() -> None:

@@ -46,7 +46,7 @@ __all__ = [
 
 #: Version of the simulation model, written to ``simulation.json``; bump when the
 #: images or geometry for a given seed change.
-SIMULATOR_VERSION = 2
+SIMULATOR_VERSION = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -455,6 +455,9 @@ def simulate(
     sections = bone_sections(geom, path.image_to_reference, path.s, int(params.width), far=hard)
     top_j, cos_inc = sections.top_j, sections.cos_incidence
     other = _neighbour(geom, params)
+    # Frames past the bone's end show no bone (neither bone is rendered there).
+    free = _bone_free_mask(params)
+    other_top = None
     if other is not None:
         # The image shows whichever bone each beam meets first (they never overlap).
         s2 = path.s - geom.length / 2 + other.length / 2  # same x as the probe
@@ -462,12 +465,16 @@ def simulate(
         use2 = np.isfinite(sec2.top_j) & ~(top_j <= sec2.top_j)
         top_j = np.where(use2, sec2.top_j, top_j)
         cos_inc = np.where(use2, sec2.cos_incidence, cos_inc)
+        # Where the hard scene's fascia meets the neighbour, it ends.
+        other_top = np.where(free[:, None], np.nan, sec2.top_j)
     report(progress, "geometry", 1, 3)
     kinds = choose_corrupted(
         int(params.n_frames), float(params.corrupted_fraction), np.random.default_rng([seed, 4])
     )
     scene = (
-        hard_scene(params, geom, path, sections, np.random.default_rng([seed, 7])) if hard else None
+        hard_scene(params, geom, path, sections, np.random.default_rng([seed, 7]), other_top)
+        if hard
+        else None
     )
     if scene is not None and other is not None:
         # The neighbouring bone's echo keeps the standard angle law.
@@ -477,7 +484,6 @@ def simulate(
         scene = replace(scene, strength=both)
     # Frames past the bone's end: no bone is rendered there (the tissue layers, fascia,
     # skin gap and vessel were laid out above from the bone's sections and stay).
-    free = _bone_free_mask(params)
     if free.any():
         top_j = np.where(free[:, None], np.nan, top_j)
         cos_inc = np.where(free[:, None], 0.0, cos_inc)

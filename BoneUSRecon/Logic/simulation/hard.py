@@ -15,7 +15,8 @@ of :class:`~.params.HardParams` (each documented with the real value it comes fr
   the side facing the probe (:func:`.bones.crest_shape`); the visible contour runs
   down the crest's flanks to 70 degrees.
 * ``fascia``: a bright line leaving the bone's flank at the bone's level and running
-  outwards, with tissue (not shadow) beneath: a bone look-alike.
+  outwards, with tissue (not shadow) beneath: a bone look-alike. It ends where it
+  meets a neighbouring bone's surface (never runs into or under it).
 * ``skin_gap``: at one image edge the skin curves away from the probe over a dark
   no-contact gap, with equally spaced bright reverberation copies of the skin line below.
 * ``vessel``: a dark round lumen beside the bone with bright walls, posterior
@@ -98,7 +99,8 @@ class HardScene:
     strength: np.ndarray
     #: Row of the far cortex (``grey_shadow``).
     far_j: np.ndarray | None = None
-    #: Row and amplitude of the fascia running off the bone (``fascia``).
+    #: Row and amplitude of the fascia running off the bone (``fascia``), ending where
+    #: it meets a neighbouring bone.
     fascia_j: np.ndarray | None = None
     fascia_amp: np.ndarray | None = None
     #: Row of the skin line over the no-contact gap (``skin_gap``).
@@ -123,14 +125,69 @@ def _vessel_side(params: SimulationParams, rng: np.random.Generator) -> float:
     return float(rng.choice([-1.0, 1.0]))
 
 
+def _fascia_end(rows: np.ndarray, run: np.ndarray, bone_top: np.ndarray) -> float:
+    """How far (columns) a fascia runs before it first meets another bone.
+
+    A fascia is a sheet of connective tissue between muscles; where its run reaches a
+    bone it ends on the bone's surface (it inserts into the periosteum): it cannot
+    pass through the bone, and under the bone it would lie in the bone's acoustic
+    shadow, where the bone has reflected or absorbed most of the sound and nothing
+    comes back as bright as over tissue. The fascia line is drawn after the shadows
+    (:func:`.imaging.render_frames`), so drawn on it would read as bright under the
+    bone as beside it: a line a real image never shows, which a segmenter could
+    follow from one bone onto the other. Over the bone, above its surface (tissue
+    between), a fascia runs on.
+
+    Parameters
+    ----------
+    rows : ndarray (W,)
+        The fascia's row per column, NaN off its run.
+    run : ndarray (W,)
+        Each column's distance along the run from where the fascia leaves its bone
+        (columns, increasing outwards; negative behind it).
+    bone_top : ndarray (W,)
+        The other bone's surface row per column, NaN where the beam misses it.
+
+    Returns
+    -------
+    float
+        The run at the first column where the fascia lies on or below the other
+        bone's surface (in it or under it), ``inf`` if it never does.
+    """
+    with np.errstate(invalid="ignore"):
+        into = (rows >= bone_top) & (run >= 0)
+    return float(run[into].min()) if into.any() else np.inf
+
+
 def hard_scene(
     params: SimulationParams,
     geom: BoneGeometry,
     path: ProbePath,
     sections: BoneSections,
     rng: np.random.Generator,
+    other_top_j: np.ndarray | None = None,
 ) -> HardScene:
-    """Lay out the hard conditions of every frame (``params`` as from :func:`effective_params`)."""
+    """Lay out the hard conditions of every frame.
+
+    Parameters
+    ----------
+    params : SimulationParams
+        As from :func:`effective_params`.
+    geom : BoneGeometry
+        The swept bone.
+    path : ProbePath
+    sections : BoneSections
+        The swept bone's sections (the fascia and vessel are laid out beside it).
+    rng : numpy.random.Generator
+    other_top_j : ndarray (N, W), optional
+        Row of a neighbouring bone's surface per frame and column (NaN where the beam
+        misses it or it is not shown): the fascia ends where it meets it
+        (:func:`_fascia_end`).
+
+    Returns
+    -------
+    HardScene
+    """
     h = params.hard
     n, w = sections.top_j.shape
     sp = float(params.spacing_mm)
@@ -173,6 +230,11 @@ def hard_scene(
             fa[k, on] = np.clip(run[on] * sp / 1.0, 0.3, 1.0) * np.clip(
                 (h.fascia_length_mm - run[on] * sp) / 3.0, 0.0, 1.0
             )
+            if other_top_j is not None:
+                # No fascia in or under the neighbouring bone: it ends on its surface.
+                cut = on & (run >= _fascia_end(fj[k], run, other_top_j[k]))
+                fj[k, cut] = np.nan
+                fa[k, cut] = 0.0
         out["fascia_j"] = fj
         out["fascia_amp"] = fa * h.fascia_strength
 
