@@ -276,3 +276,23 @@ def test_a_band_across_the_field_is_no_guided_contour(monkeypatch):
     assert np.median(sim.distance_to_truth(sw.to_reference(28, bone.points_px))) < 0.3  # mm
     ev = bone_evidence(sw.frames[28], sp)
     assert not across_field(bone.core_px, ev, sp)
+
+
+def test_a_frame_with_the_probe_off_the_skin_is_not_searched() -> None:
+    """Hard radius, 160 x 128, 20 % corrupted frames, seed 7: in frame 16 the probe is
+    off the skin (lens reverberation over the noise floor). Between two track frames the
+    search the track vouches for found a path through the noise at the bone's depth and
+    the frame was kept; its tissue level is half the sweep's median frame's, and such a
+    frame is no longer searched (``RecoveryParams.contact_level``). The frames showing
+    the bone keep their contours."""
+    sim = small_simulation(
+        bone="radius", seed=7, realism="hard", n_frames=24, corrupted_fraction=0.2
+    )
+    assert sim.corruption_kinds[16] == "contact_loss"
+    off = SegmentationParams(recovery=RecoveryParams(contact_level=0.0))
+    without, with_rule = segment_sweep(sim.sweep, off), segment_sweep(sim.sweep)
+    assert without.contours[16].accepted  # the premise: found in the noise
+    assert not with_rule.contours[16].accepted
+    fs = score_simulation(with_rule, sim)
+    assert fs.wrong_share == 0.0
+    assert fs.recall >= score_simulation(without, sim).recall

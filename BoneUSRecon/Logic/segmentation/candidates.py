@@ -165,6 +165,8 @@ class FrameCandidates:
     ``fov_px``: the first and last image columns of the imaged field of view, when
     known (the track prefers a bone near its middle over a neighbouring one,
     :func:`.track.central_track`; None: no such preference for this frame).
+    ``level``: the frame's tissue level (:meth:`.evidence.EvidenceMaps.frame_level`;
+    None: not measured), which :mod:`.recovery` compares with the sweep's.
     """
 
     candidates: tuple[BoneCandidate, ...]
@@ -172,6 +174,7 @@ class FrameCandidates:
     reason: str = ""
     extras: dict = field(default_factory=dict)
     fov_px: tuple[float, float] | None = None
+    level: float | None = None
 
     @property
     def usable(self) -> tuple[BoneCandidate, ...]:
@@ -1409,7 +1412,7 @@ def _frame_candidates_steps(
             ok = (band >= 0) & (band < h)
             gain[band[ok], np.broadcast_to(cols, band.shape)[ok]] = -1.0
     if not found:
-        return FrameCandidates((), sp, "no bone found")
+        return FrameCandidates((), sp, "no bone found", level=ev.frame_level())
     _dense_rows(found)
     _mark_reverberations(found, p)
     lr = _log_ratio(ev)
@@ -1526,8 +1529,10 @@ def _frame_candidates_steps(
     # path point left; the track, which compares the path's points, stopped on it).
     out = [c for c in out if c.core_px.shape[0]]
     if not out:
-        return FrameCandidates((), sp, "no bone found")
-    return FrameCandidates(tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)}, _fov_px(ev))
+        return FrameCandidates((), sp, "no bone found", level=ev.frame_level())
+    return FrameCandidates(
+        tuple(out), sp, "", {"work_px": (ev.fx, ev.fy)}, _fov_px(ev), ev.frame_level()
+    )
 
 
 def _cut_climbing_ends(
@@ -2197,4 +2202,4 @@ def candidates_from_points(
         float(np.median(ev.echo_z[rj, ci])),
         float(np.median(ev.shadow_z[rj, ci])),
     )
-    return FrameCandidates((cand,), sp, "", ex, _fov_px(ev))
+    return FrameCandidates((cand,), sp, "", ex, _fov_px(ev), ev.frame_level())

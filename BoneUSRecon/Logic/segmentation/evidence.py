@@ -144,6 +144,19 @@ class EvidenceMaps:
     log_tissue_ratio: float
     fov: np.ndarray | None = None
 
+    def frame_level(self) -> float:
+        """The frame's tissue level: the median of :attr:`tissue` over the rows from 15
+        to 50 % of the depth (grey/255).
+
+        Below the skin line and the lens's reverberation bands, above the depths where
+        a bone's shadow fills much of the width: the soft tissue's backscatter. With the
+        probe off the skin none comes back and the level falls to the noise floor; a
+        frame is judged against its own sweep's frames (:attr:`.params.RecoveryParams.contact_level`),
+        never against a grey level.
+        """
+        h = self.tissue.shape[0]
+        return float(np.median(self.tissue[int(0.15 * h) : max(int(0.5 * h), int(0.15 * h) + 1)]))
+
     def work_index(self, points_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The working pixel nearest to each image point ``(i, j)``: its rows and
         columns, clipped to the working image (a block's centre lies at image pixel

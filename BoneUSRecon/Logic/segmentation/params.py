@@ -629,6 +629,8 @@ class RejectionParams:
     """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
     miss_cost: float = 0.3
     """Cost of a skipped frame, in units of the sweep's typical best candidate strength (ours)."""
+    span_credit: float = 0.3
+    """Credit per frame of the span a track covers, in the same units (:func:`.track.select_bone_track`): with ``miss_cost`` equal, a frame past the track's ends costs what a frame skipped inside it costs. Without it a track's span is free, so an end frame joins only when its value beats its link's cost, and under an unsteady hand the deep, weaker bone at a sweep's start dropped off (ours; see ``Testing/benchmarks/README.md``, session 36)."""
     beneath_factor: float = 0.1
     """Value of a candidate that is no first interface (an echo as bright under it: sound went through it; or it lies in a shadow: far cortex), relative to its strength (ours: 0.3 let a far cortex in the shadow of a faint near cortex carry the track on the hard tibia, recall 0.42 -> 0.70 at 0.1)."""
     strength_cap: float = 2.0
@@ -678,6 +680,7 @@ class RejectionParams:
                 "step_per_mm",
                 "max_skip",
                 "miss_cost",
+                "span_credit",
                 "beneath_factor",
                 "strength_cap",
                 "min_length_mm",
@@ -711,6 +714,8 @@ class RecoveryParams:
     """The contour found must span at least this share of the columns the neighbouring track contours span in the frame (ours: a run through speckle in the band is short)."""
     max_offset: float = 0.5
     """The contour found must lie, on median, within this share of the wider neighbouring track contour's link tolerance (the band's half-width when it was measured; the band is now the nearer one's, :func:`.recovery.guided_candidate`) of the depth the track's neighbouring contours give (ours: on 82 frames recovered on the bone, median 0.12, p95 0.40, max 0.74; a false echo over the bone and layers crossing the band, 0.60-0.68)."""
+    contact_level: float = 0.6
+    """A frame whose tissue level (:meth:`.evidence.EvidenceMaps.frame_level`) is under this share of the sweep's median frame's is not searched: the probe is off the skin there, and what the band holds is the lens's reverberation over the noise floor, where a search vouched for by the neighbours finds a path through the noise at the bone's depth (:func:`.recovery.recover_frame`; ours: contact-loss frames of 10 hard sweeps at 475 x 405 read 0.49-0.50, the other frames 0.73-1.07; the L14 recording's frames 0.91-1.04, the Spine phantom's 0.82-1.14; 0: every frame searched)."""
     both_sides: bool = True
     """Search only frames with a track frame on each side within ``max_skip + 1`` frames (offline and live, ``EndsParams.search_past_ends`` searches past the track's ends as False does, the ends cut judging what is found; ours: past the track's ends only one side vouches, and beyond the last frame showing bone there is nothing to find; measured with the bone removed from the last 10 of 40 frames, 24 hard sweeps: searching with one side recovered bone-free frames in 7 sweeps, for +0.017 mean recall on sweeps showing bone throughout)."""
 
@@ -724,7 +729,7 @@ class RecoveryParams:
     def __post_init__(self) -> None:
         check_fields(
             self,
-            within={"min_share": "[0, 1]", "max_stray_ratio": "[0, 1]"},
+            within={"min_share": "[0, 1]", "max_stray_ratio": "[0, 1]", "contact_level": "[0, 1]"},
             positive=("max_offset",),
             non_negative=("min_stray",),
         )

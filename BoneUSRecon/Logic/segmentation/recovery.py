@@ -536,6 +536,8 @@ def recover_frame(
     ``evidence_of(f)`` (the frame's evidence maps if kept) are called only when the
     frame is searched.
     """
+    if off_skin(frames, f, params.contact_level):
+        return None
     prior = track_prior(frames, choice, poses, f, rejection.max_skip + 1, params.both_sides)
     if prior is None:
         return None
@@ -549,6 +551,22 @@ def recover_frame(
         params.max_offset,
         evidence_of(f) if evidence_of is not None else None,
     )
+
+
+def off_skin(frames: Sequence[FrameCandidates], f: int, contact_level: float) -> bool:
+    """Whether frame ``f``'s tissue level is under ``contact_level`` of the median
+    frame's of ``frames`` (``RecoveryParams.contact_level``): the probe off the skin.
+
+    The level is relative to the sweep's own frames, so gain, depth and scanner do not
+    matter; only the loss of the body's backscatter does (contact loss: the lens's
+    reverberation over the noise floor). Frames with no level measured are never off
+    the skin. A live session compares with the frames so far.
+    """
+    own = frames[f].level
+    if not contact_level > 0 or own is None:
+        return False
+    levels = [fc.level for fc in frames if fc.level is not None]
+    return own < contact_level * float(np.median(levels))
 
 
 def stray(
