@@ -16,6 +16,7 @@ from conftest import CADAVER, small_simulation
 
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate
+from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.segmentation.reach import beyond_reach
 
 SP = (0.1, 0.1)  # mm per pixel
@@ -79,3 +80,52 @@ def test_a_fascia_off_the_shoulder_is_cut_from_a_track_frame():
     for a, b in zip(off.contours, on.contours, strict=True):
         if a.accepted and a.frame != 21 and median_mm(a) < 1.0:
             assert b.accepted and median_mm(b) < 1.0
+
+
+def test_a_climb_past_the_reach_onto_another_top_is_cut_at_the_valley():
+    """A dome over 12-28 mm (the neighbours' reach) whose contour runs on over a valley
+    at 27.3 mm, up onto a second top at 33 mm (4.7 mm over the valley) and down its far
+    flank to 42 mm (as a rim trace follows it): the run past the reach descends (not
+    level), yet climbs onto another top first. Cut at the valley's bottom, the dome
+    kept whole; with ``beyond_climb_mm`` 0 nothing is cut."""
+    x = np.arange(12.0, 42.0, 0.1)
+    z = np.minimum(_dome(x), 10.0 + 0.15 * (x - 33.0) ** 2)
+    params = RejectionParams()
+    keep = beyond_reach(_cand(x, z), SP, (12.0, 28.0), params)
+    assert keep is not None
+    valley = x[np.argmax(np.where((x > 20.0) & (x < 33.0), z, -np.inf))]  # 27.3 mm
+    assert np.all(keep[x <= valley + 1e-6]) and not np.any(keep[x > valley + 1e-6])
+    off = dataclasses.replace(params, beyond_climb_mm=0.0)
+    assert beyond_reach(_cand(x, z), SP, (12.0, 28.0), off) is None
+
+
+def test_a_narrow_hop_onto_a_layer_over_the_flank_is_no_other_top():
+    """A dome whose flank, followed down past the neighbours' reach (12-28 mm) to 40 mm,
+    hops for 0.4 mm onto a layer 1.5 mm over it at 34 mm (a contour switching lines on
+    a flank, hard tibia s173 frame 24): no top of another bone, nothing is cut."""
+    x = np.arange(12.0, 40.0, 0.1)
+    z = np.where(x <= 26.0, _dome(x), _dome(np.array([26.0]))[0] + 0.8 * (x - 26.0))
+    z = np.where((x > 33.8) & (x < 34.2), z - 1.5, z)
+    assert beyond_reach(_cand(x, z), SP, (12.0, 28.0)) is None
+
+
+def test_a_contour_over_the_valley_onto_the_bone_beside_is_cut_from_a_track_frame():
+    """Hard radius with the ulna 14 mm beside (their tops touch) at the cadaver's
+    geometry (475 x 405 at 0.108 mm), seed 173 (session 36), frame 28: the path ran from
+    the ulna's top over the valley and along the fascia onto the radius, its rim
+    followed the ulna's far flank down; 42 % of its points lay on the ulna (11 mm past
+    the frames on either side), none of its pieces cut (the valley's two shadows 0.14
+    and 0.36: not a third; its ulna side no dome of its own). Cut at the valley, it lies
+    on the radius; no accepted frame keeps points on the ulna."""
+    sim = small_simulation(bone="radius", seed=173, realism="hard", neighbour_mm=14.0, **CADAVER)
+    sw = sim.sweep
+    res = segment_sweep(sw)
+
+    def ulna_share(c) -> float:
+        p = sw.to_reference(c.frame, c.points_px)
+        return float(np.mean(sim.neighbour.distance(p) < sim.geometry.distance(p)))
+
+    c28 = res.contours[28]
+    assert c28.accepted and ulna_share(c28) < 0.05
+    assert np.median(sim.distance_to_truth(sw.to_reference(28, c28.points_px))) < 0.2
+    assert all(ulna_share(c) < 0.1 for c in res.contours if c.accepted)

@@ -664,6 +664,9 @@ class RejectionParams:
     beyond_min_mm: float = 3.0
     """... and run on for at least this far past the margin, mm (ours: a broad flat shoulder a frame sees 1 mm further than its neighbours, as on the L14 recording's cadaver-level copy, is kept; the layers cut on the simulated sweeps ran 4-18 mm)."""
 
+    beyond_climb_mm: float = 1.0
+    """... or, past the margin too, cut from the bottom of a valley when the contour, going outward from its top inside the reach, climbs back by at least this over the deepest point before it, onto a top at least ``beyond_min_mm`` across, mm (0: off; :mod:`.reach`; as ``ShadowPathParams.climb_mm``: past its widest point a bone's outline only descends, and 1 mm is twice the valley a grain over the top makes, ``valley_mm``. Ours, session 36: the hard radius with the ulna 14 mm beside, s173 frame 28, ran from the radius over the valley onto the ulna's top, which climbed 1.6 mm over the valley 4-11 mm past the neighbours' reach; see Testing/benchmarks/README.md)."""
+
     def __post_init__(self) -> None:
         check_fields(
             self,
@@ -690,6 +693,7 @@ class RejectionParams:
                 "beyond_margin_mm",
                 "beyond_level_mm",
                 "beyond_min_mm",
+                "beyond_climb_mm",
             ),
             within={"min_overlap_share": "[0, 1]", "lane_frames": "[0, 1]", "lane_value": "[0, 1]"},
         )
