@@ -629,8 +629,6 @@ class RejectionParams:
     """A track must link at least this many frames (or all frames with candidates, if fewer): a line in one or two frames can be speckle, a bone continues."""
     miss_cost: float = 0.3
     """Cost of a skipped frame, in units of the sweep's typical best candidate strength (ours)."""
-    span_credit: float = 0.3
-    """Credit per frame of the span a track covers, in the same units (:func:`.track.select_bone_track`): with ``miss_cost`` equal, a frame past the track's ends costs what a frame skipped inside it costs. Without it a track's span is free, so an end frame joins only when its value beats its link's cost, and under an unsteady hand the deep, weaker bone at a sweep's start dropped off (ours; see ``Testing/benchmarks/README.md``, session 36)."""
     beneath_factor: float = 0.1
     """Value of a candidate that is no first interface (an echo as bright under it: sound went through it; or it lies in a shadow: far cortex), relative to its strength (ours: 0.3 let a far cortex in the shadow of a faint near cortex carry the track on the hard tibia, recall 0.42 -> 0.70 at 0.1)."""
     strength_cap: float = 2.0
@@ -683,7 +681,6 @@ class RejectionParams:
                 "step_per_mm",
                 "max_skip",
                 "miss_cost",
-                "span_credit",
                 "beneath_factor",
                 "strength_cap",
                 "min_length_mm",

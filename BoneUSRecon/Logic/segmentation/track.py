@@ -20,13 +20,7 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   over the other: the tolerance's growth along the sweep is for a surface inclined to
   it (its flanks sliding sideways), while a whole contour a step under the bone's is
   its far cortex or a reverberation band in its shadow;
-* each skipped frame costs ``miss_cost``, and each frame of the span the track covers,
-  from its first frame to its last, earns ``span_credit``: a frame past the track's
-  ends is then worth what a frame inside it is (without the credit, an end frame
-  joined only when its own value beat its link's cost, and the deep, fainter bone at
-  the start of a sweep swept by an unsteady hand dropped off the track: hard tibia
-  at 475 x 405, seed 179, three frames with their bone candidates 0.07-0.18 mm off
-  the bone, linked at 0.67-0.87 tolerances, value 0.4-0.7).
+* each skipped frame costs ``miss_cost``.
 
 A caller may rule frames out beforehand (``exclude``: the frames :mod:`.ends` judged
 bone-free): their candidates are no nodes, and they keep the reason given.
@@ -521,13 +515,11 @@ def select_bone_track(
         kas = [ka for f in range(max(0, g - p.max_skip - 1), g) for ka in by_frame.get(f, ())]
         links = _links_many([ref[ka] for ka in kas], (origin[g], axes[g], normal[g]), b_nodes, p)
         for ka, pairs in zip(kas, links, strict=True):
-            gap = p.miss_cost * (g - nodes[ka][0] - 1) - p.span_credit * (g - nodes[ka][0])
+            gap = p.miss_cost * (g - nodes[ka][0] - 1)
             edges.extend((ka, ks[i], dev, gap) for i, dev in pairs)
 
     def forward(value: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        # Best path value ending at each node (a path may start anywhere; its first
-        # frame is a frame of its span).
-        score = value + p.span_credit
+        score = value.copy()  # best path value ending at each node (a path may start anywhere)
         back = np.full(m, -1, dtype=np.intp)
         link_dev = np.zeros(m)
         for ka, kb, dev, gap in edges:
@@ -963,9 +955,7 @@ def pointed_track(
     ruled = np.where(mark < 0, -np.inf, value)
     # More than a track's value (at most strength_cap per frame) and its costs (links
     # at most max_deviation tolerances long, skips) over all frames with nodes.
-    per_frame = (
-        p.strength_cap + p.max_deviation**2 + (p.miss_cost + p.span_credit) * (p.max_skip + 1)
-    )
+    per_frame = p.strength_cap + p.max_deviation**2 + p.miss_cost * (p.max_skip + 1)
     bonus = 1.0 + per_frame * len({f for f, _ in nodes})
     boosted = np.where(mark > 0, ruled + bonus, ruled)
     out = forward(boosted)

@@ -358,7 +358,7 @@ class IncrementalTrack:
             # On Python floats (the same IEEE arithmetic as the batch version's numpy
             # scalars, ~10x faster per edge); edges in the batch order.
             value = values.tolist()
-            score = [v + p.span_credit for v in value]
+            score = list(value)
             back = [-1] * len(nodes)
             link_dev = [0.0] * len(nodes)
             for g, fr in enumerate(frames):
@@ -370,7 +370,7 @@ class IncrementalTrack:
                         continue  # no nodes (its stored links, if any, name none)
                     fa, ef = frames[f], ext[f]
                     bf = base[f]
-                    gap_cost = p.miss_cost * (g - f - 1) - p.span_credit * (g - f)
+                    gap_cost = p.miss_cost * (g - f - 1)
                     edges = fr.links.get(fa.uid)
                     if edges:
                         for ia, ib, dev in edges:
