@@ -85,6 +85,7 @@ from BoneUSRecon.Logic.segmentation.recovery import (
     recheck_candidate,
     recheck_prior,
     recover_frame,
+    sweep_level,
     with_candidate,
     with_chosen,
 )
@@ -207,6 +208,7 @@ def _guided(
     reach = params.rejection.max_skip + 1
     fcs = [fr.candidates for fr in frames]
     poses = [fr.pose for fr in frames]
+    median_level = sweep_level(fcs)
     for f in np.flatnonzero(choice.chosen < 0).tolist():
         near = prior_frames(choice.chosen, f, reach, rec.both_sides)
         if near is None:
@@ -230,6 +232,7 @@ def _guided(
                 params.rejection,
                 rec,
                 lambda _, ev=fr.evidence: ev,  # type: ignore[misc]
+                median_level,
             )
             # Its shadow step (:mod:`~BoneUSRecon.Logic.segmentation.ends`) measured now,
             # while the pixels are at hand: the ends cut may need it at any later refit.

@@ -95,6 +95,8 @@ __all__ = [
     "vouched_evidence",
     "recover_frame",
     "recover_frames",
+    "sweep_level",
+    "off_skin",
     "stray",
     "recheck_prior",
     "recheck_frame",
@@ -508,9 +510,10 @@ def recover_frames(
     if not params.enabled:
         return out, changed
     poses = np.asarray(poses, dtype=float)
+    median = sweep_level(frames)
     for f in np.flatnonzero(np.asarray(choice.chosen) < 0).tolist():
         cand = recover_frame(
-            frames, choice, poses, f, image_of, shadowpath, rejection, params, evidence_of
+            frames, choice, poses, f, image_of, shadowpath, rejection, params, evidence_of, median
         )
         if cand is None:
             continue
@@ -529,14 +532,18 @@ def recover_frame(
     rejection: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
     params: RecoveryParams = RecoveryParams(),  # noqa: B008 (frozen dataclass)
     evidence_of: Callable[[int], EvidenceMaps | None] | None = None,
+    median_level: float | None = None,
 ) -> BoneCandidate | None:
     """The guided candidate of one frame off the track (None: not searched, or nothing
     found); :func:`recover_frames` for each such frame, and a live session for the
     frames whose prior (:func:`prior_frames`) changed. ``image_of(f)`` and
     ``evidence_of(f)`` (the frame's evidence maps if kept) are called only when the
-    frame is searched.
+    frame is searched; ``median_level`` is :func:`sweep_level` of ``frames`` if the
+    caller has it (computed here otherwise).
     """
-    if off_skin(frames, f, params.contact_level):
+    if median_level is None:
+        median_level = sweep_level(frames)
+    if off_skin(frames[f], median_level, params.contact_level):
         return None
     prior = track_prior(frames, choice, poses, f, rejection.max_skip + 1, params.both_sides)
     if prior is None:
@@ -553,20 +560,26 @@ def recover_frame(
     )
 
 
-def off_skin(frames: Sequence[FrameCandidates], f: int, contact_level: float) -> bool:
-    """Whether frame ``f``'s tissue level is under ``contact_level`` of the median
-    frame's of ``frames`` (``RecoveryParams.contact_level``): the probe off the skin.
+def sweep_level(frames: Sequence[FrameCandidates]) -> float | None:
+    """The median of the frames' tissue levels (None: no frame has one)."""
+    levels = [fc.level for fc in frames if fc.level is not None]
+    return float(np.median(levels)) if levels else None
+
+
+def off_skin(frame: FrameCandidates, median_level: float | None, contact_level: float) -> bool:
+    """Whether ``frame``'s tissue level is under ``contact_level`` of the sweep's median
+    frame's (``median_level``, :func:`sweep_level`; ``RecoveryParams.contact_level``):
+    the probe off the skin.
 
     The level is relative to the sweep's own frames, so gain, depth and scanner do not
     matter; only the loss of the body's backscatter does (contact loss: the lens's
     reverberation over the noise floor). Frames with no level measured are never off
     the skin. A live session compares with the frames so far.
     """
-    own = frames[f].level
-    if not contact_level > 0 or own is None:
+    own = frame.level
+    if not contact_level > 0 or own is None or median_level is None:
         return False
-    levels = [fc.level for fc in frames if fc.level is not None]
-    return own < contact_level * float(np.median(levels))
+    return own < contact_level * median_level
 
 
 def stray(

@@ -130,13 +130,15 @@ def probe_path(geom: BoneGeometry, params: SimulationParams, rng: np.random.Gene
     # or off to one side, the bone's top under the face's centre is not its nearest
     # point), the probe is lifted along its beam by the difference. A shift along the
     # beam moves every section point by the same depth, so one pass is exact.
-    top_j = bone_sections(geom, m, s, int(params.width)).top_j
-    seen = np.isfinite(top_j).any(axis=1)
-    nearest = np.full(n, np.inf)
-    nearest[seen] = np.nanmin(top_j[seen], axis=1) * sy
-    lift = np.clip(params.min_depth_mm - nearest, 0.0, None)
-    m[:, :3, 3] -= lift[:, None] * ey
-    depth = depth + lift
+    # (No floor, no sections: they cost as much as the frames' own.)
+    if params.min_depth_mm > 0:
+        top_j = bone_sections(geom, m, s, int(params.width)).top_j
+        seen = np.isfinite(top_j).any(axis=1)
+        nearest = np.full(n, np.inf)
+        nearest[seen] = np.nanmin(top_j[seen], axis=1) * sy
+        lift = np.clip(params.min_depth_mm - nearest, 0.0, None)
+        m[:, :3, 3] -= lift[:, None] * ey
+        depth = depth + lift
     # Frame clock: a fixed frame rate with a little acquisition jitter.
     dt = 1.0 / params.frame_rate_hz
     ts = np.arange(n) * dt + rng.uniform(-0.05, 0.05, n) * dt
