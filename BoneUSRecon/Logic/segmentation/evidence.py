@@ -89,7 +89,14 @@ from BoneUSRecon.Logic.segmentation.features import (
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 from BoneUSRecon.Logic.segmentation.phase import phase_factor, phase_symmetry_depth
 
-__all__ = ["EvidenceMaps", "working_image", "field_of_view", "tissue_level", "bone_evidence"]
+__all__ = [
+    "EvidenceMaps",
+    "working_image",
+    "field_of_view",
+    "outside_sector",
+    "tissue_level",
+    "bone_evidence",
+]
 
 _EPS = np.float32(1e-3)  # grey/255: guards log(0) in black regions (no decision rests on it)
 
@@ -224,22 +231,73 @@ def field_of_view(work: np.ndarray, dx: float, params: ShadowPathParams) -> np.n
     return inside
 
 
+def outside_sector(work: np.ndarray, dx: float, params: ShadowPathParams) -> np.ndarray | None:
+    """Pixels of a working image outside a sector-shaped field of view, shape (h, w),
+    or None when the field's black margins are whole columns (a linear probe).
+
+    A curvilinear (or steered, trapezoidal) probe's scan-converted image is a sector:
+    black (at or under ``fov_grey``, an instrument fact as for
+    :func:`field_of_view`) outside it, from each row's left and right border inward by
+    an amount that changes with depth. The column rule cannot see it: a column at the
+    sector's side is black over its near rows only, which :func:`_contact` and
+    :func:`_edge_gap` read as a probe edge off the skin and the tissue levels of those
+    rows as darker tissue (a hard simulated tibia under a sector mask, 475 x 405: its
+    flanks near the sector's sides cut, surface 0.39 -> 0.57 mm from gold). The
+    black run from each border of each row, no longer than the row above's (a sector
+    widens with depth), is the outside; the field is a sector only where those runs
+    narrow it by more than ``fov_margin_mm`` (what the column rule shrinks the field
+    by) over at least a quarter of the rows. So a dark shadow or floor reaching a
+    linear image's black padding deep down (the L14 recording), a stand-off's black
+    rows, or a no-contact patch at a near corner change nothing. Why it generalises:
+    it reads only the scanner's exact black and the field's shape, no tissue level.
+    """
+    h, w = work.shape
+    black = work <= np.float32(params.fov_grey / 255.0)
+    whole = black.all(axis=1)
+    if whole.all():
+        return None
+    # Black run from each border: the first non-black column from that side, as
+    # narrow as in any row above (a sector only widens with depth: a dark shadow or
+    # floor reaching the border deeper down is tissue, not the outside).
+    left = np.minimum.accumulate(np.where(whole, w, np.argmin(black, axis=1)))
+    right = np.minimum.accumulate(np.where(whole, w, np.argmin(black[:, ::-1], axis=1)))
+    k = int(round(params.fov_margin_mm / dx))
+    # A sector's sides narrow the field over much of the depth (at least a quarter of
+    # the rows), not over a few near rows (a probe edge off the skin, :func:`_edge_gap`).
+    narrowed = (left > left[-1] + k) | (right > right[-1] + k)
+    if narrowed.sum() < max(2, h // 4):
+        return None
+    cols = np.arange(w)[None, :]
+    return (cols < left[:, None]) | (cols >= (w - right)[:, None])
+
+
 def tissue_level(
-    work: np.ndarray, columns: np.ndarray, percentile: float | tuple[float, ...], dy: float
+    work: np.ndarray,
+    columns: np.ndarray,
+    percentile: float | tuple[float, ...],
+    dy: float,
+    outside: np.ndarray | None = None,
 ) -> np.ndarray:
     """Tissue grey level per row: a percentile over ``columns``, smoothed over ~1 mm of depth.
 
     Several percentiles at once (one partition of the rows) give shape ``(n, h)``.
+    ``outside``: pixels outside a sector-shaped field (:func:`outside_sector`), left
+    out of their rows' percentiles.
     """
     # Half the columns suffice for a percentile (from 40 on): every other one of the
     # selected columns, gathered once.
     cols = np.flatnonzero(columns) if columns.any() else np.arange(work.shape[1])
-    sel = work[:, cols[::2] if cols.size >= 40 else cols]
+    pick = cols[::2] if cols.size >= 40 else cols
+    sel = work[:, pick]
     # Sorting the rows first: the same order statistics, so the same percentiles, and a
     # row-wise sort is several times faster than numpy's per-row selection at these sizes.
     # np.percentile's values read from the sorted rows (no re-partition).
     srt = np.sort(sel, axis=1)
-    t = sorted_row_percentiles(srt, percentile if isinstance(percentile, tuple) else (percentile,))
+    qs = percentile if isinstance(percentile, tuple) else (percentile,)
+    if outside is None:
+        t = sorted_row_percentiles(srt, qs)
+    else:
+        t = _inside_percentiles(srt, outside[:, pick].sum(axis=1), qs)
     t = (t if isinstance(percentile, tuple) else t[0]).astype(np.float32)
     t = gaussian_filter1d(t, max(0.5, 1.0 / dy), axis=-1, mode="nearest")
     # Relative floor (a fraction of the frame's own typical tissue level): deep rows of
@@ -248,6 +306,30 @@ def tissue_level(
     med = sorted_row_medians(np.sort(t, axis=-1).reshape(-1, t.shape[-1]))
     med = np.maximum(med.reshape(t.shape[:-1] + (1,)), _EPS)
     return np.maximum(t, np.float32(0.05) * med.astype(np.float32))
+
+
+def _inside_percentiles(srt: np.ndarray, n_out: np.ndarray, q: tuple[float, ...]) -> np.ndarray:
+    """Percentiles ``q`` of sorted rows without their first ``n_out`` values (the black
+    outside a sector sorts first), shape ``(len(q), h)``; numpy's "linear" rule. A row
+    with nothing inside takes the nearest row's values that has (0 if none has)."""
+    h, n = srt.shape
+    m = n - n_out  # values inside, per row
+    has = m > 0
+    pos = n_out[None, :] + (np.asarray(q, float)[:, None] / 100.0) * np.maximum(m - 1, 0)[None, :]
+    i0 = np.clip(np.floor(pos).astype(np.intp), 0, n - 1)
+    i1 = np.minimum(i0 + 1, n - 1)
+    g = pos - i0
+    rows = np.arange(h)[None, :]
+    out = srt[rows, i0] + (srt[rows, i1] - srt[rows, i0]) * g
+    if not has.all():
+        if not has.any():
+            return np.zeros_like(out)
+        near = np.flatnonzero(has)
+        idx = near[np.clip(np.searchsorted(near, np.arange(h)), 0, near.size - 1)]
+        before = near[np.clip(np.searchsorted(near, np.arange(h)) - 1, 0, near.size - 1)]
+        idx = np.where(np.abs(before - np.arange(h)) < np.abs(idx - np.arange(h)), before, idx)
+        out = out[:, idx]
+    return out
 
 
 @functools.lru_cache(maxsize=64)
@@ -385,23 +467,41 @@ def _robust_z(
 
 
 def _dark_share(
-    work: np.ndarray, tissue: np.ndarray, dy: float, near_field_mm: float, depth_mm: float
+    work: np.ndarray,
+    tissue: np.ndarray,
+    dy: float,
+    near_field_mm: float,
+    depth_mm: float,
+    outside: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """Per column, the share of the rows ``depth_mm`` under the near field darker than
-    half the tissue level at their depth (None: fewer than 2 such rows in the image)."""
+    half the tissue level at their depth (None: fewer than 2 such rows in the image).
+    ``outside``: pixels outside a sector (:func:`outside_sector`), not counted (a
+    column with none of those rows inside: share 0, nothing says it is off the skin)."""
     h = work.shape[0]
     a = mm_to_px(near_field_mm, dy, minimum=0)
     b = min(h, a + mm_to_px(depth_mm, dy))
     if b - a < 2:
         return None
-    return (work[a:b] < 0.5 * tissue[a:b, None]).mean(axis=0)
+    dark = work[a:b] < 0.5 * tissue[a:b, None]
+    if outside is None:
+        return dark.mean(axis=0)
+    ins = ~outside[a:b]
+    n = ins.sum(axis=0)
+    return np.where(n > 0, (dark & ins).sum(axis=0) / np.maximum(n, 1), 0.0)
 
 
-def _contact(work: np.ndarray, tissue: np.ndarray, dy: float, p: ShadowPathParams) -> np.ndarray:
+def _contact(
+    work: np.ndarray,
+    tissue: np.ndarray,
+    dy: float,
+    p: ShadowPathParams,
+    outside: np.ndarray | None = None,
+) -> np.ndarray:
     """Columns in contact: not dark from the near field down (an uncoupled probe edge is)."""
     # Share of the near rows darker than half the tissue level at their depth: an
     # uncoupled column is dark except for thin, equally spaced lens reverberations.
-    dark = _dark_share(work, tissue, dy, p.near_field_mm, p.contact_mm)
+    dark = _dark_share(work, tissue, dy, p.near_field_mm, p.contact_mm, outside)
     if dark is None:
         return np.ones(work.shape[1], bool)
     return dark < p.contact_dark_fraction
@@ -414,6 +514,7 @@ def _edge_gap(
     dx: float,
     dy: float,
     p: ShadowPathParams,
+    outside: np.ndarray | None = None,
 ) -> np.ndarray:
     """Columns under a partial no-contact gap at an edge of the usable field, shape (w,).
 
@@ -461,7 +562,7 @@ def _edge_gap(
     cols = np.flatnonzero(usable)
     if not p.gap_shade or cols.size < 2:
         return gap
-    share = _dark_share(work, tissue, dy, p.near_field_mm, p.gap_probe_mm)
+    share = _dark_share(work, tissue, dy, p.near_field_mm, p.gap_probe_mm, outside)
     if share is None:
         return gap
     # Beyond the frame's typical column: speckle and a hypoechoic layer spanning the
@@ -580,13 +681,16 @@ def bone_evidence(
         return None
     dx, dy = fx * sx, fy * sy
     fov = field_of_view(work, dx, p)
+    # A sector's black outside (curvilinear probe) is neither dark tissue nor a probe
+    # edge off the skin: left out of the levels, the contact and gap tests and the nulls.
+    outside = outside_sector(work, dx, p)
     # Both references from one partition of the rows; again over the usable columns
     # only if contact removed some.
     pct = (p.tissue_percentile, p.shadow_percentile)
-    tissue, t_shadow = tissue_level(work, fov, pct, dy)
-    usable = fov & _contact(work, tissue, dy, p)
+    tissue, t_shadow = tissue_level(work, fov, pct, dy, outside)
+    usable = fov & _contact(work, tissue, dy, p, outside)
     if usable.any() and not np.array_equal(usable, fov):
-        tissue, t_shadow = tissue_level(work, usable, pct, dy)
+        tissue, t_shadow = tissue_level(work, usable, pct, dy, outside)
 
     mid = mm_to_px(p.mid_mm, dy)
     up = mm_to_px(p.up_mm, dy)
@@ -656,6 +760,8 @@ def bone_evidence(
     nf = mm_to_px(p.near_field_mm, dy, minimum=0)
     rows_ok = (inside >= 0.5) & (top - up >= 0) & (j >= nf)
     valid = rows_ok[:, None] & usable[None, :]
+    if outside is not None:
+        valid &= ~outside
     # Both z-scores' nulls over the tissue's pixels, with null_dark_fraction set not
     # the black ones (_null_pixels; by default every valid pixel).
     null = _null_pixels(valid, dark, p.null_min_share)
@@ -665,7 +771,7 @@ def bone_evidence(
     echo_z = _robust_z(log_e, valid, _scale_of(log_e.ravel().take(pick)))
     shadow_ms = _shadow_scale_of(log_s.ravel().take(pick), p.shadow_null_tolerance)
     shadow_z = _robust_z(log_s, valid, shadow_ms)
-    gap_cols = _edge_gap(work, tissue, usable, dx, dy, p)
+    gap_cols = _edge_gap(work, tissue, usable, dx, dy, p, outside)
     if gap_cols.any() and (ms := shadow_ms) is not None:
         # In the spread's units of the frame's shadow log-ratio as it is: the rule
         # changes the gap's columns only, not the scale every other column is read in.

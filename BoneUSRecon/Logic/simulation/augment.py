@@ -28,6 +28,7 @@ __all__ = [
     "add_speckle",
     "resample_spacing",
     "crop",
+    "sector",
     "RECORDING_AUGMENTATIONS",
     "HARD_AUGMENTATIONS",
     "tissue_level",
@@ -103,6 +104,28 @@ def crop(sweep: Sweep, rows: tuple[int, int], cols: tuple[int, int]) -> Sweep:
     a = np.eye(4)
     a[0, 3], a[1, 3] = cols[0], rows[0]
     return _with(sweep, sweep.frames[:, rows[0] : rows[1], cols[0] : cols[1]], a)
+
+
+def sector(sweep: Sweep, top_share: float = 0.7) -> Sweep:
+    """Black out every frame outside a sector: a curvilinear (or steered) probe's field.
+
+    The imaged area's top row keeps the middle ``top_share`` of its width, the bottom
+    row all of it, the sides straight between (the field of a convex probe whose
+    apex lies above the image, as scan conversion draws it, black outside). Pixels keep
+    their place, so the poses are unchanged.
+    """
+    if not 0 < top_share <= 1:
+        raise ValueError(f"top_share must be in (0, 1], got {top_share}")
+    f = np.asarray(sweep.frames)
+    lit = _lit(f)
+    rows, cols = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
+    if rows.size < 2 or cols.size < 2:
+        return _with(sweep, f)
+    r0, r1, c0, c1 = rows[0], rows[-1], cols[0], cols[-1]
+    depth = (np.arange(f.shape[1])[:, None] - r0) / (r1 - r0)
+    half = 0.5 * (c1 - c0) * (top_share + (1.0 - top_share) * np.clip(depth, 0.0, 1.0))
+    inside = np.abs(np.arange(f.shape[2])[None, :] - 0.5 * (c0 + c1)) <= half
+    return _with(sweep, np.where(inside[None], f, 0))
 
 
 def _lit(frames: np.ndarray) -> np.ndarray:
@@ -317,6 +340,7 @@ RECORDING_AUGMENTATIONS: dict[str, Callable[[Sweep], Sweep]] = {
     "speckle": lambda s: add_speckle(s, 0.3, seed=1),
     "0.15mm": lambda s: resample_spacing(s, 0.15),
     "crop": lambda s: crop(s, (40, 560), (150, 700)),
+    "sector": lambda s: sector(s, 0.7),
     "all": lambda s: add_speckle(
         scale_gain(resample_spacing(flip_lateral(s), 0.15), 0.7),
         0.3,
