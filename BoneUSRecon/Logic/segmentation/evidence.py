@@ -231,44 +231,46 @@ def field_of_view(work: np.ndarray, dx: float, params: ShadowPathParams) -> np.n
     return inside
 
 
-def outside_sector(work: np.ndarray, dx: float, params: ShadowPathParams) -> np.ndarray | None:
+def outside_sector(
+    work: np.ndarray, dx: float, dy: float, params: ShadowPathParams
+) -> np.ndarray | None:
     """Pixels of a working image outside a sector-shaped field of view, shape (h, w),
-    or None when the field's black margins are whole columns (a linear probe).
+    or None when the field is no sector (a linear probe).
 
     A curvilinear (or steered, trapezoidal) probe's scan-converted image is a sector:
-    black (at or under ``fov_grey``, an instrument fact as for
-    :func:`field_of_view`) outside it, from each row's left and right border inward by
-    an amount that changes with depth. The column rule cannot see it: a column at the
-    sector's side is black over its near rows only, which :func:`_contact` and
-    :func:`_edge_gap` read as a probe edge off the skin and the tissue levels of those
-    rows as darker tissue (a hard simulated tibia under a sector mask, 475 x 405: its
-    flanks near the sector's sides cut, surface 0.39 -> 0.57 mm from gold). The
-    black run from each border of each row, no longer than the row above's (a sector
-    widens with depth), is the outside; the field is a sector only where those runs
-    narrow it by more than ``fov_margin_mm`` (what the column rule shrinks the field
-    by) over at least a quarter of the rows. So a dark shadow or floor reaching a
-    linear image's black padding deep down (the L14 recording), a stand-off's black
-    rows, or a no-contact patch at a near corner change nothing. Why it generalises:
-    it reads only the scanner's exact black and the field's shape, no tissue level.
+    black (at or under ``fov_grey``, an instrument fact as for :func:`field_of_view`)
+    over the near rows of the columns at its sides, imaged below. The column rule
+    cannot see it: such a column is black over its near rows only, which
+    :func:`_contact` and :func:`_edge_gap` read as a probe edge off the skin and the
+    tissue levels of those rows as darker tissue (a hard simulated humerus under a
+    sector keeping half the top row, 475 x 405: 131 of 237 columns usable against ~203
+    inside the field, surface 0.39 mm from gold against 0.27 in the linear field).
+
+    Each column is imaged from the first row that starts 1 mm of pixels over the
+    black; the rows above are the outside. The field is a sector when the columns at
+    either end of the imaged ones start at least a quarter of the image deep (a
+    sector's sides reach its top only at its apex). Why it generalises: it reads only
+    the scanner's exact black and the field's shape, no tissue level; a depth ruler's
+    dots or a text line under 1 mm tall in the margin are passed over (a taller label
+    keeps its columns as before); a linear image's black padding (whole columns, the
+    column rule's), its dark floor or a shadow reaching the padding deep down (the L14
+    recording), a stand-off's black rows over the whole width or a no-contact patch at
+    a near corner make no sector.
     """
     h, w = work.shape
-    black = work <= np.float32(params.fov_grey / 255.0)
-    whole = black.all(axis=1)
-    if whole.all():
+    imaged = work > np.float32(params.fov_grey / 255.0)
+    run = max(1, int(round(1.0 / dy)))
+    if h <= run:
         return None
-    # Black run from each border: the first non-black column from that side, as
-    # narrow as in any row above (a sector only widens with depth: a dark shadow or
-    # floor reaching the border deeper down is tissue, not the outside).
-    left = np.minimum.accumulate(np.where(whole, w, np.argmin(black, axis=1)))
-    right = np.minimum.accumulate(np.where(whole, w, np.argmin(black[:, ::-1], axis=1)))
-    k = int(round(params.fov_margin_mm / dx))
-    # A sector's sides narrow the field over much of the depth (at least a quarter of
-    # the rows), not over a few near rows (a probe edge off the skin, :func:`_edge_gap`).
-    narrowed = (left > left[-1] + k) | (right > right[-1] + k)
-    if narrowed.sum() < max(2, h // 4):
+    # Per column, the first row starting ``run`` imaged pixels (h: none).
+    cs = np.zeros((h + 1, w), np.int32)
+    np.cumsum(imaged, axis=0, out=cs[1:])
+    starts = (cs[run:] - cs[:-run]) == run  # (h - run + 1, w)
+    top = np.where(starts.any(axis=0), np.argmax(starts, axis=0), h)
+    cols = np.flatnonzero(top < h)
+    if cols.size < 2 or max(top[cols[0]], top[cols[-1]]) < h // 4:
         return None
-    cols = np.arange(w)[None, :]
-    return (cols < left[:, None]) | (cols >= (w - right)[:, None])
+    return np.arange(h)[:, None] < top[None, :]
 
 
 def tissue_level(
@@ -683,7 +685,7 @@ def bone_evidence(
     fov = field_of_view(work, dx, p)
     # A sector's black outside (curvilinear probe) is neither dark tissue nor a probe
     # edge off the skin: left out of the levels, the contact and gap tests and the nulls.
-    outside = outside_sector(work, dx, p)
+    outside = outside_sector(work, dx, dy, p)
     # Both references from one partition of the rows; again over the usable columns
     # only if contact removed some.
     pct = (p.tissue_percentile, p.shadow_percentile)
