@@ -2,7 +2,8 @@
 
 Prints, for the recording itself, the frames accepted, the per-frame contour extent
 (mm) and the time per frame; then, for each augmentation (mirror, gain -30 % / +30 %,
-multiplicative speckle, 0.15 mm pixels, a crop, and all of them at once), the frames
+multiplicative speckle, 0.15 mm pixels, a crop, a curvilinear probe's sector, and mirror,
+0.15 mm pixels, gain and speckle at once), the frames
 accepted and how far the contour moved in reference mm from the original's (median,
 95th percentile, share > 2 mm, over the part both contours cover), the share of the
 original contour found again ("cover") and of points found beyond its ends
