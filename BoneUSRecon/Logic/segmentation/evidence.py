@@ -213,17 +213,21 @@ def working_image(
     return work, colmean, fx, fy
 
 
-def field_of_view(work: np.ndarray, dx: float, params: ShadowPathParams) -> np.ndarray:
+def field_of_view(
+    work: np.ndarray, dx: float, params: ShadowPathParams, imaged: np.ndarray | None = None
+) -> np.ndarray:
     """Columns of a working image (values 0..1) inside the imaged field of view, shape (w,).
 
     A column is inside when more than ``fov_fraction`` of its pixels are brighter than
     ``fov_grey`` (scan-converted images are exactly black outside the imaged area: an
     instrument fact, not a tissue level); the inside is then shrunk by
     ``fov_margin_mm`` on each side of every outside run (the edge columns are averaged
-    with the black margin).
+    with the black margin). ``imaged``: ``work`` over ``fov_grey`` if the caller has it.
     """
     p = params
-    inside = (work > p.fov_grey / 255.0).mean(axis=0) > p.fov_fraction
+    if imaged is None:
+        imaged = work > np.float32(p.fov_grey / 255.0)
+    inside = imaged.mean(axis=0) > p.fov_fraction
     k = int(round(p.fov_margin_mm / dx))
     if k > 0 and not inside.all():
         pad = np.pad(inside, k, mode="edge")
@@ -232,7 +236,11 @@ def field_of_view(work: np.ndarray, dx: float, params: ShadowPathParams) -> np.n
 
 
 def outside_sector(
-    work: np.ndarray, dx: float, dy: float, params: ShadowPathParams
+    work: np.ndarray,
+    dx: float,
+    dy: float,
+    params: ShadowPathParams,
+    imaged: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """Pixels of a working image outside a sector-shaped field of view, shape (h, w),
     or None when the field is no sector (a linear probe).
@@ -255,10 +263,12 @@ def outside_sector(
     keeps its columns as before); a linear image's black padding (whole columns, the
     column rule's), its dark floor or a shadow reaching the padding deep down (the L14
     recording), a stand-off's black rows over the whole width or a no-contact patch at
-    a near corner make no sector.
+    a near corner make no sector. ``imaged``: ``work`` over ``fov_grey`` if the caller
+    has it (:func:`field_of_view`'s mask).
     """
     h, w = work.shape
-    imaged = work > np.float32(params.fov_grey / 255.0)
+    if imaged is None:
+        imaged = work > np.float32(params.fov_grey / 255.0)
     run = max(1, int(round(1.0 / dy)))
     if h <= run:
         return None
@@ -326,11 +336,10 @@ def _inside_percentiles(srt: np.ndarray, n_out: np.ndarray, q: tuple[float, ...]
     if not has.all():
         if not has.any():
             return np.zeros_like(out)
+        # Each row's nearest row with values inside (outside_sector's empty rows are
+        # the top ones: their nearest is the first row imaged).
         near = np.flatnonzero(has)
-        idx = near[np.clip(np.searchsorted(near, np.arange(h)), 0, near.size - 1)]
-        before = near[np.clip(np.searchsorted(near, np.arange(h)) - 1, 0, near.size - 1)]
-        idx = np.where(np.abs(before - np.arange(h)) < np.abs(idx - np.arange(h)), before, idx)
-        out = out[:, idx]
+        out = out[:, near[np.abs(np.arange(h)[:, None] - near[None, :]).argmin(axis=1)]]
     return out
 
 
@@ -682,10 +691,11 @@ def bone_evidence(
     if w < 3 or h < 8:
         return None
     dx, dy = fx * sx, fy * sy
-    fov = field_of_view(work, dx, p)
+    imaged = work > np.float32(p.fov_grey / 255.0)  # over the scanner's black
+    fov = field_of_view(work, dx, p, imaged)
     # A sector's black outside (curvilinear probe) is neither dark tissue nor a probe
     # edge off the skin: left out of the levels, the contact and gap tests and the nulls.
-    outside = outside_sector(work, dx, dy, p)
+    outside = outside_sector(work, dx, dy, p, imaged)
     # Both references from one partition of the rows; again over the usable columns
     # only if contact removed some.
     pct = (p.tissue_percentile, p.shadow_percentile)
