@@ -647,6 +647,8 @@ class RejectionParams:
     """The more central track's summed node value must be at least this share of the chosen track's (ours: the ulna's evidence 0.6-0.8 of the bigger radius's beside it; a fascia's, with tissue and no shadow under it, a tenth)."""
     one_lane: bool = True
     """Keep the track to one bone: where two of its contours two frames apart share no column (it crossed to a neighbouring bone over a contour joining them), choose it again without the lanes of its shorter stretches, and take that if it links as many frames (:func:`.track._one_lane`; ours: a bone cannot leave its own columns within two frames of a sweep)."""
+    extend_ends: bool = True
+    """Carry the chosen track on past its ends through nodes in its lane, a frame left off past an end costing ``miss_cost`` as one inside does (:func:`.track._extend_ends`; ours, session 38: the unsteady-hand hard tibia s229 left frames 0-5 off though their candidates lay on the bone in a chain within the link tolerance; see Testing/benchmarks/README.md)."""
     bone_points: tuple[tuple[float, float, float], ...] = ()
     """The user's bone points, reference mm (``ImageToReference``'s output: a markup placed on the bone in the reconstructed volume or a slice of it): the track must follow the bone through them, whatever ``lane_*`` prefers (:mod:`.bone_point`; empty: none). Points on one bone: the bone to follow where two are in view."""
     point_plane_mm: float = 5.0

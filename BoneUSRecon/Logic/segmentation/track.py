@@ -636,11 +636,90 @@ def central_track(
     (:func:`_one_lane`), each only where another bone track is found.
     """
     value, out, path = _nearer_middle(frames, nodes, value, forward, p)
-    if not p.one_lane:
-        return value, out, path
-    if path is None:
+    if path is None and (p.one_lane or p.extend_ends):
         path = _path(out[0], out[1], _need(nodes, p))
-    return _one_lane(frames, nodes, value, out, path, forward, p)
+    if p.one_lane:
+        value, out, path = _one_lane(frames, nodes, value, out, path, forward, p)
+    return _extend_ends(frames, nodes, value, out, path, forward, p)
+
+
+def _extend_ends(
+    frames: Sequence[FrameCandidates],
+    nodes: list[tuple[int, int]],
+    value: np.ndarray,
+    out: Pass,
+    path: list[int] | None,
+    forward: Forward,
+    p: RejectionParams,
+) -> Choice:
+    """The track carried on past its ends (``extend_ends``): the best chain of nodes in
+    its lane before its first frame, and after its last, each node worth its value
+    plus ``miss_cost``, taken where it adds value.
+
+    Inside a track a frame left off costs ``miss_cost``; past its ends it cost
+    nothing, so a frame joined at an end only where its own value beat its link's
+    squared deviation. Where the bone is weaker at one end of the sweep than in its
+    middle (deeper, an unsteady probe) its contours' values (relative to the sweep's
+    typical strength) are about what a link within tolerance costs, and the track
+    stopped short of frames showing it: the unsteady-hand hard tibia s229 lost frames
+    0-5, whose candidates lay on the bone (0.04-0.09 mm) in a chain at 0.5-0.75 of
+    the link tolerance (recall 0.80, gold 10.1 mm: no surface over the sweep's first
+    30 mm). A frame past the end left off now costs what it costs inside. Not in the
+    dynamic programme itself (a credit per frame of a track's span, tried in session
+    36, let the best path skip frames for look-alikes farther on, then
+    :func:`_one_lane` cut it short): here the track is the one the lane rules chose,
+    and only its ends grow, through nodes in its own lane (:func:`_in_lane`: never
+    onto a bone beside), skips still costing ``miss_cost`` a frame.
+
+    Why it generalises: it reads no grey level, only the track's own values and
+    tolerances, and what it adds past a bone's end (a fascia or the skin line carrying
+    on in 3D) is judged by the ends cut (:mod:`.ends`, a shadow step relative to the
+    track's typical frame) as before.
+    """
+    if not p.extend_ends or not path:
+        return value, out, path
+    score, back, link_dev = out
+    m = len(nodes)
+    frame_of = np.array([f for f, _ in nodes])
+    may = _in_lane(frames, nodes, path) & np.isfinite(value)
+    first, last = path[-1], path[0]
+    back = back.copy()
+    link_dev = link_dev.copy()
+    before: list[int] = []
+    after: list[int] = []
+    pre = may & (frame_of < nodes[first][0])
+    if pre.any():
+        # Chains ending at the track's first node (a node after it cannot precede it).
+        v = np.full(m, -np.inf)
+        v[pre] = value[pre] + p.miss_cost
+        v[first] = value[first]
+        s, b, d = forward(v)
+        if s[first] > value[first]:
+            back[first], link_dev[first] = b[first], d[first]
+            k = int(b[first])
+            while k >= 0:
+                before.append(k)
+                back[k], link_dev[k] = b[k], d[k]
+                k = int(b[k])
+    post = may & (frame_of > nodes[last][0])
+    if post.any():
+        # Chains starting at the track's last node: it carries more than any chain
+        # without it could gain (values at most strength_cap plus the credit a frame).
+        lift = 1.0 + (p.strength_cap + p.miss_cost) * m
+        v = np.full(m, -np.inf)
+        v[post] = value[post] + p.miss_cost
+        v[last] = value[last] + lift
+        s, b, d = forward(v)
+        gain = np.where(post, s - v[last], -np.inf)
+        k = int(np.argmax(gain))
+        if gain[k] > 0:
+            while k != last:
+                after.append(k)
+                back[k], link_dev[k] = b[k], d[k]
+                k = int(b[k])
+    if not before and not after:
+        return value, out, path
+    return value, (score, back, link_dev), after + list(path) + before
 
 
 def _one_lane(
@@ -982,12 +1061,12 @@ def pointed_track(
         plain=ruled,
         column=_point_column(frames, poses, nodes, [k for k in path if mark[k] > 0], p),
     )
-    if not p.one_lane:
-        return np.where(np.isneginf(boosted), -np.inf, ruled), out, path
-    kept, out, path = _one_lane(
-        frames, nodes, boosted, out, path, forward, p, pointed=mark > 0, plain=ruled
-    )
-    return np.where(np.isneginf(kept), -np.inf, ruled), out, path
+    if p.one_lane:
+        boosted, out, path = _one_lane(
+            frames, nodes, boosted, out, path, forward, p, pointed=mark > 0, plain=ruled
+        )
+    boosted, out, path = _extend_ends(frames, nodes, boosted, out, path, forward, p)
+    return np.where(np.isneginf(boosted), -np.inf, ruled), out, path
 
 
 def _point_column(
