@@ -100,6 +100,28 @@ def test_the_track_grows_along_the_bone_not_onto_a_stronger_bone_beside():
     assert (ch.chosen == 0).all()
 
 
+def test_the_track_does_not_grow_over_a_joining_contour_onto_the_bone_beside():
+    """Before the bone's first strong frame, a contour running over both bones (along a
+    fascia between them) and then the bone beside alone, each linked to the next within
+    tolerance as the weak end in :func:`_weak_start` is: not in the track's lane (the
+    joining contour lies two thirds beside it), so the track does not grow onto them."""
+    frames = _weak_start()
+    for k in range(4):
+        cols = np.arange(20.0, 440.0, 2.0) if k == 3 else _COLS + 300.0
+        row = 60.0 + 15.0 * (4 - k)
+        cand = BoneCandidate(
+            np.column_stack([cols, np.full(cols.size, row)]),
+            np.full(cols.size, 200.0),
+            4.0,
+            3.0,
+            2.0,
+        )
+        frames[k] = FrameCandidates((cand,), (_PX, _PX))
+    ch = select_bone_track(frames, _poses(12))
+    assert (ch.chosen[4:] == 0).all()
+    assert (ch.chosen[:4] == -1).all()
+
+
 @pytest.mark.parametrize("reverse", [False, True], ids=["start", "end"])
 def test_the_live_track_grows_its_ends_as_the_batch_one(reverse):
     frames, poses = _weak_start(), _poses(12)

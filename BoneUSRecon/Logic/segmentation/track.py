@@ -636,25 +636,24 @@ def central_track(
     (:func:`_one_lane`), each only where another bone track is found.
     """
     value, out, path = _nearer_middle(frames, nodes, value, forward, p)
-    if path is None and (p.one_lane or p.extend_ends):
+    if not p.one_lane:
+        return value, out, path
+    if path is None:
         path = _path(out[0], out[1], _need(nodes, p))
-    if p.one_lane:
-        value, out, path = _one_lane(frames, nodes, value, out, path, forward, p)
-    return _extend_ends(frames, nodes, value, out, path, forward, p)
+    return _one_lane(frames, nodes, value, out, path, forward, p)
 
 
 def _extend_ends(
     frames: Sequence[FrameCandidates],
+    poses: np.ndarray,
     nodes: list[tuple[int, int]],
-    value: np.ndarray,
-    out: Pass,
-    path: list[int] | None,
+    choice: Choice,
     forward: Forward,
     p: RejectionParams,
 ) -> Choice:
-    """The track carried on past its ends (``extend_ends``): the best chain of nodes in
-    its lane before its first frame, and after its last, each node worth its value
-    plus ``miss_cost``, taken where it adds value.
+    """The track ``choice`` carried on past its ends (``extend_ends``): the best chain of
+    nodes in its lane before its first frame, and after its last, each node worth its
+    value plus ``miss_cost``, taken where it adds value.
 
     Inside a track a frame left off costs ``miss_cost``; past its ends it cost
     nothing, so a frame joined at an end only where its own value beat its link's
@@ -668,58 +667,134 @@ def _extend_ends(
     dynamic programme itself (a credit per frame of a track's span, tried in session
     36, let the best path skip frames for look-alikes farther on, then
     :func:`_one_lane` cut it short): here the track is the one the lane rules chose,
-    and only its ends grow, through nodes in its own lane (:func:`_in_lane`: never
-    onto a bone beside), skips still costing ``miss_cost`` a frame.
+    and only its ends grow, skips still costing ``miss_cost`` a frame, through nodes
+    in its own lane (:func:`_lane_through`: at least half of a node's width within
+    the lateral extent of the nearest track contours projected into its plane, with
+    the link tolerance's slack; a contour running on over a bone beside is not half
+    within it). The lane is taken
+    through the poses, not in image columns as :func:`_in_lane` takes it: an unsteady
+    hand moves the probe sideways by a third of a radius's width between frames 5-8
+    mm apart (the unsteady-hand hard radius s229, frames 2 and 4: columns 178-250
+    and 110-206, both on the bone).
 
     Why it generalises: it reads no grey level, only the track's own values and
     tolerances, and what it adds past a bone's end (a fascia or the skin line carrying
     on in 3D) is judged by the ends cut (:mod:`.ends`, a shadow step relative to the
     track's typical frame) as before.
     """
+    value, out, path = choice
+    if p.extend_ends and path is None:
+        path = _path(out[0], out[1], _need(nodes, p))
     if not p.extend_ends or not path:
         return value, out, path
     score, back, link_dev = out
-    m = len(nodes)
+    back, link_dev, path = back.copy(), link_dev.copy(), list(path)
     frame_of = np.array([f for f, _ in nodes])
-    may = _in_lane(frames, nodes, path) & np.isfinite(value)
-    first, last = path[-1], path[0]
-    back = back.copy()
-    link_dev = link_dev.copy()
-    before: list[int] = []
-    after: list[int] = []
-    pre = may & (frame_of < nodes[first][0])
-    if pre.any():
+    grown = False
+    # Round by round: the lane past an end is taken from the track's contours nearest
+    # it, those just added among them (a lane taken 10-20 mm away, through a tilting
+    # probe, no longer holds the bone's contour: the unsteady-hand radius s229, frame
+    # 1). Each round adds at least a node, so there are at most as many rounds.
+    while True:
+        first, last = path[-1], path[0]
+        past = (frame_of < nodes[first][0]) | (frame_of > nodes[last][0])
+        may = _lane_through(frames, poses, nodes, path, past & np.isfinite(value), p)
+        before = _chain(value, forward, p, may & (frame_of < nodes[first][0]), first, True)
+        after = _chain(value, forward, p, may & (frame_of > nodes[last][0]), last, False)
+        if not before and not after:
+            break
+        for k, (b, d) in (before | after).items():
+            back[k], link_dev[k] = b, d
+        path = sorted(after, key=lambda k: -nodes[k][0]) + path
+        path += [k for k in sorted(before, key=lambda k: -nodes[k][0]) if k != first]
+        grown = True
+    if not grown:
+        return choice
+    return value, (score, back, link_dev), path
+
+
+def _chain(
+    value: np.ndarray,
+    forward: Forward,
+    p: RejectionParams,
+    may: np.ndarray,
+    end: int,
+    leading: bool,
+) -> dict[int, tuple[int, float]]:
+    """:func:`_extend_ends`' best chain of the nodes ``may`` (each worth its value plus
+    ``miss_cost``) leading to the track's node ``end`` (``leading``) or from it: the
+    back-pointer and link deviation each node of it takes, ``end``'s own too when
+    leading ({} when no chain adds value)."""
+    if not may.any():
+        return {}
+    v = np.full(value.size, -np.inf)
+    v[may] = value[may] + p.miss_cost
+    if leading:
         # Chains ending at the track's first node (a node after it cannot precede it).
-        v = np.full(m, -np.inf)
-        v[pre] = value[pre] + p.miss_cost
-        v[first] = value[first]
+        v[end] = value[end]
         s, b, d = forward(v)
-        if s[first] > value[first]:
-            back[first], link_dev[first] = b[first], d[first]
-            k = int(b[first])
-            while k >= 0:
-                before.append(k)
-                back[k], link_dev[k] = b[k], d[k]
-                k = int(b[k])
-    post = may & (frame_of > nodes[last][0])
-    if post.any():
+        if not s[end] > value[end]:
+            return {}
+        k = end
+    else:
         # Chains starting at the track's last node: it carries more than any chain
-        # without it could gain (values at most strength_cap plus the credit a frame).
-        lift = 1.0 + (p.strength_cap + p.miss_cost) * m
-        v = np.full(m, -np.inf)
-        v[post] = value[post] + p.miss_cost
-        v[last] = value[last] + lift
+        # without it could gain (values at most strength_cap plus the credit a node).
+        v[end] = value[end] + 1.0 + (p.strength_cap + p.miss_cost) * value.size
         s, b, d = forward(v)
-        gain = np.where(post, s - v[last], -np.inf)
+        gain = np.where(may, s - v[end], -np.inf)
         k = int(np.argmax(gain))
-        if gain[k] > 0:
-            while k != last:
-                after.append(k)
-                back[k], link_dev[k] = b[k], d[k]
-                k = int(b[k])
-    if not before and not after:
-        return value, out, path
-    return value, (score, back, link_dev), after + list(path) + before
+        if not gain[k] > 0:
+            return {}
+    chain: dict[int, tuple[int, float]] = {}
+    while k >= 0 and (leading or k != end):
+        chain[k] = (int(b[k]), float(d[k]))
+        k = int(b[k])
+    return chain
+
+
+def _lane_through(
+    frames: Sequence[FrameCandidates],
+    poses: np.ndarray,
+    nodes: list[tuple[int, int]],
+    path: list[int],
+    which: np.ndarray,
+    p: RejectionParams,
+) -> np.ndarray:
+    """Of the nodes ``which`` (bool per node), those at least half of whose width lies
+    within the track's lane in their frame (:func:`_extend_ends`): the median lateral
+    start and end of the ``_LANE_NEAREST`` contours of ``path`` nearest that frame,
+    projected into its plane through the poses (mm), widened on each side by
+    ``tolerance_per_mm`` times the distance along the sweep to the nearest of them.
+
+    The widening is the link tolerance's growth: a bone surface inclined to the sweep
+    moves its contour sideways as well as in depth from frame to frame, and a frame
+    shows a part of the bone's top, not always the same part (the unsteady-hand hard
+    radius s229, frame 1, 7.7 mm from frame 2: its contour 204-270 px, frame 2's
+    projected into it 168-236 px, both on the bone). A bone beside (its middle 14 mm
+    or more from the one swept) lies outside by more than that at a frame's spacing.
+    """
+    out = np.zeros(len(nodes), bool)
+    on = np.array(sorted(nodes[k][0] for k in path))
+    by_frame = {nodes[k][0]: k for k in path}
+    lanes: dict[int, tuple[float, float]] = {}
+    for q in np.flatnonzero(which).tolist():
+        f, c = nodes[q]
+        if f not in lanes:
+            origin, axes, normal = frame_planes(poses[f][None])
+            ext = []
+            for g in on[np.argsort(np.abs(on - f), kind="stable")[:_LANE_NEAREST]].tolist():
+                cand = frames[g].candidates[nodes[by_frame[g]][1]]
+                ref = pixels_to_reference(poses[g], _sampled(cand.core_px, frames[g].spacing))
+                a = _project(ref, origin[0], axes[0], normal[0])
+                ext.append((float(a[:, 0].min()), float(a[:, 0].max()), median1d(np.abs(a[:, 2]))))
+            e = np.asarray(ext)
+            slack = p.tolerance_per_mm * float(e[:, 2].min())
+            lanes[f] = (median1d(e[:, 0]) - slack, median1d(e[:, 1]) + slack)
+        sx = float(frames[f].spacing[0])
+        lo, hi = _span(frames, (f, c))
+        own = (lo * sx, hi * sx)
+        out[q] = _overlap(own, lanes[f]) >= 0.5 * max(own[1] - own[0], sx)
+    return out
 
 
 def _one_lane(
@@ -1027,7 +1102,9 @@ def pointed_track(
     """
     mark, off = point_marks(frames, poses, nodes, p)
     if not (mark > 0).any():
-        return central_track(frames, nodes, value, forward, p)
+        return _extend_ends(
+            frames, poses, nodes, central_track(frames, nodes, value, forward, p), forward, p
+        )
     for f, (r, d) in off.items():
         if not reason[f]:
             reason[f], detail[f] = r, d
@@ -1046,7 +1123,7 @@ def pointed_track(
         plain_path = _path(plain_out[0], plain_out[1], _need(nodes, p))
     agrees = (mark[plain_path] > 0).any() and not (mark[plain_path] < 0).any()
     if agrees and not set(plain_path) < set(path):
-        return plain_value, plain_out, plain_path
+        return _extend_ends(frames, poses, nodes, (plain_value, plain_out, plain_path), forward, p)
     if not path:
         return ruled, out, path
     boosted, out, path = _nearer_point(
@@ -1065,7 +1142,7 @@ def pointed_track(
         boosted, out, path = _one_lane(
             frames, nodes, boosted, out, path, forward, p, pointed=mark > 0, plain=ruled
         )
-    boosted, out, path = _extend_ends(frames, nodes, boosted, out, path, forward, p)
+    boosted, out, path = _extend_ends(frames, poses, nodes, (boosted, out, path), forward, p)
     return np.where(np.isneginf(boosted), -np.inf, ruled), out, path
 
 
