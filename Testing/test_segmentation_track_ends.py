@@ -77,15 +77,19 @@ def test_a_weak_end_of_the_bone_linked_within_tolerance_joins_the_track():
     assert set(off.reason[:4]) == {"jump from neighbouring frames"}
 
 
-def test_the_last_frames_too_and_not_a_node_worth_less_than_its_link():
+def test_the_last_frames_too_and_not_a_node_worth_less_than_the_credit():
     # The weak frames at the end of the sweep (the same stretch reversed).
     frames, poses = _weak_start()[::-1], _poses(12)
     assert (select_bone_track(frames, poses).chosen == 0).all()
-    # A contour 1.9 mm off (0.86 tolerance: cost 0.75) worth 0.1 of the typical
-    # strength: less than its link costs even with the credit, so the track ends before.
-    frames2 = [_frame(60.0, 10.0) for _ in range(11)] + [_frame(79.0, 1.0)]
+    # A contour 1.1 mm off (0.5 tolerance: cost 0.25) worth 0.1 of the typical
+    # strength: with the credit it would add value, but a node worth less than the
+    # credit itself earns none (one side vouches for it), so the track ends before.
+    frames2 = [_frame(60.0, 10.0) for _ in range(11)] + [_frame(71.0, 1.0)]
     ch = select_bone_track(frames2, poses)
     assert (ch.chosen[:11] == 0).all() and ch.chosen[11] == -1
+    # Worth the credit (0.3 of the typical strength), the same contour joins.
+    frames2[11] = _frame(71.0, 3.0)
+    assert (select_bone_track(frames2, poses).chosen == 0).all()
 
 
 def test_the_track_grows_along_the_bone_not_onto_a_stronger_bone_beside():

@@ -20,7 +20,9 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   over the other: the tolerance's growth along the sweep is for a surface inclined to
   it (its flanks sliding sideways), while a whole contour a step under the bone's is
   its far cortex or a reverberation band in its shadow;
-* each skipped frame costs ``miss_cost``.
+* each skipped frame costs ``miss_cost``; so does a frame with candidates past the
+  track's ends (:func:`_extend_ends`: the chosen track is carried on through nodes in
+  its lane where their value and that credit beat their links' cost).
 
 A caller may rule frames out beforehand (``exclude``: the frames :mod:`.ends` judged
 bone-free): their candidates are no nodes, and they keep the reason given.
@@ -677,6 +679,12 @@ def _extend_ends(
     mm apart (the unsteady-hand hard radius s229, frames 2 and 4: columns 178-250
     and 110-206, both on the bone).
 
+    A node earns the credit only if it is worth at least the credit itself: past an
+    end only one side vouches for it, and a node with next to no evidence of its own
+    can lie anywhere its one link allows (the unsteady-hand hard tibia s179, frame 0:
+    a piece 2.8 mm wide worth 0.09 of the typical strength, 8.9 mm off the bone, linked
+    to frame 1's contour on the bone at 0.34 of the tolerance through a tilted probe).
+
     Why it generalises: it reads no grey level, only the track's own values and
     tolerances, and what it adds past a bone's end (a fascia or the skin line carrying
     on in 3D) is judged by the ends cut (:mod:`.ends`, a shadow step relative to the
@@ -698,7 +706,7 @@ def _extend_ends(
     while True:
         first, last = path[-1], path[0]
         past = (frame_of < nodes[first][0]) | (frame_of > nodes[last][0])
-        may = _lane_through(frames, poses, nodes, path, past & np.isfinite(value), p)
+        may = _lane_through(frames, poses, nodes, path, past & (value >= p.miss_cost), p)
         before = _chain(value, forward, p, may & (frame_of < nodes[first][0]), first, True)
         after = _chain(value, forward, p, may & (frame_of > nodes[last][0]), last, False)
         if not before and not after:
