@@ -126,6 +126,25 @@ def test_the_track_does_not_grow_over_a_joining_contour_onto_the_bone_beside():
     assert (ch.chosen[:4] == -1).all()
 
 
+def test_past_an_end_the_track_steps_over_one_frame_at_most():
+    """Past the last strong frame, nothing in the next frame(s), then a contour half a
+    tolerance off worth 0.4 (one frame skipped) or 0.8 (two skipped) of the typical
+    strength: each adds value with the credit, but a bone shows in the frames next to
+    the track's end; a chain stepping over two of them is a structure that comes and
+    goes, and is not taken."""
+    empty = FrameCandidates((), (_PX, _PX))
+    poses = _poses(12)
+    # One frame skipped: 6 mm apart, tolerance 3.4 mm, half of it 1.7 mm = 17 px.
+    frames = [_frame(60.0, 10.0) for _ in range(10)] + [empty, _frame(77.0, 4.0)]
+    ch = select_bone_track(frames, poses)
+    assert (ch.chosen[:10] == 0).all() and ch.chosen[11] == 0
+    assert (select_bone_track(frames, poses, RejectionParams(extend_ends=False)).chosen[11]) == -1
+    # Two frames skipped: 9 mm apart, tolerance 4.6 mm, half of it 2.3 mm = 23 px.
+    frames = [_frame(60.0, 10.0) for _ in range(9)] + [empty, empty, _frame(83.0, 8.0)]
+    ch = select_bone_track(frames, poses)
+    assert (ch.chosen[:9] == 0).all() and ch.chosen[11] == -1
+
+
 @pytest.mark.parametrize("reverse", [False, True], ids=["start", "end"])
 def test_the_live_track_grows_its_ends_as_the_batch_one(reverse):
     frames, poses = _weak_start(), _poses(12)

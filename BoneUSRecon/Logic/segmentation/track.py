@@ -72,6 +72,9 @@ _LANE_SHIFT_MM = 6.0
 #: Track contours nearest a frame whose median span is the track's lane there
 #: (:func:`_in_lane`: one contour over two bones is outvoted by its two neighbours).
 _LANE_NEAREST = 3
+#: Frames a chain carrying the track on past its ends may skip between two of its
+#: contours (:func:`_chain`; inside the track, ``max_skip``: both sides vouch there).
+_END_SKIP = 1
 
 
 @dataclass(frozen=True, eq=False)
@@ -707,8 +710,10 @@ def _extend_ends(
         first, last = path[-1], path[0]
         past = (frame_of < nodes[first][0]) | (frame_of > nodes[last][0])
         may = _lane_through(frames, poses, nodes, path, past & (value >= p.miss_cost), p)
-        before = _chain(value, forward, p, may & (frame_of < nodes[first][0]), first, True)
-        after = _chain(value, forward, p, may & (frame_of > nodes[last][0]), last, False)
+        before = _chain(
+            value, forward, p, may & (frame_of < nodes[first][0]), first, True, frame_of
+        )
+        after = _chain(value, forward, p, may & (frame_of > nodes[last][0]), last, False, frame_of)
         if not before and not after:
             break
         for k, (b, d) in (before | after).items():
@@ -728,11 +733,21 @@ def _chain(
     may: np.ndarray,
     end: int,
     leading: bool,
+    frame_of: np.ndarray,
 ) -> dict[int, tuple[int, float]]:
-    """:func:`_extend_ends`' best chain of the nodes ``may`` (each worth its value plus
+    """:func:`_extend_ends`' chain of the nodes ``may`` (each worth its value plus
     ``miss_cost``) leading to the track's node ``end`` (``leading``) or from it: the
     back-pointer and link deviation each node of it takes, ``end``'s own too when
-    leading ({} when no chain adds value)."""
+    leading ({} when no chain adds value).
+
+    The best chain of the forward pass, then, outward from ``end``, its part up to the
+    first link skipping more than ``_END_SKIP`` frames, cut where its summed gain is
+    greatest (if positive). Past an end only one side vouches for a chain, and a bone
+    shows in the frames next to the track's end: a chain stepping over frames there is
+    a structure that comes and goes (S clavicle s29, its last 10 frames bone-free: a
+    chain of frames 32, 35 and 39, two and three frames apart, one of them over a dark
+    shade the ends cut took for a shadow).
+    """
     if not may.any():
         return {}
     v = np.full(value.size, -np.inf)
@@ -753,10 +768,34 @@ def _chain(
         k = int(np.argmax(gain))
         if not gain[k] > 0:
             return {}
+    # The chain's links outward from the track: (node beyond, node nearer, deviation;
+    # a link's deviation is kept on its later node).
+    links: list[tuple[int, int, float]] = []
+    if leading:
+        while b[k] >= 0:
+            links.append((int(b[k]), k, float(d[k])))
+            k = int(b[k])
+    else:
+        seq = []
+        while k != end:
+            seq.append(k)
+            k = int(b[k])
+        links = [(k, int(b[k]), float(d[k])) for k in reversed(seq)]
+    best, total, keep = 0.0, 0.0, 0
+    for i, (k, near, dev) in enumerate(links):
+        gap = abs(int(frame_of[k]) - int(frame_of[near])) - 1
+        if gap > _END_SKIP:
+            break
+        total += value[k] + p.miss_cost - dev**2 - p.miss_cost * gap
+        if total > best:
+            best, keep = total, i + 1
     chain: dict[int, tuple[int, float]] = {}
-    while k >= 0 and (leading or k != end):
-        chain[k] = (int(b[k]), float(d[k]))
-        k = int(b[k])
+    for k, near, dev in links[:keep]:
+        if leading:
+            chain[near] = (k, dev)
+            chain[k] = (-1, 0.0)  # the track's new first node (until one further out)
+        else:
+            chain[k] = (near, dev)
     return chain
 
 
