@@ -676,11 +676,10 @@ def _extend_ends(
     in its own lane (:func:`_lane_through`: at least half of a node's width within
     the lateral extent of the nearest track contours projected into its plane, with
     the link tolerance's slack; a contour running on over a bone beside is not half
-    within it). The lane is taken
-    through the poses, not in image columns as :func:`_in_lane` takes it: an unsteady
-    hand moves the probe sideways by a third of a radius's width between frames 5-8
-    mm apart (the unsteady-hand hard radius s229, frames 2 and 4: columns 178-250
-    and 110-206, both on the bone).
+    within it). The lane is taken through the poses, not in image columns as
+    :func:`_in_lane` takes it: an unsteady hand moves the probe sideways by a third of
+    a radius's width between frames 5-8 mm apart (the unsteady-hand hard radius s229,
+    frames 2 and 4: columns 178-250 and 110-206, both on the bone).
 
     A node earns the credit only if it is worth at least the credit itself: past an
     end only one side vouches for it, and a node with next to no evidence of its own
