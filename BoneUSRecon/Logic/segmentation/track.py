@@ -746,6 +746,10 @@ def _extend_ends(
     score, back, link_dev = out
     back, link_dev, path = back.copy(), link_dev.copy(), list(path)
     frame_of = np.array([f for f, _ in nodes])
+    # A node worth less than the credit is left out (a piece of a layer in a frame past
+    # the bone), unless a search the track's contours guided found it: the band they
+    # allow is what vouches for it, not its own strength.
+    floor = (value >= p.miss_cost) | np.array([frames[f].candidates[c].guided for f, c in nodes])
     grown = False
     # Round by round: the lane past an end is taken from the track's contours nearest
     # it, those just added among them (a lane taken 10-20 mm away, through a tilting
@@ -754,7 +758,7 @@ def _extend_ends(
     while True:
         first, last = path[-1], path[0]
         past = (frame_of < nodes[first][0]) | (frame_of > nodes[last][0])
-        may = _lane_through(frames, poses, nodes, path, past & (value >= p.miss_cost), p)
+        may = _lane_through(frames, poses, nodes, path, past & floor, p)
         before = _chain(
             value, forward, p, may & (frame_of < nodes[first][0]), first, True, frame_of
         )
