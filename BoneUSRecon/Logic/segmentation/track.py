@@ -732,6 +732,10 @@ def _extend_ends(
     can lie anywhere its one link allows (the unsteady-hand hard tibia s179, frame 0:
     a piece 2.8 mm wide worth 0.09 of the typical strength, 8.9 mm off the bone, linked
     to frame 1's contour on the bone at 0.34 of the tolerance through a tilted probe).
+    A guided contour (:mod:`.recovery`, searched past the end inside the band the
+    track's contours allow) needs no such floor: the band vouches for it, not its own
+    evidence (the hard ulna at the cadaver's geometry, s241, frame 39: 0.11 mm from the
+    bone, worth 0.08; session 39).
 
     Why it generalises: it reads no grey level, only the track's own values and
     tolerances, and what it adds past a bone's end (a fascia or the skin line carrying
@@ -746,9 +750,8 @@ def _extend_ends(
     score, back, link_dev = out
     back, link_dev, path = back.copy(), link_dev.copy(), list(path)
     frame_of = np.array([f for f, _ in nodes])
-    # A node worth less than the credit is left out (a piece of a layer in a frame past
-    # the bone), unless a search the track's contours guided found it: the band they
-    # allow is what vouches for it, not its own strength.
+    # A node worth less than the credit is left out, unless a search the track's
+    # contours guided found it (the band they allow vouches for it).
     floor = (value >= p.miss_cost) | np.array([frames[f].candidates[c].guided for f, c in nodes])
     grown = False
     # Round by round: the lane past an end is taken from the track's contours nearest
