@@ -515,19 +515,28 @@ class BoneGeometry:
         return self._tree, self._tree_params
 
     def closest_points(
-        self, points: np.ndarray, iterations: int = 10
+        self,
+        points: np.ndarray,
+        iterations: int = 10,
+        s_limits: tuple[float, float] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Project points onto the surface (vectorised Newton on ``(s, phi)``).
 
         Starts from the nearest vertex of a 0.5 mm x 2 deg grid (kd-tree), then runs
         Newton steps on ``f = |P(s, phi) - q|^2 / 2`` with the exact Hessian, falling
         back to Gauss-Newton where the Hessian is not positive definite (points deep
-        inside the bone). Stops when every step is below 1e-9 mm. ``s`` is clamped to ``[0, L]``: beyond the ends the distance
-        is to the tube's end ring.
+        inside the bone). Stops when every step is below 1e-9 mm. ``s`` is clamped to
+        ``s_limits`` (default ``[0, L]``): beyond them the distance is to the tube's end
+        ring.
 
         Parameters
         ----------
         points : ndarray, shape (K, 3)
+        iterations : int
+        s_limits : (float, float), optional
+            The range of ``s`` the surface is taken over (the surface's formula holds
+            past ``[0, L]``, and a tilted image plane near a sweep's end shows it there:
+            :meth:`.core.Simulation.distance_to_truth`).
 
         Returns
         -------
@@ -541,6 +550,7 @@ class BoneGeometry:
         if q.shape[0] == 0:
             e = np.empty(0)
             return e, e, np.empty((0, 3)), e
+        lo, hi = (0.0, self.length) if s_limits is None else s_limits
         tree, params = self._seed_tree()
         _, idx = tree.query(q)
         s = params[idx, 0].copy()
@@ -565,16 +575,19 @@ class BoneGeometry:
             ds = -(hpp * gs - hsp * gp) / det
             dp = -(-hsp * gs + hss * gp) / det
             # Trust region: never jump further than the seed grid's cell size allows.
-            s = np.clip(s + np.clip(ds, -2.0, 2.0), 0.0, self.length)
+            s = np.clip(s + np.clip(ds, -2.0, 2.0), lo, hi)
             phi = phi + np.clip(dp, -0.3, 0.3)
             if max(np.abs(ds).max(), np.abs(dp).max() * 30.0) < 1e-9:
                 break  # converged everywhere (quadratic convergence: usually 3-4 steps)
         foot = self.surface(s, phi)
         return s, np.mod(phi, 2 * np.pi), foot, np.linalg.norm(foot - q, axis=1)
 
-    def distance(self, points: np.ndarray) -> np.ndarray:
-        """Unsigned distance (mm) from each point ``(K, 3)`` to the surface."""
-        return self.closest_points(points)[3]
+    def distance(
+        self, points: np.ndarray, s_limits: tuple[float, float] | None = None
+    ) -> np.ndarray:
+        """Unsigned distance (mm) from each point ``(K, 3)`` to the surface
+        (``s_limits``: as :meth:`closest_points`)."""
+        return self.closest_points(points, s_limits=s_limits)[3]
 
     # -- plane sections -------------------------------------------------------------------
     def plane_section(

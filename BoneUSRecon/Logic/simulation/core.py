@@ -148,9 +148,18 @@ class Simulation:
     def distance_to_truth(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance (mm) from each point ``(K, 3)`` to the true bone surface.
 
-        Exact projection onto the analytic surface (Newton), accurate to ~1e-6 mm.
+        Exact projection onto the analytic surface (Newton), accurate to ~1e-6 mm, over
+        the stretch of it the frames show: a frame tilted near the sweep's end may
+        image the surface past the segment's ``[0, L]`` (the unsteady-hand radius s179,
+        frame 0: ``s`` from -11.5 to -4.9 mm), and a contour on that bone is on it, not
+        5 mm from the segment's end ring.
         """
-        return self.geometry.distance(np.asarray(points, float).reshape(-1, 3))
+        g = self.geometry
+        s_range = self.sections.s_range
+        finite = s_range[np.isfinite(s_range).all(axis=1)]
+        lo = min(0.0, float(finite[:, 0].min())) if finite.size else 0.0
+        hi = max(g.length, float(finite[:, 1].max())) if finite.size else g.length
+        return g.distance(np.asarray(points, float).reshape(-1, 3), s_limits=(lo, hi))
 
     def contour_mm(self, frame: int) -> np.ndarray:
         """The true visible contour of ``frame`` in reference mm, shape (K, 3)."""
