@@ -49,7 +49,7 @@ BAD = [
     (RecoveryParams, "recheck", 1, "must be True or False"),
     (RecoveryParams, "min_stray", -0.1, "must be >= 0"),
     (RecoveryParams, "max_stray_ratio", 1.5, r"must lie in \[0, 1\]"),
-    (RejectionParams, "contact_level", 1.5, r"must lie in \[0, 1\]"),
+    (RecoveryParams, "contact_level", 1.5, r"must lie in \[0, 1\]"),
     (SimulationParams, "min_depth_mm", -1.0, "must be >= 0, got -1.0"),
     (SegmentationParams, "snake", ShadowPathParams(), "must be a SnakeParams"),
     (FitParams, "degree", (2.7, 2), r"must be an integer, got 2.7"),

@@ -13,7 +13,6 @@ from conftest import CADAVER, small_simulation
 
 from BoneUSRecon.Logic.segmentation import (
     RecoveryParams,
-    RejectionParams,
     SegmentationParams,
     recover_frames,
     recovery,
@@ -284,39 +283,16 @@ def test_a_frame_with_the_probe_off_the_skin_is_not_searched() -> None:
     off the skin (lens reverberation over the noise floor). Between two track frames the
     search the track vouches for found a path through the noise at the bone's depth and
     the frame was kept; its tissue level is half the sweep's median frame's, and such a
-    frame is no longer searched (``RejectionParams.contact_level``). The frames showing
+    frame is no longer searched (``RecoveryParams.contact_level``). The frames showing
     the bone keep their contours."""
     sim = small_simulation(
         bone="radius", seed=7, realism="hard", n_frames=24, corrupted_fraction=0.2
     )
     assert sim.corruption_kinds[16] == "contact_loss"
-    off = SegmentationParams(rejection=RejectionParams(contact_level=0.0))
+    off = SegmentationParams(recovery=RecoveryParams(contact_level=0.0))
     without, with_rule = segment_sweep(sim.sweep, off), segment_sweep(sim.sweep)
     assert without.contours[16].accepted  # the premise: found in the noise
     assert not with_rule.contours[16].accepted
     fs = score_simulation(with_rule, sim)
     assert fs.wrong_share == 0.0
     assert fs.recall >= score_simulation(without, sim).recall
-
-
-def test_a_frame_with_the_probe_off_the_skin_is_off_the_track() -> None:
-    """Hard tibia at the cadaver's geometry, 15 % corrupted frames, seed 241: in frame 34
-    the probe is off the skin. Between two track frames a 1.6 mm run through the lens's
-    reverberation at the bone's depth linked to both and was kept as bone by the track
-    itself (no search involved). Its tissue level is half the sweep's median frame's:
-    the frame is off the track (``RejectionParams.contact_level``), with the reason
-    saying why; the frames showing the bone keep their contours."""
-    sim = small_simulation(
-        bone="tibia", seed=241, realism="hard", n_frames=40, corrupted_fraction=0.15, **CADAVER
-    )
-    assert sim.corruption_kinds[34] == "contact_loss"
-    off = SegmentationParams(rejection=RejectionParams(contact_level=0.0))
-    without, with_rule = segment_sweep(sim.sweep, off), segment_sweep(sim.sweep)
-    assert without.contours[34].accepted  # the premise: noise kept as bone
-    assert not with_rule.contours[34].accepted
-    assert with_rule.contours[34].reason == "probe off the skin"
-    assert with_rule.contours[34].detail.startswith("tissue level 0.4")
-    fs, fs_off = score_simulation(with_rule, sim), score_simulation(without, sim)
-    assert fs_off.wrong_share > 0.0
-    assert fs.wrong_share == 0.0
-    assert fs.recall == fs_off.recall == 1.0

@@ -158,7 +158,7 @@ class EvidenceMaps:
         Below the skin line and the lens's reverberation bands, above the depths where
         a bone's shadow fills much of the width: the soft tissue's backscatter. With the
         probe off the skin none comes back and the level falls to the noise floor; a
-        frame is judged against its own sweep's frames (:attr:`.params.RejectionParams.contact_level`),
+        frame is judged against its own sweep's frames (:attr:`.params.RecoveryParams.contact_level`),
         never against a grey level.
         """
         h = self.tissue.shape[0]

@@ -649,8 +649,6 @@ class RejectionParams:
     """Keep the track to one bone: where two of its contours two frames apart share no column (it crossed to a neighbouring bone over a contour joining them), choose it again without the lanes of its shorter stretches, and take that if it links as many frames (:func:`.track._one_lane`; ours: a bone cannot leave its own columns within two frames of a sweep)."""
     extend_ends: bool = True
     """Carry the chosen track on past its ends through nodes in its lane, a frame left off past an end costing ``miss_cost`` as one inside does (:func:`.track._extend_ends`; ours, session 38: the unsteady-hand hard tibia s229 left frames 0-5 off though their candidates lay on the bone in a chain within the link tolerance; see Testing/benchmarks/README.md)."""
-    contact_level: float = 0.55
-    """A frame whose tissue level (:meth:`.evidence.EvidenceMaps.frame_level`) is under this share of the sweep's median frame's is off the skin: none of its candidates is on the track (reason "probe off the skin") and recovery does not search it (:func:`.track.off_skin`). Such a frame holds the lens's reverberation over the noise floor, where a candidate, or a search the neighbours vouch for, finds a path at the bone's depth. Relative to the sweep's own frames, so gain, depth and scanner do not matter. Ours, session 39, 88 simulated sweeps, every harness group at seeds 241 and 251: the contact-loss frames read 0.48-0.52, the frames showing bone 0.63 or more (a frame under a false echo's shadow, then the hard tibia's last frames at 0.68-0.69, its shadow under most of the width); the L14 recording and its nine copies 0.90-1.09, the Spine phantom 0.82-1.14. Set nearer the contact-loss frames than the bone's: a real probe off the skin leaves only the noise floor, darker than the simulator's lens bands (0.6 before; 0: no frame is off the skin)."""
     bone_points: tuple[tuple[float, float, float], ...] = ()
     """The user's bone points, reference mm (``ImageToReference``'s output: a markup placed on the bone in the reconstructed volume or a slice of it): the track must follow the bone through them, whatever ``lane_*`` prefers (:mod:`.bone_point`; empty: none). Points on one bone: the bone to follow where two are in view."""
     point_plane_mm: float = 5.0
@@ -696,12 +694,7 @@ class RejectionParams:
                 "beyond_min_mm",
                 "beyond_climb_mm",
             ),
-            within={
-                "min_overlap_share": "[0, 1]",
-                "lane_frames": "[0, 1]",
-                "lane_value": "[0, 1]",
-                "contact_level": "[0, 1]",
-            },
+            within={"min_overlap_share": "[0, 1]", "lane_frames": "[0, 1]", "lane_value": "[0, 1]"},
         )
 
 
@@ -724,6 +717,8 @@ class RecoveryParams:
     """The contour found must span at least this share of the columns the neighbouring track contours span in the frame (ours: a run through speckle in the band is short)."""
     max_offset: float = 0.5
     """The contour found must lie, on median, within this share of the wider neighbouring track contour's link tolerance (the band's half-width when it was measured; the band is now the nearer one's, :func:`.recovery.guided_candidate`) of the depth the track's neighbouring contours give (ours: on 82 frames recovered on the bone, median 0.12, p95 0.40, max 0.74; a false echo over the bone and layers crossing the band, 0.60-0.68)."""
+    contact_level: float = 0.6
+    """A frame whose tissue level (:meth:`.evidence.EvidenceMaps.frame_level`) is under this share of the sweep's median frame's is not searched: the probe is off the skin there, and what the band holds is the lens's reverberation over the noise floor, where a search vouched for by the neighbours finds a path through the noise at the bone's depth (:func:`.recovery.recover_frame`; ours: contact-loss frames of 10 hard sweeps at 475 x 405 read 0.49-0.50, the other frames 0.73-1.07; the L14 recording's frames 0.91-1.04, the Spine phantom's 0.82-1.14; 0: every frame searched)."""
     both_sides: bool = True
     """Search only frames with a track frame on each side within ``max_skip + 1`` frames (offline and live, ``EndsParams.search_past_ends`` searches past the track's ends as False does, the ends cut judging what is found; ours: past the track's ends only one side vouches, and beyond the last frame showing bone there is nothing to find; measured with the bone removed from the last 10 of 40 frames, 24 hard sweeps: searching with one side recovered bone-free frames in 7 sweeps, for +0.017 mean recall on sweeps showing bone throughout)."""
 
@@ -737,7 +732,7 @@ class RecoveryParams:
     def __post_init__(self) -> None:
         check_fields(
             self,
-            within={"min_share": "[0, 1]", "max_stray_ratio": "[0, 1]"},
+            within={"min_share": "[0, 1]", "max_stray_ratio": "[0, 1]", "contact_level": "[0, 1]"},
             positive=("max_offset",),
             non_negative=("min_stray",),
         )

@@ -82,13 +82,7 @@ from BoneUSRecon.Logic.segmentation.params import (
     SegmentationParams,
     ShadowPathParams,
 )
-from BoneUSRecon.Logic.segmentation.track import (
-    TrackChoice,
-    _project,
-    _sampled,
-    off_skin,
-    sweep_level,
-)
+from BoneUSRecon.Logic.segmentation.track import TrackChoice, _project, _sampled
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
 __all__ = [
@@ -549,7 +543,7 @@ def recover_frame(
     """
     if median_level is None:
         median_level = sweep_level(frames)
-    if off_skin(frames[f], median_level, rejection.contact_level):
+    if off_skin(frames[f], median_level, params.contact_level):
         return None
     prior = track_prior(frames, choice, poses, f, rejection.max_skip + 1, params.both_sides)
     if prior is None:
@@ -564,6 +558,28 @@ def recover_frame(
         params.max_offset,
         evidence_of(f) if evidence_of is not None else None,
     )
+
+
+def sweep_level(frames: Sequence[FrameCandidates]) -> float | None:
+    """The median of the frames' tissue levels (None: no frame has one)."""
+    levels = [fc.level for fc in frames if fc.level is not None]
+    return float(np.median(levels)) if levels else None
+
+
+def off_skin(frame: FrameCandidates, median_level: float | None, contact_level: float) -> bool:
+    """Whether ``frame``'s tissue level is under ``contact_level`` of the sweep's median
+    frame's (``median_level``, :func:`sweep_level`; ``RecoveryParams.contact_level``):
+    the probe off the skin.
+
+    The level is relative to the sweep's own frames, so gain, depth and scanner do not
+    matter; only the loss of the body's backscatter does (contact loss: the lens's
+    reverberation over the noise floor). Frames with no level measured are never off
+    the skin. A live session compares with the frames so far.
+    """
+    own = frame.level
+    if not contact_level > 0 or own is None or median_level is None:
+        return False
+    return own < contact_level * median_level
 
 
 def stray(

@@ -25,9 +25,7 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   its lane where their value and that credit beat their links' cost).
 
 A caller may rule frames out beforehand (``exclude``: the frames :mod:`.ends` judged
-bone-free): their candidates are no nodes, and they keep the reason given. Frames with
-the probe off the skin (:func:`off_skin_frames`: a tissue level under
-``contact_level`` of the sweep's median frame's) are ruled out so, always.
+bone-free): their candidates are no nodes, and they keep the reason given.
 
 Where two bones are in view the track follows the one near the middle of the image
 (:func:`central_track`), or, given the user's bone points (``bone_points``), the one
@@ -61,7 +59,6 @@ REASONS = {
     "reverb": "reverberation copy",
     "weak": "no bone evidence along the contour",
     "noshadow": "no bone shadow under it (sweep end)",
-    "offskin": "probe off the skin",
     "offpoint": OFF_POINT,
 }
 
@@ -223,48 +220,6 @@ def _frame_reason(fc: FrameCandidates) -> str:
     if max(c.strength for c in fc.usable) <= 0:
         return REASONS["weak"]
     return ""
-
-
-def sweep_level(frames: Sequence[FrameCandidates]) -> float | None:
-    """The median of the frames' tissue levels (None: no frame has one)."""
-    levels = [fc.level for fc in frames if fc.level is not None]
-    return float(np.median(levels)) if levels else None
-
-
-def off_skin(frame: FrameCandidates, median_level: float | None, contact_level: float) -> bool:
-    """Whether ``frame``'s tissue level is under ``contact_level`` of the sweep's median
-    frame's (``median_level``, :func:`sweep_level`; ``RejectionParams.contact_level``):
-    the probe off the skin.
-
-    The level is relative to the sweep's own frames, so gain, depth and scanner do not
-    matter; only the loss of the body's backscatter does (contact loss: the lens's
-    reverberation over the noise floor). Frames with no level measured are never off
-    the skin. A live session compares with the frames so far.
-    """
-    own = frame.level
-    if not contact_level > 0 or own is None or median_level is None:
-        return False
-    return own < contact_level * median_level
-
-
-def off_skin_frames(
-    frames: Sequence[FrameCandidates], p: RejectionParams
-) -> dict[int, tuple[str, str]]:
-    """The frames :func:`off_skin`, each with its rejection reason and detail: ruled out
-    of the track as its callers' ``exclude`` rules frames out.
-
-    Not left to the links: a contact-loss frame's reverberation bands and speckle give
-    candidates, and between two track frames a short one at the bone's depth links to
-    both (hard tibia at 475 x 405, seed 241, frame 34: 1.6 mm of noise kept as bone).
-    """
-    median = sweep_level(frames)
-    if median is None or not p.contact_level > 0:
-        return {}
-    return {
-        f: (REASONS["offskin"], f"tissue level {fc.level / median:.2f} of the sweep's median")
-        for f, fc in enumerate(frames)
-        if fc.level is not None and off_skin(fc, median, p.contact_level)
-    }
 
 
 def _is_node(cand: BoneCandidate) -> bool:
@@ -518,8 +473,7 @@ def select_bone_track(
     exclude : mapping of int to (str, str), optional
         Frames that may not be on the track (their candidates are no nodes), each with
         the rejection reason and detail it keeps (:func:`.ends.cut_ends_and_choose_again`:
-        the frames the ends cut judged bone-free). The frames off the skin
-        (:func:`off_skin_frames`) are ruled out too. The sweep's typical strength is
+        the frames the ends cut judged bone-free). The sweep's typical strength is
         still taken over all frames.
 
     Returns
@@ -531,7 +485,7 @@ def select_bone_track(
     poses = np.asarray(image_to_reference, dtype=float).reshape(n, 4, 4)
     reason = [_frame_reason(fc) for fc in frames]
     detail = [""] * n
-    exclude = {**off_skin_frames(frames, p), **(exclude or {})}
+    exclude = exclude or {}
     for f, (r, d) in exclude.items():
         reason[f], detail[f] = r, d
     chosen = np.full(n, -1, dtype=np.intp)

@@ -48,7 +48,6 @@ from BoneUSRecon.Logic.segmentation.track import (
     _node_points,
     _node_value,
     _typical_strength,
-    off_skin_frames,
     pointed_track,
 )
 from BoneUSRecon.Logic.sweep import frame_planes
@@ -333,7 +332,7 @@ class IncrementalTrack:
         ]
         reason = [fr.reason if e is None else e.reason for fr, e in zip(frames, ext, strict=True)]
         detail = [""] * n
-        exclude = {**off_skin_frames([fr.candidates for fr in frames], p), **(exclude or {})}
+        exclude = exclude or {}
         for f, (r, d) in exclude.items():
             reason[f], detail[f] = r, d
         # Each frame's nodes: its own, then its extra candidate (its last candidate);
