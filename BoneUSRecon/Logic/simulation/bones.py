@@ -533,6 +533,7 @@ class BoneGeometry:
         ----------
         points : ndarray, shape (K, 3)
         iterations : int
+            Newton steps at most (one more per 2 mm the limits reach past ``[0, L]``).
         s_limits : (float, float), optional
             The range of ``s`` the surface is taken over (the surface's formula holds
             past ``[0, L]``, and a tilted image plane near a sweep's end shows it there:
@@ -551,6 +552,9 @@ class BoneGeometry:
             e = np.empty(0)
             return e, e, np.empty((0, 3)), e
         lo, hi = (0.0, self.length) if s_limits is None else s_limits
+        # The seeds lie in [0, L] and a step moves s by 2 mm at most: steps to reach
+        # the limits' far ends too.
+        iterations += int(np.ceil(max(-lo, hi - self.length, 0.0) / 2.0))
         tree, params = self._seed_tree()
         _, idx = tree.query(q)
         s = params[idx, 0].copy()
