@@ -403,6 +403,18 @@ def _basis_derivative_matrix(x: np.ndarray, knots: np.ndarray, degree: int) -> n
     return BSpline(knots, np.eye(n_basis), degree)(x, nu=1)
 
 
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross(a, b)`` over a last axis of length 3, by components."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _norm3(a: np.ndarray) -> np.ndarray:
+    """Euclidean norm over the last axis (NaN where any component is NaN)."""
+    return np.sqrt(np.einsum("...d,...d->...", a, a))
+
+
 def _offsets(diff: np.ndarray, su: np.ndarray, sv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Split grid-point offsets into the part along the normal and an odd tangential part.
 
@@ -422,20 +434,25 @@ def _offsets(diff: np.ndarray, su: np.ndarray, sv: np.ndarray) -> tuple[np.ndarr
         ``diff`` in the surface's frame (along ``su``, and ``n x su``): what a single
         point is judged by (module docstring).
     """
-    nrm = np.cross(su, sv)
-    length = np.linalg.norm(nrm, axis=-1, keepdims=True)
+    # Cross products and norms written out per component: np.cross and np.linalg.norm
+    # over a last axis of 3 cost several times more on grids of thousands of points,
+    # and this runs once per robust iteration.
+    nrm = _cross3(su, sv)
+    length = _norm3(nrm)[..., None]
     ok = length > 1e-12 * max(float(np.nanmax(length, initial=0.0)), 1e-300)
-    unit = np.where(ok, nrm / np.where(ok, length, 1.0), 0.0)
+    regular = bool(ok.all())  # the usual case: no degenerate point, no masking needed
+    unit = nrm / length if regular else np.where(ok, nrm / np.where(ok, length, 1.0), 0.0)
     along = np.einsum("mnd,mnd->mn", diff, unit)
-    normal = np.where(ok[..., 0], np.abs(along), np.linalg.norm(diff, axis=-1))
+    normal = np.abs(along) if regular else np.where(ok[..., 0], np.abs(along), _norm3(diff))
     # Tangential offset in the surface's own frame (along u, and normal x that), so the
     # row medians are those of intrinsic coordinates: unchanged by a rigid motion.
-    eu = su / np.maximum(np.linalg.norm(su, axis=-1, keepdims=True), 1e-300)
-    ev = np.cross(unit, eu)
+    eu = su / np.maximum(_norm3(su), 1e-300)[..., None]
+    ev = _cross3(unit, eu)
     tang = np.stack(
         [np.einsum("mnd,mnd->mn", diff, eu), np.einsum("mnd,mnd->mn", diff, ev)], axis=-1
     )
-    tang = np.where(ok, tang, 0.0)
+    if not regular:
+        tang = np.where(ok, tang, 0.0)
     med = np.stack([row_medians(tang[..., k]) for k in range(2)], axis=-1)
     point = np.sqrt(normal**2 + np.sum((tang - med[:, None]) ** 2, axis=-1))
     return normal, point
@@ -521,19 +538,19 @@ def _solve_direct(
     p: np.ndarray,
     smoothing: float,
     pen: np.ndarray | None = None,
-    thin: tuple[np.ndarray, float, float] | None = None,
+    thin: tuple[np.ndarray, float, float, np.ndarray | None] | None = None,
 ) -> np.ndarray:
     """Weighted tensor-product least squares by the normal equations.
 
-    ``thin``: ``(N_full, thin_weight, thin_share)``, the thin-data penalty (see
-    :func:`thin_basis`), split afresh for these weights (a frame the robust weights
-    drop leaves its directions thin).
+    ``thin``: ``(N_full, thin_weight, thin_share, whitening)``, the thin-data penalty
+    (see :func:`thin_basis`), split afresh for these weights (a frame the robust
+    weights drop leaves its directions thin).
     """
     e, f = bu.shape[1], bv.shape[1]
     nmat, rhs = _normal_equations(bu, bv, w, p)
     pen = _penalty(e, f) if pen is None else pen
     if thin is not None:
-        basis = thin_basis(nmat, thin[0], pen, thin[1], thin[2])
+        basis = thin_basis(nmat, thin[0], pen, thin[1], thin[2], whitening=thin[3])
         if basis is not None:
             return basis.solve(nmat, rhs).reshape(e, f, 3)
     if smoothing > 0:
@@ -553,36 +570,54 @@ def _solve_direct(
 
 @dataclass(frozen=True, eq=False)
 class ThinBasis:
-    """The control net's directions, split into determined (``good``) and thin ones.
+    """The control net's thin directions, and what tells the determined ones apart.
 
     Attributes
     ----------
-    good, thin : ndarray, shapes (ef, g), (ef, t)
-        Generalised eigenvectors (see :func:`thin_basis`).
+    thin : ndarray, shape (ef, t)
+        The thin generalised eigenvectors ``Q`` (see :func:`thin_basis`).
+    constraint : ndarray, shape (t, ef)
+        ``Q^T N_full``: the determined directions ``W`` are the ``N_full``-orthogonal
+        complement of ``Q``, i.e. the ``c`` with ``Q^T N_full c = 0``.
     penalty : ndarray, shape (ef, ef)
         The weighted second-difference penalty.
     """
 
-    good: np.ndarray
     thin: np.ndarray
+    constraint: np.ndarray
     penalty: np.ndarray
 
     def solve(self, nmat: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-        """Control points ``(ef, 3)``: least squares on ``good``, then ``thin`` with the penalty."""
-        w, q, pw = self.good, self.thin, self.penalty
-        nw = nmat @ w
-        gram = w.T @ nw
-        gram += 1e-12 * max(float(np.trace(gram)) / gram.shape[0], 1e-300) * np.eye(gram.shape[0])
-        a = np.linalg.solve(gram, w.T @ rhs)
+        """Control points ``(ef, 3)``: least squares on the determined directions, then ``Q``.
+
+        The least squares on ``span(W)`` is solved as one constrained problem (KKT
+        system: ``N c + C^T l = rhs``, ``C c = 0``), so the determined eigenvectors
+        are never needed: only the few thin ones are computed (a full ``eigh`` took
+        a fifth of the fit's time at 24-30 rays). Then ``z`` minimises data + penalty
+        over ``Q`` with ``W a`` held.
+        """
+        q, cons, pw = self.thin, self.constraint, self.penalty
+        n, t = nmat.shape[0], q.shape[1]
+        kkt = np.zeros((n + t, n + t))
+        kkt[:n, :n] = nmat
+        kkt[:n, n:] = cons.T
+        kkt[n:, :n] = cons
+        kkt[:n, :n] += 1e-12 * max(float(np.trace(nmat)) / n, 1e-300) * np.eye(n)
+        good = np.linalg.solve(kkt, np.vstack([rhs, np.zeros((t, rhs.shape[1]))]))[:n]
         qp = q.T @ pw
         lhs = q.T @ nmat @ q + qp @ q
         lhs += 1e-10 * max(float(np.trace(lhs)) / lhs.shape[0], 1e-300) * np.eye(lhs.shape[0])
-        z = np.linalg.solve(lhs, q.T @ rhs - (q.T @ nw + qp @ w) @ a)
-        return w @ a + q @ z
+        z = np.linalg.solve(lhs, q.T @ rhs - (q.T @ nmat + qp) @ good)
+        return good + q @ z
 
 
 def thin_basis(
-    nmat: np.ndarray, nfull: np.ndarray, pen: np.ndarray, weight: float, share: float
+    nmat: np.ndarray,
+    nfull: np.ndarray,
+    pen: np.ndarray,
+    weight: float,
+    share: float,
+    whitening: np.ndarray | None = None,
 ) -> ThinBasis | None:
     """Split the control net into what the data determine and what they leave thin.
 
@@ -605,31 +640,40 @@ def thin_basis(
         Second-difference penalty (unweighted).
     weight, share : float
         ``FitParams.thin_weight`` and ``thin_share``.
+    whitening : ndarray, shape (ef, ef), optional
+        :func:`_whitening` of ``nfull`` when already computed (it is the same for every
+        robust iteration of a fit).
 
     Returns
     -------
     ThinBasis or None
         ``None`` when no direction is thin (or ``weight`` is 0): plain least squares.
     """
-    n = nmat.shape[0]
     if not weight > 0:
         return None
+    li = _whitening(nfull) if whitening is None else whitening
+    if li is None:
+        return None
+    # Only the eigenpairs under ``share`` (driver "evr", relatively robust
+    # representations: the divide-and-conquer default took 0.5 s instead of 1 ms at
+    # 75 x 75 with multi-threaded BLAS on a loaded machine).
+    mu, u = eigh(li @ nmat @ li.T, driver="evr", subset_by_value=(-np.inf, share))
+    if not mu.size:
+        return None
+    q = li.T @ u
+    pw = weight * float(np.mean(np.diag(nfull))) * pen
+    return ThinBasis(q, q.T @ nfull, pw)
+
+
+def _whitening(nfull: np.ndarray) -> np.ndarray | None:
+    """``L^-1`` of the Cholesky factor ``L`` of ``N_full`` (to standard form), or None."""
+    n = nfull.shape[0]
     ridge = 1e-12 * np.trace(nfull) / n
-    # To standard form through the Cholesky factor of N_full, then a symmetric eigh.
     try:
         low = np.linalg.cholesky(nfull + ridge * np.eye(n))
     except np.linalg.LinAlgError:
         return None
-    li = solve_triangular(low, np.eye(n), lower=True)
-    # driver "evr" (relatively robust representations): the divide-and-conquer default
-    # took 0.5 s instead of 1 ms at 75 x 75 with multi-threaded BLAS on a loaded machine.
-    mu, u = eigh(li @ nmat @ li.T, driver="evr")
-    vec = li.T @ u
-    thin = mu < share
-    if not thin.any():
-        return None
-    pw = weight * float(np.mean(np.diag(nfull))) * pen
-    return ThinBasis(vec[:, ~thin], vec[:, thin], pw)
+    return solve_triangular(low, np.eye(n), lower=True)
 
 
 def _solve_separable(
@@ -763,6 +807,7 @@ def _fit_surface(
     # Normal matrix of a complete grid at weight 1: what "determined by the data" is
     # measured against (see thin_basis).
     nfull = np.kron(bu.T @ bu, bv.T @ bv) if params.thin_weight > 0 else None
+    whitening = None if nfull is None else _whitening(nfull)
 
     def solve(w: np.ndarray) -> np.ndarray:
         if params.method == "direct":
@@ -773,32 +818,34 @@ def _fit_surface(
                 pz,
                 params.smoothing,
                 pen,
-                None if nfull is None else (nfull, params.thin_weight, params.thin_share),
+                None
+                if nfull is None or whitening is None
+                else (nfull, params.thin_weight, params.thin_share, whitening),
             )
         return _solve_separable(
             uu, vv, ku, kv, (p, q), w, np.where(present[..., None], pts, np.nan), params.smoothing
         )
 
-    def residuals(ctrl: np.ndarray) -> np.ndarray:
-        fitted = _tensor_eval(bu, ctrl, bv)
-        r = np.linalg.norm(fitted - pts, axis=-1)
-        return np.where(present, r, np.nan)
+    def difference(ctrl: np.ndarray) -> np.ndarray:
+        # Grid point minus fitted point (NaN where missing): the residuals' norm, and
+        # what the robust weights split (computed once per fit, shared by both).
+        return np.where(present[..., None], pts - _tensor_eval(bu, ctrl, bv), np.nan)
 
-    def robust_residuals(ctrl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def robust_residuals(ctrl: np.ndarray, diff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # What the weights judge (module docstring, "Robust reweighting"): per frame
         # the offset along the normal, per point also its odd slide within the surface.
-        diff = np.where(present[..., None], pts - _tensor_eval(bu, ctrl, bv), np.nan)
         return _offsets(diff, _tensor_eval(dbu, ctrl, bv), _tensor_eval(bu, ctrl, dbv))
 
     w = w0
     ctrl = solve(w)
-    res = residuals(ctrl)
+    diff = difference(ctrl)
+    res = _norm3(diff)
     frame_w = np.ones(m)
     iterations = 0
     if params.robust != "none":
         for it in range(params.robust_iterations):
             kind = "huber" if (params.robust == "huber" or it < 2) else "tukey"
-            nres, pres = robust_residuals(ctrl)
+            nres, pres = robust_residuals(ctrl, diff)
             r = np.where(present, pres, 0.0)
             scale = mad_scale(pres[w > 0], params.min_scale_mm)
             pw = robust_weights(r, scale, kind)
@@ -814,7 +861,8 @@ def _fit_surface(
             iterations = it + 1
             change = np.abs(new_w - w).max()
             w, ctrl = new_w, new_ctrl
-            res = residuals(ctrl)
+            diff = difference(ctrl)
+            res = _norm3(diff)
             if change < 1e-2:  # weights settled: further iterations move < 0.01 mm
                 break
     kept = present & (w > 0)
