@@ -114,7 +114,7 @@ class BoneSurfaceReconstructionParameterNode:
         pixels to probe mm (then the frames must sit under the probe's transform).
     segmenter - bone contour segmenter ("snake" is the paper's).
     controlPointsU/V, degreeU/V - the B-spline surface (paper: 15 x 5, quadratic; default 15 x 6).
-    rays - rays per frame when resampling (paper: 15).
+    rays - rays per frame when resampling (paper: 15; default 24).
     flankExtension - mm the surface is continued down the bone's flanks past the data
         (extrapolated, flagged by the point array "Extrapolated"; 0: off, the default).
     bonePoints - optional point list on the bone to follow (world mm): where two bones

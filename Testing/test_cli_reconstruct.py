@@ -66,7 +66,7 @@ def test_reconstruct_json_outputs_and_accuracy(capsys, sim_small, done):
     code, stdout, err = run(capsys, args)
     assert code == 0, err
     doc = json.loads(stdout)
-    assert doc["summary"]["grid_shape"][1] == 15
+    assert doc["summary"]["grid_shape"][1] == 24
     ev = doc["evaluation"]
     assert ev["n"] == sim_small.gold.shape[0]
     assert ev["mean_mm"] < 0.25 and ev["within_1mm"] > 0.97

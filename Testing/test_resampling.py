@@ -62,7 +62,7 @@ def tube_sweep(m: int = 40, tilt_deg: float = 8.0, seed: int = 0, length: float 
 def test_grid_points_lie_on_contours_and_centres_on_axis():
     sweep, contours, centres = tube_sweep()
     grid = resample(contours, sweep)
-    assert grid.shape == (40, 15)
+    assert grid.shape == (40, 24)
     assert grid.coverage > 0.85  # the end rays graze the contour ends
     # every grid vertex lies on its slice's circle (chord error ~5e-4 mm)
     r = np.linalg.norm(grid.points - centres[grid.frames][:, None], axis=-1)

@@ -128,7 +128,9 @@ class SurfaceParams:
         off by default (Testing/benchmarks/README.md, branch recon). Measured with
         15 x 5 control points; at the default 15 x 6 the edge the strips continue bends
         more (hard humerus seed 5: 0.37 mm off at the seam, 1.48 mm 0.7-1 mm out, against
-        0.30 and 0.98; session 30). Ours.
+        0.30 and 0.98; session 30), and at the default 24 rays (the paper's 15 before
+        session 40) the edge reaches that sweep's sparse flank ends, farther off the
+        bone. Ours.
     flank_max_deg : float
         The extension stops where the surface becomes steeper than this against the
         probe's face (degrees, (0, 90)). 70: issue 10 asks to follow the flanks to

@@ -57,7 +57,9 @@ def add_reconstruction_options(p: argparse.ArgumentParser, *, control_points: bo
         p.add_argument(
             "--control-points", nargs=2, type=int, metavar=("E", "F"), help=argparse.SUPPRESS
         )
-    p.add_argument("--rays", type=int, metavar="N", help="rays per slice (default 15)")
+    p.add_argument(
+        "--rays", type=int, metavar="N", help="rays per slice (default 24; the paper: 15)"
+    )
     p.add_argument(
         "--fit-method",
         choices=("direct", "separable"),
