@@ -72,7 +72,7 @@ class ResamplingParams:
         segmentation), 15 -> 24 rays over 88 simulated sweeps (seeds 241, 251): gold
         mean 0.2366 -> 0.2284 mm (every harness group better), the surface's
         area-weighted distance to the true bone 0.129 -> 0.108 mm, its area within
-        0.35 mm 0.934 -> 0.954; over 50 more (seeds 173, 179) gold 0.3009 -> 0.2928 mm
+        0.35 mm 0.934 -> 0.954; over 54 more (seeds 173, 179) gold 0.3009 -> 0.2928 mm
         and area 0.922 -> 0.935; the L14 recording 0.312 -> 0.311 mm. 30 rays: 0.2255,
         0.104, 0.957, but resampling and fitting 250 frames took 55 ms against 48 at 24
         (issue 11's bound: 50 ms); 45 rays 0.2250, no further gain.
