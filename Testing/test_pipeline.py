@@ -58,7 +58,7 @@ def test_clean_sweep_accuracy_in_mm(sim_small, recon_small):
     # out of frame 15 together with the flank beyond its turn (0.32 mm without it). At the
     # default 15 x 6 control points (session 30) 0.80 mm on seed 0 (0.39 at 15 x 5): that
     # left flank's edge (above); seeds 1-5: 0.54, 0.34, 0.40, 0.80, 0.31. At the default
-    # 24 rays (session 40) seeds 0-5: 1.01, 0.41, 0.28, 0.36, 0.48, 0.22 (15 rays: 0.60,
+    # 24 rays (session 40) seeds 0-5: 0.99, 0.39, 0.28, 0.36, 0.44, 0.20 (15 rays: 0.60,
     # 0.53, 0.34, 0.40, 0.79, 0.31): seed 0's far triangles (1.6 % of the area, 0.8 % at
     # 15 rays) lie on its left flank, rays -64 to -50 degrees in frames 22-28, where the
     # finer rays sample more of its contours' off-bone flank ends; every other seed's
