@@ -19,6 +19,7 @@ from BoneUSRecon.Logic.surface import (
     SurfaceParams,
     surface_area,
     surface_polydata,
+    surface_support,
     triangle_centroids,
 )
 from BoneUSRecon.Logic.vtkio import read_polydata, write_polydata
@@ -318,6 +319,29 @@ def _thin_tube_stays_on_the_tube(cut, sweep, n_rays: int) -> None:
         assert np.nanmax(fit.residuals[ok]) < 0.05 and fit.n_outliers == 0
         pts = numpy_support.vtk_to_numpy(surface_polydata(fit, grid).GetPoints().GetData())
         assert np.abs(np.linalg.norm(pts - axis_point(pts[:, 0]), axis=1) - RADIUS).max() < 0.1
+
+
+def test_a_frame_the_fit_weighed_down_does_not_extend_the_support():
+    # A frame the robust fit all but dropped (weight 0.05) at the sweep's end: its row
+    # is what the other slices make of it, so the mesh stops at the last frame the fit
+    # follows; with min_frame_weight 0 it reaches that row again.
+    fit, grid = tube_fit(m=40)
+    weights = fit.frame_weights.copy()
+    weights[-1] = 0.05
+    down = dataclasses.replace(fit, frame_weights=weights)
+    pos = np.asarray(grid.axis_position)
+    assert surface_support(fit, grid).spans.max() == pytest.approx(pos.max())
+    support = surface_support(down, grid)
+    assert support.spans.max() == pytest.approx(pos[-2]) and pos[-2] < pos.max()
+    assert support.position.size == fit.frame_weights.size - 1
+    kept_all = surface_support(down, grid, SurfaceParams(min_frame_weight=0.0))
+    assert kept_all.spans.max() == pytest.approx(pos.max())
+    # the mesh follows: shorter by the last slice spacing
+    full, cut = (
+        surface_area(surface_polydata(fit, grid)),
+        surface_area(surface_polydata(down, grid)),
+    )
+    assert cut < full * (1 - 0.5 / 40)
 
 
 def test_a_wild_fit_does_not_make_a_huge_mesh():

@@ -102,7 +102,14 @@ def test_no_strip_where_the_edge_rises_outward():
 
 
 @pytest.mark.parametrize(
-    "field, value", [("flank_extension_mm", -1.0), ("flank_max_deg", 90.0), ("flank_max_deg", 0.0)]
+    "field, value",
+    [
+        ("flank_extension_mm", -1.0),
+        ("flank_max_deg", 90.0),
+        ("flank_max_deg", 0.0),
+        ("min_frame_weight", 1.0),
+        ("min_frame_weight", -0.1),
+    ],
 )
 def test_bad_parameters_refused(field, value):
     with pytest.raises(BoneUSReconError, match=field):
