@@ -815,26 +815,21 @@ def _fit_surface(
     dbv = _basis_derivative_matrix(vv, kv, q)
     pz = np.nan_to_num(pts)
     pen = _penalty(e, f)
-    # The thin directions' penalty keeps the curvature around the bone (thin_basis).
-    thin_pen = _penalty(e, f, around=3)
-    # Normal matrix of a complete grid at weight 1: what "determined by the data" is
-    # measured against (see thin_basis).
-    nfull = np.kron(bu.T @ bu, bv.T @ bv) if params.thin_weight > 0 else None
-    whitening = None if nfull is None else _whitening(nfull)
+    # The thin-data split (direct method only): the normal matrix of a complete grid at
+    # weight 1, what "determined by the data" is measured against, its whitening, and
+    # the thin directions' penalty, which keeps the curvature around the bone
+    # (thin_basis); all fixed for the fit, so made once, and only when used.
+    thin = None
+    if params.method == "direct" and params.thin_weight > 0:
+        nfull = np.kron(bu.T @ bu, bv.T @ bv)
+        whitening = _whitening(nfull)
+        if whitening is not None:
+            thin_pen = _penalty(e, f, around=3)
+            thin = (nfull, params.thin_weight, params.thin_share, whitening, thin_pen)
 
     def solve(w: np.ndarray) -> np.ndarray:
         if params.method == "direct":
-            return _solve_direct(
-                bu,
-                bv,
-                w,
-                pz,
-                params.smoothing,
-                pen,
-                None
-                if nfull is None or whitening is None
-                else (nfull, params.thin_weight, params.thin_share, whitening, thin_pen),
-            )
+            return _solve_direct(bu, bv, w, pz, params.smoothing, pen, thin)
         return _solve_separable(
             uu, vv, ku, kv, (p, q), w, np.where(present[..., None], pts, np.nan), params.smoothing
         )
