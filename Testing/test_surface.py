@@ -16,7 +16,9 @@ from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.pipeline import reconstruct, surface_from_contours
 from BoneUSRecon.Logic.resampling import ResamplingParams, resample
 from BoneUSRecon.Logic.surface import (
+    Support,
     SurfaceParams,
+    reach_offsets,
     surface_area,
     surface_polydata,
     surface_support,
@@ -118,7 +120,13 @@ def test_unknown_extension_refused_and_nothing_written(tube, tmp_path):
 def test_bad_surface_params_refused():
     with pytest.raises(BoneUSReconError):
         SurfaceParams(step_mm=0)
-    for bad in ({"support_window_mm": -1}, {"gap_factor": 0}, {"max_distance_mm": 0}):
+    for bad in (
+        {"support_window_mm": -1},
+        {"gap_factor": 0},
+        {"max_distance_mm": 0},
+        {"reach_tolerance_mm": -0.5},
+        {"reach_tolerance_mm": float("nan")},
+    ):
         with pytest.raises(BoneUSReconError, match=next(iter(bad))):
             SurfaceParams(**bad)
 
@@ -353,3 +361,61 @@ def test_a_wild_fit_does_not_make_a_huge_mesh():
     wild = dataclasses.replace(fit, surface=dataclasses.replace(fit.surface, control_points=ctrl))
     normal = surface_polydata(fit, grid).GetNumberOfCells()
     assert surface_polydata(wild, grid).GetNumberOfCells() < 12 * normal
+
+
+def test_reach_offsets_is_the_distance_to_the_nearest_slice_covering_v():
+    sup = Support(
+        position=np.array([0.0, 1.0, 2.0, 3.5]),
+        u=np.array([0.0, 0.3, 0.6, 1.0]),
+        lo=np.zeros(4),
+        hi=np.ones(4),
+        raw_lo=np.array([0.0, 0.0, 0.2, 0.0]),
+        raw_hi=np.array([0.5, 0.9, 0.5, 0.5]),
+        spans=np.array([[0.0, 3.5]]),
+    )
+    uv = np.array([[1.0, 0.8], [1.0, 0.3], [0.0, 0.8], [0.45, 0.1], [0.6, 0.95], [0.3, 0.9]])
+    got = reach_offsets(sup, uv, 0.05)
+    # s = 3.5 -> slice 1 (s = 1) is the only one reaching 0.8; s = 3.5 itself covers 0.3;
+    # v = 0.1 at s = 1.5: slices 1 and 0 cover it (slice 2 starts at 0.2): 0.5 mm;
+    # nothing reaches 0.95; 0.9 is slice 1's own reach.
+    assert got == pytest.approx([2.5, 0.0, 1.0, 0.5, np.inf, 0.0])
+
+
+def test_reach_cut_keeps_a_true_extension_and_cuts_a_sheet():
+    # A tube whose contours stop at the same angle on one flank, but for frame 3, which
+    # reaches further: the edge filter extends its neighbours to its reach.
+    sweep, contours, _ = tube_sweep(m=40, tilt_deg=0.0)
+    cut = [(k, p if k == 3 else p[:60]) for k, p in contours]
+    seg = np.concatenate([p for _, p in cut])
+    grid = resample(cut, sweep, ResamplingParams(angle_span_deg=130, angle_centre_deg=0))
+    fit = fit_surface(grid.points, FitParams(), u=grid.axis_position, v=grid.angles)
+    off = SurfaceParams(reach_tolerance_mm=None)
+    kept, full = surface_polydata(fit, grid, seg), surface_polydata(fit, grid, seg, off)
+    # There the spline follows the tube: the extension stays whole.
+    assert surface_area(kept) == pytest.approx(surface_area(full), rel=1e-3)
+    for pd in (kept, full):
+        pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
+        assert np.abs(np.linalg.norm(pts - axis_point(pts[:, 0]), axis=1) - RADIUS).max() < 0.1
+    # A spline that leaves the bone there (the net's corner pushed 6 mm outward, where
+    # only frame 3's data and the edge filter hold it): a sheet > 4 mm off the tube,
+    # cut back to where the surface is within the tolerance of the data across the
+    # along-sweep distance to them.
+    ctrl = fit.surface.control_points.copy()
+    c = ctrl[-2:, -2:]
+    ctrl[-2:, -2:] = c + (c - axis_point(c[..., 0].ravel()).reshape(c.shape))
+    wild = dataclasses.replace(fit, surface=dataclasses.replace(fit.surface, control_points=ctrl))
+
+    def off_tube(pd):
+        pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
+        return np.abs(np.linalg.norm(pts - axis_point(pts[:, 0]), axis=1) - RADIUS).max()
+
+    sheet, trimmed = surface_polydata(wild, grid, seg, off), surface_polydata(wild, grid, seg)
+    assert off_tube(sheet) > 4.0 and off_tube(trimmed) < 3.0
+    assert surface_area(trimmed) < surface_area(sheet) - 10.0
+    # every kept vertex within hypot(reach, tolerance) of a segmented point (the cut's
+    # vertices, interpolated along triangle edges, within 0.1 mm of it)
+    pts = numpy_support.vtk_to_numpy(trimmed.GetPoints().GetData())
+    tc = numpy_support.vtk_to_numpy(trimmed.GetPointData().GetTCoords()).astype(float)
+    reach = reach_offsets(surface_support(wild, grid), tc, 0.01)
+    tol = SurfaceParams().reach_tolerance_mm
+    assert (cKDTree(seg).query(pts)[0] <= np.hypot(reach, tol) + 0.1).all()
