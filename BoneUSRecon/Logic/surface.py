@@ -366,7 +366,7 @@ def reach_offsets(support: Support, uv: np.ndarray, v_step: float) -> np.ndarray
     col = np.round(uv[:, 1] / v_step).astype(np.int64)
     order = np.argsort(col, kind="stable")
     cols, first = np.unique(col[order], return_index=True)
-    for c, idx in zip(cols, np.split(order, first[1:])):
+    for c, idx in zip(cols, np.split(order, first[1:]), strict=True):
         v = c * v_step
         pos = support.position[(support.raw_lo <= v + 1e-9) & (support.raw_hi >= v - 1e-9)]
         if pos.size == 0:
