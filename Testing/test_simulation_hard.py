@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 
 from BoneUSRecon.Logic.simulation import HARD_CONDITIONS, SimulationParams, echo_levels, simulate
+from BoneUSRecon.Logic.simulation.core import UP, effective_params, sample_gold
+from BoneUSRecon.Logic.simulation.hard import echo_strength
 from BoneUSRecon.Logic.simulation.sections import bone_sections
 
 SMALL = dict(n_frames=24, width=160, height=128, spacing_mm=0.3, seed=1)
@@ -316,3 +318,27 @@ def test_hard_is_deterministic_per_seed(hard_tibia) -> None:
     assert np.array_equal(again.gold, hard_tibia.gold)
     other = simulate(SimulationParams(bone="tibia", realism="hard", **{**SMALL, "seed": 2}))
     assert not np.array_equal(other.sweep.frames, hard_tibia.sweep.frames)
+
+
+def _strength_at(sim, pts):
+    """The hard preset's relative echo strength at the bone under ``pts`` (probe above)."""
+    p = effective_params(sim.params)
+    s, phi, _, _ = sim.geometry.closest_points(pts)
+    _, ps, pp = sim.geometry.derivatives(s[:, None], phi[:, None])
+    cr = np.cross(pp, ps)[:, 0]
+    cos = (cr @ UP) / np.linalg.norm(cr, axis=1)
+    return echo_strength(p, sim.geometry, s, cos[:, None])[:, 0], p.hard.visible_strength
+
+
+def test_gold_is_the_bone_some_frame_shows(hard_tibia) -> None:
+    # The contours of the hard preset need an echo strength of visible_strength; the
+    # gold follows the same rule (the faded sides are in no frame), and faded=True
+    # gives the whole upper surface (8-15 % of it under the rule on tibia, humerus and
+    # radius; session 41).
+    sim = hard_tibia
+    assert np.array_equal(sample_gold(sim), sim.gold)
+    st, floor = _strength_at(sim, sim.gold)
+    assert np.mean(st < floor - 0.03) < 0.01  # the gold's own noise (0.1 mm) only
+    faded = sample_gold(sim, faded=True)
+    st_f, _ = _strength_at(sim, faded)
+    assert np.mean(st_f < floor - 0.03) > 0.05 and faded.shape == sim.gold.shape

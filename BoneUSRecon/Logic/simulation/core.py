@@ -304,12 +304,15 @@ def _sample_gold(
     params: SimulationParams,
     contours: list[np.ndarray],
     rng: np.random.Generator,
+    faded: bool = False,
 ) -> np.ndarray:
     """Uniform-by-area points on the imaged upper surface, plus isotropic noise.
 
     The imaged upper surface: within the swept range, facing up (``normal . up >=
-    visible_cos``, the same threshold as the visible contours: what the probe sees
-    and a digitiser reaches from above) and inside the field of view of the frame
+    visible_cos``, and with ``realism="hard"`` an echo strength of at least
+    ``HardParams.visible_strength``: the same rules as the visible contours, what the
+    probe sees and a digitiser reaches from above; ``faded`` drops the strength rule:
+    the whole upper surface, as a CT bone model's gold would be) and inside the field of view of the frame
     nearest along the bone (a narrow image does not show the whole width of a tibia).
     With ``gold_region="imaged"`` also between the planes of the first and last frames
     that showed bone (``contours``): the image is a plane, so bone beyond them was not
@@ -349,7 +352,13 @@ def _sample_gold(
             return np.ones(x.shape[:-1], bool)
         return np.all(x @ planes[:, :3].T + planes[:, 3] >= 0, axis=-1)
 
-    w = np.where((up >= params.imaging.visible_cos) & seen & imaged(P), area, 0.0).reshape(-1)
+    visible = up >= params.imaging.visible_cos
+    if params.realism == "hard" and not faded:
+        # The hard preset's contours also need the echo strength (the oval's faded
+        # sides are in no frame): the same rule here, or the gold holds bone no frame
+        # shows (session 40: the far gold of hard sweeps lay 1-2 mm past every contour).
+        visible &= hard_echo_strength(params, geom, s, up) >= params.hard.visible_strength
+    w = np.where(visible & seen & imaged(P), area, 0.0).reshape(-1)
     if w.sum() <= 0:
         return np.empty((0, 3))
     ds, dphi = s[1] - s[0], phi[1] - phi[0]
@@ -370,11 +379,14 @@ def _sample_gold(
     return pts + rng.normal(0.0, params.gold_noise_mm, pts.shape)
 
 
-def sample_gold(sim: Simulation, region: str | None = None) -> np.ndarray:
+def sample_gold(sim: Simulation, region: str | None = None, *, faded: bool = False) -> np.ndarray:
     """The gold points of ``sim`` digitised over ``region`` (``"imaged"`` or ``"swept"``).
 
     Same generator as :func:`simulate`, so ``sample_gold(sim)`` equals ``sim.gold``;
-    a benchmark reports both definitions with ``sample_gold(sim, "swept")``.
+    a benchmark reports both definitions with ``sample_gold(sim, "swept")``. With
+    ``faded=True`` (hard preset) the gold also covers the bone whose echo has faded
+    below ``HardParams.visible_strength``, which no frame shows: what a method that
+    extrapolates down the flanks is measured against.
     """
     params = effective_params(replace(sim.params, gold_region=region or sim.params.gold_region))
     return _sample_gold(
@@ -384,6 +396,7 @@ def sample_gold(sim: Simulation, region: str | None = None) -> np.ndarray:
         params,
         sim.true_contours_px,
         np.random.default_rng([int(params.seed), 5]),
+        faded=faded,
     )
 
 
