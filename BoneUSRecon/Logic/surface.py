@@ -20,11 +20,12 @@ The surface reaches exactly as far as the data, with a smooth edge:
    covering only the support's extent; the triangulated grid is clipped at ``F = 0``
    (:func:`clip_triangles`, linear interpolation along triangle edges), so the edge is a
    smooth curve that cuts through triangles, not a staircase of grid cells.
-4. **Where the spline left the data.** Where the filter or a bridged gap carried the
-   support past a slice's own data, the mesh is cut where it lies farther from every
-   segmented point than the along-sweep distance to the data it continues allows
-   (``reach_tolerance_mm``; with ``max_distance_mm``, a plain distance cut, if set),
-   clipped the same way.
+4. **Where the spline left the data.** The mesh is cut where it lies farther from
+   every segmented point than the along-sweep distance to the data it continues allows
+   (``reach_tolerance_mm``): where the filter or a bridged gap carried the support past
+   a slice's own data, the surface is the spline's continuation of data some mm away
+   along the sweep, and must stay about that far from them. With ``max_distance_mm``
+   set, also a plain distance cut. Clipped the same way.
 
 5. **Flanks (opt-in).** With ``flank_extension_mm > 0`` each cross-section is continued
    past its side edges down the bone's flank (:func:`flank_extension`: convex, at most
@@ -134,9 +135,11 @@ class SurfaceParams:
         a window), so ``hypot`` leaves it the tolerance across the sweep; if it is much
         farther, the spline has left the bone where nothing held it (at a sweep's end,
         past the one slice that reached down a flank). The rule takes no level from a
-        data source: it compares two distances in the recording's own geometry. 2 mm
-        (ours): five times the fit's error on real sweeps (0.3-0.45 mm) plus a 24-ray
-        fan's ray step; a true extension of a tube is never cut
+        data source: it compares two distances in the recording's own geometry. Inside
+        a slice's own data ``reach`` is 0 and the limit is the tolerance itself. 2 mm
+        (ours): about five times the fit's error on real sweeps (0.3-0.45 mm), and
+        twice the ray spacing of 24 rays on a 25 mm arc; a true extension of a tube is
+        not cut
         (``test_reach_cut_keeps_a_true_extension_and_cuts_a_sheet``). Measured
         (session 41 in ``Testing/benchmarks/README.md``): the real L14 recording's
         sheet under its right flank (3.6-7.4 mm from every segmented point; 13.6 mm^2

@@ -311,9 +311,10 @@ def _sample_gold(
     The imaged upper surface: within the swept range, facing up (``normal . up >=
     visible_cos``, and with ``realism="hard"`` an echo strength of at least
     ``HardParams.visible_strength``: the same rules as the visible contours, what the
-    probe sees and a digitiser reaches from above; ``faded`` drops the strength rule:
-    the whole upper surface, as a CT bone model's gold would be) and inside the field of view of the frame
-    nearest along the bone (a narrow image does not show the whole width of a tibia).
+    probe sees and a digitiser reaches from above; ``faded`` drops the strength rule,
+    for the whole upper surface, as a CT bone model's gold would be) and inside the
+    field of view of the frame nearest along the bone (a narrow image does not show
+    the whole width of a tibia).
     With ``gold_region="imaged"`` also between the planes of the first and last frames
     that showed bone (``contours``): the image is a plane, so bone beyond them was not
     imaged; ``"swept"`` keeps the whole axis range (see ``SimulationParams.gold_region``).
