@@ -325,8 +325,7 @@ def _thin_tube_stays_on_the_tube(cut, sweep, n_rays: int) -> None:
             grid.points, FitParams(thin_weight=w), u=grid.axis_position, v=grid.angles
         )
         assert np.nanmax(fit.residuals[ok]) < 0.05 and fit.n_outliers == 0
-        pts = numpy_support.vtk_to_numpy(surface_polydata(fit, grid).GetPoints().GetData())
-        assert np.abs(np.linalg.norm(pts - axis_point(pts[:, 0]), axis=1) - RADIUS).max() < 0.1
+        assert _off_tube(surface_polydata(fit, grid)) < 0.1
 
 
 def test_a_frame_the_fit_weighed_down_does_not_extend_the_support():
@@ -381,6 +380,12 @@ def test_reach_offsets_is_the_distance_to_the_nearest_slice_covering_v():
     assert got == pytest.approx([2.5, 0.0, 1.0, 0.5, np.inf, 0.0])
 
 
+def _off_tube(pd) -> float:
+    """Largest distance (mm) of the mesh's vertices from the tube."""
+    pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
+    return float(np.abs(np.linalg.norm(pts - axis_point(pts[:, 0]), axis=1) - RADIUS).max())
+
+
 def test_reach_cut_keeps_a_true_extension_and_cuts_a_sheet():
     # A tube whose contours stop at the same angle on one flank, but for frame 3, which
     # reaches further: the edge filter extends its neighbours to its reach.
@@ -393,9 +398,7 @@ def test_reach_cut_keeps_a_true_extension_and_cuts_a_sheet():
     kept, full = surface_polydata(fit, grid, seg), surface_polydata(fit, grid, seg, off)
     # There the spline follows the tube: the extension stays whole.
     assert surface_area(kept) == pytest.approx(surface_area(full), rel=1e-3)
-    for pd in (kept, full):
-        pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
-        assert np.abs(np.linalg.norm(pts - axis_point(pts[:, 0]), axis=1) - RADIUS).max() < 0.1
+    assert _off_tube(kept) < 0.1 and _off_tube(full) < 0.1
     # A spline that leaves the bone there (the net's corner pushed 6 mm outward, where
     # only frame 3's data and the edge filter hold it): a sheet > 4 mm off the tube,
     # cut back to where the surface is within the tolerance of the data across the
@@ -405,12 +408,8 @@ def test_reach_cut_keeps_a_true_extension_and_cuts_a_sheet():
     ctrl[-2:, -2:] = c + (c - axis_point(c[..., 0].ravel()).reshape(c.shape))
     wild = dataclasses.replace(fit, surface=dataclasses.replace(fit.surface, control_points=ctrl))
 
-    def off_tube(pd):
-        pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
-        return np.abs(np.linalg.norm(pts - axis_point(pts[:, 0]), axis=1) - RADIUS).max()
-
     sheet, trimmed = surface_polydata(wild, grid, seg, off), surface_polydata(wild, grid, seg)
-    assert off_tube(sheet) > 4.0 and off_tube(trimmed) < 3.0
+    assert _off_tube(sheet) > 4.0 and _off_tube(trimmed) < 3.0
     assert surface_area(trimmed) < surface_area(sheet) - 10.0
     # every kept vertex within hypot(reach, tolerance) of a segmented point (the cut's
     # vertices, interpolated along triangle edges, within 0.1 mm of it)
