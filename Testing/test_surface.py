@@ -82,7 +82,10 @@ def test_trimmed_to_where_there_was_data():
     pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
     rel_y = pts[:, 1] - axis_point(pts[:, 0])[:, 1]
     # frames 15..24 lie at x = 23.1..36.9 mm; the edge is smoothed over the 3 mm window
-    hole = (pts[:, 0] > 25.0) & (pts[:, 0] < 35.0) & (rel_y > 1.5)
+    # (a running max, then a mean: the slices at 23.1 and 24.6 mm still reach past the
+    # half; with rows spaced by the local stretch, session 41, a vertex lay at x = 25.01
+    # mm, 1.506 mm out, hence 25.5 mm here, not 25.0)
+    hole = (pts[:, 0] > 25.5) & (pts[:, 0] < 35.0) & (rel_y > 1.5)
     assert not hole.any()
     # the hole is ~9-10 slice gaps x half the 120 deg arc: ~95 mm^2 of the 754 mm^2
     full_area = RADIUS * np.deg2rad(120) * 60.0

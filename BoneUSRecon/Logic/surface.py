@@ -420,10 +420,15 @@ def _sampling(
     ut = np.linspace(u0, u1, 257)
     lo = np.interp(ut, support.u, support.lo)
     hi = np.interp(ut, support.u, support.hi)
-    along = 0.0
+    # Rows are spaced by the most stretched of the three curves, interval by interval,
+    # not by their total length: where the spline is stretched locally (a steep flank,
+    # a sweep's end) a uniform step in u made triangles several times too long.
+    seg = np.zeros(ut.size - 1)
     for t in (0.02, 0.5, 0.98):
         c = su.evaluate_points(ut, lo + t * (hi - lo))
-        along = max(along, float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum()))
+        seg = np.maximum(seg, np.linalg.norm(np.diff(c, axis=0), axis=1))
+    cum = np.r_[0.0, np.cumsum(np.nan_to_num(seg))]
+    along = float(cum[-1])
     # Around: surface length per unit v across the support, at 33 positions along.
     uk = np.linspace(u0, u1, 33)
     lk = np.interp(uk, support.u, support.lo)
@@ -443,7 +448,12 @@ def _sampling(
         # triangles: at most 3x the samples the data's own extent asks for.
         nu = min(nu, int(3 * np.ceil(data_size[0] / step)) + 10)
         nv = min(nv, int(3 * np.ceil(data_size[1] / step)) + 10)
-    return np.linspace(u0, u1, nu), np.linspace(v0, v1, nv), mm_per_v
+    if along > 0 and np.isfinite(along):
+        us = np.interp(np.linspace(0.0, along, nu), cum, ut)
+        us[0], us[-1] = u0, u1
+    else:
+        us = np.linspace(u0, u1, nu)
+    return us, np.linspace(v0, v1, nv), mm_per_v
 
 
 def clip_triangles(
