@@ -16,7 +16,7 @@ The surface reaches exactly as far as the data, with a smooth edge:
    in frames, and than the window) are not bridged: a long gap in the data stays a
    hole.
 3. **Sub-grid edge.** The support is a signed distance-like field ``F(u, v)`` (mm,
-   positive inside) on a regular ``(u, v)`` grid spaced ``step_mm`` on the surface and
+   positive inside) on a ``(u, v)`` grid spaced about ``step_mm`` on the surface and
    covering only the support's extent; the triangulated grid is clipped at ``F = 0``
    (:func:`clip_triangles`, linear interpolation along triangle edges), so the edge is a
    smooth curve that cuts through triangles, not a staircase of grid cells.
@@ -79,8 +79,8 @@ class SurfaceParams:
     Attributes
     ----------
     step_mm : float
-        Triangle leg length (mm) along and around the bone: the mesh is a regular
-        ``(u, v)`` grid with about this spacing on the surface, two right triangles
+        Triangle leg length (mm) along and around the bone: the mesh is a ``(u, v)``
+        grid with at most about this spacing on the surface, two right triangles
         per cell, i.e. about ``2 / step_mm**2`` triangles per mm^2 (12.5 at 0.4 mm).
         0.4 mm: well below the fit's detail (control points are several mm apart; the
         chord error of a 0.4 mm edge on a 6 mm radius is 0.003 mm) and close to the
@@ -408,7 +408,8 @@ def _sampling(
     margin: float = 0.0,
     data_size: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Regular u and v samples over the support's extent, ``step`` mm apart on the surface.
+    """u and v samples over the support's extent, at most about ``step`` mm apart on the
+    surface: v regular (at the largest length per unit v), u spaced by the local stretch.
 
     Lengths are measured on the spline inside the support only (never over parameter
     regions without data, where an unconstrained spline may wander).
