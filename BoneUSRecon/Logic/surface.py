@@ -81,9 +81,9 @@ class SurfaceParams:
     step_mm : float
         Triangle leg length (mm) along and around the bone: the mesh is a ``(u, v)``
         grid with at most about this spacing on the surface, two right triangles
-        per cell, i.e. about ``2 / step_mm**2`` triangles per mm^2 (12.5 at 0.4 mm).
-        0.4 mm: well below the fit's detail (control points are several mm apart; the
-        chord error of a 0.4 mm edge on a 6 mm radius is 0.003 mm) and close to the
+        per cell, i.e. about ``2 / step_mm**2`` triangles per mm^2 (8 at 0.5 mm).
+        0.5 mm: well below the fit's detail (control points are several mm apart; the
+        chord error of a 0.5 mm edge on a 6 mm radius is 0.005 mm) and close to the
         segmentation's resolution, with a light mesh. Ours.
     support_window_mm : float
         Width (mm along the sweep) over which the extent of the data is filtered
