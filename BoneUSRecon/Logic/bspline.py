@@ -543,20 +543,21 @@ def _solve_direct(
     p: np.ndarray,
     smoothing: float,
     pen: np.ndarray | None = None,
-    thin: tuple[np.ndarray, float, float, np.ndarray | None, np.ndarray] | None = None,
+    thin: _ThinSetup | None = None,
 ) -> np.ndarray:
     """Weighted tensor-product least squares by the normal equations.
 
-    ``thin``: ``(N_full, thin_weight, thin_share, whitening, thin_penalty)``, the
-    thin-data penalty (see :func:`thin_basis`), split afresh for these weights (a frame
-    the robust weights drop leaves its directions thin). ``pen`` is the ``smoothing``
-    penalty (second differences both ways).
+    ``thin``: the thin-data penalty's fixed parts (see :func:`thin_basis`), split
+    afresh for these weights (a frame the robust weights drop leaves its directions
+    thin). ``pen`` is the ``smoothing`` penalty (second differences both ways).
     """
     e, f = bu.shape[1], bv.shape[1]
     nmat, rhs = _normal_equations(bu, bv, w, p)
     pen = _penalty(e, f) if pen is None else pen
     if thin is not None:
-        basis = thin_basis(nmat, thin[0], thin[4], thin[1], thin[2], whitening=thin[3])
+        basis = thin_basis(
+            nmat, thin.nfull, thin.penalty, thin.weight, thin.share, whitening=thin.whitening
+        )
         if basis is not None:
             return basis.solve(nmat, rhs).reshape(e, f, 3)
     if smoothing > 0:
@@ -575,6 +576,17 @@ def _solve_direct(
 
 
 @dataclass(frozen=True, eq=False)
+class _ThinSetup:
+    """What the thin-data split holds fixed over a fit's robust iterations."""
+
+    nfull: np.ndarray  # normal matrix of a complete grid at weight 1
+    weight: float  # FitParams.thin_weight
+    share: float  # FitParams.thin_share
+    whitening: np.ndarray  # _whitening(nfull)
+    penalty: np.ndarray  # _penalty(e, f, around=3), unweighted
+
+
+@dataclass(frozen=True, eq=False)
 class ThinBasis:
     """The control net's thin directions, and what tells the determined ones apart.
 
@@ -586,7 +598,7 @@ class ThinBasis:
         ``Q^T N_full``: the determined directions ``W`` are the ``N_full``-orthogonal
         complement of ``Q``, i.e. the ``c`` with ``Q^T N_full c = 0``.
     penalty : ndarray, shape (ef, ef)
-        The weighted second-difference penalty.
+        The weighted penalty (second differences along the bone, third around it).
     """
 
     thin: np.ndarray
@@ -825,7 +837,7 @@ def _fit_surface(
         whitening = _whitening(nfull)
         if whitening is not None:
             thin_pen = _penalty(e, f, around=3)
-            thin = (nfull, params.thin_weight, params.thin_share, whitening, thin_pen)
+            thin = _ThinSetup(nfull, params.thin_weight, params.thin_share, whitening, thin_pen)
 
     def solve(w: np.ndarray) -> np.ndarray:
         if params.method == "direct":
