@@ -782,10 +782,17 @@ def surface_polydata(
         if params.max_distance_mm is not None:
             limit[:] = params.max_distance_mm
         if params.reach_tolerance_mm is not None and grid is not None:
-            reach = reach_offsets(support, uv, float(vs[1] - vs[0]) if vs.size > 1 else 1.0)
             # Pythagoras: data ``reach`` mm away along the sweep, the surface at most
-            # the tolerance off the bone across it.
-            limit = np.minimum(limit, np.hypot(reach, params.reach_tolerance_mm))
+            # the tolerance off the bone across it. hypot >= the tolerance, so only a
+            # vertex farther than it can be cut (usually a few); the clip reads the
+            # field only on triangles with a vertex cut: offsets for their vertices.
+            far = dist > params.reach_tolerance_mm
+            if far.any():
+                need = np.zeros(dist.shape, bool)
+                need[tris[far[tris].any(axis=1)].ravel()] = True
+                v_step = float(vs[1] - vs[0]) if vs.size > 1 else 1.0
+                reach = reach_offsets(support, uv[need], v_step)
+                limit[need] = np.minimum(limit[need], np.hypot(reach, params.reach_tolerance_mm))
         if (dist > limit).any():
             f = np.where(np.isfinite(limit), limit - dist, 1.0)
             f = np.where(f >= 0, np.maximum(f, 1e-6), np.minimum(f, -1e-6))
