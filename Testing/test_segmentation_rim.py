@@ -146,6 +146,25 @@ def test_a_faded_flank_is_followed_on_the_shadow_edge(seed):
     assert np.abs(angles_and_offsets(bright)[0]).max() <= 47.0
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_flank_running_into_the_field_edge_is_followed_closer_to_it(seed):
+    # The image is black (outside the field of view) left of 9 mm, where the outline
+    # runs at ~60 degrees. With whole windows only (share 1) the trace stops where its
+    # outward window first crosses the edge; measured on the part inside it, it goes
+    # on, on the outline, 0.7 mm closer (measured: 2.37 -> 1.65 mm from the edge).
+    edge_mm = 9.0
+    img = phantom_frame(seed)
+    img[:, : int(round(edge_mm / SPACING))] = 0
+    reach = {}
+    for share in (1.0, RimParams().part_window_share):
+        out = traced(img, top_contour(20.0), RimParams(part_window_share=share))
+        ang, dev = angles_and_offsets(out)
+        assert dev.max() <= 0.3, (share, dev.max())
+        assert ang.max() >= 70  # the right flank, clear of the edge, as before
+        reach[share] = out[:, 0].min() * SPACING - edge_mm
+    assert reach[1.0] >= 2.0 and reach[0.3] <= reach[1.0] - 0.5, reach
+
+
 def test_l14_recording_flank_followed():
     # The recording's right flank (10-20 mm at 50-70 degrees) that the path leaves on
     # the shoulder. Measured: reference covered within 0.5 mm 0.56 -> 0.66 of its
@@ -377,6 +396,8 @@ def test_a_contour_reaching_below_its_circles_centre_is_followed(seed):
         ({"join_mm": 0.0}, "RimParams.join_mm must be > 0"),
         ({"edge_mm": -0.1}, "RimParams.edge_mm must be >= 0"),
         ({"edge_mm": 2.0}, "edge_mm must not exceed outside_mm"),
+        ({"part_window_share": 0.0}, "RimParams.part_window_share must lie in"),
+        ({"part_window_share": 1.5}, "RimParams.part_window_share must lie in"),
     ],
 )
 def test_bad_rim_params_refused(changes, says):

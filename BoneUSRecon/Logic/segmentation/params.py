@@ -245,6 +245,8 @@ class RimParams:
     """Where the radius grows faster than one radial sample per step (the outline running flatter than the fitted circle), the outline so implied must still descend at least this, degrees below the horizontal (a bone's outline descends outward from its apex; a fascia leaving it at its level runs on nearly level: on the hard simulated tibia with fascia, seed 5, ``max_step_mm`` 0.2 without this limit followed flat ends on along the fascia, 37 % of the added points over 0.5 mm from the bone, up to 4.8 mm; with it at 10 to 30 degrees 15 %, up to 0.62 mm; ours: 10, at 20 the hard sweeps of seed 59 were 0.06 mm further from their gold, the L14 recording 0.03 mm from its reference)."""
     outside_mm: tuple[float, float] = (0.75, 1.75)
     """Window out along the ray that a sample's echo is compared with, mm (as ``FlankParams.outside_mm``)."""
+    part_window_share: float = 0.3
+    """Near the image's or field of view's edge a sample is measured on the part of its windows (``outside_mm`` out and in) inside it, where each holds at least this share of its samples; 1: only whole windows (ours: with whole windows every trace stopped ``outside_mm[1]`` short of the field's edge: on the L14 recording, whose bone runs into the left edge, every contour ended 1.7 mm inside it; 0.3 of the window is 0.3 mm of tissue past the echo's blur, a grain of speckle or two)."""
     run_mm: float = 1.5
     """Arc over which the echo is averaged, mm (as ``FlankParams.run_mm``)."""
     inside: bool = True
@@ -304,6 +306,7 @@ class RimParams:
                 "max_slope_deg": "(0, 90]",
                 "edge_slope_deg": "(0, 90]",
                 "min_descent_deg": "[0, 90)",
+                "part_window_share": "(0, 1]",
             },
         )
         for name in ("radius_mm", "outside_mm"):
