@@ -18,6 +18,7 @@ from BoneUSRecon.Logic.resampling import ResamplingParams, resample
 from BoneUSRecon.Logic.surface import (
     Support,
     SurfaceParams,
+    beyond_ends,
     reach_offsets,
     surface_area,
     surface_polydata,
@@ -129,6 +130,8 @@ def test_bad_surface_params_refused():
         {"max_distance_mm": 0},
         {"reach_tolerance_mm": -0.5},
         {"reach_tolerance_mm": float("nan")},
+        {"end_tolerance_mm": -1.0},
+        {"end_tolerance_mm": float("nan")},
     ):
         with pytest.raises(BoneUSReconError, match=next(iter(bad))):
             SurfaceParams(**bad)
@@ -421,3 +424,34 @@ def test_reach_cut_keeps_a_true_extension_and_cuts_a_sheet():
     reach = reach_offsets(surface_support(wild, grid), tc, 0.01)
     tol = SurfaceParams().reach_tolerance_mm
     assert (cKDTree(seg).query(pts)[0] <= np.hypot(reach, tol) + 0.1).all()
+
+
+def test_beyond_ends_is_the_distance_past_the_end_slices_planes():
+    # The tube's slices run along x; the end planes are x = 60 (first) and x = 0.
+    _, grid = tube_fit(m=40)
+    c0, c1 = grid.centres[0], grid.centres[-1]
+    out = (c0 - c1) / np.linalg.norm(c0 - c1)  # past the first slice
+    pts = np.array([c0 + 2.0 * out, c1 - 3.0 * out, 0.5 * (c0 + c1), c0 + [0.0, 5.0, 1.0]])
+    assert beyond_ends(grid, pts) == pytest.approx([2.0, 3.0, -30.0, 0.0], abs=0.05)
+
+
+def test_the_mesh_is_cut_past_the_end_slices():
+    # The net's last row pushed 6 mm on along the sweep, as a fit may curl where only
+    # the end slice holds it: the surface runs on 2 mm past the last slice; cut back
+    # to end_tolerance_mm. A fit that ends at its slices loses nothing.
+    fit, grid = tube_fit(m=40)
+    ctrl = fit.surface.control_points.copy()
+    along = grid.centres[-1] - grid.centres[0]
+    ctrl[-1] += 6.0 * along / np.linalg.norm(along)
+    wild = dataclasses.replace(fit, surface=dataclasses.replace(fit.surface, control_points=ctrl))
+    off = SurfaceParams(end_tolerance_mm=None)
+    tol = SurfaceParams().end_tolerance_mm
+
+    def past(pd) -> float:
+        return float(beyond_ends(grid, numpy_support.vtk_to_numpy(pd.GetPoints().GetData())).max())
+
+    run_on, cut = surface_polydata(wild, grid, None, off), surface_polydata(wild, grid)
+    assert past(run_on) > 1.8 and past(cut) <= tol + 0.02, (past(run_on), past(cut))
+    assert surface_area(cut) < surface_area(run_on) - 5.0
+    kept, full = surface_polydata(fit, grid), surface_polydata(fit, grid, None, off)
+    assert surface_area(kept) == pytest.approx(surface_area(full), rel=1e-9)

@@ -24,8 +24,9 @@ The surface reaches exactly as far as the data, with a smooth edge:
    every segmented point than the along-sweep distance to the data it continues allows
    (``reach_tolerance_mm``): where the filter or a bridged gap carried the support past
    a slice's own data, the surface is the spline's continuation of data some mm away
-   along the sweep, and must stay about that far from them. With ``max_distance_mm``
-   set, also a plain distance cut. Clipped the same way.
+   along the sweep, and must stay about that far from them. Nor does it run on past
+   the first or last slice's plane (``end_tolerance_mm``): no data lie beyond. With
+   ``max_distance_mm`` set, also a plain distance cut. Clipped the same way.
 
 5. **Flanks (opt-in).** With ``flank_extension_mm > 0`` each cross-section is continued
    past its side edges down the bone's flank (:func:`flank_extension`: convex, at most
@@ -61,6 +62,7 @@ __all__ = [
     "Support",
     "surface_support",
     "reach_offsets",
+    "beyond_ends",
     "surface_polydata",
     "clip_triangles",
     "surface_area",
@@ -149,6 +151,16 @@ class SurfaceParams:
         -> 0.1009 mm, gold mean 0.2273 -> 0.2274 mm. A tolerance of 1 mm cut more of
         the L14 cadaver-level copy's flank (gold 1.326 -> 1.502 mm, against 1.454 at
         2 mm; 1.365 at 3 mm, where the recording kept 3.1 mm^2 of its sheet).
+    end_tolerance_mm : float or None
+        Cut the mesh where it lies farther than this (mm) beyond the plane of the first
+        or the last kept slice (with a grid; ``None``: no such cut). Past the sweep's
+        end slices there are no data at all, yet the spline's end rows are held only
+        by them and where they have no data it may curl on along the sweep: on a
+        simulated humerus (grey shadow, seed 241) a contour one frame in the middle
+        lengthened by 3.6 mm moved the fit's knots and the surface ran on 10 mm past
+        the last slice, 142 mm^2 of it, 78 mm^2 farther than 0.35 mm from the bone.
+        Between two slices the surface lies between their planes, so the cut takes
+        nothing the data hold; 1 mm (ours) leaves the end row's own smoothing.
     min_frame_weight : float
         A slice counts for the support only if the robust fit's weight of its frame
         (``FitResult.frame_weights``, Tukey) is above this ([0, 1)). A frame weighed
@@ -192,6 +204,7 @@ class SurfaceParams:
     gap_factor: float | None = 4.0
     max_distance_mm: float | None = None
     reach_tolerance_mm: float | None = 2.0
+    end_tolerance_mm: float | None = 1.0
     min_frame_weight: float = 0.25
     flank_extension_mm: float = 0.0
     flank_max_deg: float = 70.0
@@ -229,6 +242,10 @@ class SurfaceParams:
         if self.reach_tolerance_mm is not None and not self.reach_tolerance_mm >= 0:
             raise BoneUSReconError(
                 f"reach_tolerance_mm must be >= 0 or None (mm), got {self.reach_tolerance_mm}"
+            )
+        if self.end_tolerance_mm is not None and not self.end_tolerance_mm >= 0:
+            raise BoneUSReconError(
+                f"end_tolerance_mm must be >= 0 or None (mm), got {self.end_tolerance_mm}"
             )
 
 
@@ -698,6 +715,35 @@ def _strip_triangles(pts: np.ndarray, up: np.ndarray) -> np.ndarray:
     return np.where((nrm @ up < 0)[:, None], tris[:, ::-1], tris)
 
 
+def beyond_ends(grid: ResampledGrid, points: np.ndarray) -> np.ndarray:
+    """How far each point lies beyond the first or the last slice's plane, mm (<= 0 between).
+
+    Parameters
+    ----------
+    grid : ResampledGrid
+        Its first and last rows' centres and in-plane directions give the end planes.
+    points : ndarray (K, 3)
+        Points in reference mm.
+
+    Returns
+    -------
+    ndarray (K,)
+        The larger of the two signed distances past the end planes, each plane's normal
+        pointing away from the other slices (zeros with fewer than two slices).
+    """
+    pts = np.asarray(points, float).reshape(-1, 3)
+    if grid.centres.shape[0] < 2:
+        return np.zeros(pts.shape[0])
+    out = np.full(pts.shape[0], -np.inf)
+    for k, other in ((0, -1), (-1, 0)):
+        n = np.cross(grid.lateral[k], grid.up[k])
+        n /= max(float(np.linalg.norm(n)), 1e-12)
+        if np.dot(grid.centres[other] - grid.centres[k], n) > 0:
+            n = -n  # outward: away from the rest of the sweep
+        np.maximum(out, (pts - grid.centres[k]) @ n, out=out)
+    return out
+
+
 def surface_polydata(
     fit: FitResult,
     grid: ResampledGrid | None = None,
@@ -793,8 +839,10 @@ def surface_polydata(
                 v_step = float(vs[1] - vs[0]) if vs.size > 1 else 1.0
                 reach = reach_offsets(support, uv[need], v_step)
                 limit[need] = np.minimum(limit[need], np.hypot(reach, params.reach_tolerance_mm))
-        if (dist > limit).any():
-            f = np.where(np.isfinite(limit), limit - dist, 1.0)
+        f = np.where(np.isfinite(limit), limit - dist, 1.0)
+        if params.end_tolerance_mm is not None and grid is not None:
+            f = np.minimum(f, params.end_tolerance_mm - beyond_ends(grid, pts))
+        if (f < 0).any():
             f = np.where(f >= 0, np.maximum(f, 1e-6), np.minimum(f, -1e-6))
             n0 = uv.shape[0]
             tris, uv = clip_triangles(tris, f, uv)
