@@ -70,12 +70,13 @@ inside it):
    :func:`_partial_windows`), so a flank that runs into the edge is followed to about
    a millimetre of it, not ``outside_mm[1]`` short of it (the L14 recording's left
    flank: every contour ended 1.7 mm inside the field; its reconstruction 0.305 ->
-   0.286 mm from the reference). The null stays on whole windows. Both levels are ratios of grey levels of the
-   same frame: no grey level, none fitted to one data source. The null alone is not
-   the rule (as it is in :mod:`.flanks`): the tissue beside a real bone holds fasciae
-   as bright as a flank's echo (on the L14 recording's cadaver-level copy a null floor
-   of 1 or 2 spreads stopped traces on the flank: reconstruction 2.4 or 3.3 mm from the
-   reference against 1.9 mm with the median alone).
+   0.286 mm from the reference). The null stays on whole windows. Both levels are
+   ratios of grey levels of the same frame: no grey level, none fitted to one data
+   source. The null alone is not the rule (as it is in :mod:`.flanks`): the tissue
+   beside a real bone holds fasciae as bright as a flank's echo (on the L14
+   recording's cadaver-level copy a null floor of 1 or 2 spreads stopped traces on the
+   flank: reconstruction 2.4 or 3.3 mm from the reference against 1.9 mm with the
+   median alone).
 5. **Points.** Each step's point is refined on the full-resolution image along its ray
    (:func:`.sampling.refine_across`) and appended to the contour's end.
 6. **Slope.** The trace ends before its outline descends steeper than a beam from
@@ -679,8 +680,8 @@ def follow_rims_steps(
     outside = _window_mean(cs, k1, k0, k1, ne, 1)
     inside = _window_mean(cs, k1, k0, k1, ne, -1)
     # Samples whose windows reach outside the image or its field of view: measured on
-    # the windows' samples inside it where ``part_window_share`` of each window is (partial
-    # windows), otherwise not at all (``bad``).
+    # the part of their windows inside it where each keeps at least
+    # ``part_window_share`` of its samples, otherwise not at all (``bad``).
     nbad = np.zeros((g.shape[0], g.shape[1] + 1), np.int32)
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
     bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
