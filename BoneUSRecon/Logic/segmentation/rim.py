@@ -161,6 +161,12 @@ def _window_mean(cs: np.ndarray, centre: int, near: int, far: int, n: int, side:
     return (cs[..., hi : hi + n] - cs[..., lo : lo + n]) / (far - near + 1)
 
 
+def _invalid(nbad: np.ndarray, lo: int, hi: int, n: int) -> np.ndarray:
+    """Invalid samples among grid indices ``b + lo .. b + hi`` for each of ``n`` samples
+    ``b``, from ``nbad``, the cumulative count of invalid ones (a leading 0)."""
+    return nbad[..., hi + 1 : hi + 1 + n] - nbad[..., lo : lo + n]
+
+
 def _partial_windows(
     g: np.ndarray,
     valid: np.ndarray,
@@ -193,8 +199,8 @@ def _partial_windows(
     need = max(1, int(np.ceil(share * full - 1e-9)))
     centre_ok = valid[..., k1 : k1 + n]
     # Invalid samples in each window: outward k1 + k0 .. 2 k1, inward 0 .. k1 - k0.
-    bad_out = nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + n] - nbad[..., k1 + k0 : k1 + k0 + n]
-    bad_in = nbad[..., k1 - k0 + 1 : k1 - k0 + 1 + n] - nbad[..., :n]
+    bad_out = _invalid(nbad, k1 + k0, 2 * k1, n)
+    bad_in = _invalid(nbad, 0, k1 - k0, n)
     part = bad & centre_ok & (full - bad_out >= need) & (full - bad_in >= need)
     if not part.any():
         return None
@@ -684,7 +690,7 @@ def follow_rims_steps(
     # ``part_window_share`` of its samples, otherwise not at all (``bad``).
     nbad = np.zeros((g.shape[0], g.shape[1] + 1), np.int32)
     np.cumsum(~gvalid, axis=-1, out=nbad[..., 1:])
-    bad = (nbad[..., 2 * k1 + 1 : 2 * k1 + 1 + ne] - nbad[..., :ne]) > 0
+    bad = _invalid(nbad, 0, 2 * k1, ne) > 0
     partial = _partial_windows(g, gvalid, nbad, bad, k0, k1, ne, p.part_window_share)
     if partial is not None:
         part, out_p, in_p = partial
@@ -755,11 +761,7 @@ def follow_rims_steps(
             if partial is not None:
                 # A partial window's sample is measured as a line only, unless the
                 # edge's own (shorter) windows lie wholly inside the image.
-                nb_f = nbad[fi]
-                cut = (
-                    nb_f[..., k1 + ke + 1 : k1 + ke + 1 + ne] - nb_f[..., k1 - ke : k1 - ke + ne]
-                ) > 0
-                edge[cut] = -np.inf
+                edge[_invalid(nbad[fi], k1 - ke, k1 + ke, ne) > 0] = -np.inf
             # ... and along the beam: a point of the outline is seen from above, tissue
             # over it and the shadow under it. Past the bone's widest point the edge of
             # its shadow has the bone's shadow over it too: no outline there (on the hard
@@ -781,7 +783,7 @@ def follow_rims_steps(
     if partial is not None:
         # The null is what whole windows give in the tissue beside the bone: a part
         # window's sample (noisier, and only near the field's edge) is left out of it.
-        null_e = np.where(partial[0][:, shift : shift + nb], _BAD, null_e)
+        null_e = np.where(part[:, shift : shift + nb], _BAD, null_e)
     e[n_t + tr, st] = null_e
     own_e = e[:n_t].copy()  # each step's own value, before the average along the trace
     run = max(1, int(round(p.run_mm / p.step_mm)))
