@@ -455,3 +455,33 @@ def test_the_mesh_is_cut_past_the_end_slices():
     assert surface_area(cut) < surface_area(run_on) - 5.0
     kept, full = surface_polydata(fit, grid), surface_polydata(fit, grid, None, off)
     assert surface_area(kept) == pytest.approx(surface_area(full), rel=1e-9)
+
+
+def test_a_frame_the_fit_weighs_down_still_splits_a_gap(radius_sim):
+    # Seven frames rejected in a row but the middle one kept by the segmenter on
+    # something 4 mm under the bone (the robust fit weighs it to nothing): the frame saw
+    # bone, so the gap is two gaps of four frames, bridged, and the bridge lies on the
+    # bone; with that frame rejected too the eight-frame gap stays a hole.
+    cont = radius_sim.contours_mm()
+    sw = radius_sim.sweep
+    frames = [k for k, _ in cont]
+    mid = frames[len(frames) // 2]
+    gap = {k for k in frames if 0 < abs(k - mid) <= 3}
+    down = sw.image_to_reference[mid, :3, 1] / np.linalg.norm(sw.image_to_reference[mid, :3, 1])
+    off = [(k, p + 4.0 * down) if k == mid else (k, p) for k, p in cont if k not in gap]
+    grid, fit, bridged = surface_from_contours(off, sw)
+    assert fit.frame_weights[list(grid.frames).index(mid)] < 0.05
+    _, _, holed = surface_from_contours([c for c in off if c[0] != mid], sw)
+    origin = sw.image_to_reference[mid, :3, 3]
+    normal = np.cross(sw.image_to_reference[mid, :3, 0], sw.image_to_reference[mid, :3, 1])
+    normal /= np.linalg.norm(normal)
+
+    def plane_offsets(pd):
+        return (numpy_support.vtk_to_numpy(pd.GetPoints().GetData()) - origin) @ normal
+
+    assert np.abs(plane_offsets(holed)).min() > 5.0
+    assert np.abs(plane_offsets(bridged)).min() < 0.5
+    c, _ = triangle_centroids(bridged)
+    near = np.abs((c - origin) @ normal) < 5.0
+    assert near.sum() > 50
+    assert radius_sim.distance_to_truth(c[near]).max() < 0.5
