@@ -2,8 +2,10 @@
 
 Prints, for the recording itself, the frames accepted, the per-frame contour extent
 (mm) and the time per frame; then, for each augmentation (mirror, gain -30 % / +30 %,
-multiplicative speckle, 0.15 mm pixels, a crop, a curvilinear probe's sector, and mirror,
-0.15 mm pixels, gain and speckle at once), the frames
+multiplicative speckle, 0.15 mm pixels, a crop, a curvilinear probe's sector, mirror,
+0.15 mm pixels, gain and speckle at once, and another scanner's display chain: display
+curves of gamma 0.6 and 1.6, depth gains darker or brighter with depth, 0.15 mm of
+smoothing, a noise floor of 12 grey levels), the frames
 accepted and how far the contour moved in reference mm from the original's (median,
 95th percentile, share > 2 mm, over the part both contours cover), the share of the
 original contour found again ("cover") and of points found beyond its ends

@@ -1,8 +1,10 @@
 """Augmentations of a recorded sweep, with the poses kept consistent.
 
 Used to test the segmenter on *real* data without new recordings: the same anatomy
-seen mirrored, with another gain, with extra speckle, at a coarser pixel size or
-through a smaller window must give the same bone, in reference millimetres. Every
+seen mirrored, with another gain, with extra speckle, at a coarser pixel size, through
+a smaller window or through another scanner's display chain (its display curve, depth
+gain, speckle reduction and noise floor) must give the same bone, in reference
+millimetres. Every
 function returns a new :class:`~BoneUSRecon.Logic.sweep.Sweep` whose
 ``image_to_reference`` maps the new pixels to the same place as the old ones
 (``M' = M A`` with ``A`` the new-to-old pixel map), so contours found on the augmented
@@ -29,6 +31,10 @@ __all__ = [
     "resample_spacing",
     "crop",
     "sector",
+    "display_curve",
+    "depth_gain",
+    "smooth",
+    "add_noise",
     "RECORDING_AUGMENTATIONS",
     "HARD_AUGMENTATIONS",
     "tissue_level",
@@ -126,6 +132,52 @@ def sector(sweep: Sweep, top_share: float = 0.7) -> Sweep:
     half = 0.5 * (c1 - c0) * (top_share + (1.0 - top_share) * np.clip(depth, 0.0, 1.0))
     inside = np.abs(np.arange(f.shape[2])[None, :] - 0.5 * (c0 + c1)) <= half
     return _with(sweep, np.where(inside[None], f, 0))
+
+
+def _inside(sweep: Sweep, out: np.ndarray) -> Sweep:
+    """``out`` rounded to uint8, black wherever the recording is (outside the imaged
+    field a scan converter writes exact black, which :mod:`.segmentation` reads as
+    the field's edge; a display step acts inside it only)."""
+    f = np.asarray(sweep.frames)
+    out = np.where(f > 0, np.clip(np.rint(out), 0, 255), 0)
+    return _with(sweep, out.astype(np.uint8))
+
+
+def display_curve(sweep: Sweep, gamma: float) -> Sweep:
+    """Map every grey ``g`` to ``255 (g / 255) ** gamma``: another scanner's display
+    curve (dynamic range / log compression setting). ``gamma`` < 1 lifts the dark
+    greys toward the bright ones (a narrower dynamic range), > 1 spreads them."""
+    if not gamma > 0:
+        raise ValueError(f"gamma must be positive, got {gamma}")
+    f = np.asarray(sweep.frames, np.float32) / np.float32(255.0)
+    return _inside(sweep, 255.0 * f ** np.float32(gamma))
+
+
+def depth_gain(sweep: Sweep, top: float, bottom: float) -> Sweep:
+    """Multiply the rows by a gain running linearly from ``top`` (first row) to
+    ``bottom`` (last row): another time-gain-compensation setting."""
+    h = sweep.frames.shape[1]
+    ramp = np.linspace(top, bottom, h, dtype=np.float32)[None, :, None]
+    return _inside(sweep, np.asarray(sweep.frames, np.float32) * ramp)
+
+
+def smooth(sweep: Sweep, sigma_mm: float) -> Sweep:
+    """Gaussian blur of ``sigma_mm`` inside the field: a scanner's speckle reduction
+    or frame persistence (the echo grows thicker and dimmer, speckle finer)."""
+    from scipy.ndimage import gaussian_filter
+
+    sx, sy = (float(v) for v in sweep.spacing_mm)
+    sig = (0.0, sigma_mm / sy, sigma_mm / sx)
+    return _inside(sweep, gaussian_filter(np.asarray(sweep.frames, np.float32), sig))
+
+
+def add_noise(sweep: Sweep, std: float, seed: int = 0) -> Sweep:
+    """Add independent Gaussian noise of ``std`` grey levels inside the field: the
+    electronic noise floor of a higher gain or a weaker probe (it greys the shadow,
+    unlike :func:`add_speckle`, which scales with the echo)."""
+    rng = np.random.default_rng(seed)
+    noise = rng.normal(0.0, std, sweep.frames.shape).astype(np.float32)
+    return _inside(sweep, np.asarray(sweep.frames, np.float32) + noise)
 
 
 def _lit(frames: np.ndarray) -> np.ndarray:
@@ -346,6 +398,14 @@ RECORDING_AUGMENTATIONS: dict[str, Callable[[Sweep], Sweep]] = {
         0.3,
         seed=2,
     ),
+    # Another scanner's display chain: its curve, its depth gain, its smoothing, its
+    # noise floor (each within what B-mode presets span).
+    "gamma0.6": lambda s: display_curve(s, 0.6),
+    "gamma1.6": lambda s: display_curve(s, 1.6),
+    "tgc-deep-dark": lambda s: depth_gain(s, 1.3, 0.6),
+    "tgc-deep-bright": lambda s: depth_gain(s, 0.7, 1.4),
+    "smooth0.15mm": lambda s: smooth(s, 0.15),
+    "noise12": lambda s: add_noise(s, 12.0, seed=3),
 }
 
 
