@@ -130,7 +130,7 @@ class SurfaceParams:
         (session 43 in ``Testing/benchmarks/README.md``): on simulated humerus and
         clavicle sweeps with 15 % corrupted frames (seed 307) four frames rejected
         around one kept off the bone (weight 0) opened holes of 13 mm; gold mean
-        1.618 -> 0.442 and 1.986 -> 0.201 mm bridged; no other of 128 sweeps changed.
+        1.618 -> 0.442 and 1.986 -> 0.201 mm bridged; none of 170 other sweeps changed.
     max_distance_mm : float or None
         If set, also cut the mesh where it is farther than this (mm) from every
         segmented point.

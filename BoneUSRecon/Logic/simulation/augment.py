@@ -4,8 +4,7 @@ Used to test the segmenter on *real* data without new recordings: the same anato
 seen mirrored, with another gain, with extra speckle, at a coarser pixel size, through
 a smaller window or through another scanner's display chain (its display curve, depth
 gain, speckle reduction and noise floor) must give the same bone, in reference
-millimetres. Every
-function returns a new :class:`~BoneUSRecon.Logic.sweep.Sweep` whose
+millimetres. Every function returns a new :class:`~BoneUSRecon.Logic.sweep.Sweep` whose
 ``image_to_reference`` maps the new pixels to the same place as the old ones
 (``M' = M A`` with ``A`` the new-to-old pixel map), so contours found on the augmented
 sweep compare directly, in mm, with those of the original.
