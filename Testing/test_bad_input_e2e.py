@@ -101,7 +101,6 @@ NO_SURFACE = [
     ("noise", "no bone contour found"),
     ("still", "the probe does not move"),
     ("jitter", "the probe does not move"),
-    ("four", "too few valid grid points for 15 x 6"),
     ("two_tracked", "only 2 slices with a bone contour"),
 ]
 
@@ -140,6 +139,29 @@ def test_table_refuses_sweeps_without_a_surface(capsys, bad, tmp_path, name, pro
         ],
         names=f"{name}.mha",
         problem=problem,
+        outdir=tmp_path,
+    )
+
+
+def test_four_frames_are_fitted_with_fewer_control_points(capsys, bad, tmp_path):
+    # The default 15 control points along are a ceiling a short sweep lowers, with a
+    # warning; 14 asked for are fitted as asked or refused; Table I's rows are as asked.
+    out = tmp_path / "b.vtp"
+    assert main(["reconstruct", str(bad["four"]), "-o", str(out), "-q"]) == 0
+    assert out.exists()
+    assert "control points, not 15 x 6" in capsys.readouterr().err
+    refused(
+        capsys,
+        ["reconstruct", str(bad["four"]), "-o", str(tmp_path / "c.vtp"), "--along", "14"],
+        names="four.mha",
+        problem="too few valid grid points for 14 x 6",
+        outdir=tmp_path,
+    )
+    refused(
+        capsys,
+        ["table", str(bad["four"]), "--gold", str(bad["gold"]), "-q"],
+        names="four.mha",
+        problem="too few valid grid points for 5 x 6",
         outdir=tmp_path,
     )
 
@@ -340,14 +362,14 @@ def test_demo_refuses_absurd_parameters(capsys, tmp_path, options, problem):
 
 
 def test_demo_too_small_to_fit_leaves_no_folder(capsys, tmp_path):
-    """Simulated fine, but 3 frames cannot carry 15 control points: OUTDIR is removed."""
+    """Simulated fine, but 2 frames make no surface: OUTDIR is removed."""
     refused(
         capsys,
         [
             "demo",
             str(tmp_path / "demo"),
             "--frames",
-            "3",
+            "2",
             "--size",
             "80x64",
             "--spacing",
@@ -356,8 +378,8 @@ def test_demo_too_small_to_fit_leaves_no_folder(capsys, tmp_path):
             "--no-table",
             "-q",
         ],
-        names="control points",
-        problem="too few valid grid points",
+        names="sweep.mha",
+        problem="only 2 slices with a bone contour",
         outdir=tmp_path,
     )
 

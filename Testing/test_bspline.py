@@ -10,6 +10,7 @@ from BoneUSRecon.Logic.bspline import (
     BSplineSurface,
     FitParams,
     averaging_knots,
+    fewer_control_points,
     fit_curve,
     fit_surface,
 )
@@ -161,7 +162,7 @@ def test_bad_parameters_refused(kwargs, match):
 def test_more_control_points_than_data_refused():
     _, u, v, pts, _ = known_surface(m=12, n=6, e=5, f=3)
     with pytest.raises(BoneUSReconError, match="too few valid grid points for 20 x 5"):
-        fit_surface(pts, FitParams(n_control_points=(20, 5)))
+        fit_surface(pts, FitParams(n_control_points=(20, 5), fewer_if_short=False))
     sparse = np.full_like(pts, np.nan)
     sparse[:, :2] = pts[:, :2]  # only 2 rays hit anywhere
     with pytest.raises(BoneUSReconError, match="2 rays"):
@@ -298,3 +299,21 @@ def test_fit_runs_on_one_blas_thread_and_gives_the_threads_back():
         bspline.thin_basis = real
     assert seen and all(set(s.values()) == {1} for s in seen)
     assert {lib["filepath"]: lib["num_threads"] for lib in threadpool_info()} == before
+
+
+def test_a_short_grid_is_fitted_with_fewer_control_points():
+    # 12 slices cannot carry 20 control points along: half the slices are fitted (the
+    # 6 rays carry the 5 around), and a surface in the spline space is still recovered.
+    uu, vv = np.meshgrid(np.linspace(0, 30, 12), np.linspace(-1, 1, 6), indexing="ij")
+    grid = np.stack([uu, 5 * vv, 2 - vv**2 + 0.01 * uu**2], axis=-1)
+    fit = fit_surface(grid, FitParams(n_control_points=(20, 5)), u=uu[:, 0], v=vv[0])
+    assert fit.n_control_points == (6, 5)
+    assert fit.rms_mm < 1e-6
+    # What fewer_control_points does: a count the grid holds stays; below degree + 1
+    # it is left as asked (for the fit's refusal); fewer along while points run short.
+    assert fewer_control_points((40, 24, 900), (2, 2), (15, 6)) == (15, 6)
+    assert fewer_control_points((11, 21, 76), (2, 2), (15, 6)) == (5, 6)
+    assert fewer_control_points((4, 24, 80), (2, 2), (15, 6)) == (3, 6)
+    assert fewer_control_points((2, 24, 40), (2, 2), (15, 6)) == (15, 6)
+    assert fewer_control_points((30, 4, 20), (2, 2), (15, 6)) == (5, 4)
+    assert fewer_control_points((30, 2, 60), (2, 2), (15, 6)) == (15, 6)

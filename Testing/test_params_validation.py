@@ -156,9 +156,12 @@ def test_old_control_points_keyword_still_works_with_a_warning() -> None:
     assert old == FitParams(n_control_points=(9, 4))
     with pytest.warns(DeprecationWarning):
         assert old.control_points == (9, 4)
+    # Control points given to params_with (not the default's) are fitted as asked or
+    # refused: FitParams.fewer_if_short off.
+    asked = FitParams(n_control_points=(9, 4), fewer_if_short=False)
     with pytest.warns(DeprecationWarning):
-        assert params_with(control_points=(9, 4)).fit == old
+        assert params_with(control_points=(9, 4)).fit == asked
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert params_with(along=9, around=4).fit == old
-        assert params_with(n_control_points=(9, 5), around=4).fit == old
+        assert params_with(along=9, around=4).fit == asked
+        assert params_with(n_control_points=(9, 5), around=4).fit == asked

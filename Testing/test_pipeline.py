@@ -15,7 +15,9 @@ from BoneUSRecon.Logic.pipeline import (
     Reconstruction,
     ReconstructionParams,
     control_point_table,
+    params_with,
     reconstruct,
+    reconstruction_from_segmentation,
     surface_from_contours,
 )
 from BoneUSRecon.Logic.surface import triangle_centroids
@@ -150,11 +152,30 @@ def test_blank_sweep_refused_with_file_name(sim_small, tmp_path):
 
 
 def test_more_control_points_than_slices_refused(sim_small, recon_small):
-    params = dataclasses.replace(ReconstructionParams(), fit=FitParams(n_control_points=(60, 5)))
+    params = params_with(n_control_points=(60, 5))  # asked for: fitted as asked or refused
+    assert not params.fit.fewer_if_short
     with pytest.raises(BoneUSReconError, match="too few valid grid points for 60 x 5"):
         surface_from_contours(
             recon_small.segmentation.contours_mm(sim_small.sweep), sim_small.sweep, params
         )
+
+
+def test_a_short_sweep_gets_fewer_control_points_and_says_so(sim_small, recon_small):
+    # Ten slices cannot carry the default 15 control points along: five are fitted, the
+    # summary says so, and the surface lies on the bone between the slices kept.
+    kept = [c for c in recon_small.segmentation.contours if c.accepted][5:15]
+    seg = dataclasses.replace(recon_small.segmentation, contours=tuple(kept))
+    recon = reconstruction_from_segmentation(sim_small.sweep, seg)
+    assert recon.summary["control_points"] == [5, 6]
+    assert any("not 15 x 6" in w for w in recon.summary["warnings"])
+    c, _ = triangle_centroids(recon.surface)
+    assert np.percentile(sim_small.distance_to_truth(c), 95) < 0.35
+    # The default count passed explicitly (as the Slicer module does) is the same ceiling.
+    same = params_with(n_control_points=(15, 6))
+    assert same.fit.fewer_if_short
+    assert reconstruction_from_segmentation(sim_small.sweep, seg, same).summary[
+        "control_points"
+    ] == [5, 6]
 
 
 def test_distance_texture_matches_segmented_points(recon_small):

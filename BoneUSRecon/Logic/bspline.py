@@ -105,6 +105,7 @@ __all__ = [
     "BSplineSurface",
     "FitResult",
     "fit_surface",
+    "fewer_control_points",
     "averaging_knots",
     "basis_matrix",
     "fit_curve",
@@ -175,6 +176,21 @@ class FitParams:
         recording (as 0.002-0.02 do) while a 300 mm tube with 30 % of its grid covered
         keeps its accuracy (0.056 mm worst against 0.057 mm without the penalty; 0.13
         and 0.2 mm at 0.002 and 0.005: directions that still hold data get bent). Ours.
+    fewer_if_short : bool
+        When the grid holds fewer slices (rays) with data than ``n_control_points``
+        asks along (around) the bone, fit fewer: along, half the slices (at least
+        ``degree + 1``); around, as many as the rays; then fewer along while the grid's
+        points are fewer than the control points. Never below ``degree + 1`` (such a
+        grid is refused as before). :attr:`FitResult.n_control_points` says what was
+        fitted. Why half: a short sweep (the spine phantom's 11 slices, a short
+        recording with some frames rejected) otherwise gets no surface at all, and as
+        many control points as slices interpolates each slice's noise. Measured on 12
+        frames kept out of each of 44 simulated sweeps (seed 241, `shortfit.py`, session
+        43 in ``Testing/benchmarks/README.md``), gold mean with 3 / 5 / 6 / 8 / 10 / 12
+        control points along: 0.231 / 0.238 / **0.229** / 0.255 / 0.292 / 0.535 mm (3
+        fits of 44 failed at 12). True (ours); False refuses a grid too short for what
+        was asked, as :func:`.pipeline.params_with` does for control points a user
+        gives.
     """
 
     degree: tuple[int, int] = (2, 2)
@@ -187,6 +203,7 @@ class FitParams:
     smoothing: float = 1e-8
     thin_weight: float = 1.0
     thin_share: float = 0.001
+    fewer_if_short: bool = True
 
     def __post_init__(self) -> None:
         check_fields(
@@ -368,6 +385,13 @@ class FitResult:
     def n_points(self) -> int:
         """Grid points present (finite)."""
         return int(np.isfinite(self.residuals).sum())
+
+    @property
+    def n_control_points(self) -> tuple[int, int]:
+        """The control points fitted, ``(e, f)`` (fewer than asked on a short grid:
+        :attr:`FitParams.fewer_if_short`)."""
+        e, f = self.surface.control_points.shape[:2]
+        return int(e), int(f)
 
     @property
     def n_outliers(self) -> int:
@@ -737,6 +761,26 @@ def _blas() -> ThreadpoolController:
     return ThreadpoolController()
 
 
+def fewer_control_points(
+    used: tuple[int, int, int], degree: tuple[int, int], asked: tuple[int, int]
+) -> tuple[int, int]:
+    """The control points to fit on a grid too short for ``asked`` (see
+    :attr:`FitParams.fewer_if_short`); ``asked`` itself where the grid holds it.
+
+    ``used``: the grid's slices, rays and points holding data. A count that cannot
+    reach ``degree + 1`` is left as asked, for the fit to refuse with its message.
+    """
+    (rows, cols, points), (p, q), (e, f) = used, degree, asked
+    if rows < p + 1 or cols < q + 1:
+        return e, f
+    if rows < e:
+        e = max(p + 1, rows // 2)
+    f = min(f, cols)
+    while e * f > points and e > p + 1:
+        e -= 1
+    return e, f
+
+
 def fit_surface(
     grid_points: np.ndarray,
     params: FitParams = FitParams(),
@@ -809,6 +853,8 @@ def _fit_surface(
     rows_used = int((w0 > 0).any(axis=1).sum())
     cols_used = int((w0 > 0).any(axis=0).sum())
     n_valid = int((w0 > 0).sum())
+    if params.fewer_if_short:
+        e, f = fewer_control_points((rows_used, cols_used, n_valid), (p, q), (e, f))
     if rows_used < e or cols_used < f or n_valid < e * f:
         raise BoneUSReconError(
             f"too few valid grid points for {e} x {f} control points: {n_valid} points "

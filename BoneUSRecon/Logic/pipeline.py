@@ -178,6 +178,13 @@ def params_with(
     if along is not None or around is not None:
         e, f = p.fit.n_control_points if n_control_points is None else n_control_points
         n_control_points = (e if along is None else along, f if around is None else around)
+    # Control points asked for, other than the base's, are fitted as asked or refused
+    # (an absurd request is an error); the base's count is a ceiling a short grid
+    # lowers (FitParams.fewer_if_short), however it is passed (Slicer passes it always).
+    strict = (
+        n_control_points is not None
+        and tuple(int(c) for c in n_control_points) != p.fit.n_control_points
+    )
     # FitParams and ResamplingParams coerce and check the values (15.0 -> 15; 15.5 refused).
     fit_changes: dict[str, Any] = {
         k: v
@@ -186,6 +193,7 @@ def params_with(
             ("n_control_points", None if n_control_points is None else tuple(n_control_points)),
             ("method", fit_method),
             ("robust", robust),
+            ("fewer_if_short", False if strict else None),
         )
         if v is not None
     }
@@ -392,7 +400,7 @@ def _summary(
         "mean_resampling_distance_mm": grid.mean_resampling_distance_mm,
         "axis_length_mm": float(grid.axis_position[-1]),
         "degree": list(params.fit.degree),
-        "control_points": list(params.fit.n_control_points),
+        "control_points": list(fit.n_control_points),
         "fit_method": fit.method,
         "fit_rms_mm": fit.rms_mm,
         "fit_rms_all_mm": fit.rms_all_mm,
@@ -403,8 +411,19 @@ def _summary(
         "surface_area_mm2": area,
         "surface_triangles_per_mm2": surf.GetNumberOfCells() / area if area > 0 else 0.0,
         "bone_points": [list(q) for q in params.segmentation.rejection.bone_points],
-        "warnings": list(seg.warnings),
+        "warnings": list(seg.warnings) + _fit_warnings(grid, fit, params),
     }
+
+
+def _fit_warnings(grid: ResampledGrid, fit: FitResult, params: ReconstructionParams) -> list[str]:
+    """What the user should know of the fit: fewer control points than asked."""
+    if fit.n_control_points == params.fit.n_control_points:
+        return []
+    (e, f), (e0, f0) = fit.n_control_points, params.fit.n_control_points
+    return [
+        f"{int(grid.valid.any(axis=1).sum())} slices hold data: the surface has {e} x {f} "
+        f"control points, not {e0} x {f0} (FitParams.fewer_if_short)"
+    ]
 
 
 def control_point_table(
@@ -445,7 +464,10 @@ def control_point_table(
     rows: list[tuple[int, float]] = []
     for n, e in enumerate(counts):
         report(progress, "table", n, len(counts))
-        fp = dataclasses.replace(p.fit, n_control_points=(int(e), p.fit.n_control_points[1]))
+        # Each count as asked (Table I's rows), none lowered on a short grid.
+        fp = dataclasses.replace(
+            p.fit, n_control_points=(int(e), p.fit.n_control_points[1]), fewer_if_short=False
+        )
         try:
             fit = fit_surface(grid.points, fp, u=grid.axis_position, v=grid.angles)
         except BoneUSReconError as exc:  # name the sweep, as reconstruct() does

@@ -24,6 +24,7 @@ from BoneUSRecon.cli.common import (
     parse_size,
     print_json,
     print_summary,
+    print_warnings,
     reconstruction_rows,
     removed_on_failure,
 )
@@ -233,6 +234,7 @@ def run(args: argparse.Namespace) -> int:
     paths = {k: str(v) for k, v in files.items()}
     if args.json:
         print_json({**doc, "files": paths, "elapsed_s": elapsed})
+        print_warnings(s["warnings"])
         return 0
     n_corrupt = len(sim.corrupted)
     caught = len(
@@ -268,6 +270,7 @@ def run(args: argparse.Namespace) -> int:
     }
     rows += [(labels.get(k, k), v) for k, v in paths.items()]
     print_summary(f"Demo: {sim_params.bone} phantom, reconstructed and evaluated", rows)
+    print_warnings(s["warnings"])
     return 0
 
 
