@@ -185,8 +185,8 @@ class FitParams:
         fitted. Why half: a short sweep (the spine phantom's 11 slices, a short
         recording with some frames rejected) otherwise gets no surface at all, and as
         many control points as slices interpolates each slice's noise. Measured on 12
-        frames kept out of each of 44 simulated sweeps (seed 241, `shortfit.py`, session
-        43 in ``Testing/benchmarks/README.md``), gold mean with 3 / 5 / 6 / 8 / 10 / 12
+        frames kept out of each of 44 simulated sweeps (seed 241; session 43 in
+        ``Testing/benchmarks/README.md``), gold mean with 3 / 5 / 6 / 8 / 10 / 12
         control points along: 0.231 / 0.238 / **0.229** / 0.255 / 0.292 / 0.535 mm (3
         fits of 44 failed at 12). True (ours); False refuses a grid too short for what
         was asked, as :func:`.pipeline.params_with` does for control points a user
