@@ -49,6 +49,15 @@ def _with(sweep: Sweep, frames: np.ndarray, a: np.ndarray | None = None) -> Swee
     return sweep.replace(frames=np.ascontiguousarray(frames, np.uint8), image_to_reference=m)
 
 
+def _inside(sweep: Sweep, out: np.ndarray) -> Sweep:
+    """``out`` rounded to uint8, black wherever the recording is (outside the imaged
+    field a scan converter writes exact black, which :mod:`.segmentation` reads as
+    the field's edge; a display step acts inside it only)."""
+    f = np.asarray(sweep.frames)
+    out = np.where(f > 0, np.clip(np.rint(out), 0, 255), 0)
+    return _with(sweep, out.astype(np.uint8))
+
+
 def flip_lateral(sweep: Sweep) -> Sweep:
     """Mirror every frame left-right (the probe turned round, or MF read as MN)."""
     w = sweep.frames.shape[2]
@@ -59,8 +68,7 @@ def flip_lateral(sweep: Sweep) -> Sweep:
 
 def scale_gain(sweep: Sweep, factor: float) -> Sweep:
     """Multiply the displayed grey values by ``factor`` (clipped to 0..255): a gain change."""
-    f = np.asarray(sweep.frames, np.float32) * np.float32(factor)
-    return _with(sweep, np.clip(np.rint(f), 0, 255).astype(np.uint8))
+    return _inside(sweep, np.asarray(sweep.frames, np.float32) * np.float32(factor))
 
 
 def add_speckle(sweep: Sweep, strength: float = 0.3, seed: int = 0) -> Sweep:
@@ -71,8 +79,7 @@ def add_speckle(sweep: Sweep, strength: float = 0.3, seed: int = 0) -> Sweep:
     rng = np.random.default_rng(seed)
     k = 1.0 / strength**2  # gamma shape: std / mean = 1 / sqrt(k)
     noise = rng.gamma(k, 1.0 / k, sweep.frames.shape).astype(np.float32)
-    f = np.asarray(sweep.frames, np.float32) * noise
-    return _with(sweep, np.clip(np.rint(f), 0, 255).astype(np.uint8))
+    return _inside(sweep, np.asarray(sweep.frames, np.float32) * noise)
 
 
 def resample_spacing(sweep: Sweep, spacing_mm: float) -> Sweep:
@@ -131,15 +138,6 @@ def sector(sweep: Sweep, top_share: float = 0.7) -> Sweep:
     half = 0.5 * (c1 - c0) * (top_share + (1.0 - top_share) * np.clip(depth, 0.0, 1.0))
     inside = np.abs(np.arange(f.shape[2])[None, :] - 0.5 * (c0 + c1)) <= half
     return _with(sweep, np.where(inside[None], f, 0))
-
-
-def _inside(sweep: Sweep, out: np.ndarray) -> Sweep:
-    """``out`` rounded to uint8, black wherever the recording is (outside the imaged
-    field a scan converter writes exact black, which :mod:`.segmentation` reads as
-    the field's edge; a display step acts inside it only)."""
-    f = np.asarray(sweep.frames)
-    out = np.where(f > 0, np.clip(np.rint(out), 0, 255), 0)
-    return _with(sweep, out.astype(np.uint8))
 
 
 def display_curve(sweep: Sweep, gamma: float) -> Sweep:
