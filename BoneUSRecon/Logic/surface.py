@@ -91,8 +91,18 @@ class SurfaceParams:
     support_window_mm : float
         Width (mm along the sweep) over which the extent of the data is filtered
         (running quantile, then running mean) into a smooth edge; at least three slices
-        are always used. 3 mm: wider than one or two slices, narrower than the bones'
-        changes of width (centimetres). Ours.
+        are always used. 5 mm (ours): wider than one or two slices, narrower than the
+        bones' changes of width (centimetres). It is a length on the bone, so a denser
+        sweep takes more slices into it: the L14 recording (0.5 mm apart) 10, where a
+        contour stopping short on the faint flank (frames 9-11 and 15: 6-9 mm before
+        the reference's end) takes the reach of its neighbours; the simulated sweeps
+        (2-3 mm apart) barely change. Measured 3 -> 5 mm (session 43 in
+        ``Testing/benchmarks/README.md``): L14 recording gold mean 0.286 -> 0.270 mm,
+        its grey-shadow copy 0.255 -> 0.245, cadaver copy 1.443 -> 1.416 (8 mm: 0.261,
+        0.237, 1.386); 88 simulated sweeps gold 0.2055 -> 0.2051, the surface's mean
+        distance to the bone 0.1003 -> 0.1010 mm, area within 0.35 mm 0.9569 ->
+        0.9561 (8 mm: 0.1031, 0.9538: the added edge lies ~0.4 mm off); 54 more
+        0.2730 -> 0.2730, 0.1328 -> 0.1338.
     edge_quantile : float
         The edge filter's statistic: each end of the slices' data interval is replaced
         by this quantile (outward) of its values within the window, before the
@@ -207,7 +217,7 @@ class SurfaceParams:
     """
 
     step_mm: float = 0.5
-    support_window_mm: float = 3.0
+    support_window_mm: float = 5.0
     edge_quantile: float = 1.0
     margin_mm: float = 0.0
     gap_factor: float | None = 4.0
