@@ -165,3 +165,13 @@ def test_old_control_points_keyword_still_works_with_a_warning() -> None:
         warnings.simplefilter("error")
         assert params_with(along=9, around=4).fit == asked
         assert params_with(n_control_points=(9, 5), around=4).fit == asked
+
+
+@pytest.mark.parametrize("counts", [("a", 5), (15.5, 6), (None, 5)])
+def test_params_with_refuses_bad_control_points_with_its_own_error(counts) -> None:
+    # Refused by FitParams (a BoneUSReconError naming the field), not by a bare int().
+    with pytest.raises(ParameterTypeError, match="n_control_points"):
+        params_with(n_control_points=counts)
+    # The default's count, however spelt, stays a ceiling; another is fitted as asked.
+    assert params_with(n_control_points=(15.0, 6)).fit.fewer_if_short
+    assert not params_with(along=9).fit.fewer_if_short

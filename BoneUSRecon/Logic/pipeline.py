@@ -178,13 +178,6 @@ def params_with(
     if along is not None or around is not None:
         e, f = p.fit.n_control_points if n_control_points is None else n_control_points
         n_control_points = (e if along is None else along, f if around is None else around)
-    # Control points asked for, other than the base's, are fitted as asked or refused
-    # (an absurd request is an error); the base's count is a ceiling a short grid
-    # lowers (FitParams.fewer_if_short), however it is passed (Slicer passes it always).
-    strict = (
-        n_control_points is not None
-        and tuple(int(c) for c in n_control_points) != p.fit.n_control_points
-    )
     # FitParams and ResamplingParams coerce and check the values (15.0 -> 15; 15.5 refused).
     fit_changes: dict[str, Any] = {
         k: v
@@ -193,7 +186,6 @@ def params_with(
             ("n_control_points", None if n_control_points is None else tuple(n_control_points)),
             ("method", fit_method),
             ("robust", robust),
-            ("fewer_if_short", False if strict else None),
         )
         if v is not None
     }
@@ -203,10 +195,17 @@ def params_with(
     surface = p.surface
     if flank_extension_mm is not None:  # SurfaceParams checks the value
         surface = dataclasses.replace(surface, flank_extension_mm=float(flank_extension_mm))
+    fit = dataclasses.replace(p.fit, **fit_changes)  # FitParams checks the values
+    if fit.n_control_points != p.fit.n_control_points:
+        # Control points asked for, other than the base's, are fitted as asked or
+        # refused (an absurd request is an error); the base's count is a ceiling a short
+        # grid lowers (FitParams.fewer_if_short), however it is passed (Slicer always
+        # passes it). Compared once FitParams has coerced them (15.0 -> 15).
+        fit = dataclasses.replace(fit, fewer_if_short=False)
     return dataclasses.replace(
         p,
         segmentation=seg,
-        fit=dataclasses.replace(p.fit, **fit_changes),  # FitParams checks the values
+        fit=fit,
         resampling=dataclasses.replace(p.resampling, **res_changes),
         surface=surface,
     )
