@@ -10,6 +10,7 @@ from BoneUSRecon.Logic.bspline import (
     BSplineSurface,
     FitParams,
     averaging_knots,
+    distinct_params,
     fewer_control_points,
     fit_curve,
     fit_surface,
@@ -40,6 +41,21 @@ def test_averaging_knots_are_clamped_and_average_the_data():
     i = int(d)
     assert np.isclose(k[3], (1 - (d - i)) * u[i - 1] + (d - i) * u[i])
     assert np.all(np.diff(k) >= 0)
+
+
+def test_rows_at_one_position_are_one_position_for_the_knots():
+    # Ten rows at the first row's parameter (a probe held still): the knots are those of
+    # the distinct positions, and the surface is still recovered (the system was singular).
+    surf, u, v, pts, _ = known_surface(seed=5)
+    held = np.r_[np.zeros(10), u]
+    assert np.allclose(distinct_params(held, 1e-9), u)
+    assert np.array_equal(averaging_knots(held, 15, 2), averaging_knots(u, 15, 2))
+    # Neighbours closer than the tolerance are merged by run, not in pairs.
+    assert np.allclose(distinct_params(np.array([0, 0.4, 0.8, 2.0]), 0.5), [0.4, 2.0])
+    grid = np.concatenate([np.repeat(pts[:1], 10, axis=0), pts])
+    for method in ("direct", "separable"):
+        fit = fit_surface(grid, FitParams(robust="none", smoothing=0.0, method=method), u=held, v=v)
+        assert np.abs(fit.surface.control_points - surf.control_points).max() < 1e-8
 
 
 @pytest.mark.parametrize("method", ["direct", "separable"])
@@ -172,7 +188,7 @@ def test_more_control_points_than_data_refused():
 def test_unsupported_control_points_refused_without_smoothing_and_held_with_it():
     _, u, v, pts, _ = known_surface(m=40, n=15, seed=4)
     holed = pts.copy()
-    holed[15:25] = np.nan  # a long gap: some control points have no data under them
+    holed[14:26] = np.nan  # a long gap: some control points have no data under them
     with pytest.raises(BoneUSReconError, match="do not determine"):
         fit_surface(holed, FitParams(robust="none", smoothing=0.0, thin_weight=0.0), u=u, v=v)
     ok = np.isfinite(holed).all(-1)

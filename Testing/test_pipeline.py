@@ -127,6 +127,48 @@ def test_reversed_sweep_equally_accurate(sim_factory):
     assert ev.mean < 0.25 and ev.within_1 > 0.97
 
 
+def held(sweep, frames):
+    """The sweep's frames in the order given (a frame repeated: the probe held at its pose)."""
+    idx = np.asarray(frames)
+    return dataclasses.replace(
+        sweep,
+        frames=sweep.frames[idx],
+        image_to_reference=sweep.image_to_reference[idx],
+        timestamps=np.arange(idx.size) / 20.0,
+        valid=sweep.valid[idx],
+        invalid_reasons={},
+    )
+
+
+@pytest.mark.parametrize("where", ["start", "middle"])
+def test_a_probe_held_still_is_reconstructed_as_well(sim_small, recon_small, where):
+    # A PLUS recording often starts (or pauses) with the probe at rest: frames at one
+    # pose. Ten of them put two knots on the clamped end knot and the fit's system was
+    # singular (an internal error); they are one position for the knots now.
+    n = sim_small.sweep.n_frames
+    frames = (
+        np.r_[[0] * 10, np.arange(n)]
+        if where == "start"
+        else np.r_[np.arange(20), [20] * 10, np.arange(21, n)]
+    )
+    r = reconstruct(held(sim_small.sweep, frames))
+    ev = evaluate_surface(r.surface, sim_small.gold)
+    plain = evaluate_surface(recon_small.surface, sim_small.gold)
+    assert r.fit.n_control_points == recon_small.fit.n_control_points
+    assert ev.mean < plain.mean + 0.03 and ev.within_1 > 0.97
+
+
+def test_a_short_sweep_held_still_counts_its_positions_not_its_frames(sim_small):
+    # Twelve frames of which nine at one pose: three or four positions along the bone
+    # (as the track keeps the far frames), so three control points along, not six
+    # (half of twelve "slices"); four are refused, naming the positions.
+    frames = np.r_[[0] * 9, 10, 20, 30]
+    r = reconstruct(held(sim_small.sweep, frames))
+    assert r.fit.n_control_points[0] == 3
+    with pytest.raises(BoneUSReconError, match=r"slices at [34] positions x"):
+        reconstruct(held(sim_small.sweep, frames), params_with(n_control_points=(4, 6)))
+
+
 def test_table_one_decreases_then_flattens(sim_small, recon_small):
     rows = control_point_table(recon_small, sim_small.gold, (5, 10, 15))
     assert [e for e, _ in rows] == [5, 10, 15]

@@ -107,6 +107,7 @@ __all__ = [
     "fit_surface",
     "fewer_control_points",
     "averaging_knots",
+    "distinct_params",
     "basis_matrix",
     "fit_curve",
     "thin_basis",
@@ -251,8 +252,47 @@ def _accept_old_control_points(init: Callable[..., None]) -> Callable[..., None]
 FitParams.__init__ = _accept_old_control_points(FitParams.__init__)  # type: ignore[method-assign]
 
 
+#: Data parameters closer than this share of a mean knot span are one position when
+#: knots are placed and slices counted (:func:`distinct_params`).
+SAME_POSITION = 0.01
+
+
+def distinct_params(params: np.ndarray, tol: float) -> np.ndarray:
+    """Sorted parameters with each run of neighbours closer than ``tol`` made one (its mean).
+
+    De Boor's averaging assumes distinct data parameters. A probe held still records
+    frames at one pose (a pause at the start of a PLUS recording, where the operator
+    starts recording and then moves; a sweep there and back crosses its own slices):
+    ten frames at one pose put two interior knots on the clamped end knot, a basis
+    function vanished, and the fit's system was singular (an internal error). Frames
+    that close add data, not positions: the knots are placed over the positions, and
+    the count of slices a fit needs is a count of positions. ``tol`` is
+    :data:`SAME_POSITION` of a mean knot span (0.1 mm on a 130 mm sweep fitted with 15
+    control points), far under any knot span, so a sweep moving at any speed keeps
+    its positions; a pause with the tracker's jitter (~0.05-0.2 mm) mostly merges.
+
+    Parameters
+    ----------
+    params : ndarray, shape (r,)
+        Sorted parameters.
+    tol : float
+        Largest gap between neighbours still taken as one position.
+
+    Returns
+    -------
+    ndarray, shape (r',)
+    """
+    ub = np.asarray(params, float)
+    if ub.size < 2:
+        return ub
+    run = np.cumsum(np.r_[True, np.diff(ub) > tol]) - 1
+    return np.bincount(run, ub) / np.bincount(run)
+
+
 def averaging_knots(params: np.ndarray, n_ctrl: int, degree: int) -> np.ndarray:
     """Clamped knot vector by de Boor's averaging for approximation (NURBS Book 9.69).
+
+    Over the distinct positions of ``params`` (:func:`distinct_params`).
 
     Parameters
     ----------
@@ -266,7 +306,9 @@ def averaging_knots(params: np.ndarray, n_ctrl: int, degree: int) -> np.ndarray:
     -------
     ndarray, shape (n_ctrl + degree + 1,)
     """
-    ub = np.asarray(params, float)
+    ub = distinct_params(params, SAME_POSITION / max(n_ctrl - degree, 1))
+    if ub.size < n_ctrl:  # too few positions for these knots: the fit refuses the count
+        ub = np.asarray(params, float)
     r = ub.size
     n_int = n_ctrl - degree - 1
     d = r / (n_ctrl - degree)
@@ -578,15 +620,15 @@ def _solve_direct(
     e, f = bu.shape[1], bv.shape[1]
     nmat, rhs = _normal_equations(bu, bv, w, p)
     pen = _penalty(e, f) if pen is None else pen
-    if thin is not None:
-        basis = thin_basis(
-            nmat, thin.nfull, thin.penalty, thin.weight, thin.share, whitening=thin.whitening
-        )
-        if basis is not None:
-            return basis.solve(nmat, rhs).reshape(e, f, 3)
-    if smoothing > 0:
-        nmat = nmat + smoothing * np.trace(nmat) / (e * f) * pen
     try:
+        if thin is not None:
+            basis = thin_basis(
+                nmat, thin.nfull, thin.penalty, thin.weight, thin.share, whitening=thin.whitening
+            )
+            if basis is not None:
+                return basis.solve(nmat, rhs).reshape(e, f, 3)
+        if smoothing > 0:
+            nmat = nmat + smoothing * np.trace(nmat) / (e * f) * pen
         cf = cho_factor(nmat)
         diag = np.abs(np.diag(cf[0]))
         if diag.min() <= 1e-7 * diag.max():
@@ -850,21 +892,25 @@ def _fit_surface(
     present = np.isfinite(pts).all(-1)
     w0 = np.ones((m, n)) if weights is None else np.asarray(weights, float).copy()
     w0 = np.where(present, w0, 0.0)
-    rows_used = int((w0 > 0).any(axis=1).sum())
-    cols_used = int((w0 > 0).any(axis=0).sum())
-    n_valid = int((w0 > 0).sum())
-    if params.fewer_if_short:
-        e, f = fewer_control_points((rows_used, cols_used, n_valid), (p, q), (e, f))
-    if rows_used < e or cols_used < f or n_valid < e * f:
-        raise BoneUSReconError(
-            f"too few valid grid points for {e} x {f} control points: {n_valid} points "
-            f"in {rows_used} slices x {cols_used} rays (need at least {e} slices, {f} rays "
-            f"and {e * f} points); use fewer control points"
-        )
     uu = _chord_params(pts, 0) if u is None else _normalise(u)
     vv = _chord_params(pts, 1) if v is None else _normalise(v)
     if uu.size != m or vv.size != n:
         raise BoneUSReconError("u and v must have one value per grid row and column")
+    has_data = (w0 > 0).any(axis=1)
+    rows_used = int(has_data.sum())
+    # Slices at one position (a probe held still) count once (distinct_params).
+    positions = distinct_params(uu[has_data], SAME_POSITION / max(e - p, 1)).size
+    cols_used = int((w0 > 0).any(axis=0).sum())
+    n_valid = int((w0 > 0).sum())
+    if params.fewer_if_short:
+        e, f = fewer_control_points((positions, cols_used, n_valid), (p, q), (e, f))
+    if positions < e or cols_used < f or n_valid < e * f:
+        at = f" at {positions} positions" if positions < rows_used else ""
+        raise BoneUSReconError(
+            f"too few valid grid points for {e} x {f} control points: {n_valid} points "
+            f"in {rows_used} slices{at} x {cols_used} rays (need at least {e} slices, "
+            f"{f} rays and {e * f} points); use fewer control points"
+        )
     ku = averaging_knots(uu, e, p)
     kv = averaging_knots(vv, f, q)
     bu = basis_matrix(uu, ku, p)
