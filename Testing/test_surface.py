@@ -485,3 +485,46 @@ def test_a_frame_the_fit_weighs_down_still_splits_a_gap(radius_sim):
     near = np.abs((c - origin) @ normal) < 5.0
     assert near.sum() > 50
     assert radius_sim.distance_to_truth(c[near]).max() < 0.5
+
+
+def test_a_slice_twin_is_no_neighbour_for_the_edge_filter_nor_a_step_for_the_gaps(radius_sim):
+    # The true contours swept there and back, the way back 0.15 mm off along the sweep:
+    # every slice has a twin by it. Two frames' contours stop 3 mm short (a bite the
+    # filter fills from their neighbours). The support (edges and spans) is the one
+    # pass's, frame for frame: the spacing is the probe's step between frames recorded
+    # one after the other, and the filter's window reaches past a twin to the next
+    # position (it held the twins alone: the bite stayed, and the 0.15 mm steps made
+    # every step of a pass a hole).
+    sw = radius_sim.sweep
+    cont = dict(radius_sim.contours_mm())
+    for k in sorted(cont)[len(cont) // 2 :][:2]:
+        arc = np.r_[0, np.cumsum(np.linalg.norm(np.diff(cont[k], axis=0), axis=1))]
+        cont[k] = cont[k][arc < arc[-1] - 3.0]
+    n = sw.n_frames
+    idx = np.r_[np.arange(n), np.arange(n - 1)[::-1]]
+    poses = sw.image_to_reference[idx].copy()
+    normal = np.cross(poses[:, :3, 0], poses[:, :3, 1])
+    poses[n:, :3, 3] += 0.15 * normal[n:] / np.linalg.norm(normal[n:], axis=1)[:, None]
+    both = dataclasses.replace(
+        sw,
+        frames=sw.frames[idx],
+        image_to_reference=poses,
+        timestamps=np.arange(idx.size) / 20.0,
+        valid=sw.valid[idx],
+        invalid_reasons={},
+    )
+    twice = [(j, cont[k]) for j, k in enumerate(idx) if k in cont]
+    g1, f1, _ = surface_from_contours(sorted(cont.items()), sw)
+    g2, f2, _ = surface_from_contours(twice, both)
+    # A window narrower than the slice spacing: the filter's reach is its neighbours.
+    narrow = SurfaceParams(support_window_mm=0.5)
+    s1, s2 = surface_support(f1, g1, narrow), surface_support(f2, g2, narrow)
+    assert np.allclose(s2.spans, s1.spans, atol=0.2)  # the way back is 0.15 mm off
+    # Each frame's filtered edges, as v of the one pass (v spans the same rays).
+    by_frame = {k: i for i, k in enumerate(np.asarray(g1.frames))}
+    kept = (np.isfinite(f2.residuals) & (f2.weights > 0)).any(axis=1)
+    rows = np.asarray(g2.frames)[kept & (f2.frame_weights > SurfaceParams().min_frame_weight)]
+    assert rows.size == s2.lo.size
+    for j, k in enumerate(idx[rows]):
+        i = by_frame[k]
+        assert abs(s2.lo[j] - s1.lo[i]) < 0.02 and abs(s2.hi[j] - s1.hi[i]) < 0.02
