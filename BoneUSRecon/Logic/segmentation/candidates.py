@@ -939,7 +939,7 @@ def _mark_series(
     min_px = max(2, mm_to_px(p.series_min_mm, ev.dy))
     dark = float(np.log(p.series_trough_ratio))
     h = ev.work.shape[0]
-    nf = mm_to_px(p.near_field_mm, ev.dy, minimum=0)
+    nf = ev.field_top + mm_to_px(p.near_field_mm, ev.dy, minimum=0)
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
     shift_cost = _path_steps(ev, p)[0]
     added: list[dict] = []

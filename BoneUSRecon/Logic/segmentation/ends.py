@@ -73,7 +73,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
-from BoneUSRecon.Logic.segmentation.params import EndsParams
+from BoneUSRecon.Logic.segmentation.params import EndsParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice
 
 __all__ = [
@@ -87,6 +87,9 @@ __all__ = [
 
 # log(grey + 1) of every uint8 grey: one table lookup instead of a log per pixel.
 _LOG = np.log(np.arange(256, dtype=float) + 1.0)
+#: The scanner's black (:attr:`ShadowPathParams.fov_grey`): a band of it over the whole
+#: field is outside the image, and the near field starts under it.
+_BLACK = ShadowPathParams().fov_grey
 
 
 def _band_means(cum: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
@@ -97,6 +100,22 @@ def _band_means(cum: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
     b = np.clip(np.round(r1).astype(np.intp), 0, n)
     k = np.arange(a.size)
     return np.where(b > a, (cum[b, k] - cum[a, k]) / np.maximum(b - a, 1), np.nan)
+
+
+def _field_top(img: np.ndarray, cols: np.ndarray, sy: float) -> float:
+    """The imaged field's top row over ``cols``: the median over them of the first row
+    starting 1 mm of pixels over the scanner's black (0 where the image starts at the
+    frame's top; under a black band over the image, a screen capture's, the band's
+    depth; a label's glyphs in the band, under 1 mm tall, are passed over)."""
+    run = max(1, int(round(1.0 / sy)))
+    lit = img[:, cols] > _BLACK
+    if lit[:run].all():  # the usual frame: imaged from its first row
+        return 0.0
+    cs = np.zeros((lit.shape[0] + 1, lit.shape[1]), np.int32)
+    np.cumsum(lit, axis=0, out=cs[1:])
+    starts = (cs[run:] - cs[:-run]) == run
+    first = np.where(starts.any(axis=0), np.argmax(starts, axis=0), 0)
+    return float(np.median(first))
 
 
 def shadow_step(
@@ -122,7 +141,8 @@ def shadow_step(
         Median over the contour's columns (one every ~``column_mm``) of the mean log
         grey in ``[under_gap_mm, under_gap_mm + band_mm]`` under the contour less that
         in ``[above_gap_mm, above_gap_mm + band_mm]`` above it (not above
-        ``near_field_mm``): negative under bone (its shadow starts at the contour),
+        ``near_field_mm`` under the imaged field's top: under a black band over the
+        contour's columns, as :func:`.evidence.outside_field`): negative under bone (its shadow starts at the contour),
         near zero under a layer over tissue or in a shade cast from above. NaN when no
         band fits in the image.
     """
@@ -137,7 +157,7 @@ def shadow_step(
     band = params.band_mm / sy
     under0 = j + params.under_gap_mm / sy
     above1 = j - params.above_gap_mm / sy
-    above0 = np.maximum(above1 - band, params.near_field_mm / sy)
+    above0 = np.maximum(above1 - band, _field_top(img, i, sy) + params.near_field_mm / sy)
     # Only the rows the bands reach, cumulated once per column.
     r0 = int(max(0, np.floor(above0.min())))
     r1 = int(min(h, np.ceil((under0 + band).max()) + 1))

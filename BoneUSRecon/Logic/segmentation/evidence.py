@@ -58,7 +58,10 @@ edge is) score 0. Columns under a *partial* no-contact gap at an edge of the fie
 (the skin curving away from the probe over gel or air: dark over part of the first mm
 under the near field) keep their place, but the shade the gap casts on them (their
 darkness above the band relative to the columns in contact) is not credited to a
-line under it as its shadow (``gap_shade``, :func:`_edge_gap`).
+line under it as its shadow (``gap_shade``, :func:`_edge_gap`). Black bands over and
+under the field across its whole width (a frame grabber's capture of the scanner's
+screen, a loose clip rectangle) are outside it (:func:`outside_field`): the near field
+starts under the band, and a score's windows lie within the field's rows.
 
 Optional terms, off by default (measured and not kept; the figures in their modules and
 in ``Testing/benchmarks/README.md``): Karamalis' confidence drop mixed into the shadow
@@ -94,6 +97,8 @@ __all__ = [
     "working_image",
     "field_of_view",
     "outside_sector",
+    "outside_field",
+    "field_rows",
     "tissue_level",
     "bone_evidence",
 ]
@@ -134,6 +139,9 @@ class EvidenceMaps:
     fov : ndarray of bool, shape (w,), or None
         Columns inside the imaged field of view (``usable`` without the contact test;
         None: not recorded, as ``usable``).
+    field_top : int
+        The imaged field's first row (:func:`outside_field`: under a black band over
+        the whole width; 0 without one). The near field is measured from it.
     """
 
     work: np.ndarray
@@ -150,6 +158,7 @@ class EvidenceMaps:
     tissue_beside: np.ndarray
     log_tissue_ratio: float
     fov: np.ndarray | None = None
+    field_top: int = 0
 
     def frame_level(self) -> float:
         """The frame's tissue level: the median of :attr:`tissue` over the rows from 15
@@ -266,21 +275,135 @@ def outside_sector(
     a near corner make no sector. ``imaged``: ``work`` over ``fov_grey`` if the caller
     has it (:func:`field_of_view`'s mask).
     """
+    h = work.shape[0]
+    if imaged is None:
+        imaged = work > np.float32(params.fov_grey / 255.0)
+    top = _field_tops(work, dy, params, imaged)
+    if top is None:
+        return None
+    cols = np.flatnonzero((top < h) & _field_columns(imaged, params))
+    if cols.size < 2 or max(top[cols[0]], top[cols[-1]]) < h // 4:
+        return None
+    return np.arange(h)[:, None] < top[None, :]
+
+
+def _field_columns(imaged: np.ndarray, params: ShadowPathParams) -> np.ndarray:
+    """The widest run of columns more than ``fov_fraction`` imaged, shape (w,): the
+    image itself, not a grey-scale bar, a ruler or a marker drawn beside it (a focus
+    marker's few columns at mid-depth made a linear field a sector)."""
+    inside = imaged.mean(axis=0) > params.fov_fraction
+    edges = np.diff(np.r_[0, inside.astype(np.int8), 0])
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    out = np.zeros_like(inside)
+    if starts.size:
+        k = int(np.argmax(ends - starts))
+        out[starts[k] : ends[k]] = True
+    return out
+
+
+def _field_tops(
+    work: np.ndarray, dy: float, params: ShadowPathParams, imaged: np.ndarray | None = None
+) -> np.ndarray | None:
+    """Per column, the first row starting 1 mm of pixels over ``fov_grey`` (h: none);
+    None when the image is under 1 mm tall."""
     h, w = work.shape
     if imaged is None:
         imaged = work > np.float32(params.fov_grey / 255.0)
     run = max(1, int(round(1.0 / dy)))
     if h <= run:
         return None
-    # Per column, the first row starting ``run`` imaged pixels (h: none).
     cs = np.zeros((h + 1, w), np.int32)
     np.cumsum(imaged, axis=0, out=cs[1:])
     starts = (cs[run:] - cs[:-run]) == run  # (h - run + 1, w)
-    top = np.where(starts.any(axis=0), np.argmax(starts, axis=0), h)
-    cols = np.flatnonzero(top < h)
-    if cols.size < 2 or max(top[cols[0]], top[cols[-1]]) < h // 4:
+    return np.where(starts.any(axis=0), np.argmax(starts, axis=0), h)
+
+
+#: Share of the imaged columns that must start at one depth (within 1 mm of their
+#: median start) for a black band over a linear field (:func:`outside_field`).
+_BAND_FLAT_SHARE = 0.6
+#: A row under the field is in a band when this share of the field's columns are exactly
+#: 0 there (:func:`outside_field`: a screen's black; a bone's shadow reaching the frame's
+#: bottom over the whole width, as black as the scanner's floor, still holds its noise:
+#: the analytic frames of ``test_segmentation.py`` lost their bone to a band read as
+#: the top band is, their shadows under ``fov_grey``).
+_UNDER_ZERO_SHARE = 0.9
+
+
+def outside_field(
+    work: np.ndarray,
+    dx: float,
+    dy: float,
+    params: ShadowPathParams,
+    imaged: np.ndarray | None = None,
+) -> np.ndarray | None:
+    """Pixels of a working image outside its imaged field, shape (h, w), or None (none).
+
+    A sector's black outside (:func:`outside_sector`), or black bands over the whole
+    width above and under a linear field: a frame grabber's screen capture, a loose
+    clip rectangle, a scanner drawing its image lower. A band is neither dark tissue
+    nor a probe edge off the skin nor a bone's shadow, yet the contact test read the
+    band's rows (2-6 mm under the frame's top) as uncoupled in every column (the L14
+    recording with 6 mm more of black over it kept no frame), and a line drawn along
+    the field's bottom edge (a screen's frame round the image) had the band under it
+    for a perfect shadow (17 of its 21 frames kept that line, 25 mm under the bone).
+
+    A band is flat: most imaged columns (``_BAND_FLAT_SHARE``) start (or end) within
+    1 mm of their median start (end), at least 1 mm from the frame's edge; the band
+    reaches to it. Labels, a grey-scale bar or a depth ruler in the margins are a
+    minority of the columns and lie in the band or beside the field. The band under
+    the field is held to more, since a bone's shadow spanning the width may be as dark
+    and its edge as flat: its rows, at least 1 mm of them, are exactly 0 over nearly
+    all the field's columns (``_UNDER_ZERO_SHARE``: a screen's black; a shadow keeps
+    the scanner's noise in it). Why it generalises: it reads only the scanner's exact black (``fov_grey``, an
+    instrument fact) and the field's shape, as the sector rule does. A probe edge off
+    the skin is no band: the columns in contact start at the top.
+    """
+    sector = outside_sector(work, dx, dy, params, imaged)
+    if sector is not None:
+        return sector
+    h, w = work.shape
+    if imaged is None:
+        imaged = work > np.float32(params.fov_grey / 255.0)
+    run = max(1, int(round(1.0 / dy)))
+
+    field = _field_columns(imaged, params)
+    if not field.any():
         return None
-    return np.arange(h)[:, None] < top[None, :]
+
+    def band_depth(tops: np.ndarray | None) -> int:
+        # Rows of a flat black band from the frame's edge (0: none).
+        if tops is None:
+            return 0
+        cols = tops[(tops < h) & field]
+        if cols.size < 2:
+            return 0
+        depth = float(np.median(cols))
+        if depth < run or np.mean(np.abs(cols - depth) <= run) < _BAND_FLAT_SHARE:
+            return 0
+        return int(depth)
+
+    above = band_depth(_field_tops(work, dy, params, imaged))
+    # Under the field: the last rows exactly 0 over nearly all its columns.
+    zero = (work[:, field] == 0).mean(axis=1) >= _UNDER_ZERO_SHARE
+    under = int(np.argmin(zero[::-1])) if not zero.all() else 0
+    under = under if under >= run else 0
+    if not above and not under:
+        return None
+    band = np.zeros((h, w), bool)
+    band[:above] = True
+    band[h - under :] = True
+    return band
+
+
+def field_rows(outside: np.ndarray | None, h: int) -> tuple[int, int]:
+    """The rows ``[first, end)`` of the imaged field: those not wholly outside it at
+    the frame's top and bottom (:func:`outside_field`'s bands; the whole frame if None)."""
+    if outside is None:
+        return 0, h
+    inside = np.flatnonzero(~outside.all(axis=1))
+    if inside.size == 0:
+        return 0, h
+    return int(inside[0]), int(inside[-1]) + 1
 
 
 def tissue_level(
@@ -490,7 +613,8 @@ def _dark_share(
     ``outside``: pixels outside a sector (:func:`outside_sector`), not counted (a
     column with none of those rows inside: share 0, nothing says it is off the skin)."""
     h = work.shape[0]
-    a = mm_to_px(near_field_mm, dy, minimum=0)
+    # From the imaged field's top (a black band over it is outside the field).
+    a = field_rows(outside, h)[0] + mm_to_px(near_field_mm, dy, minimum=0)
     b = min(h, a + mm_to_px(depth_mm, dy))
     if b - a < 2:
         return None
@@ -608,8 +732,11 @@ def _withhold_gap_shade(
     scale: float,
     dy: float,
     p: ShadowPathParams,
+    first: int = 0,
 ) -> None:
     """Take from ``shadow_z`` (in place), in the ``gap`` columns, the shade cast from above.
+
+    ``first``: the imaged field's first row (:func:`field_rows`).
 
     Under a partial no-contact gap (:func:`_edge_gap`) a column is dark from the skin
     line down: a layer there has darker tissue under it than the tissue at its depth,
@@ -629,7 +756,7 @@ def _withhold_gap_shade(
     ratio (gain, TGC and probe cancel), and the correction is in the frame's own spread.
     """
     h, w = shadow_z.shape
-    nf = mm_to_px(p.near_field_mm, dy, minimum=0)
+    nf = first + mm_to_px(p.near_field_mm, dy, minimum=0)
     end = np.clip(np.arange(h) + above_off, nf, h)
     n = (end - nf).astype(np.float32)
     ok = n >= 1
@@ -693,9 +820,10 @@ def bone_evidence(
     dx, dy = fx * sx, fy * sy
     imaged = work > np.float32(p.fov_grey / 255.0)  # over the scanner's black
     fov = field_of_view(work, dx, p, imaged)
-    # A sector's black outside (curvilinear probe) is neither dark tissue nor a probe
-    # edge off the skin: left out of the levels, the contact and gap tests and the nulls.
-    outside = outside_sector(work, dx, dy, p, imaged)
+    # A sector's black outside (curvilinear probe), or a black band over and under a
+    # captured field, is neither dark tissue nor a probe edge off the skin nor a shadow:
+    # left out of the levels, the contact and gap tests and the nulls.
+    outside = outside_field(work, dx, dy, p, imaged)
     # Both references from one partition of the rows; again over the usable columns
     # only if contact removed some.
     pct = (p.tissue_percentile, p.shadow_percentile)
@@ -768,9 +896,11 @@ def bone_evidence(
 
     # Where the score may be: shadow windows mostly inside the image, a region above
     # inside the image and below the near field (gel, skin line, lens reverberation).
-    inside = np.clip(h - (bot + gap), 0, near) / near
+    # The field's rows, not the frame's: black bands over and under it are no image.
+    first, end = field_rows(outside, h)
+    inside = np.clip(end - (bot + gap), 0, near) / near
     nf = mm_to_px(p.near_field_mm, dy, minimum=0)
-    rows_ok = (inside >= 0.5) & (top - up >= 0) & (j >= nf)
+    rows_ok = (inside >= 0.5) & (top - up >= first) & (j >= first + nf)
     valid = rows_ok[:, None] & usable[None, :]
     if outside is not None:
         valid &= ~outside
@@ -787,7 +917,7 @@ def bone_evidence(
     if gap_cols.any() and (ms := shadow_ms) is not None:
         # In the spread's units of the frame's shadow log-ratio as it is: the rule
         # changes the gap's columns only, not the scale every other column is read in.
-        _withhold_gap_shade(shadow_z, csum, usable, gap_cols, t0 - cov_a, ms[1], dy, p)
+        _withhold_gap_shade(shadow_z, csum, usable, gap_cols, t0 - cov_a, ms[1], dy, p, first)
     if p.confidence_weight > 0:
         # Optional (off by default; measured in .confidence): Karamalis' confidence
         # drop across the band, combined with the shadow z-score.
@@ -840,4 +970,5 @@ def bone_evidence(
         t_shadow,
         base,
         fov,
+        first,
     )

@@ -30,6 +30,7 @@ __all__ = [
     "resample_spacing",
     "crop",
     "sector",
+    "screen_capture",
     "display_curve",
     "depth_gain",
     "smooth",
@@ -138,6 +139,67 @@ def sector(sweep: Sweep, top_share: float = 0.7) -> Sweep:
     half = 0.5 * (c1 - c0) * (top_share + (1.0 - top_share) * np.clip(depth, 0.0, 1.0))
     inside = np.abs(np.arange(f.shape[2])[None, :] - 0.5 * (c0 + c1)) <= half
     return _with(sweep, np.where(inside[None], f, 0))
+
+
+def screen_capture(
+    sweep: Sweep,
+    margins_mm: tuple[float, float, float, float] = (6.0, 10.0, 8.0, 12.0),
+    *,
+    frame_line: bool = True,
+    seed: int = 0,
+) -> Sweep:
+    """Every frame as a frame grabber captures the scanner's screen: the image inside a
+    black screen with its user interface (a loose clip rectangle records the same).
+
+    ``margins_mm``: black above, left, under and right of the image (top, left,
+    bottom, right), in the image's own pixel size. Drawn in them: text lines (glyphs
+    about 0.8 mm tall, white) over and under the image, a grey-scale bar and a depth
+    ruler (a dot every 5 mm) to its right, a focus marker to its left and, with
+    ``frame_line``, a grey line framing the image one pixel off it. The poses follow the
+    image (a pixel keeps its millimetres).
+    """
+    f = np.asarray(sweep.frames)
+    n, h, w = f.shape
+    sx, sy = (float(v) for v in sweep.spacing_mm)
+    top, left = round(margins_mm[0] / sy), round(margins_mm[1] / sx)
+    bottom, right = round(margins_mm[2] / sy), round(margins_mm[3] / sx)
+    out = np.zeros((n, h + top + bottom, w + left + right), np.uint8)
+    out[:, top : top + h, left : left + w] = f
+    x1 = left + w  # first column right of the image
+    if right >= round(3.5 / sx):  # the ruler's dots and the grey-scale bar
+        for y in range(top, top + h, max(1, round(5.0 / sy))):
+            out[
+                :, y : y + max(1, round(0.25 / sy)), x1 + round(0.7 / sx) : x1 + round(1.2 / sx)
+            ] = 220
+        bar = slice(top + round(1.5 / sy), top + min(h, round(26.0 / sy)))
+        ramp = np.linspace(255, 0, bar.stop - bar.start).astype(np.uint8)
+        out[:, bar, x1 + round(2.5 / sx) : x1 + round(3.5 / sx)] = ramp[None, :, None]
+    if left >= round(1.5 / sx):  # the focus marker: a small triangle pointing at the image
+        y0 = top + h // 2
+        for d in range(round(0.7 / sx)):
+            half = round(0.7 / sy) - d
+            out[:, y0 - half : y0 + half + 1, left - round(1.0 / sx) + d] = 200
+    rng = np.random.default_rng(seed)
+    gh, gw = max(1, round(0.8 / sy)), max(1, round(0.55 / sx))
+    for y, x in (
+        (round(1.2 / sy), round(1.0 / sx)),
+        (round(3.2 / sy), round(1.0 / sx)),
+        (round(1.2 / sy), left + w // 2),
+        (top + h + round(2.5 / sy), round(2.0 / sx)),
+    ):
+        for k in range(12):  # a line of twelve glyphs
+            g = rng.random((gh, gw)) < 0.5
+            xs = x + k * round(0.7 / sx)
+            region = out[:, y : y + gh, xs : xs + gw]
+            region[:, g[: region.shape[1], : region.shape[2]]] = 255
+    if frame_line:
+        out[:, top - 2, left - 2 : x1 + 2] = 128
+        out[:, top + h + 1, left - 2 : x1 + 2] = 128
+        out[:, top - 2 : top + h + 2, left - 2] = 128
+        out[:, top - 2 : top + h + 2, x1 + 1] = 128
+    a = np.eye(4)
+    a[0, 3], a[1, 3] = -left, -top
+    return _with(sweep, out, a)
 
 
 def display_curve(sweep: Sweep, gamma: float) -> Sweep:
@@ -390,6 +452,7 @@ RECORDING_AUGMENTATIONS: dict[str, Callable[[Sweep], Sweep]] = {
     "0.15mm": lambda s: resample_spacing(s, 0.15),
     "crop": lambda s: crop(s, (40, 560), (150, 700)),
     "sector": lambda s: sector(s, 0.7),
+    "screen": lambda s: screen_capture(s),
     "all": lambda s: add_speckle(
         scale_gain(resample_spacing(flip_lateral(s), 0.15), 0.7),
         0.3,
