@@ -56,17 +56,26 @@ def test_the_bands_over_and_under_a_captured_field_are_outside(radius):
         assert abs(first * dy - 6.0) <= 1.0 and abs((h - end) * dy - 8.0) <= 1.0
         # Nothing outside the bands: the field's rows hold no outside pixel.
         assert not out[first:end].any()
+    # A sector so captured: its black corners and the band under it.
+    work, dx, dy = _work(np.asarray(augment.screen_capture(augment.sector(sw, 0.6)).frames[5]), sp)
+    out = outside_field(work, dx, dy, P)
+    first, end = field_rows(out, work.shape[0])
+    assert outside_sector(work, dx, dy, P) is not None
+    assert abs((work.shape[0] - end) * dy - 8.0) <= 1.0 and out[first:end].any()
     # The sweep itself (its field reaching the frame's edges) has no band.
     work, dx, dy = _work(np.asarray(sw.frames[20]), sp)
     assert outside_field(work, dx, dy, P) is None
 
 
-def test_a_captured_sweep_keeps_its_bone(radius):
+@pytest.mark.parametrize("sector", [None, 0.6])
+def test_a_captured_sweep_keeps_its_bone(radius, sector):
     # Before: no band, the contact test took every column for uncoupled (6 mm of black
     # over the field) or the frame line under the field for the bone (the band under
     # it a perfect shadow): on the hard small sweeps of seed 241, recall 0.00-0.08 and
-    # 78-100 % of the frames on that line, 22 mm off.
-    cap = augment.screen_capture(radius.sweep)
+    # 78-100 % of the frames on that line, 22 mm off. A curvilinear probe's sector so
+    # captured: its own outside and the band under it.
+    sw = radius.sweep if sector is None else augment.sector(radius.sweep, sector)
+    cap = augment.screen_capture(sw)
     r = segment_sweep(cap)
     on = off = 0
     for c in r.accepted:

@@ -338,8 +338,8 @@ def outside_field(
 ) -> np.ndarray | None:
     """Pixels of a working image outside its imaged field, shape (h, w), or None (none).
 
-    A sector's black outside (:func:`outside_sector`), or black bands over the whole
-    width above and under a linear field: a frame grabber's screen capture, a loose
+    A sector's black outside (:func:`outside_sector`) and any band under it, or black
+    bands over the whole width above and under a linear field: a frame grabber's screen capture, a loose
     clip rectangle, a scanner drawing its image lower. A band is neither dark tissue
     nor a probe edge off the skin nor a bone's shadow, yet the contact test read the
     band's rows (2-6 mm under the frame's top) as uncoupled in every column (the L14
@@ -359,16 +359,13 @@ def outside_field(
     the skin is no band: the columns in contact start at the top.
     """
     sector = outside_sector(work, dx, dy, params, imaged)
-    if sector is not None:
-        return sector
     h, w = work.shape
     if imaged is None:
         imaged = work > np.float32(params.fov_grey / 255.0)
     run = max(1, int(round(1.0 / dy)))
-
     field = _field_columns(imaged, params)
     if not field.any():
-        return None
+        return sector
 
     def band_depth(tops: np.ndarray | None) -> int:
         # Rows of a flat black band from the frame's edge (0: none).
@@ -382,14 +379,15 @@ def outside_field(
             return 0
         return int(depth)
 
-    above = band_depth(_field_tops(work, dy, params, imaged))
+    # Over a sector, its own outside holds any band over it.
+    above = band_depth(_field_tops(work, dy, params, imaged)) if sector is None else 0
     # Under the field: the last rows exactly 0 over nearly all its columns.
     zero = (work[:, field] == 0).mean(axis=1) >= _UNDER_ZERO_SHARE
     under = int(np.argmin(zero[::-1])) if not zero.all() else 0
     under = under if under >= run else 0
     if not above and not under:
-        return None
-    band = np.zeros((h, w), bool)
+        return sector
+    band = np.zeros((h, w), bool) if sector is None else sector.copy()
     band[:above] = True
     band[h - under :] = True
     return band
