@@ -14,23 +14,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import small_simulation
+from test_segmentation_sector import P, _work
 
 from BoneUSRecon.Logic.segmentation import segment_sweep
-from BoneUSRecon.Logic.segmentation.evidence import (
-    field_rows,
-    outside_field,
-    outside_sector,
-    working_image,
-)
-from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
+from BoneUSRecon.Logic.segmentation.evidence import field_rows, outside_field, outside_sector
 from BoneUSRecon.Logic.simulation import augment
-
-P = ShadowPathParams()
-
-
-def _work(image: np.ndarray, spacing: tuple[float, float]) -> tuple[np.ndarray, float, float]:
-    work, _, fx, fy = working_image(image, spacing, P.work_mm)
-    return work, fx * spacing[0], fy * spacing[1]
 
 
 @pytest.fixture(scope="module")
