@@ -897,3 +897,35 @@ def test_surface_message_layout(sim_small):
     assert size_polys == 4 * 4 * n_polys  # (3, a, b, c) per triangle
     pts = np.frombuffer(body[40 : 40 + 12 * n_points], ">f4").reshape(-1, 3)
     np.testing.assert_allclose(pts, _points(surf), atol=1e-4)
+
+
+def test_frames_at_rest_are_skipped_live_and_the_surface_is_the_offline_one(sim_factory):
+    """Frames held at the start and end of a sweep (tracker jitter 0.03 mm): live skips
+    them (``counts["at_rest"]``), offline gives them the contour of the frame standing
+    for them; both surfaces are the one of the frames that moved, point for point."""
+    sim = sim_factory(bone="ulna", realism="hard", seed=3)
+    sw, n = sim.sweep, sim.sweep.n_frames
+    idx = np.r_[[0] * 10, np.arange(n), [n - 1] * 30]
+    poses = sw.image_to_reference[idx].copy()
+    rest = np.r_[np.arange(1, 10), np.arange(n + 10, n + 40)]
+    poses[rest, :3, 3] += np.random.default_rng(0).normal(0, 0.03, (rest.size, 3))
+    held = sw.replace(
+        frames=sw.frames[idx],
+        image_to_reference=poses,
+        timestamps=np.arange(idx.size) / 20.0,
+        valid=np.ones(idx.size, bool),
+    )
+    offline = reconstruct(held)
+    live = LiveReconstructor()
+    for m, (k, image) in enumerate(held.iter_frames()):
+        live.add_frame(image, held.image_to_reference[k], held.timestamps[k])
+        if m % 5 == 0:
+            with contextlib.suppress(BoneUSReconError):
+                live.refit()
+    r = live.refit(final=True)
+    assert live.counts["at_rest"] == sum(
+        "at_rest_of" in c.extras for c in offline.segmentation.contours
+    )
+    assert live.counts["at_rest"] >= 35
+    assert np.array_equal(_points(r.surface), _points(offline.surface))
+    assert np.array_equal(_points(reconstruct(sw).surface), _points(offline.surface))

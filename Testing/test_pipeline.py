@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import CADAVER
 from vtkmodules.util import numpy_support
 
 from BoneUSRecon.Logic.bspline import FitParams
@@ -176,15 +177,46 @@ def test_a_sweep_there_and_back_gives_the_surface_of_one_pass(sim_factory, bone)
     assert g2 < g1 + 0.03
 
 
+def tracked_at_rest(params: ReconstructionParams) -> ReconstructionParams:
+    """``params`` with frames at rest tracked and fitted as any (``at_rest_mm`` 0)."""
+    seg = params.segmentation
+    rej = dataclasses.replace(seg.rejection, at_rest_mm=0.0)
+    return dataclasses.replace(params, segmentation=dataclasses.replace(seg, rejection=rej))
+
+
 def test_a_short_sweep_held_still_counts_its_positions_not_its_frames(sim_small):
-    # Twelve frames of which nine at one pose: three or four positions along the bone
+    # Twelve frames of which nine at one pose, all tracked and fitted (at_rest_mm 0, as
+    # with a tracker jittering more than it): three or four positions along the bone
     # (as the track keeps the far frames), so three control points along, not six
     # (half of twelve "slices"); four are refused, naming the positions.
     frames = np.r_[[0] * 9, 10, 20, 30]
-    r = reconstruct(held(sim_small.sweep, frames))
+    sweep = held(sim_small.sweep, frames)
+    r = reconstruct(sweep, tracked_at_rest(ReconstructionParams()))
     assert r.fit.n_control_points[0] == 3
     with pytest.raises(BoneUSReconError, match=r"slices at [34] positions x"):
-        reconstruct(held(sim_small.sweep, frames), params_with(n_control_points=(4, 6)))
+        reconstruct(sweep, tracked_at_rest(params_with(n_control_points=(4, 6))))
+
+
+def test_frames_at_rest_stand_for_one_and_do_not_weigh_the_track(sim_factory):
+    # A hard ulna held 2 s (60 frames, 0.05 mm of tracker jitter) at the end of its
+    # sweep: tracked frame by frame (at_rest_mm 0), the held frame's candidates weigh
+    # sixty times and carry the whole track onto a look-alike (gold 15.4 mm against
+    # 0.248). Taken at rest, they stand for one frame: the sweep's own track and
+    # surface, point for point, and each held frame has its contour.
+    sim = sim_factory(bone="ulna", realism="hard", seed=241, **CADAVER)
+    n = sim.sweep.n_frames
+    sweep = held(sim.sweep, np.r_[np.arange(n), [n - 1] * 60])
+    poses = sweep.image_to_reference.copy()
+    poses[n:, :3, 3] += np.random.default_rng(0).normal(0, 0.05, (60, 3))
+    sweep = dataclasses.replace(sweep, image_to_reference=poses)
+    plain, rest = reconstruct(sim.sweep), reconstruct(sweep)
+    still = [c for c in rest.segmentation.contours if "at_rest_of" in c.extras]
+    assert len(still) >= 50 and all(c.extras["at_rest_of"] == n - 1 for c in still)
+    kept = {c.frame: c for c in plain.segmentation.contours}[n - 1]
+    assert all(np.array_equal(c.points_px, kept.points_px) for c in still)
+    a = numpy_support.vtk_to_numpy(plain.surface.GetPoints().GetData())
+    b = numpy_support.vtk_to_numpy(rest.surface.GetPoints().GetData())
+    assert a.shape == b.shape and np.allclose(a, b)
 
 
 def test_table_one_decreases_then_flattens(sim_small, recon_small):

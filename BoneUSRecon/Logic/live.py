@@ -94,7 +94,7 @@ from BoneUSRecon.Logic.segmentation.result import FrameContour
 from BoneUSRecon.Logic.segmentation.track import TrackChoice
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sequence_io import write_sweep
-from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
+from BoneUSRecon.Logic.sweep import Sweep, frames_at_rest, pixel_spacing
 
 __all__ = [
     "LiveParams",
@@ -586,8 +586,10 @@ class LiveReconstructor:
         self._segment_s = 0.0
         self._processed = 0
         #: Frames given to :meth:`add_frame`, frames not processed because of
-        #: ``max_frames`` thinning, frames refused for a different image size.
-        self.counts = {"added": 0, "thinned": 0, "wrong_size": 0}
+        #: ``max_frames`` thinning, frames refused for a different image size, frames
+        #: recorded at rest (``RejectionParams.at_rest_mm``).
+        self.counts = {"added": 0, "thinned": 0, "wrong_size": 0, "at_rest": 0}
+        self._moved: np.ndarray | None = None  # the pose of the last frame that moved
         #: Over all refits, frames off the track with a prior: searched, their cached
         #: guided candidate reused, not searched for want of pixels (see
         #: :func:`_guided` and :func:`_rechecked`: the only difference from offline);
@@ -624,8 +626,8 @@ class LiveReconstructor:
         -------
         str or None
             The per-frame verdict: ``""`` when the contour passed the per-frame checks,
-            else why not; ``None`` when the frame was not processed (thinned, or its size
-            differs from the first frame's).
+            else why not; ``None`` when the frame was not processed (recorded at rest,
+            thinned, or its size differs from the first frame's).
         """
         img = np.asarray(image)
         if img.ndim != 2 or img.dtype != np.uint8:
@@ -640,6 +642,17 @@ class LiveReconstructor:
             self.counts["wrong_size"] += 1
             return None
         self._arrived += 1
+        # A frame recorded at rest is not processed: offline it is not tracked either
+        # (segment_sweep gives it the contour of the frame that moved), and the surface
+        # is fitted from the frames that moved.
+        tol = self.params.segmentation.rejection.at_rest_mm
+        if (
+            self._moved is not None
+            and frames_at_rest(np.stack([self._moved, m]), img.shape, tol)[1] == 0
+        ):
+            self.counts["at_rest"] += 1
+            return None
+        self._moved = m
         if self._since_thinning % self._stride:
             self._since_thinning += 1
             self.counts["thinned"] += 1

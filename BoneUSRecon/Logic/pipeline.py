@@ -346,10 +346,14 @@ def reconstruction_from_segmentation(
     """
     timings: dict[str, float] = {"segment": segment_s}
     t0 = time.perf_counter()
-    contours = seg.contours_mm(sweep)
+    # The surface from the frames that moved: a frame at rest repeats the contour of the
+    # frame standing for it (RejectionParams.at_rest_mm), one position, not more data.
+    contours = [(c.frame, c.points_mm(sweep)) for c in seg.accepted if "at_rest_of" not in c.extras]
     # The contours' points, without mapping every contour a second time.
     pts = np.concatenate([c for _, c in contours]) if contours else np.empty((0, 3))
     try:
+        # A probe that never moved is told so, whatever frames stand for the others.
+        _check_probe_moves([c.frame for c in seg.accepted], sweep)
         grid, fit, surf = surface_from_contours(
             contours, sweep, params, segmented_points=pts, progress=progress, timings=timings
         )

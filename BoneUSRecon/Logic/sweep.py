@@ -35,7 +35,7 @@ from vtkmodules.vtkCommonTransforms import vtkTransform
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 
-__all__ = ["Sweep", "pixel_spacing", "pixels_to_reference", "frame_planes"]
+__all__ = ["Sweep", "pixel_spacing", "pixels_to_reference", "frame_planes", "frames_at_rest"]
 
 
 def pixel_spacing(image_to_reference: np.ndarray) -> np.ndarray:
@@ -69,6 +69,47 @@ def pixels_to_reference(image_to_reference: np.ndarray, ij: np.ndarray) -> np.nd
     m = np.asarray(image_to_reference, dtype=float)
     ij = np.asarray(ij, dtype=float).reshape(-1, 2)
     return ij @ m[:3, :2].T + m[:3, 3]
+
+
+def frames_at_rest(
+    image_to_reference: np.ndarray, shape: tuple[int, int], tol_mm: float
+) -> np.ndarray:
+    """Which frames the probe recorded at rest, and the frame each stands for.
+
+    A frame is at rest when no corner of its image lies more than ``tol_mm`` from
+    where it lay in the last frame that moved (in the order given: the order of
+    recording); that frame stands for it. The first frame moves.
+
+    Parameters
+    ----------
+    image_to_reference : ndarray, shape (N, 4, 4)
+    shape : (int, int)
+        The frames' ``(H, W)``.
+    tol_mm : float
+        0: no frame is at rest.
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+        For each frame the index of the frame standing for it (its own if it moved).
+    """
+    m = np.asarray(image_to_reference, float)
+    n = m.shape[0]
+    rep = np.arange(n)
+    if n < 2 or not tol_mm > 0:
+        return rep
+    h, w = shape
+    c = np.array([[0, 0, 0, 1], [w - 1, 0, 0, 1], [0, h - 1, 0, 1], [w - 1, h - 1, 0, 1]], float)
+    corners = np.einsum("nij,kj->nki", m, c)[..., :3]
+    last = 0
+    # Sequential by nature (each frame is judged against the last that moved); a few
+    # vector operations per frame, the frames' pixels untouched.
+    for k in range(1, n):
+        if np.linalg.norm(corners[k] - corners[last], axis=1).max() <= tol_mm:
+            rep[k] = last
+        else:
+            last = k
+    return rep
 
 
 def frame_planes(image_to_reference: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -19,6 +19,7 @@ first track's (before recovery) and the final one's alike.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 
@@ -46,7 +47,7 @@ from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResu
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice, select_bone_track
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
-from BoneUSRecon.Logic.sweep import Sweep, pixel_spacing
+from BoneUSRecon.Logic.sweep import Sweep, frames_at_rest, pixel_spacing
 
 __all__ = [
     "SEGMENTERS",
@@ -55,6 +56,7 @@ __all__ = [
     "frame_candidates_for",
     "select_bone_track",
     "contours_from_track",
+    "with_frames_at_rest",
     "segment_sweep",
 ]
 
@@ -181,6 +183,22 @@ def contours_from_track(
     return tuple(out)
 
 
+def with_frames_at_rest(
+    contours: tuple[FrameContour, ...], at_rest: dict[int, int]
+) -> tuple[FrameContour, ...]:
+    """``contours`` with a copy of each frame's for the frames at rest it stands for
+    (``at_rest``: frame -> the frame that moved), flagged ``extras["at_rest_of"]``,
+    in frame order."""
+    if not at_rest:
+        return contours
+    by_frame = {c.frame: c for c in contours}
+    copies = [
+        dataclasses.replace(by_frame[k], frame=f, extras={**by_frame[k].extras, "at_rest_of": k})
+        for f, k in at_rest.items()
+    ]
+    return tuple(sorted((*contours, *copies), key=lambda c: c.frame))
+
+
 def segment_sweep(
     sweep: Sweep,
     params: SegmentationParams = SegmentationParams(),  # noqa: B008 (frozen dataclass)
@@ -212,6 +230,14 @@ def segment_sweep(
     check_bone_points(
         sweep.image_to_reference[idx], (sweep.height, sweep.width), params.rejection, sweep.source
     )
+    # Frames the probe recorded at rest are not tracked: each takes the contour of the
+    # frame that stands for it (RejectionParams.at_rest_mm).
+    stands = frames_at_rest(
+        sweep.image_to_reference[idx], (sweep.height, sweep.width), params.rejection.at_rest_mm
+    )
+    moved = stands == np.arange(idx.size)
+    at_rest = {int(idx[n]): int(idx[stands[n]]) for n in np.flatnonzero(~moved).tolist()}
+    idx = idx[moved]
     spacing_all = pixel_spacing(sweep.image_to_reference)
     t0 = time.perf_counter()
     frames: list[FrameCandidates] = []
@@ -326,7 +352,7 @@ def segment_sweep(
     frames, choice = with_chosen(
         frames, choice, trim_beyond(frames, choice, poses, params.rejection)
     )
-    contours = contours_from_track(idx, frames, choice, params)
+    contours = with_frames_at_rest(contours_from_track(idx, frames, choice, params), at_rest)
     t_seg = time.perf_counter() - t0
     result = SegmentationResult(
         contours,

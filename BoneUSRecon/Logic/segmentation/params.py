@@ -670,6 +670,9 @@ class RejectionParams:
     beyond_climb_mm: float = 1.0
     """... or, past the margin too, cut from the bottom of a valley when the contour, going outward from its top inside the reach, climbs back by at least this over the deepest point before it, onto a top at least ``beyond_min_mm`` across, mm (0: off; :mod:`.reach`; as ``ShadowPathParams.climb_mm``: past its widest point a bone's outline only descends, and 1 mm is twice the valley a grain over the top makes, ``valley_mm``. Ours, session 36: the hard radius with the ulna 14 mm beside, s173 frame 28, ran from the radius over the valley onto the ulna's top, which climbed 1.6 mm over the valley 4-11 mm past the neighbours' reach; see Testing/benchmarks/README.md)."""
 
+    at_rest_mm: float = 0.2
+    """A frame whose image corners all lie within this of the last frame that moved is one the probe recorded at rest: it is not tracked, it takes that frame's contour (``extras["at_rest_of"]``), and the surface is fitted from the frames that moved, mm (0: off; :func:`~BoneUSRecon.Logic.sweep.frames_at_rest`). Ours, session 44: a track is a longest path over frames, so sixty copies of a held frame gave its candidates sixty times their value and a look-alike there carried the whole track off the bone (a hard ulna held 2 s at the end of its sweep: every frame 6-16 mm off, gold 15.3 mm), and sixty rows at one position weighed the fit (0.03-0.06 mm). 0.2 mm: an optical tracker's jitter (0.05-0.25 mm RMS) mostly under it, the L14 recording's closest frames (0.29 mm at a corner) and the simulated sweeps' (0.87 mm) over it; a probe moving slower than 0.2 mm per frame keeps a frame every 0.2 mm."""
+
     def __post_init__(self) -> None:
         check_fields(
             self,
@@ -696,6 +699,7 @@ class RejectionParams:
                 "beyond_level_mm",
                 "beyond_min_mm",
                 "beyond_climb_mm",
+                "at_rest_mm",
             ),
             within={"min_overlap_share": "[0, 1]", "lane_frames": "[0, 1]", "lane_value": "[0, 1]"},
         )
