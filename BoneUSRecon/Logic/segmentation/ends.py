@@ -142,9 +142,9 @@ def shadow_step(
         grey in ``[under_gap_mm, under_gap_mm + band_mm]`` under the contour less that
         in ``[above_gap_mm, above_gap_mm + band_mm]`` above it (not above
         ``near_field_mm`` under the imaged field's top: under a black band over the
-        contour's columns, as :func:`.evidence.outside_field`): negative under bone (its shadow starts at the contour),
-        near zero under a layer over tissue or in a shade cast from above. NaN when no
-        band fits in the image.
+        contour's columns, as :func:`.evidence.outside_field`): negative under bone
+        (its shadow starts at the contour), near zero under a layer over tissue or in
+        a shade cast from above. NaN when no band fits in the image.
     """
     img = np.asarray(image)
     h, w = img.shape
