@@ -608,7 +608,7 @@ def _dark_share(
 ) -> np.ndarray | None:
     """Per column, the share of the rows ``depth_mm`` under the near field darker than
     half the tissue level at their depth (None: fewer than 2 such rows in the image).
-    ``outside``: pixels outside a sector (:func:`outside_sector`), not counted (a
+    ``outside``: pixels outside the field (:func:`outside_field`), not counted (a
     column with none of those rows inside: share 0, nothing says it is off the skin)."""
     h = work.shape[0]
     # From the imaged field's top (a black band over it is outside the field).
