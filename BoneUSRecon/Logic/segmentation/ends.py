@@ -73,6 +73,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
+from BoneUSRecon.Logic.segmentation.evidence import field_tops
 from BoneUSRecon.Logic.segmentation.params import EndsParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice
 
@@ -107,15 +108,13 @@ def _field_top(img: np.ndarray, cols: np.ndarray, sy: float) -> float:
     starting 1 mm of pixels over the scanner's black (0 where the image starts at the
     frame's top; under a black band over the image, a screen capture's, the band's
     depth; a label's glyphs in the band, under 1 mm tall, are passed over)."""
-    run = max(1, int(round(1.0 / sy)))
     lit = img[:, cols] > _BLACK
-    if lit[:run].all():  # the usual frame: imaged from its first row
+    if lit[: max(1, int(round(1.0 / sy)))].all():  # the usual frame: imaged from row 0
         return 0.0
-    cs = np.zeros((lit.shape[0] + 1, lit.shape[1]), np.int32)
-    np.cumsum(lit, axis=0, out=cs[1:])
-    starts = (cs[run:] - cs[:-run]) == run
-    first = np.where(starts.any(axis=0), np.argmax(starts, axis=0), 0)
-    return float(np.median(first))
+    tops = field_tops(lit, sy)
+    if tops is None:
+        return 0.0
+    return float(np.median(np.where(tops < lit.shape[0], tops, 0)))
 
 
 def shadow_step(

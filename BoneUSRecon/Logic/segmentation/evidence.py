@@ -99,6 +99,7 @@ __all__ = [
     "outside_sector",
     "outside_field",
     "field_rows",
+    "field_tops",
     "tissue_level",
     "bone_evidence",
 ]
@@ -278,7 +279,7 @@ def outside_sector(
     h = work.shape[0]
     if imaged is None:
         imaged = work > np.float32(params.fov_grey / 255.0)
-    top = _field_tops(work, dy, params, imaged)
+    top = field_tops(imaged, dy)
     if top is None:
         return None
     cols = np.flatnonzero((top < h) & _field_columns(imaged, params))
@@ -301,18 +302,16 @@ def _field_columns(imaged: np.ndarray, params: ShadowPathParams) -> np.ndarray:
     return out
 
 
-def _field_tops(
-    work: np.ndarray, dy: float, params: ShadowPathParams, imaged: np.ndarray | None = None
-) -> np.ndarray | None:
-    """Per column, the first row starting 1 mm of pixels over ``fov_grey`` (h: none);
-    None when the image is under 1 mm tall."""
-    h, w = work.shape
-    if imaged is None:
-        imaged = work > np.float32(params.fov_grey / 255.0)
+def field_tops(imaged: np.ndarray, dy: float) -> np.ndarray | None:
+    """Per column of a mask of imaged pixels (over the scanner's black), shape (h, w),
+    the first row starting 1 mm of them (h: none); None when it is under 1 mm tall
+    (``dy``: its row spacing, mm). A depth ruler's dots or a label's glyphs under 1 mm
+    tall start no field."""
+    h = imaged.shape[0]
     run = max(1, int(round(1.0 / dy)))
     if h <= run:
         return None
-    cs = np.zeros((h + 1, w), np.int32)
+    cs = np.zeros((h + 1, imaged.shape[1]), np.int32)
     np.cumsum(imaged, axis=0, out=cs[1:])
     starts = (cs[run:] - cs[:-run]) == run  # (h - run + 1, w)
     return np.where(starts.any(axis=0), np.argmax(starts, axis=0), h)
@@ -380,7 +379,7 @@ def outside_field(
         return int(depth)
 
     # Over a sector, its own outside holds any band over it.
-    above = band_depth(_field_tops(work, dy, params, imaged)) if sector is None else 0
+    above = band_depth(field_tops(imaged, dy)) if sector is None else 0
     # Under the field: the last rows exactly 0 over nearly all its columns.
     zero = (work[:, field] == 0).mean(axis=1) >= _UNDER_ZERO_SHARE
     under = int(np.argmin(zero[::-1])) if not zero.all() else 0
