@@ -7,13 +7,16 @@ Fixtures are read-only by convention: never modify a simulation's arrays in a te
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
+from BoneUSRecon.Logic.sweep import Sweep
 
 #: Parameters of the small sweeps: 40 frames of 128 rows x 160 columns at 0.3 mm.
 SMALL: dict[str, Any] = {
@@ -50,6 +53,21 @@ REAL_XML = sample_data("BoneUltrasound_L14_config.xml")
 CADAVER: dict[str, Any] = {"width": 475, "height": 405, "spacing_mm": 0.108}
 
 _CACHE: dict[tuple[tuple[str, Any], ...], Simulation] = {}
+
+
+def replayed(sweep: Sweep, frames: Any, poses: np.ndarray | None = None) -> Sweep:
+    """The sweep's frames in the order given, 20 frames/s, as a recording would hold
+    them (a frame repeated: the probe held at its pose; back down: a way back), with
+    ``poses`` instead of theirs if given (tracker jitter)."""
+    idx = np.asarray(frames)
+    return dataclasses.replace(
+        sweep,
+        frames=sweep.frames[idx],
+        image_to_reference=sweep.image_to_reference[idx] if poses is None else poses,
+        timestamps=np.arange(idx.size) / 20.0,
+        valid=sweep.valid[idx],
+        invalid_reasons={},
+    )
 
 
 def small_simulation(**params: Any) -> Simulation:

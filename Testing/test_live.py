@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import replayed
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from BoneUSRecon.cli.igtl import FrameReceiver, SweepServer
@@ -909,12 +910,7 @@ def test_frames_at_rest_are_skipped_live_and_the_surface_is_the_offline_one(sim_
     poses = sw.image_to_reference[idx].copy()
     rest = np.r_[np.arange(1, 10), np.arange(n + 10, n + 40)]
     poses[rest, :3, 3] += np.random.default_rng(0).normal(0, 0.03, (rest.size, 3))
-    held = sw.replace(
-        frames=sw.frames[idx],
-        image_to_reference=poses,
-        timestamps=np.arange(idx.size) / 20.0,
-        valid=np.ones(idx.size, bool),
-    )
+    held = replayed(sw, idx, poses)
     offline = reconstruct(held)
     live = LiveReconstructor()
     for m, (k, image) in enumerate(held.iter_frames()):

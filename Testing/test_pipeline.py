@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import CADAVER
+from conftest import CADAVER, replayed
 from vtkmodules.util import numpy_support
 
 from BoneUSRecon.Logic.bspline import FitParams
@@ -128,19 +128,6 @@ def test_reversed_sweep_equally_accurate(sim_factory):
     assert ev.mean < 0.25 and ev.within_1 > 0.97
 
 
-def held(sweep, frames):
-    """The sweep's frames in the order given (a frame repeated: the probe held at its pose)."""
-    idx = np.asarray(frames)
-    return dataclasses.replace(
-        sweep,
-        frames=sweep.frames[idx],
-        image_to_reference=sweep.image_to_reference[idx],
-        timestamps=np.arange(idx.size) / 20.0,
-        valid=sweep.valid[idx],
-        invalid_reasons={},
-    )
-
-
 @pytest.mark.parametrize("where", ["start", "middle"])
 def test_a_probe_held_still_is_reconstructed_as_well(sim_small, recon_small, where):
     # A PLUS recording often starts (or pauses) with the probe at rest: frames at one
@@ -152,7 +139,7 @@ def test_a_probe_held_still_is_reconstructed_as_well(sim_small, recon_small, whe
         if where == "start"
         else np.r_[np.arange(20), [20] * 10, np.arange(21, n)]
     )
-    r = reconstruct(held(sim_small.sweep, frames))
+    r = reconstruct(replayed(sim_small.sweep, frames))
     ev = evaluate_surface(r.surface, sim_small.gold)
     plain = evaluate_surface(recon_small.surface, sim_small.gold)
     assert r.fit.n_control_points == recon_small.fit.n_control_points
@@ -169,7 +156,7 @@ def test_a_sweep_there_and_back_gives_the_surface_of_one_pass(sim_factory, bone)
     sim = sim_factory(bone=bone, realism="hard", seed=3)
     n = sim.sweep.n_frames
     one = reconstruct(sim.sweep)
-    both = reconstruct(held(sim.sweep, np.r_[np.arange(n), np.arange(n - 1)[::-1]]))
+    both = reconstruct(replayed(sim.sweep, np.r_[np.arange(n), np.arange(n - 1)[::-1]]))
     a1, a2 = surface_area(one.surface), surface_area(both.surface)
     g1 = evaluate_surface(one.surface, sim.gold).mean
     g2 = evaluate_surface(both.surface, sim.gold).mean
@@ -190,7 +177,7 @@ def test_a_short_sweep_held_still_counts_its_positions_not_its_frames(sim_small)
     # (as the track keeps the far frames), so three control points along, not six
     # (half of twelve "slices"); four are refused, naming the positions.
     frames = np.r_[[0] * 9, 10, 20, 30]
-    sweep = held(sim_small.sweep, frames)
+    sweep = replayed(sim_small.sweep, frames)
     r = reconstruct(sweep, tracked_at_rest(ReconstructionParams()))
     assert r.fit.n_control_points[0] == 3
     with pytest.raises(BoneUSReconError, match=r"slices at [34] positions x"):
@@ -205,10 +192,10 @@ def test_frames_at_rest_stand_for_one_and_do_not_weigh_the_track(sim_factory):
     # surface, point for point, and each held frame has its contour.
     sim = sim_factory(bone="ulna", realism="hard", seed=241, **CADAVER)
     n = sim.sweep.n_frames
-    sweep = held(sim.sweep, np.r_[np.arange(n), [n - 1] * 60])
-    poses = sweep.image_to_reference.copy()
+    idx = np.r_[np.arange(n), [n - 1] * 60]
+    poses = sim.sweep.image_to_reference[idx].copy()
     poses[n:, :3, 3] += np.random.default_rng(0).normal(0, 0.05, (60, 3))
-    sweep = dataclasses.replace(sweep, image_to_reference=poses)
+    sweep = replayed(sim.sweep, idx, poses)
     plain, rest = reconstruct(sim.sweep), reconstruct(sweep)
     still = [c for c in rest.segmentation.contours if "at_rest_of" in c.extras]
     assert len(still) >= 50 and all(c.extras["at_rest_of"] == n - 1 for c in still)

@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import replayed
 from scipy.spatial import cKDTree
 from test_resampling import RADIUS, axis_point, tube_sweep
 from vtkmodules.util import numpy_support
@@ -505,14 +506,7 @@ def test_a_slice_twin_is_no_neighbour_for_the_edge_filter_nor_a_step_for_the_gap
     poses = sw.image_to_reference[idx].copy()
     normal = np.cross(poses[:, :3, 0], poses[:, :3, 1])
     poses[n:, :3, 3] += 0.15 * normal[n:] / np.linalg.norm(normal[n:], axis=1)[:, None]
-    both = dataclasses.replace(
-        sw,
-        frames=sw.frames[idx],
-        image_to_reference=poses,
-        timestamps=np.arange(idx.size) / 20.0,
-        valid=sw.valid[idx],
-        invalid_reasons={},
-    )
+    both = replayed(sw, idx, poses)
     twice = [(j, cont[k]) for j, k in enumerate(idx) if k in cont]
     g1, f1, _ = surface_from_contours(sorted(cont.items()), sw)
     g2, f2, _ = surface_from_contours(twice, both)
