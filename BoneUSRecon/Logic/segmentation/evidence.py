@@ -357,10 +357,10 @@ def outside_field(
     instrument fact) and the field's shape, as the sector rule does. A probe edge off
     the skin is no band: the columns in contact start at the top.
     """
-    sector = outside_sector(work, dx, dy, params, imaged)
-    h, w = work.shape
     if imaged is None:
         imaged = work > np.float32(params.fov_grey / 255.0)
+    sector = outside_sector(work, dx, dy, params, imaged)
+    h, w = work.shape
     run = max(1, int(round(1.0 / dy)))
     field = _field_columns(imaged, params)
     if not field.any():
