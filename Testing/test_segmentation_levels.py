@@ -79,3 +79,53 @@ def test_a_sweep_with_a_darker_shadow_keeps_its_near_cortex(radius_pair) -> None
     off = SegmentationParams(recovery=replace(SegmentationParams().recovery, enabled=False))
     assert score_simulation(segment_sweep(clean.sweep, off), clean).recall < 0.9
     assert score_simulation(segment_sweep(clean.sweep), clean).recall >= 0.95
+
+
+def test_shadow_gate_rises_past_one_to_its_top():
+    """The gate: 0 at ``zero``, 1 at ``full``, on at the same slope to ``top``."""
+    from BoneUSRecon.Logic.segmentation.evidence import shadow_gate
+
+    z = np.array([-2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 5.0], np.float32)
+    np.testing.assert_allclose(shadow_gate(z.copy(), -1.0, 1.0), [0, 0, 0.5, 1, 1, 1, 1])
+    np.testing.assert_allclose(shadow_gate(z.copy(), -1.0, 1.0, 2.0), [0, 0, 0.5, 1, 1.5, 2, 2])
+
+
+def test_a_faint_echo_over_a_deep_shadow_is_the_bone():
+    """Hard ulna, seed 500, the bone's echo weakened (``bone_amplitude`` 1.3: about 1.2x
+    the tissue above, ``bench_levels.py``) over its dark shadow. With the shadow gate
+    flat from 1 on (before session 46) a layer under the skin with a barely darker band
+    beneath outscored it and the track ran on the layer (measured: recall 0.00, wrong
+    share 0.70); rising on to 2 where the shadow is deep, the track is the bone
+    (measured: recall 1.00, no wrong frame)."""
+    from conftest import small_simulation
+
+    from BoneUSRecon.Logic.simulation import SimulationParams
+
+    hard = SimulationParams(realism="hard").hard
+    sim = small_simulation(
+        bone="ulna", seed=500, n_frames=30, realism="hard", hard=replace(hard, bone_amplitude=1.3)
+    )
+    base = SegmentationParams()
+    flat = replace(base, shadowpath=replace(base.shadowpath, shadow_gate_max=1.0))
+    on = score_simulation(segment_sweep(sim.sweep), sim)
+    off = score_simulation(segment_sweep(sim.sweep, flat), sim)
+    assert off.wrong_share >= 0.5  # the failure the rule is for
+    assert on.recall >= 0.95 and on.wrong_share == 0.0
+    assert np.median(on.distances) < 0.3  # mm from the true bone
+
+
+def test_the_gate_past_one_needs_a_shadow_as_wide_as_a_bone():
+    """A frame with no bone amid frames with one (``test_segmentation.analytic_sweep``,
+    frame 3): rising past 1 on the pixel's own shadow z-score, a speckle window's dark
+    tail carried a speckle path at the bone's depth through the guided search and the
+    frame was kept (measured: confidence 0.04); on the shadow held over
+    ``shadow_gate_width_mm`` (1 mm) to either side, it is not."""
+    from test_segmentation import analytic_sweep
+
+    sweep = analytic_sweep(8, no_bone=(3,))
+    base = SegmentationParams()
+    narrow = replace(base, shadowpath=replace(base.shadowpath, shadow_gate_width_mm=0.0))
+    assert segment_sweep(sweep, narrow).contours[3].accepted
+    r = segment_sweep(sweep)
+    assert not r.contours[3].accepted
+    assert all(c.accepted for c in r.contours if c.frame != 3)

@@ -62,11 +62,16 @@ def test_a_fascia_off_the_shoulder_is_cut_from_a_track_frame():
     """Hard ulna at the cadaver's geometry (475 x 405 at 0.108 mm), seed 197 (held out,
     session 35), frame 21: the contour ran from the bone's top on along a fascia leaving
     its right shoulder at its level, 10.6 mm past the frames on either side, 3.6 mm off
-    the bone on median. Cut, it lies on the bone; no other frame moves off it."""
+    the bone on median. Cut, it lies on the bone; no other frame moves off it. With
+    the shadow gate flat from 1 on (as before session 46): rising on to 2 where the
+    shadow is deep, the contour there no longer takes the fascia at all."""
     sim = small_simulation(bone="ulna", seed=197, realism="hard", **CADAVER)
     sw = sim.sweep
-    on = segment_sweep(sw)
     base = SegmentationParams()
+    base = dataclasses.replace(
+        base, shadowpath=dataclasses.replace(base.shadowpath, shadow_gate_max=1.0)
+    )
+    on = segment_sweep(sw, base)
     off = segment_sweep(
         sw,
         dataclasses.replace(base, rejection=dataclasses.replace(base.rejection, trim_beyond=False)),

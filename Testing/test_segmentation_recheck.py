@@ -27,9 +27,13 @@ from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
 # The recheck measured on its own: the candidates not settled nor their flat ends
 # followed (settle.py and rim.py, branch onset, fix or change some of these frames
-# before the track is chosen; clavicle 53 frame 32 is no longer capped with them).
+# before the track is chosen; clavicle 53 frame 32 is no longer capped with them), and
+# the shadow gate flat from 1 on (rising on to 2 where the shadow is deep, session 46,
+# clavicle 53 frame 32 lies on the bone without the recheck too).
 BASE = SegmentationParams(
-    shadowpath=ShadowPathParams(settle=SettleParams(enabled=False), rim=RimParams(enabled=False))
+    shadowpath=ShadowPathParams(
+        settle=SettleParams(enabled=False), rim=RimParams(enabled=False), shadow_gate_max=1.0
+    )
 )
 NO_RECHECK = dataclasses.replace(BASE, recovery=RecoveryParams(recheck=False))
 

@@ -135,8 +135,12 @@ def _first_track(sim):
     sw = sim.sweep
     # The per-frame step without settle.py and rim.py: these frames (radius 13 frame 27,
     # ulna 29 frame 18) had no contour on the first track then; settled, they have one,
-    # and the guided band is what is measured here.
-    bare = ShadowPathParams(settle=SettleParams(enabled=False), rim=RimParams(enabled=False))
+    # and the guided band is what is measured here. The shadow gate flat from 1 on, as
+    # before session 46 (rising on to 2 where the shadow is deep, radius 13 frame 27
+    # has a contour on the first track).
+    bare = ShadowPathParams(
+        settle=SettleParams(enabled=False), rim=RimParams(enabled=False), shadow_gate_max=1.0
+    )
     frames = frame_candidates_many(list(sw.frames), [sw.spacing_mm] * sw.n_frames, bare)
     return frames, select_bone_track(frames, sw.image_to_reference)
 

@@ -113,8 +113,9 @@ def _appended(frames, extra):
 # Recovery must find frames to add: tibia seed 2 has one left since narrow excursions
 # no longer split its domes (candidates._fill_excursions); seed 7 had four, one since
 # a second dome of a path is offered beside the best piece (candidates._separate_domes);
-# clavicle seed 11 has five.
-EXTRA_CASES = [{"bone": "clavicle", "realism": "hard", "seed": 11}, CASES[2]]
+# clavicle seed 11 had five, none since the shadow gate rises past 1 where the shadow
+# is deep (session 46: its frames on the first track); clavicle seed 14 has two.
+EXTRA_CASES = [{"bone": "clavicle", "realism": "hard", "seed": 14}, CASES[2]]
 
 
 @pytest.mark.parametrize("params", EXTRA_CASES, ids=["clavicle-hard", "humerus-hard"])

@@ -428,6 +428,10 @@ class ShadowPathParams:
     """Shadow z-score at which the shadow gate closes, robust z units (ours: half a spread brighter than the tissue at that depth: tissue, not shadow, beneath)."""
     shadow_z_full: float = 1.0
     """Shadow z-score at which the shadow gate is fully open, robust z units (ours: one spread darker than the tissue beside it; a grey shadow 0.65 of the tissue, or the L14 bone whose interior is barely darker, still opens it partly and the echo carries the score)."""
+    shadow_gate_max: float = 2.0
+    """Past ``shadow_z_full`` the gate keeps rising, at the same slope, up to this factor (2: reached at a shadow z of 3 with the defaults), so a shadow far darker than the tissue beside it counts for more than a marginal one (ours, session 46: a bone stops sound, soft tissue does not, so a deep shadow is the bone's surest sign; with the gate capped at 1 a faint echo over a black shadow, echo 1.2x the tissue above on a hard simulated clavicle, scored under a brighter layer with tissue beneath and the sweep was tracked on the layer, recall 0.03, wrong 0.90; at 2: recall 1.00, wrong 0. With ``shadow_gate_width_mm`` 1, the lead's 88 harness sweeps: gold 0.2445 -> 0.2093 mm, recall 0.991 -> 0.996, wrong share 0.0003 -> 0; the L14 recording's cadaver copy 1.416 -> 1.175 mm, the recording 0.270 -> 0.268, its grey-shadow copy 0.245 -> 0.268; 1 keeps the gate as it was. Figures: ``Testing/benchmarks/README.md``, session 46)."""
+    shadow_gate_width_mm: float = 1.0
+    """The gate rises past 1 on the lowest shadow z-score within this many mm to either side of the pixel, mm (ours, session 46: a bone's shadow is as wide as the bone, a speckle window's dark tail is a column or two; with the pixel's own z a speckle path at the track's depth was kept in a frame with no bone (``Testing/test_segmentation_cli.py``'s frame 3). Over the lead's 88 harness sweeps, +-0.5 / 1 / 2 mm (1 chosen): gold 0.2241 / 0.2093 mm, recall 0.994 / 0.996, the true contour covered 0.937 / 0.942; the pixel's own z: 0.2170, 0.994, 0.934)."""
     shadow_percentile: float = 80.0
     """Percentile over the columns giving the tissue level the shadow windows are compared with (ours: tissue beside a bone whose shadow covers up to 80 % of the width)."""
     null_dark_fraction: float = 0.0
@@ -559,6 +563,7 @@ class ShadowPathParams:
             ),
             non_negative=(
                 "shadow_gap_mm",
+                "shadow_gate_width_mm",
                 "cover_gap_mm",
                 "cover_ratio",
                 "shadow_null_tolerance",
@@ -599,6 +604,10 @@ class ShadowPathParams:
         if not self.shadow_z_full > self.shadow_z_zero:
             raise BoneUSReconError(
                 f"ShadowPathParams.shadow_z_full must be > shadow_z_zero, got {self.shadow_z_full!r}"
+            )
+        if not self.shadow_gate_max >= 1.0:
+            raise BoneUSReconError(
+                f"ShadowPathParams.shadow_gate_max must be at least 1, got {self.shadow_gate_max!r}"
             )
 
 
