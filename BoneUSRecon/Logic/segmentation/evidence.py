@@ -52,14 +52,14 @@ The score is the echo z-score (positive part) times a shadow gate rising from 0 
 ``shadow_z_zero`` (the region below brighter than the tissue at its depth: a fascia or
 tendon, a bright line with tissue beneath) to 1 at ``shadow_z_full`` (clearly darker),
 and on at the same slope to ``shadow_gate_max`` (2, at a shadow z of 3, where the
-shadow holds over ``shadow_gate_width_mm`` to either side): soft tissue
-does not stop sound, so a shadow far darker than the tissue beside it is the surest
-sign of bone, and a faint echo over it must not lose to a brighter layer over tissue.
-With the gate flat from 1 on, a hard simulated clavicle whose echo was 1.2x the tissue
-above, over a black shadow (z 4-5), scored 0-1.4 along its top against 1-1.6 for a
-layer under the skin with a barely darker band beneath (z ~0.5), and the sweep's track
-took the layer (recall 0.03, 90 % of frames wrong); at 2 it holds (recall 1.00). In
-z units of the frame's own spread, like every level here.
+shadow holds over ``shadow_gate_width_mm`` to either side): soft tissue does not stop
+sound, so a shadow far darker than the tissue beside it is the surest sign of bone, and
+a faint echo over it must not lose to a brighter layer over tissue. With the gate flat
+from 1 on, a hard simulated clavicle whose echo was 1.2x the tissue above, over a black
+shadow (z 4-5), scored 0-1.4 along its top against 1-1.6 for a layer under the skin
+with a barely darker band beneath (z ~0.5), and the sweep's track took the layer
+(recall 0.03, 90 % of frames wrong); at 2 it holds (recall 0.93, no frame wrong). In z
+units of the frame's own spread, like every level here.
 
 Columns outside the imaged field of view (black margins of scan-converted images) and
 columns without probe contact (dark from the near field down, as an uncoupled probe
