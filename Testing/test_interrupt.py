@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -131,20 +132,21 @@ def test_reconstruct_interrupted_between_outputs(small_sweep, tmp_path):
     """Ctrl-C while the report is written, after the surface and points files exist:
     those are removed again, as the message promises."""
     surface, points, report = tmp_path / "bone.vtp", tmp_path / "points.vtp", tmp_path / "report"
-    proc = start(
-        [
-            "reconstruct",
-            str(small_sweep),
-            "-o",
-            str(surface),
-            "--points-out",
-            str(points),
-            "--report",
-            str(report),
-            "-q",
-        ]
-    )
-    status, out, err = interrupt_when(proc, lambda: surface.exists() and points.exists())
+    argv = ["reconstruct", str(small_sweep), "-o", str(surface)]
+    argv += ["--points-out", str(points), "--report", str(report), "-q"]
+    for _ in range(3):
+        proc = start(argv)
+        status, out, err = interrupt_when(proc, lambda: surface.exists() and points.exists())
+        if status != 0:
+            break
+        # The report is written in a few ms: on a loaded machine the signal may land
+        # after the run has finished (a whole run, status 0, every output there). Again.
+        assert surface.exists() and points.exists() and report.exists(), err
+        for p in tmp_path.iterdir():
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
     assert_clean_interrupt(status, out, err)
     assert os.listdir(tmp_path) == []
 
