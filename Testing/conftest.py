@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from BoneUSRecon.Logic.segmentation.params import SegmentationParams, ShadowPathParams
 from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
 from BoneUSRecon.Logic.sweep import Sweep
 
@@ -68,6 +69,12 @@ def replayed(sweep: Sweep, frames: Any, poses: np.ndarray | None = None) -> Swee
         valid=sweep.valid[idx],
         invalid_reasons={},
     )
+
+
+#: The segmentation with the shadow gate flat from 1 on (``shadow_gate_max`` 1), as before
+#: session 46: tests of a mechanism whose situation arises on their sweeps only with it
+#: (with the gate rising on where the shadow is deep, the bone wins there first).
+FLAT_GATE = SegmentationParams(shadowpath=ShadowPathParams(shadow_gate_max=1.0))
 
 
 def small_simulation(**params: Any) -> Simulation:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import replayed
+from conftest import FLAT_GATE, replayed
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from BoneUSRecon.cli.igtl import FrameReceiver, SweepServer
@@ -298,12 +298,7 @@ def test_live_ends_cut_equals_offline(sim_factory):
     # the shadow gate flat from 1 on, as before session 46: rising on to 2 where the
     # shadow is deep, no sweep of ulna, radius or humerus seeds 0-24 (or ulna 25-39)
     # missed a search here.
-    seg = SegmentationParams()
-    flat = ReconstructionParams(
-        segmentation=dataclasses.replace(
-            seg, shadowpath=dataclasses.replace(seg.shadowpath, shadow_gate_max=1.0)
-        )
-    )
+    flat = ReconstructionParams(segmentation=FLAT_GATE)
     sim = sim_factory(bone="ulna", realism="hard", seed=5, bone_free_frames=(3, 10))
     offline = segment_sweep(sim.sweep, flat.segmentation)
     live = LiveReconstructor(flat)

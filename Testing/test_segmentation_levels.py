@@ -97,7 +97,7 @@ def test_a_faint_echo_over_a_deep_shadow_is_the_bone():
     beneath outscored it and the track ran on the layer (measured: recall 0.00, wrong
     share 0.70); rising on to 2 where the shadow is deep, the track is the bone
     (measured: recall 1.00, no wrong frame)."""
-    from conftest import small_simulation
+    from conftest import FLAT_GATE, small_simulation
 
     from BoneUSRecon.Logic.simulation import SimulationParams
 
@@ -105,10 +105,8 @@ def test_a_faint_echo_over_a_deep_shadow_is_the_bone():
     sim = small_simulation(
         bone="ulna", seed=500, n_frames=30, realism="hard", hard=replace(hard, bone_amplitude=1.3)
     )
-    base = SegmentationParams()
-    flat = replace(base, shadowpath=replace(base.shadowpath, shadow_gate_max=1.0))
     on = score_simulation(segment_sweep(sim.sweep), sim)
-    off = score_simulation(segment_sweep(sim.sweep, flat), sim)
+    off = score_simulation(segment_sweep(sim.sweep, FLAT_GATE), sim)
     assert off.wrong_share >= 0.5  # the failure the rule is for
     assert on.recall >= 0.95 and on.wrong_share == 0.0
     assert np.median(on.distances) < 0.3  # mm from the true bone

@@ -12,9 +12,9 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import CADAVER, small_simulation
+from conftest import CADAVER, FLAT_GATE, small_simulation
 
-from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
+from BoneUSRecon.Logic.segmentation import segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.segmentation.reach import beyond_reach
@@ -67,10 +67,7 @@ def test_a_fascia_off_the_shoulder_is_cut_from_a_track_frame():
     shadow is deep, the contour there no longer takes the fascia at all."""
     sim = small_simulation(bone="ulna", seed=197, realism="hard", **CADAVER)
     sw = sim.sweep
-    base = SegmentationParams()
-    base = dataclasses.replace(
-        base, shadowpath=dataclasses.replace(base.shadowpath, shadow_gate_max=1.0)
-    )
+    base = FLAT_GATE
     on = segment_sweep(sw, base)
     off = segment_sweep(
         sw,
