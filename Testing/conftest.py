@@ -15,7 +15,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from BoneUSRecon.Logic.segmentation.params import SegmentationParams, ShadowPathParams
+from BoneUSRecon.Logic.segmentation.params import (
+    RimParams,
+    SegmentationParams,
+    SettleParams,
+    ShadowPathParams,
+)
 from BoneUSRecon.Logic.simulation import Simulation, SimulationParams, simulate
 from BoneUSRecon.Logic.sweep import Sweep
 
@@ -75,6 +80,13 @@ def replayed(sweep: Sweep, frames: Any, poses: np.ndarray | None = None) -> Swee
 #: session 46: tests of a mechanism whose situation arises on their sweeps only with it
 #: (with the gate rising on where the shadow is deep, the bone wins there first).
 FLAT_GATE = SegmentationParams(shadowpath=ShadowPathParams(shadow_gate_max=1.0))
+
+#: The per-frame step as several mechanism tests measure it: the candidates not settled
+#: nor their flat ends followed (settle.py and rim.py, branch onset) and the shadow gate
+#: flat from 1 on; each test says which of its frames need which.
+FLAT_BARE = dataclasses.replace(
+    FLAT_GATE.shadowpath, settle=SettleParams(enabled=False), rim=RimParams(enabled=False)
+)
 
 
 def small_simulation(**params: Any) -> Simulation:

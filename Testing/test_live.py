@@ -270,8 +270,8 @@ def test_live_ends_cut_equals_offline(sim_factory):
     With the default ``keep_all_pixels`` False it may differ where a frame that was on
     the track at an earlier refit falls off it and needs a search (counted): ulna seed
     5 with bone-free frames 0-2 and 30-39 misses 3 searches with the shadow gate flat
-    from 1 on (which would not have
-    found a contour either; 0 such frames on the tibia sweep). Humerus seed 1, which
+    from 1 on (which would not have found a contour either; 0 such frames on the tibia
+    sweep). Humerus seed 1, which
     missed 3 that did, misses none since the first track's bone-free ends are cut and
     the track chosen again before the search (branch track5); humerus seed 5, the case
     before the candidates were settled and their flat ends followed, branch onset, no

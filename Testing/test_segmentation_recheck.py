@@ -14,14 +14,13 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import small_simulation
+from conftest import FLAT_BARE, small_simulation
 
 from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.live import LiveReconstructor
 from BoneUSRecon.Logic.pipeline import ReconstructionParams
 from BoneUSRecon.Logic.segmentation import RecoveryParams, SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate
-from BoneUSRecon.Logic.segmentation.params import RimParams, SettleParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.recovery import stray
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 
@@ -30,11 +29,7 @@ from BoneUSRecon.Logic.simulation.scoring import score_simulation
 # before the track is chosen; clavicle 53 frame 32 is no longer capped with them), and
 # the shadow gate flat from 1 on (rising on to 2 where the shadow is deep, session 46,
 # clavicle 53 frame 32 lies on the bone without the recheck too).
-BASE = SegmentationParams(
-    shadowpath=ShadowPathParams(
-        settle=SettleParams(enabled=False), rim=RimParams(enabled=False), shadow_gate_max=1.0
-    )
-)
+BASE = SegmentationParams(shadowpath=FLAT_BARE)
 NO_RECHECK = dataclasses.replace(BASE, recovery=RecoveryParams(recheck=False))
 
 

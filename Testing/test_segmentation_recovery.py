@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import CADAVER, small_simulation
+from conftest import CADAVER, FLAT_BARE, small_simulation
 
 from BoneUSRecon.Logic.segmentation import (
     RecoveryParams,
@@ -21,7 +21,6 @@ from BoneUSRecon.Logic.segmentation import (
 )
 from BoneUSRecon.Logic.segmentation.candidates import frame_candidates_many
 from BoneUSRecon.Logic.segmentation.evidence import bone_evidence
-from BoneUSRecon.Logic.segmentation.params import RimParams, SettleParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.recovery import across_field, guided_candidate, track_prior
 from BoneUSRecon.Logic.simulation.scoring import score_simulation
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
@@ -138,9 +137,7 @@ def _first_track(sim):
     # and the guided band is what is measured here. The shadow gate flat from 1 on, as
     # before session 46 (rising on to 2 where the shadow is deep, radius 13 frame 27
     # has a contour on the first track).
-    bare = ShadowPathParams(
-        settle=SettleParams(enabled=False), rim=RimParams(enabled=False), shadow_gate_max=1.0
-    )
+    bare = FLAT_BARE
     frames = frame_candidates_many(list(sw.frames), [sw.spacing_mm] * sw.n_frames, bare)
     return frames, select_bone_track(frames, sw.image_to_reference)
 

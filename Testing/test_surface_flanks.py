@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import FLAT_BARE
 from test_resampling import RADIUS, axis_point, tube_sweep
 from vtkmodules.util import numpy_support
 
@@ -17,7 +18,6 @@ from BoneUSRecon.Logic.evaluation import evaluate_surface
 from BoneUSRecon.Logic.pipeline import ReconstructionParams, reconstruct
 from BoneUSRecon.Logic.resampling import ResamplingParams, resample
 from BoneUSRecon.Logic.segmentation import SegmentationParams
-from BoneUSRecon.Logic.segmentation.params import RimParams, SettleParams, ShadowPathParams
 from BoneUSRecon.Logic.simulation import SimulationParams, simulate
 from BoneUSRecon.Logic.simulation.core import sample_gold
 from BoneUSRecon.Logic.surface import SurfaceParams, surface_polydata
@@ -139,9 +139,7 @@ def test_hard_sweep_gold_nearer_with_the_strips():
     # shadow gate flat from 1 on, as when they were measured: rising on to 2 where the
     # shadow is deep (session 46) these contours end elsewhere on the flanks and the
     # strip's seam lies 0.92 mm off the bone.
-    bare = ShadowPathParams(
-        settle=SettleParams(enabled=False), rim=RimParams(enabled=False), shadow_gate_max=1.0
-    )
+    bare = FLAT_BARE
     # The strips' bounds below were measured on the paper's 15 x 5 control points: they
     # continue the surface's edge, and at the default 15 x 6 this sweep's edge bends
     # more (seam 0.37 mm, 0.7-1 mm out 1.48 mm; gold 0.757 -> 0.789 mm without strips):
