@@ -36,6 +36,7 @@ BAD = [
     (ShadowPathParams, "fov_fraction", 1.0, r"must lie in \[0, 1\), got 1.0"),
     (ShadowPathParams, "tissue_percentile", 100, r"must lie in \(0, 100\)"),
     (ShadowPathParams, "null_z", float("nan"), "must be finite"),
+    (ShadowPathParams, "series_extend_deg", 90.0, r"must lie in \(0, 90\), got 90.0"),
     (SnakeParams, "n_points", 2, r"must lie in \[3, 100000\]"),
     (SnakeParams, "tau", 0.0, "must be > 0"),
     (SnakeParams, "max_iterations", "300", "must be an integer, got '300'"),

@@ -37,7 +37,9 @@ Look-alikes handled per frame (each with a simulated test in
   (:func:`_series`: three or more equally spaced, fading lines over dark troughs);
   its top, added if no pass found it, carries the series' evidence
   (:func:`_mark_series`): under a grey shadow the copies, with the darkest shadow
-  beneath them, outscore the faint reflector itself.
+  beneath them, outscore the faint reflector itself. A top made over a copy's
+  columns is followed on past them (:func:`_extend_top`): the copies of a convex bone
+  narrow out on its sides.
 
 * **a bone beside it joined on** (the fibula 10-15 mm under the tibia's top, the ulna
   beside a radius): a contour whose flank, past its deepest point, climbs back up
@@ -537,9 +539,10 @@ def _clip_rows(rows: np.ndarray, lo: int, hi: int) -> np.ndarray:
     return np.minimum(np.maximum(rows, lo), hi)
 
 
-def _dense_rows(cands: list[dict]) -> None:
-    """Give each candidate ``dense``: its row per working column, NaN where it is absent."""
-    w = max(int(c["cols"][-1]) for c in cands) + 1
+def _dense_rows(cands: list[dict], width: int | None = None) -> None:
+    """Give each candidate ``dense``: its row per working column, NaN where it is absent
+    (``width`` columns; None: up to the last column any candidate reaches)."""
+    w = max(int(c["cols"][-1]) for c in cands) + 1 if width is None else width
     for c in cands:
         d = np.full(w, np.nan)
         d[c["cols"]] = c["rows"]
@@ -878,6 +881,100 @@ def _trace_band(
     return np.where(path >= 0, path + r0, _clip_rows(base, 0, h - 1))
 
 
+def _extend_top(
+    ev: EvidenceMaps,
+    lr: np.ndarray,
+    cols: np.ndarray,
+    rows: np.ndarray,
+    half: int,
+    dark: float,
+    p: ShadowPathParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A series' top made from a copy's columns, continued past them along its own echo.
+
+    A copy spans only the part of the reflector its sound came back from (the copies
+    of a convex bone fade and narrow out on its sides), so a top made over the copy's
+    columns stops short of the bone's flanks, and the flank tracer (:mod:`.flanks`)
+    need not take over from there: under the top lie the copies, not shadow, so its
+    echo counts single there. Each end is followed column by column outward
+    (:func:`_trace_top_end`) from the middle half of the top, where the copy's shape
+    fits the reflector (out on the sides a copy curves down more than its reflector,
+    and the band traced along it may hook down there), or, where that trace stops
+    short of the copy's end, from the end itself.
+    """
+    n = cols.size
+    q = n // 4
+    parts: list[tuple[int, list[tuple[int, int]]]] = []  # per side: kept index, trace
+    for side, inner, end in ((-1, q, 0), (1, n - 1 - q, n - 1)):
+        got = _trace_top_end(ev, lr, cols, rows, inner, side, half, dark, p) if q else []
+        if not got or (got[-1][0] - cols[end]) * side <= 0:
+            inner = end
+            got = _trace_top_end(ev, lr, cols, rows, end, side, half, dark, p)
+        parts.append((inner, got))
+    (a, left), (b, right) = parts
+    left = left[::-1]
+    cc = [g[0] for g in left] + cols[a : b + 1].tolist() + [g[0] for g in right]
+    rr = [g[1] for g in left] + rows[a : b + 1].tolist() + [g[1] for g in right]
+    return np.asarray(cc, dtype=np.intp), np.asarray(rr, dtype=np.intp)
+
+
+def _trace_top_end(
+    ev: EvidenceMaps,
+    lr: np.ndarray,
+    cols: np.ndarray,
+    rows: np.ndarray,
+    at: int,
+    side: int,
+    half: int,
+    dark: float,
+    p: ShadowPathParams,
+) -> list[tuple[int, int]]:
+    """``(column, row)`` of a series' top (``cols``, ``rows``) followed outward
+    (``side`` -1: towards smaller columns) from its point ``at``.
+
+    Column by column while the reflector's defining evidence holds: an echo above the
+    tissue over it (echo z > 0) with the series' dark trough half a spacing (``half``
+    rows) under it (``lr`` below ``dark`` over three rows; beside the bone lies tissue,
+    not a trough), and while it stays convex seen from the probe: outward it only
+    descends, each step at most one row less steep than the last, up to
+    ``series_extend_deg``; past that the flank tracer (:mod:`.flanks`) takes over with
+    its stop rule measured on the frame's speckle. One failing column is bridged, two
+    end the trace; columns without contact are stepped over (no evidence either way),
+    up to ``merge_gap_mm``. Levels are the series' own, measured in the frame.
+    """
+    h, w = ev.echo_z.shape
+    down = max(1, ceil_px(np.tan(np.radians(p.series_extend_deg)) * ev.dx / ev.dy))
+    skip = mm_to_px(p.merge_gap_mm, ev.dx)
+    c, r = int(cols[at]), int(rows[at])
+    r_in = int(rows[min(max(at - 3 * side, 0), cols.size - 1)])
+    step = max(0, int(round((r - r_in) / 3.0)))  # the descent per column at the start
+    got: list[tuple[int, int]] = []
+    misses = skipped = 0
+    while misses < 2 and skipped <= skip:
+        c += side
+        if c < 0 or c >= w:
+            break
+        if not ev.usable[c]:
+            skipped += 1
+            continue
+        skipped = 0
+        cand = r + np.arange(max(0, step - 1), down + 1)
+        cand = cand[cand + half + 1 < h]
+        if cand.size == 0:
+            break
+        t = cand + half
+        trough = (lr[t - 1, c] + lr[t, c] + lr[t + 1, c]) / 3.0
+        e = np.where(trough < dark, ev.echo_z[cand, c], -np.inf)
+        k = int(np.argmax(e))
+        if e[k] > 0:
+            step, r = int(cand[k]) - r, int(cand[k])
+            got.append((c, r))
+            misses = 0
+        else:
+            misses += 1  # bridged: the next column is searched from the same row
+    return got
+
+
 def _curves_down(rows: np.ndarray) -> bool:
     """Whether a contour (rows per column) is deeper in its middle third than at its
     ends (a bowl seen from the probe: the back wall of a convex bone, not its front)."""
@@ -925,7 +1022,8 @@ def _mark_series(
     (:func:`_mirrored`), up to the near field (the near cortex lies a bone's thickness
     over it) and, failing that, over its middle half; its own echo, not being a copy,
     does not veto the top (``copy_echo_ratio``); the top is traced along the echo in its band
-    (:func:`_trace_band`), and when the shallowest member of a loose series is no
+    (:func:`_trace_band`) and, made over a copy's columns, followed on past them along
+    its own echo (:func:`_extend_top`: a copy spans only part of its reflector), and when the shallowest member of a loose series is no
     confirmed top (a speckle peak of the tissue over the bone, with tissue under it)
     the next one down is tried, never past a member with shadow under it. The top must be
     a first interface: below the near field (gel, skin, lens echoes), with tissue, not
@@ -987,17 +1085,24 @@ def _mark_series(
             if median1d(base) < nf:
                 return None  # in the near field: no first interface (as confirmed() rules)
             base = _clip_rows(base, 0, h - 1)
-            rows = _trace_band(ev, c["cols"], base, rw, shift_cost, lr, int(round(d / 2)), dark)
-            sc = ev.score[rows, c["cols"]]
+            half = int(round(d / 2))
+            rows = _trace_band(ev, c["cols"], base, rw, shift_cost, lr, half, dark)
+            cols = c["cols"]
+            if copy:
+                # Made over a copy's columns: on past them along its own echo. (Read
+                # over a far cortex, a bowl whose mirror is only a shape hypothesis, the
+                # top is not followed: the trough rule holds anywhere in the shadow.)
+                cols, rows = _extend_top(ev, lr, cols, rows, half, dark, p)
+            sc = ev.score[rows, cols]
             dense = np.full(c["dense"].size, np.nan)
-            dense[c["cols"]] = rows
+            dense[cols] = rows
             best = {
-                "cols": c["cols"],
+                "cols": cols,
                 "rows": rows,
                 "strength": float((sc - p.null_z).sum() * ev.dx),
-                "shadow": median1d(ev.shadow_z[rows, c["cols"]]),
-                "grey": median1d(ev.work[rows, c["cols"]]),
-                "echo": median1d(ev.echo_z[rows, c["cols"]]),
+                "shadow": median1d(ev.shadow_z[rows, cols]),
+                "grey": median1d(ev.work[rows, cols]),
+                "echo": median1d(ev.echo_z[rows, cols]),
                 "dense": dense,
             }
         # A copy returns less than its reflector; over the shadow it may stand out
@@ -1413,7 +1518,7 @@ def _frame_candidates_steps(
             gain[band[ok], np.broadcast_to(cols, band.shape)[ok]] = -1.0
     if not found:
         return FrameCandidates((), sp, "no bone found", level=ev.frame_level())
-    _dense_rows(found)
+    _dense_rows(found, w)
     _mark_reverberations(found, p)
     lr = _log_ratio(ev)
     found = _mark_series(found, ev, lr, p)
