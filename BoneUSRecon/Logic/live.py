@@ -91,7 +91,7 @@ from BoneUSRecon.Logic.segmentation.recovery import (
 )
 from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
 from BoneUSRecon.Logic.segmentation.result import FrameContour
-from BoneUSRecon.Logic.segmentation.track import TrackChoice
+from BoneUSRecon.Logic.segmentation.track import TrackChoice, scale_warnings
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sequence_io import write_sweep
 from BoneUSRecon.Logic.sweep import Sweep, frames_at_rest, pixel_spacing
@@ -358,6 +358,10 @@ def _select(
     position and the track's verdict on it: records whose verdict did not change
     since the last refit are reused (most of them), the others made again.
     """
+    # The link tolerance scaled to the frames' own deviation, as offline
+    # (:func:`~BoneUSRecon.Logic.segmentation.track.tolerance_scale`).
+    track.rescale()
+    given, params = params, replace(params, rejection=track.rejection)
     extra: dict[int, BoneCandidate] = {}
     again: dict[int, BoneCandidate] = {}  # track contours replaced (_rechecked)
     first: TrackChoice | None = None
@@ -429,8 +433,9 @@ def _select(
     return SegmentationResult(
         contours,
         params.method,
-        params,
+        given,
         {"segment_s": t_seg, "frames_per_s": len(frames) / max(t_seg, 1e-9)},
+        warnings=scale_warnings(track.scale),
     )
 
 
@@ -801,7 +806,7 @@ class LiveReconstructor:
             raise BoneUSReconError("no bone contour found yet")
         if self.params.segmentation.rejection.bone_points:
             said, self._points_open = _point_warnings(seg, sweep, self.params, final)
-            seg = replace(seg, warnings=said)
+            seg = replace(seg, warnings=seg.warnings + said)
         t_seg = self._segment_s + time.perf_counter() - t0
         return reconstruction_from_segmentation(
             sweep, seg, self.params, segment_s=t_seg, with_points=with_points

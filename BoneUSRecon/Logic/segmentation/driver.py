@@ -45,7 +45,12 @@ from BoneUSRecon.Logic.segmentation.recovery import recheck_track, recover_frame
 from BoneUSRecon.Logic.segmentation.recovery import settings as recovery_settings
 from BoneUSRecon.Logic.segmentation.result import FrameContour, SegmentationResult
 from BoneUSRecon.Logic.segmentation.snake import snake_frame
-from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice, select_bone_track
+from BoneUSRecon.Logic.segmentation.track import (
+    REASONS,
+    TrackChoice,
+    scale_warnings,
+    select_bone_track,
+)
 from BoneUSRecon.Logic.segmentation.track_incremental import IncrementalTrack
 from BoneUSRecon.Logic.sweep import Sweep, frames_at_rest, pixel_spacing
 
@@ -283,6 +288,10 @@ def segment_sweep(
     track = IncrementalTrack(params.rejection)
     for fc, pose in zip(frames, poses, strict=True):
         track.add(fc, pose)
+    # The link tolerance scaled to the sweep's own frame-to-frame deviation
+    # (:func:`.track.tolerance_scale`): the track and every step after it use it.
+    track.rescale()
+    rejection = track.rejection
     steps: dict[BoneCandidate, float] = {}  # shadow steps measured (:mod:`.ends`)
 
     def track_steps(fcs: list[FrameCandidates], choice: TrackChoice) -> np.ndarray:
@@ -317,7 +326,7 @@ def segment_sweep(
             poses,
             lambda n: np.asarray(sweep.frames[int(idx[n])]),
             params.shadowpath,
-            params.rejection,
+            rejection,
             recovery_settings(params),
             kept.get,
         )
@@ -342,16 +351,14 @@ def segment_sweep(
             poses,
             lambda n: np.asarray(sweep.frames[int(idx[n])]),
             params.shadowpath,
-            params.rejection,
+            rejection,
             params.recovery,
             kept.get,
         )
     kept.clear()
     # A level run past the reach of the track frames on either side cut off (a layer
     # leaving the bone's top at its level, :mod:`.reach`).
-    frames, choice = with_chosen(
-        frames, choice, trim_beyond(frames, choice, poses, params.rejection)
-    )
+    frames, choice = with_chosen(frames, choice, trim_beyond(frames, choice, poses, rejection))
     contours = with_frames_at_rest(contours_from_track(idx, frames, choice, params), at_rest)
     t_seg = time.perf_counter() - t0
     result = SegmentationResult(
@@ -359,14 +366,22 @@ def segment_sweep(
         params.method,
         params,
         {"segment_s": t_seg, "frames_per_s": idx.size / max(t_seg, 1e-9)},
-        # Bone points the track does not reach (none given: nothing mapped).
-        warnings=point_warnings(
-            [(c.frame, sweep.to_reference(c.frame, c.points_px)) for c in contours if c.accepted],
-            sweep.image_to_reference,
-            params.rejection,
-        )
-        if params.rejection.bone_points
-        else (),
+        # A tolerance scaled to the sweep's deviation, then bone points the track does
+        # not reach (none given: nothing mapped).
+        warnings=scale_warnings(track.scale)
+        + (
+            point_warnings(
+                [
+                    (c.frame, sweep.to_reference(c.frame, c.points_px))
+                    for c in contours
+                    if c.accepted
+                ],
+                sweep.image_to_reference,
+                params.rejection,
+            )
+            if params.rejection.bone_points
+            else ()
+        ),
     )
     if not result.accepted:
         raise BoneUSReconError("no bone contour found in any frame", sweep.source)

@@ -632,6 +632,12 @@ class RejectionParams:
     """Growth of that tolerance per mm between the frames along the sweep (a bone surface inclined by up to ~30 degrees to the sweep)."""
     max_deviation: float = 3.5
     """Contours farther apart than this many tolerances are never linked."""
+    typical_deviation: float = 0.2
+    """The frame-to-frame deviation, in tolerances, the tolerance is made for; a sweep whose own deviates more (``min_tolerance_scale`` times or more) gets both terms of the tolerance scaled up so that it deviates this much (:func:`.track.tolerance_scale`; 0: never scaled). A sweep's deviation: the median over consecutive frames of the least deviation between their contours, base tolerances. Measured (all candidates of each frame): exact poses 0.11-0.16 over the 20 hard sweeps of seeds 173/179, an unsteady hand (tilt 12 degrees) 0.15-0.27; a tracker's noise per frame adds to every pair: 0.5 mm / 0.2 degrees 0.17-0.26, 1 mm / 0.4 degrees (an electromagnetic tracker's level) 0.23-0.42, where the bone's track broke at one frame in seven (recall 0.855; scaled: 0.945). A tolerance fixed larger for every sweep cost the exact ones accuracy (1.5 mm: gold 0.245 -> 0.277 mm over 88 sweeps)."""
+    min_tolerance_scale: float = 1.5
+    """A smaller scale is not applied: the tolerance stands (ours: with exact poses an unsteady hand, tilting 12 degrees, makes its sweep deviate up to 1.37 typical deviations, 0.15-0.27 over the 20 such sweeps of seeds 173-607; scaled by 1.25 there, one sweep's end frames changed and its gold went 0.51 -> 1.17 mm; from 1.5 on, only sweeps whose poses carry a tracker's noise are scaled)."""
+    max_tolerance_scale: float = 3.0
+    """The tolerance is scaled up by at most this factor (ours: at 3 a link within ``max_deviation`` reaches 10.5 mm plus the slope's share, the gap between a bone's top and its far cortex)."""
     max_skip: int = 8
     """A track may skip this many frames between two of its contours."""
     min_overlap_share: float = 0.3
@@ -698,6 +704,7 @@ class RejectionParams:
             ),
             non_negative=(
                 "tolerance_per_mm",
+                "typical_deviation",
                 "step_per_mm",
                 "max_skip",
                 "miss_cost",
@@ -713,7 +720,13 @@ class RejectionParams:
                 "beyond_climb_mm",
                 "at_rest_mm",
             ),
-            within={"min_overlap_share": "[0, 1]", "lane_frames": "[0, 1]", "lane_value": "[0, 1]"},
+            within={
+                "min_overlap_share": "[0, 1]",
+                "lane_frames": "[0, 1]",
+                "lane_value": "[0, 1]",
+                "min_tolerance_scale": "[1, 10]",
+                "max_tolerance_scale": "[1, 10]",
+            },
         )
 
 

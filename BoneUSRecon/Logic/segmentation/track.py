@@ -24,6 +24,15 @@ acyclic graph (a Viterbi over frames that may skip up to ``max_skip`` frames):
   track's ends (:func:`_extend_ends`: the chosen track is carried on through nodes in
   its lane where their value and that credit beat their links' cost).
 
+The tolerance is the sweep's own where its contours demand it: a tracker's noise moves
+every frame's contour in its neighbours' planes, however exact the segmentation, and a
+tolerance set for an optical tracker breaks an electromagnetic one's track at one frame
+in seven. The least deviation between the contours of consecutive frames, on median
+over the sweep, is the sweep's frame-to-frame deviation; where it is
+``min_tolerance_scale`` times ``typical_deviation`` tolerances or more, both terms of
+the tolerance are scaled up so that it is ``typical_deviation`` (:func:`tolerance_scale`;
+with exact poses, a steady hand's or an unsteady one's, it stays as it is).
+
 A caller may rule frames out beforehand (``exclude``: the frames :mod:`.ends` judged
 bone-free): their candidates are no nodes, and they keep the reason given.
 
@@ -39,7 +48,7 @@ neighbouring frames" (the distance to the track is in the frame's ``detail``).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -49,7 +58,7 @@ from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.sweep import frame_planes, pixels_to_reference
 
-__all__ = ["TrackChoice", "select_bone_track", "REASONS"]
+__all__ = ["TrackChoice", "select_bone_track", "tolerance_scale", "scale_warnings", "REASONS"]
 
 #: Rejection reasons (one category each; values go to ``FrameContour.detail``).
 REASONS = {
@@ -434,6 +443,69 @@ def _links_many(
     return out
 
 
+#: Fewest pairs of consecutive frames the sweep's own deviation is taken over (fewer:
+#: the tolerance stands).
+_MIN_PAIRS = 5
+
+
+def _pair_deviation(
+    a_refs: Sequence[np.ndarray],
+    plane: tuple[np.ndarray, np.ndarray, np.ndarray],
+    b_nodes: Sequence[tuple[np.ndarray, tuple[float, float, float, float]]],
+    p: RejectionParams,
+) -> float:
+    """The least deviation (tolerances of ``p``) of any link from frame a's nodes to the
+    next frame's (inf if none links): the bone's, wherever it is among them."""
+    devs = [dev for row in _links_many(a_refs, plane, b_nodes, p) for _, dev in row]
+    return min(devs) if devs else np.inf
+
+
+def tolerance_scale(pair_deviations: Sequence[float], p: RejectionParams) -> float:
+    """The factor the link tolerance is scaled by for a sweep (1: it stands).
+
+    ``pair_deviations``: per pair of consecutive frames, the least deviation of a link
+    between their nodes in ``p``'s own tolerances (inf: none linked). Their median over
+    the sweep over ``typical_deviation``, rounded to a quarter, up to
+    ``max_tolerance_scale``; 1 under ``min_tolerance_scale``, under ``_MIN_PAIRS``
+    linked pairs, or with ``typical_deviation`` 0.
+
+    Why it generalises: the deviation is measured on the sweep itself, between its own
+    contours, in the tolerance's own units; the bone's contours are among each pair's
+    candidates, and the least deviation of a pair is the bone's or smaller, so a
+    look-alike never inflates it. Rounded to quarters, a live session's scale changes
+    only a few times as frames arrive (each change relinks its frames).
+    """
+    v = np.asarray([d for d in pair_deviations if np.isfinite(d)], dtype=float)
+    if p.typical_deviation <= 0 or v.size < _MIN_PAIRS:
+        return 1.0
+    g = float(np.rint(median1d(v) / p.typical_deviation * 4.0)) / 4.0
+    if g < p.min_tolerance_scale:
+        return 1.0
+    return min(p.max_tolerance_scale, max(1.0, g))
+
+
+def scale_warnings(scale: float) -> tuple[str, ...]:
+    """What the user should know of a tolerance scaled by ``scale`` (one sentence; none
+    at 1), with the likely causes: the poses' noise, or an anatomy whose cross-section
+    changes fast between frames (the spine phantom's: 2.5)."""
+    if scale == 1.0:
+        return ()
+    return (
+        f"the contours of neighbouring frames deviate {scale:g} times as much as exact "
+        f"poses over a long bone make them (a noisy tracker, or anatomy changing fast "
+        f"between frames): the track's link tolerance was scaled by {scale:g}",
+    )
+
+
+def scaled_tolerance(p: RejectionParams, scale: float) -> RejectionParams:
+    """``p`` with both terms of the link tolerance times ``scale`` (``p`` itself at 1)."""
+    if scale == 1.0:
+        return p
+    return replace(
+        p, tolerance_mm=p.tolerance_mm * scale, tolerance_per_mm=p.tolerance_per_mm * scale
+    )
+
+
 def _masked_medians(values: np.ndarray, mask: np.ndarray) -> list[float]:
     """Per row, :func:`~.features.median1d` of ``values[row][mask[row]]`` (inf where none).
 
@@ -499,6 +571,25 @@ def select_bone_track(
     if not nodes:
         return TrackChoice(chosen, conf, reason, detail)
 
+    # The sweep's own frame-to-frame deviation, over every frame's nodes (ruled out or
+    # not), and the tolerance scaled to it (:func:`tolerance_scale`).
+    every = [
+        [_node_points(c, fc.spacing, poses[f]) for c in fc.candidates if _is_node(c)]
+        for f, fc in enumerate(frames)
+    ]
+    origin, axes, normal = frame_planes(poses)
+    pairs = [
+        _pair_deviation(
+            [gm[0] for gm in every[f - 1]],
+            (origin[f], axes[f], normal[f]),
+            [gm[1:] for gm in every[f]],
+            p,
+        )
+        if every[f - 1] and every[f]
+        else np.inf
+        for f in range(1, n)
+    ]
+    p = scaled_tolerance(p, tolerance_scale(pairs, p))
     m = len(nodes)
     typical = _typical_strength(frames)
     value = np.array([_node_value(frames[f].candidates[c], typical, p) for f, c in nodes])
@@ -509,7 +600,6 @@ def select_bone_track(
     by_frame: dict[int, list[int]] = {}
     for k, (f, _) in enumerate(nodes):
         by_frame.setdefault(f, []).append(k)
-    origin, axes, normal = frame_planes(poses)
     # The edges (a, b, deviation, cost of the frames skipped) in the order the forward
     # pass visits them: for each frame g, every node of the frames before it that may
     # link to it, in frame order, their links to g's nodes made together (_links_many).

@@ -47,8 +47,11 @@ from BoneUSRecon.Logic.segmentation.track import (
     _links_many,
     _node_points,
     _node_value,
+    _pair_deviation,
     _typical_strength,
     pointed_track,
+    scaled_tolerance,
+    tolerance_scale,
 )
 from BoneUSRecon.Logic.sweep import frame_planes
 
@@ -70,6 +73,9 @@ class _TrackFrame:
     #: Predecessor uid -> ``(its node, this frame's node, deviation)``, in the order
     #: :func:`~.track.select_bone_track` visits them.
     links: dict[int, list[tuple[int, int, float]]] = field(default_factory=dict)
+    #: ``(the frame before it, the least deviation to it in base tolerances)``
+    #: (:func:`~.track.tolerance_scale`); None until measured.
+    near: tuple[int, float] | None = None
 
 
 @dataclass(eq=False)
@@ -120,6 +126,10 @@ class IncrementalTrack:
         params: RejectionParams = RejectionParams(),  # noqa: B008 (frozen dataclass)
     ) -> None:
         self.params = params
+        #: The tolerance's scale for the frames so far and the parameters it gives
+        #: (:func:`~.track.tolerance_scale`): the links are made with these.
+        self._scale = 1.0
+        self._p = params
         self._frames: list[_TrackFrame] = []
         self._next_uid = 0
         #: ``(frame uid, predecessor uid)`` pairs still to link (after :meth:`keep`).
@@ -137,6 +147,18 @@ class IncrementalTrack:
     def uids(self) -> list[int]:
         """A number per kept frame, unique within the session (stable across :meth:`keep`)."""
         return [fr.uid for fr in self._frames]
+
+    @property
+    def rejection(self) -> RejectionParams:
+        """The parameters the track is chosen with: ``params`` with the link tolerance
+        scaled to the frames' own deviation (as of the last :meth:`solve` or
+        :meth:`rescale`); what the steps after the track use (recovery, the reach)."""
+        return self._p
+
+    @property
+    def scale(self) -> float:
+        """The link tolerance's scale (:meth:`rescale`; 1: as ``params`` give it)."""
+        return self._scale
 
     @property
     def owed(self) -> int:
@@ -169,14 +191,42 @@ class IncrementalTrack:
         self._next_uid += 1
         self._frames.append(fr)
         g = len(self._frames) - 1
+        if g:
+            self._measure(self._frames[g - 1], fr)
         self._link(self._frames[max(0, g - self.params.max_skip - 1) : g], fr)
+
+    def _measure(self, a: _TrackFrame, b: _TrackFrame) -> None:
+        """Frame b's least deviation to a, the frame before it (base tolerances)."""
+        dev = (
+            _pair_deviation(a.ref, b.plane, b.b_nodes, self.params)
+            if a.nodes and b.nodes
+            else np.inf
+        )
+        b.near = (a.uid, dev)
+
+    def rescale(self) -> float:
+        """Scale the link tolerance to the frames kept (:func:`~.track.tolerance_scale`);
+        where the scale changes, every link is made again with it. Returns the scale."""
+        for g in range(1, len(self._frames)):
+            a, b = self._frames[g - 1], self._frames[g]
+            if b.near is None or b.near[0] != a.uid:
+                self._measure(a, b)
+        scale = tolerance_scale([fr.near[1] for fr in self._frames[1:] if fr.near], self.params)
+        if scale != self._scale:
+            self._scale, self._p = scale, scaled_tolerance(self.params, scale)
+            # The links and everything made with them, made again.
+            self._owed, self._details, self._extra = [], {}, {}
+            for g, fr in enumerate(self._frames):
+                fr.links = {}
+                self._link(self._frames[max(0, g - self.params.max_skip - 1) : g], fr)
+        return scale
 
     def _link(self, preds: list[_TrackFrame], b: _TrackFrame) -> None:
         """Store the links from each earlier frame's nodes to frame b's (none if either
         has none), all made together (:func:`~.track._links_many`)."""
         linked = [a for a in preds if a.nodes] if b.nodes else []
         refs = [a_ref for a in linked for a_ref in a.ref]
-        edges = iter(_links_many(refs, b.plane, b.b_nodes, self.params))
+        edges = iter(_links_many(refs, b.plane, b.b_nodes, self._p))
         for a in preds:
             out: list[tuple[int, int, float]] = []
             if a.nodes and b.nodes:
@@ -261,7 +311,7 @@ class IncrementalTrack:
     ) -> tuple[list[tuple[int, float]], list[tuple[int, float]], list[float]]:
         """Links of the extra nodes between frame a and the later frame b: a's nodes to
         b's extra, a's extra to b's nodes, a's extra to b's extra (made once, kept)."""
-        p = self.params
+        p = self._p
         into: list[tuple[int, float]] = []
         out: list[tuple[int, float]] = []
         both: list[float] = []
@@ -322,8 +372,9 @@ class IncrementalTrack:
         -------
         TrackChoice
         """
-        p = self.params
         self.work(np.inf)
+        self.rescale()
+        p = self._p
         frames = self._frames
         n = len(frames)
         ext = self._extras(extra)
