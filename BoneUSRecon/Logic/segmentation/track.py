@@ -72,6 +72,12 @@ REASONS = {
 }
 
 _SAMPLE_MM = 0.5  # contours are compared at ~this point spacing (speed; 1-2 px apart)
+
+#: A frame's plane: origin, in-plane axes, normal (reference mm; :func:`frame_planes`).
+Plane = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: A node's contour in its own plane, (lateral, depth) mm, and its box there
+#: (:func:`_node_points`).
+PlaneNode = tuple[np.ndarray, tuple[float, float, float, float]]
 #: Fewest contours off the middle that make :func:`_nearer_middle` look for a track
 #: nearer it (one or two are a bone's edge or a layer for a frame or two, not a lane).
 _MIN_OFF = 3
@@ -267,8 +273,8 @@ def _node_points(
 
 def _links(
     a_ref: np.ndarray,
-    plane: tuple[np.ndarray, np.ndarray, np.ndarray],
-    b_nodes: Sequence[tuple[np.ndarray, tuple[float, float, float, float]]],
+    plane: Plane,
+    b_nodes: Sequence[PlaneNode],
     p: RejectionParams,
 ) -> list[tuple[int, float]]:
     """Edges from contour a (reference mm) to a later frame's nodes.
@@ -293,8 +299,8 @@ _FEW_PAIRS = 12
 
 def _links_many(
     a_refs: Sequence[np.ndarray],
-    plane: tuple[np.ndarray, np.ndarray, np.ndarray],
-    b_nodes: Sequence[tuple[np.ndarray, tuple[float, float, float, float]]],
+    plane: Plane,
+    b_nodes: Sequence[PlaneNode],
     p: RejectionParams,
 ) -> list[list[tuple[int, float]]]:
     """``[_links(a, plane, b_nodes, p) for a in a_refs]``: every contour ``a`` of earlier
@@ -450,8 +456,8 @@ _MIN_PAIRS = 5
 
 def _pair_deviation(
     a_refs: Sequence[np.ndarray],
-    plane: tuple[np.ndarray, np.ndarray, np.ndarray],
-    b_nodes: Sequence[tuple[np.ndarray, tuple[float, float, float, float]]],
+    plane: Plane,
+    b_nodes: Sequence[PlaneNode],
     p: RejectionParams,
 ) -> float:
     """The least deviation (tolerances of ``p``) of any link from frame a's nodes to the
@@ -578,7 +584,7 @@ def select_bone_track(
         for f, fc in enumerate(frames)
     ]
     origin, axes, normal = frame_planes(poses)
-    pairs = [
+    pair_devs = [
         _pair_deviation(
             [gm[0] for gm in every[f - 1]],
             (origin[f], axes[f], normal[f]),
@@ -589,7 +595,7 @@ def select_bone_track(
         else np.inf
         for f in range(1, n)
     ]
-    p = scaled_tolerance(p, tolerance_scale(pairs, p))
+    p = scaled_tolerance(p, tolerance_scale(pair_devs, p))
     m = len(nodes)
     typical = _typical_strength(frames)
     value = np.array([_node_value(frames[f].candidates[c], typical, p) for f, c in nodes])

@@ -39,6 +39,8 @@ import numpy as np
 from BoneUSRecon.Logic.segmentation.candidates import BoneCandidate, FrameCandidates
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.segmentation.track import (
+    Plane,
+    PlaneNode,
     TrackChoice,
     _finish,
     _frame_reason,
@@ -65,11 +67,11 @@ class _TrackFrame:
     uid: int
     candidates: FrameCandidates
     pose: np.ndarray
-    plane: tuple[np.ndarray, np.ndarray, np.ndarray]
+    plane: Plane
     reason: str
     nodes: list[int]  # candidate indices that are nodes, in candidate order
     ref: list[np.ndarray]  # each node's sampled contour, reference mm
-    b_nodes: list[tuple[np.ndarray, tuple[float, float, float, float]]]
+    b_nodes: list[PlaneNode]
     #: Predecessor uid -> ``(its node, this frame's node, deviation)``, in the order
     #: :func:`~.track.select_bone_track` visits them.
     links: dict[int, list[tuple[int, int, float]]] = field(default_factory=dict)
@@ -91,7 +93,7 @@ class _Extra:
     reason: str
     node: bool
     ref: np.ndarray | None
-    b_node: tuple[np.ndarray, tuple[float, float, float, float]] | None
+    b_node: PlaneNode | None
     #: Predecessor uid -> ``(its node, deviation)`` to this candidate.
     into: dict[int, list[tuple[int, float]]] = field(default_factory=dict)
     #: Successor uid -> ``(its node, deviation)`` from this candidate.
