@@ -437,3 +437,22 @@ def test_series_top_made_over_a_copy_reaches_past_its_columns(sim_factory, monke
     assert s["p95_mm"] <= 0.2
     monkeypatch.setattr(candidates, "_extend_top", lambda ev, lr, cols, rows, *a: (cols, rows))
     assert score_simulation(segment_sweep(sim.sweep), sim).summary()["coverage"] <= 0.91
+
+
+def test_a_top_traced_onto_a_line_found_already_is_that_line(sim_factory):
+    """The tibia with a vessel (seed 5), frame 14: read from the vessel's ring-down, a
+    series' top made over the copy's columns ran on the bone over its left half and
+    1-4 mm over its right half; followed on along its echo it lay over the whole bone
+    and put it in its shadow (echo_beneath), and the track took the top: coverage 0.62.
+    Traced onto the bone over half its columns, the top is the bone itself."""
+    from BoneUSRecon.Logic.simulation.scoring import polyline_distance
+
+    sim = sim_factory(bone="tibia", seed=5, realism="hard", hard_conditions=("vessel",))
+    sw = sim.sweep
+    tc = sim.true_contours_px[14]
+    fc = frame_candidates(np.asarray(sw.frames[14]), tuple(sw.spacing_mm))
+    s = np.asarray(sw.spacing_mm, float)
+    on = [c for c in fc.usable if np.median(polyline_distance(c.points_px * s, tc * s)) < 0.3]
+    assert on and not any(c.echo_beneath for c in on)
+    frame = score_simulation(segment_sweep(sw), sim).frames[14]
+    assert frame.on_bone and frame.coverage >= 0.9

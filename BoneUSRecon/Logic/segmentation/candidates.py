@@ -1040,6 +1040,7 @@ def _mark_series(
     nf = ev.field_top + mm_to_px(p.near_field_mm, ev.dy, minimum=0)
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
     shift_cost = _path_steps(ev, p)[0]
+    sup = mm_to_px(p.suppress_mm, ev.dy)
     added: list[dict] = []
 
     def confirmed(t: dict) -> bool:
@@ -1105,6 +1106,20 @@ def _mark_series(
                 "echo": median1d(ev.echo_z[rows, cols]),
                 "dense": dense,
             }
+            # Traced onto a line a pass found already, over half of its columns
+            # (within the band the passes suppress around a line: one line), the top
+            # is that line, not a second version of it that strays off it elsewhere
+            # and, followed on along the echo, lies over it (tibia with a vessel, seed
+            # 5, frame 14: a top on the bone's left half and 1-4 mm over its right
+            # half put the bone in its shadow, coverage 1.00 -> 0.62).
+            for t in cands + added:
+                if t is c or t.get("reverb"):
+                    continue
+                cm = _common(t, best)
+                on_t = np.abs(t["dense"][cm] - best["dense"][cm]) <= sup
+                if np.count_nonzero(on_t) >= 0.5 * cols.size:
+                    best, new = t, False
+                    break
         # A copy returns less than its reflector; over the shadow it may stand out
         # more, but a line with much more echo contrast than the top was not made by it.
         # A line under the series (a far cortex) is no copy: it says nothing of the
