@@ -46,6 +46,7 @@ def test_jump_values_make_one_reason_kind() -> None:
 @settings(max_examples=200, deadline=None)
 @given(st.text(max_size=80))
 @example(":<:<")  # a key starting with a separator was not its own key
+@example("\r:<:<")  # nor one after a carriage return (whitespace other than a space)
 def test_any_reason_string_gives_a_short_key_without_numbers(text: str) -> None:
     key = reason_key(text)
     assert key and not re.search(r"\d", key) and "\n" not in key

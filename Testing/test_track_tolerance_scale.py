@@ -21,6 +21,7 @@ from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import SegmentationParams, frame_candidates_for, segment_sweep
 from BoneUSRecon.Logic.segmentation.params import RejectionParams
 from BoneUSRecon.Logic.segmentation.track import (
+    pose_jitter,
     scaled_tolerance,
     select_bone_track,
     tolerance_scale,
@@ -57,10 +58,22 @@ def test_tolerance_scale_rule():
     assert tolerance_scale([2.0] * 10, p) == 3.0  # capped
     assert tolerance_scale([0.5] * 4, p) == 1.0  # too few pairs to say
     assert tolerance_scale([0.5] * 10, dataclasses.replace(p, typical_deviation=0.0)) == 1.0
+    # Smooth poses (an optical tracker's): the deviation is the anatomy's, no scale.
+    assert tolerance_scale([0.42] * 10, p, jitter_mm=0.2) == 1.0
+    assert tolerance_scale([0.42] * 10, p, jitter_mm=1.0) == 2.0
+    line = np.c_[np.arange(10.0), np.zeros(10), np.zeros(10)]
+    assert pose_jitter(line) == 0.0 and pose_jitter(line[:2]) == 0.0
+    bumped = line.copy()
+    bumped[1::2, 2] = 1.0  # every other frame 1 mm off the path
+    assert pose_jitter(bumped) == pytest.approx(1.0)
     q = scaled_tolerance(p, 2.0)
     assert (q.tolerance_mm, q.tolerance_per_mm) == (2 * p.tolerance_mm, 2 * p.tolerance_per_mm)
     assert scaled_tolerance(p, 1.0) is p
-    for field, value in (("typical_deviation", -0.1), ("min_tolerance_scale", 0.5)):
+    for field, value in (
+        ("typical_deviation", -0.1),
+        ("min_tolerance_scale", 0.5),
+        ("pose_jitter_mm", -1.0),
+    ):
         with pytest.raises(BoneUSReconError, match=field):
             RejectionParams(**{field: value})
 

@@ -11,6 +11,7 @@ wording the rules use now or later. The full text stays with each frame.
 from __future__ import annotations
 
 import re
+import string
 from collections import Counter
 from collections.abc import Iterable, Mapping
 
@@ -22,6 +23,11 @@ _NUMBER = re.compile(
 )
 # A linking word left without its number ("jump of  from ..."): dropped.
 _DANGLING = re.compile(r"\b(?:of|by|at|to|is|was|=)\s+(?=(?:from|to|at|in|of|by|and|or)\b|$)")
+
+
+#: What a key neither starts nor ends with: punctuation and any whitespace (a carriage
+#: return or a tab before a separator left the separator leading the key).
+_SEPARATORS = string.whitespace + ",.-:;#"
 
 
 def reason_key(reason: object) -> str:
@@ -55,14 +61,14 @@ def reason_key(reason: object) -> str:
     text = "" if reason is None else str(reason)
     text = re.sub(r"\([^)]*\)|\[[^\]]*\]", " ", text)  # bracketed details
     # Leading separators first, so that the key of a key is the key itself.
-    text = text.lstrip(" ,.-:;#")
+    text = text.lstrip(_SEPARATORS)
     head = re.split(r"[:;]", text, maxsplit=1)[0]
     text = head if head.strip() else text
     text = _NUMBER.sub(" ", text)
     text = " ".join(text.split())
     for _ in range(3):  # "... of by ..." can need more than one pass
         text = " ".join(_DANGLING.sub(" ", text).split())
-    text = text.strip(" ,.-:;#")
+    text = text.strip(_SEPARATORS)
     return text or "unspecified"
 
 

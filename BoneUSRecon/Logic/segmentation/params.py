@@ -636,6 +636,8 @@ class RejectionParams:
     """The frame-to-frame deviation, in tolerances, the tolerance is made for; a sweep whose own deviates more (``min_tolerance_scale`` times or more) gets both terms of the tolerance scaled up so that it deviates this much (:func:`.track.tolerance_scale`; 0: never scaled). A sweep's deviation: the median over consecutive frames of the least deviation between their contours, base tolerances. Measured (all candidates of each frame): exact poses 0.11-0.16 over the 20 hard sweeps of seeds 173/179, an unsteady hand (tilt 12 degrees) 0.15-0.27; a tracker's noise per frame adds to every pair: 0.5 mm / 0.2 degrees 0.17-0.26, 1 mm / 0.4 degrees (an electromagnetic tracker's level) 0.23-0.42, where the bone's track broke at one frame in seven (recall 0.855; scaled: 0.945). A tolerance fixed larger for every sweep cost the exact ones accuracy (1.5 mm: gold 0.245 -> 0.277 mm over 88 sweeps)."""
     min_tolerance_scale: float = 1.5
     """A smaller scale is not applied: the tolerance stands (ours: with exact poses an unsteady hand, tilting 12 degrees, makes its sweep deviate up to 1.37 typical deviations, 0.15-0.27 over the 20 such sweeps of seeds 173-607; scaled by 1.25 there, one sweep's end frames changed and its gold went 0.51 -> 1.17 mm; from 1.5 on, only sweeps whose poses carry a tracker's noise are scaled)."""
+    pose_jitter_mm: float = 0.4
+    """The tolerance is scaled only where the poses jitter: the median distance of a frame's image origin from the midpoint of its two neighbours' at least this, mm (a tracker's noise moves each frame's pose on its own; a hand's path runs smooth between frames). Ours: the shared recordings, optically tracked, 0.15 (L14) and 0.23 mm (the spine phantom, whose cross-section changes fast between frames: its contours deviate 2.5 typical deviations, and scaled there the track kept more frames on other structures, wrong share 0.41 -> 0.53); the simulated sweeps 0.48 with exact poses (the simulator's tremor between frames 2-3 mm apart), 0.9 and 1.7 with 0.5 and 1 mm of noise per frame."""
     max_tolerance_scale: float = 3.0
     """The tolerance is scaled up by at most this factor (ours: at 3 a link within ``max_deviation`` reaches 10.5 mm plus the slope's share, the gap between a bone's top and its far cortex)."""
     max_skip: int = 8
@@ -705,6 +707,7 @@ class RejectionParams:
             non_negative=(
                 "tolerance_per_mm",
                 "typical_deviation",
+                "pose_jitter_mm",
                 "step_per_mm",
                 "max_skip",
                 "miss_cost",

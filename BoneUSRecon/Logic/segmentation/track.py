@@ -29,9 +29,10 @@ every frame's contour in its neighbours' planes, however exact the segmentation,
 tolerance set for an optical tracker breaks an electromagnetic one's track at one frame
 in seven. The least deviation between the contours of consecutive frames, on median
 over the sweep, is the sweep's frame-to-frame deviation; where it is
-``min_tolerance_scale`` times ``typical_deviation`` tolerances or more, both terms of
-the tolerance are scaled up so that it is ``typical_deviation`` (:func:`tolerance_scale`;
-with exact poses, a steady hand's or an unsteady one's, it stays as it is).
+``min_tolerance_scale`` times ``typical_deviation`` tolerances or more and the poses
+jitter (``pose_jitter_mm``), both terms of the tolerance are scaled up so that it is
+``typical_deviation`` (:func:`tolerance_scale`; with exact poses, a steady hand's or an
+unsteady one's, or over an anatomy that changes fast under smooth poses, it stays).
 
 A caller may rule frames out beforehand (``exclude``: the frames :mod:`.ends` judged
 bone-free): their candidates are no nodes, and they keep the reason given.
@@ -466,14 +467,28 @@ def _pair_deviation(
     return min(devs) if devs else np.inf
 
 
-def tolerance_scale(pair_deviations: Sequence[float], p: RejectionParams) -> float:
+def pose_jitter(origins: np.ndarray) -> float:
+    """Median distance (mm) of each frame's image origin ``(N, 3)`` from the midpoint of
+    its two neighbours' (0 under three frames): a tracker's noise, frame by frame."""
+    o = np.asarray(origins, dtype=float)
+    if o.shape[0] < 3:
+        return 0.0
+    r = o[1:-1] - 0.5 * (o[:-2] + o[2:])
+    return median1d(np.sqrt(np.einsum("ij,ij->i", r, r)))
+
+
+def tolerance_scale(
+    pair_deviations: Sequence[float], p: RejectionParams, jitter_mm: float = np.inf
+) -> float:
     """The factor the link tolerance is scaled by for a sweep (1: it stands).
 
     ``pair_deviations``: per pair of consecutive frames, the least deviation of a link
     between their nodes in ``p``'s own tolerances (inf: none linked). Their median over
     the sweep over ``typical_deviation``, rounded to a quarter, up to
     ``max_tolerance_scale``; 1 under ``min_tolerance_scale``, under ``_MIN_PAIRS``
-    linked pairs, or with ``typical_deviation`` 0.
+    linked pairs, with ``typical_deviation`` 0, or where the poses run smooth
+    (``jitter_mm``, :func:`pose_jitter`, under ``pose_jitter_mm``: the deviation is then
+    the anatomy's, not the tracker's).
 
     Why it generalises: the deviation is measured on the sweep itself, between its own
     contours, in the tolerance's own units; the bone's contours are among each pair's
@@ -482,7 +497,7 @@ def tolerance_scale(pair_deviations: Sequence[float], p: RejectionParams) -> flo
     only a few times as frames arrive (each change relinks its frames).
     """
     v = np.asarray([d for d in pair_deviations if np.isfinite(d)], dtype=float)
-    if p.typical_deviation <= 0 or v.size < _MIN_PAIRS:
+    if p.typical_deviation <= 0 or v.size < _MIN_PAIRS or jitter_mm < p.pose_jitter_mm:
         return 1.0
     g = float(np.rint(median1d(v) / p.typical_deviation * 4.0)) / 4.0
     if g < p.min_tolerance_scale:
@@ -595,7 +610,7 @@ def select_bone_track(
         else np.inf
         for f in range(1, n)
     ]
-    p = scaled_tolerance(p, tolerance_scale(pair_devs, p))
+    p = scaled_tolerance(p, tolerance_scale(pair_devs, p, pose_jitter(origin)))
     m = len(nodes)
     typical = _typical_strength(frames)
     value = np.array([_node_value(frames[f].candidates[c], typical, p) for f, c in nodes])

@@ -52,6 +52,7 @@ from BoneUSRecon.Logic.segmentation.track import (
     _pair_deviation,
     _typical_strength,
     pointed_track,
+    pose_jitter,
     scaled_tolerance,
     tolerance_scale,
 )
@@ -213,7 +214,11 @@ class IncrementalTrack:
             a, b = self._frames[g - 1], self._frames[g]
             if b.near is None or b.near[0] != a.uid:
                 self._measure(a, b)
-        scale = tolerance_scale([fr.near[1] for fr in self._frames[1:] if fr.near], self.params)
+        scale = tolerance_scale(
+            [fr.near[1] for fr in self._frames[1:] if fr.near],
+            self.params,
+            pose_jitter(np.array([fr.plane[0] for fr in self._frames]).reshape(-1, 3)),
+        )
         if scale != self._scale:
             self._scale, self._p = scale, scaled_tolerance(self.params, scale)
             # The links and everything made with them, made again.
