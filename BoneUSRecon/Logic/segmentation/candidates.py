@@ -1023,9 +1023,11 @@ def _mark_series(
     over it) and, failing that, over its middle half; its own echo, not being a copy,
     does not veto the top (``copy_echo_ratio``); the top is traced along the echo in its band
     (:func:`_trace_band`) and, made over a copy's columns, followed on past them along
-    its own echo (:func:`_extend_top`: a copy spans only part of its reflector), and when the shallowest member of a loose series is no
-    confirmed top (a speckle peak of the tissue over the bone, with tissue under it)
-    the next one down is tried, never past a member with shadow under it. The top must be
+    its own echo (:func:`_extend_top`: a copy spans only part of its reflector); a top
+    so traced onto a line a pass found already is that line. When the shallowest
+    member of a loose series is no confirmed top (a speckle peak of the tissue over the
+    bone, with tissue under it) the next one down is tried, never past a member with
+    shadow under it. The top must be
     a first interface: below the near field (gel, skin, lens echoes), with tissue, not
     shadow, right above it (the 1.5-3 mm over it, where a far cortex has a copy or a
     trough; higher, a layer of darker tissue under the skin over a shallow bone reads

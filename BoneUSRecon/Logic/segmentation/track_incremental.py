@@ -22,6 +22,12 @@ as offline). Only the extra nodes are linked, to the frames within ``max_skip + 
 either side; those links are kept while the extra candidate is the same object, and the
 stored state is not changed (the next plain solve is the track without them).
 
+The link tolerance is scaled to the frames' own deviation as the batch track scales it
+(:func:`~.track.tolerance_scale`): each frame's least deviation to the one before it is
+measured once, with the base tolerance, when it arrives; where the scale over the frames
+so far changes (rarely: it moves in quarters), every link is made again with the new one
+(:meth:`IncrementalTrack.rescale`, run by each solve).
+
 When frames are dropped (:meth:`IncrementalTrack.keep`, e.g. a live session thinning
 its frames to stay within memory), frames that were more than ``max_skip + 1`` apart
 may become neighbours: their links are owed and are made either in spare time
