@@ -500,9 +500,9 @@ def tolerance_scale(
     if p.typical_deviation <= 0 or v.size < _MIN_PAIRS or jitter_mm < p.pose_jitter_mm:
         return 1.0
     g = float(np.rint(median1d(v) / p.typical_deviation * 4.0)) / 4.0
-    if g < p.min_tolerance_scale:
+    if g < p.min_tolerance_scale:  # at least 1 (validated)
         return 1.0
-    return min(p.max_tolerance_scale, max(1.0, g))
+    return min(p.max_tolerance_scale, g)
 
 
 def scale_warnings(scale: float) -> tuple[str, ...]:
@@ -593,17 +593,22 @@ def select_bone_track(
         return TrackChoice(chosen, conf, reason, detail)
 
     # The sweep's own frame-to-frame deviation, over every frame's nodes (ruled out or
-    # not), and the tolerance scaled to it (:func:`tolerance_scale`).
+    # not), and the tolerance scaled to it (:func:`tolerance_scale`). Each node's
+    # geometry is made once, for this and for the links.
     every = [
-        [_node_points(c, fc.spacing, poses[f]) for c in fc.candidates if _is_node(c)]
+        {
+            c: _node_points(cand, fc.spacing, poses[f])
+            for c, cand in enumerate(fc.candidates)
+            if _is_node(cand)
+        }
         for f, fc in enumerate(frames)
     ]
     origin, axes, normal = frame_planes(poses)
     pair_devs = [
         _pair_deviation(
-            [gm[0] for gm in every[f - 1]],
+            [gm[0] for gm in every[f - 1].values()],
             (origin[f], axes[f], normal[f]),
-            [gm[1:] for gm in every[f]],
+            [gm[1:] for gm in every[f].values()],
             p,
         )
         if every[f - 1] and every[f]
@@ -614,9 +619,7 @@ def select_bone_track(
     m = len(nodes)
     typical = _typical_strength(frames)
     value = np.array([_node_value(frames[f].candidates[c], typical, p) for f, c in nodes])
-    geometry = [
-        _node_points(frames[f].candidates[c], frames[f].spacing, poses[f]) for f, c in nodes
-    ]
+    geometry = [every[f][c] for f, c in nodes]
     ref = [gm[0] for gm in geometry]
     by_frame: dict[int, list[int]] = {}
     for k, (f, _) in enumerate(nodes):
