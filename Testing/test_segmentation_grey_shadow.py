@@ -456,3 +456,59 @@ def test_a_top_traced_onto_a_line_found_already_is_that_line(sim_factory):
     assert on and not any(c.echo_beneath for c in on)
     frame = score_simulation(segment_sweep(sw), sim).frames[14]
     assert frame.on_bone and frame.coverage >= 0.9
+
+
+def test_series_top_read_at_its_echo_crest_a_row_under_the_traced_row():
+    """The strict series (``_series``) from a top whose traced row lies a row over its
+    echo's crest (0.86, the crest 0.90): that crest is the top's own echo, not a line
+    between it and its first copy brighter than the copy. A line two rows or more
+    under the top, as bright, still is one (tissue between: no series)."""
+    from BoneUSRecon.Logic.segmentation.candidates import _profile_peaks, _series
+
+    reach = 40
+
+    def profile(extra: int | None) -> np.ndarray:
+        v = np.full(reach + 40, 0.0)
+        v[reach - 25 : reach - 1] = 0.02 * np.cos(np.arange(24))  # tissue over the top
+        v[reach], v[reach + 1] = 0.86, 0.90
+        for k, (q, amp) in enumerate(((9, 0.52), (17, 0.50), (26, 0.51), (34, 0.44))):
+            lo = 2 if k == 0 else 1
+            v[reach + q - (8 - lo) : reach + q] = -1.5 - 0.5 * k  # shadow between copies
+            v[reach + q] = amp
+        if extra is not None:
+            v[reach + extra] = 0.90
+        return v
+
+    dark, min_px = float(np.log(0.7)), 3
+    members = _series(_profile_peaks(profile(None), reach), reach, min_px, dark, 0.12, strict=True)
+    assert members[:4] == [0, 9, 17, 26]
+    # Control: a line as bright as the crest three rows under the top.
+    spoilt = _series(_profile_peaks(profile(3), reach), reach, min_px, dark, 0.12, strict=True)
+    assert spoilt == [0]
+
+
+def test_grey_humerus_series_top_under_a_darker_muscle_layer(sim_factory):
+    """The humerus under the grey shadow (seed 709), frames 32 and 33: the bone's echo
+    is weak (its own evidence 4.1 against 18-26 for the copies 7-9 mm under it), so
+    only the series makes it the strongest candidate. Frame 33's traced top lay a row
+    over its echo's crest, read as a line between it and its first copy; in frame 32
+    the tissue 1.5-3 mm over the bone is a darker layer (0.78 of the frame's level),
+    read as a shadow over a far cortex, although the troughs between the copies are 3
+    to 200 times darker. Before: the copies were no series, and the track took a fascia
+    leaving the crest in frame 32 (1.96 mm off) and lost frame 31."""
+    from BoneUSRecon.Logic.simulation.scoring import polyline_distance
+
+    sim = sim_factory(bone="humerus", seed=709, realism="hard", hard_conditions=("grey_shadow",))
+    sp = tuple(float(v) for v in sim.sweep.spacing_mm)
+    mm = np.asarray(sp)
+    for k in (32, 33):
+        fc = frame_candidates(np.asarray(sim.sweep.frames[k]), sp)
+        best = max(fc.usable, key=_value)
+        d = polyline_distance(best.points_px * mm, sim.true_contours_px[k] * mm)
+        assert np.median(d) < 0.2, k
+        top = float(np.median(best.points_px[:, 1])) * sp[1]
+        deep = [c for c in fc.candidates if np.median(c.points_px[:, 1]) * sp[1] - top > 5.0]
+        assert deep and all(c.reverberation or c.echo_beneath for c in deep), k
+    s = score_simulation(segment_sweep(sim.sweep), sim).summary()
+    assert s["recall"] == 1.0
+    assert s["wrong_share"] == 0.0

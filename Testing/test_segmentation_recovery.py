@@ -212,7 +212,9 @@ def test_guided_search_between_track_frames_finds_a_top_over_reverberation_bands
     Since session 47 (a series' top followed past its copy's columns,
     ``candidates._extend_top``) frames 2 and 4 reach further down the bone's left flank,
     and the track takes frame 3's own candidate, whose left half lies on the first copy
-    (median 1.19 mm, not wrong): recall 0.975, the other five recovered as before."""
+    (median 1.19 mm, not wrong): recall 0.975, the other five recovered as before.
+    Since session 48 (a series' top read at its echo's crest, and judged against the
+    series' own troughs) frame 14's own candidate is that top, on the first track."""
     sim = _grey("radius", 71)
     result = segment_sweep(sim.sweep)
     score = score_simulation(result, sim)
@@ -221,20 +223,27 @@ def test_guided_search_between_track_frames_finds_a_top_over_reverberation_bands
     by_frame = {f.frame: f for f in score.frames}
     for k in (2, 6, 7, 14, 37):
         assert by_frame[k].on_bone, k
-    # Frame 14 alone: the track's neighbours (13 and 15) vouch, the guided contour lies
-    # on the true top (measured 0.03 mm; the frame's own candidate, the far cortex, 8.6).
+    # Frame 14 is on the first track with its own candidate, the shallowest (the top:
+    # measured 0.03 mm; the other 1.8 mm under it).
     frames, choice = _first_track(sim)
-    assert choice.chosen[14] < 0
-    prior = track_prior(frames, choice, sim.sweep.image_to_reference, 14, 9)
+    assert choice.chosen[14] >= 0
+    own = frames[14].candidates[int(choice.chosen[14])].points_px
+    assert np.median(sim.distance_to_truth(sim.sweep.to_reference(14, own))) < 0.3
+    assert min(np.median(c.points_px[:, 1]) for c in frames[14].usable) >= np.median(own[:, 1])
+    # Frame 37 alone: off the first track (its one candidate is the far cortex, 9.8 mm
+    # under frame 36's top); the track's neighbours (36 and 38) vouch, and the guided
+    # contour lies on the true top (measured 0.03 mm).
+    assert choice.chosen[37] < 0
+    prior = track_prior(frames, choice, sim.sweep.image_to_reference, 37, 9)
     assert prior is not None and len(prior) == 2
-    cand = guided_candidate(sim.sweep.frames[14], sim.sweep.spacing_mm, prior)
+    cand = guided_candidate(sim.sweep.frames[37], sim.sweep.spacing_mm, prior)
     assert cand is not None
-    d = sim.distance_to_truth(sim.sweep.to_reference(14, cand.points_px))
+    d = sim.distance_to_truth(sim.sweep.to_reference(37, cand.points_px))
     assert np.median(d) < 0.3
     # The same prior 4 mm up, in the soft tissue, still finds nothing: the gate opens
     # at the tissue level, and speckle holds no run over half the band.
     moved = [(lat, depth - 4.0, z) for lat, depth, z in prior]
-    assert guided_candidate(sim.sweep.frames[14], sim.sweep.spacing_mm, moved) is None
+    assert guided_candidate(sim.sweep.frames[37], sim.sweep.spacing_mm, moved) is None
 
 
 def _true_prior(sim, f: int) -> list:

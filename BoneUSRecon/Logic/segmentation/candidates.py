@@ -765,11 +765,19 @@ def _series(
         # between them: S radius s101, reverberation 0.45, frames 22-25, a layer 2.8
         # mm over the bone passed for a top with "copies" at 0.06 and 0.02 over a long
         # spacing, the bone's own echo, 0.21, between it and the first).
+        # Offset 0 is the candidate's traced row, which may lie a row off its own
+        # echo's crest: a peak one row under it is the top's own echo, not a line
+        # between, and the top's value is its crest's (S humerus grey s709, frame 32:
+        # the bone's row 0.86, its crest a row down 0.90, read as a brighter line
+        # between it and its first copy at 0.52, so no series, no inherited strength,
+        # and the track took a fascia leaving the crest, 1.96 mm off).
+        crest = max(vl[max(0, reach - 1) : reach + 2])
+        val = {q: (crest if q == 0 else vl[q + reach]) for q in members}
         for a, b in zip(members[:-1], members[1:], strict=True):
-            inner = [vl[q + reach] for q in plist if a < q < b]
-            if inner and max(inner) > min(vl[a + reach], vl[b + reach]) + 0.05:
+            inner = [vl[q + reach] for q in plist if a < q < b and not (a == 0 and q == 1)]
+            if inner and max(inner) > min(val[a], val[b]) + 0.05:
                 return False
-        vals = [vl[q] for q in m]
+        vals = [val[q] for q in members]
         # The deepest member is exempt from fading: the far cortex may lie where the
         # last copy falls (it is still dimmer than the top).
         fades = all(y - x <= 0.15 for x, y in zip(vals[:-2], vals[1:-1], strict=True))
@@ -1031,7 +1039,10 @@ def _mark_series(
     a first interface: below the near field (gel, skin, lens echoes), with tissue, not
     shadow, right above it (the 1.5-3 mm over it, where a far cortex has a copy or a
     trough; higher, a layer of darker tissue under the skin over a shallow bone reads
-    as dark too), and shadow right under it (its first trough). The copies are flagged ``reverb`` (never chosen) and the top
+    as dark too; shadow there is as dark as the series' own troughs, a darker muscle
+    layer is not), and shadow right under it (its first trough). The top's row may lie
+    a row off its echo's crest: the crest is its own echo (:func:`_series`). The copies
+    are flagged ``reverb`` (never chosen) and the top
     gets the strongest member's strength (the whole stack is its evidence). Returns
     the candidates with such tops added.
     """
@@ -1055,7 +1066,8 @@ def _mark_series(
         depth = median1d(t["rows"])
         if depth < nf:
             return False
-        if len(_series(t["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=True)) < 3:
+        members = _series(t["peaks"], reach, min_px, dark, p.reverb_tolerance, strict=True)
+        if len(members) < 3:
             return False
         # Rows in the near field (gel, skin) say nothing of what lies over the
         # reflector: over a bone 3-4 mm deep most of the window is skin (S clavicle
@@ -1063,7 +1075,17 @@ def _mark_series(
         lo = max(reach - 2 * gap, reach - (int(depth) - nf))
         above = prof[lo : reach - gap]
         above = above[np.isfinite(above)]
-        return not (above.size >= gap and median1d(above) < float(np.log(p.under_ratio)))
+        # Shadow over the top (a far cortex's: it lies in the near cortex's shadow) is
+        # as dark as the shadow between the copies, one and the same shadow: what lies
+        # over the top reads as shadow only where it is darker than ``under_ratio`` of
+        # the tissue and than half the troughs' mean (in log), however dark the troughs.
+        # A layer of darker muscle over the bone is tissue: 0.78 of the frame's level
+        # over the grey humerus (seed 709, frame 32) whose troughs read 0.32-0.004 of it.
+        v = t["peaks"][0]
+        rows = [q + reach for q in members]
+        troughs = [v[a + 1 : b].min() for a, b in zip(rows[:-1], rows[1:], strict=True)]
+        shade = min(float(np.log(p.under_ratio)), 0.5 * float(np.mean(troughs)))
+        return not (above.size >= gap and median1d(above) < shade)
 
     def top_at(
         c: dict, shape: dict, top: int, d: float, copy: bool = True
