@@ -1035,7 +1035,8 @@ def _mark_series(
     so traced onto a line a pass found already is that line. When the shallowest
     member of a loose series is no confirmed top (a speckle peak of the tissue over the
     bone, with tissue under it) the next one down is tried, never past a member with
-    shadow under it. The top must be
+    shadow under it; when the next member down (past the echo's tail) is a confirmed
+    top too, with more echo, it is the reflector (a copy returns less). The top must be
     a first interface: below the near field (gel, skin, lens echoes), with tissue, not
     shadow, right above it (the 1.5-3 mm over it, where a far cortex has a copy or a
     trough; higher, a layer of darker tissue under the skin over a shallow bone reads
@@ -1192,6 +1193,19 @@ def _mark_series(
             for i in range(len(members) - 2):
                 found_top = top_at(c, shape, members[i], members[i + 1] - members[i], on)
                 if found_top is not None:
+                    # A copy returns less than its reflector: where the next member
+                    # down, past the echo's tail (``shadow_gap_mm``: nearer, it is
+                    # the same echo), is a confirmed top too, with more echo, the one
+                    # found is a layer one spacing over the bone, not its reflector
+                    # (S radius grey s701, frame 31: a layer 2.6 mm over the bone,
+                    # echo z 1.0, took the stack's strength and the track; s179 frame
+                    # 27: a member 1.2 mm under the top, read at half the spacing).
+                    if i + 3 < len(members) and members[i + 1] - members[i] >= gap:
+                        below = top_at(
+                            c, shape, members[i + 1], members[i + 2] - members[i + 1], on
+                        )
+                        if below is not None and below[0]["echo"] > found_top[0]["echo"]:
+                            found_top, i = below, i + 1
                     members = members[i:]
                     break
                 # A member with shadow under it is in the series: no deeper top.
