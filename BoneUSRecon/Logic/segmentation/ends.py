@@ -15,9 +15,18 @@ shadow from the contour down: a few mm under the contour the tissue is darker th
 tissue just above it. A fascia over tissue has tissue beneath it (no step), and the
 shade of a no-contact gap is cast from the skin above, so the column is dark above
 the contour as well as under it (little step). :func:`shadow_step` measures that step
-per frame: the median over the contour's columns of ``log(grey under) - log(grey
-above)``, in bands ``band_mm`` thick starting ``under_gap_mm`` under the contour (past
-the bone's bright band) and ``above_gap_mm`` above it.
+per frame, in bands ``band_mm`` thick starting ``under_gap_mm`` under the contour (past
+the bone's bright band) and ``above_gap_mm`` above it: on the profile along the contour
+(per row offset, the median log grey over its columns), the darkest layer
+``trough_mm`` thick of the band under it less the mean of the band above. The darkest
+layer, not the band's mean: a grey shadow filled with reverberation copies every 2-3 mm
+(the band spans at least one period) is dark between them, and its mean is not much
+darker than a hypoechoic muscle over the bone (the grey clavicle s811, seeds no session
+had run: its last 6 frames, on the bone under a muscle layer at 0.78 of the tissue's
+level, stepped 0.36 to -0.3 of the track's typical frame by the band's mean and were cut,
+gold 1.33 mm; by the darkest layer 0.58-1.03, gold 0.19). The tissue under a layer has
+darker layers too, fainter: judged against the bone's own trough-deep step, with
+``min_ratio`` 0.6 (measured in ``Testing/benchmarks/README.md``, session 48).
 
 :func:`bone_free_ends` judges the step of each track frame against the track's own
 typical step (the median over its frames): the weakness of a frame is ``min_ratio -
@@ -137,13 +146,16 @@ def shadow_step(
     Returns
     -------
     float
-        Median over the contour's columns (one every ~``column_mm``) of the mean log
-        grey in ``[under_gap_mm, under_gap_mm + band_mm]`` under the contour less that
-        in ``[above_gap_mm, above_gap_mm + band_mm]`` above it (not above
+        On the profile along the contour (per row offset, the median log grey over the
+        contour's columns, one every ~``column_mm``), the darkest ``trough_mm`` layer
+        of ``[under_gap_mm, under_gap_mm + band_mm]`` under the contour less the mean
+        of ``[above_gap_mm, above_gap_mm + band_mm]`` above it (not above
         ``near_field_mm`` under the imaged field's top: under a black band over the
-        contour's columns, as :func:`.evidence.outside_field`): negative under bone
-        (its shadow starts at the contour), near zero under a layer over tissue or in
-        a shade cast from above. NaN when no band fits in the image.
+        contour's columns, as :func:`.evidence.outside_field`); with ``trough_mm`` 0,
+        the median over the columns of the band under's mean less the band above's.
+        Negative under bone (its shadow starts at the contour), near zero under a
+        layer over tissue or in a shade cast from above. NaN when no band fits in the
+        image.
     """
     img = np.asarray(image)
     h, w = img.shape
@@ -153,6 +165,8 @@ def shadow_step(
     pts = points_px[:: max(1, int(round(params.column_mm / max(sx, 1e-6))))]
     i = np.clip(np.round(pts[:, 0]).astype(np.intp), 0, w - 1)
     j = np.asarray(pts[:, 1], dtype=float)
+    if params.trough_mm > 0:
+        return _trough_step(img, i, j, sy, params)
     band = params.band_mm / sy
     under0 = j + params.under_gap_mm / sy
     above1 = j - params.above_gap_mm / sy
@@ -169,6 +183,44 @@ def shadow_step(
     )
     d = d[np.isfinite(d)]
     return float(np.median(d)) if d.size else float("nan")
+
+
+def _trough_step(
+    img: np.ndarray, i: np.ndarray, j: np.ndarray, sy: float, params: EndsParams
+) -> float:
+    """:func:`shadow_step` with ``trough_mm``: the darkest ``trough_mm`` layer of the band
+    under the contour less the band above, on the profile along the contour (per row
+    offset, the median log grey over its columns)."""
+    h = img.shape[0]
+    a1 = int(round(params.above_gap_mm / sy))
+    u0 = int(round(params.under_gap_mm / sy))
+    band = max(1, int(round(params.band_mm / sy)))
+    offs = np.arange(-(a1 + band), u0 + band + 1)
+    rows = np.round(j[None, :] + offs[:, None]).astype(np.intp)
+    top = _field_top(img, i, sy) + params.near_field_mm / sy
+    inside = (rows >= top) & (rows < h)
+    vals = _LOG[img[np.clip(rows, 0, h - 1), i[None, :]]]
+    # A row offset counts where it lies in the image over at least half the columns
+    # (np.median where over all of them, the usual row; nanmedian is ~10x slower).
+    prof = np.full(offs.size, np.nan)
+    n_in = np.count_nonzero(inside, axis=1)
+    whole = n_in == i.size
+    part = ~whole & (n_in >= 0.5 * i.size)
+    if whole.any():
+        prof[whole] = np.median(vals[whole], axis=1)
+    if part.any():
+        prof[part] = np.nanmedian(np.where(inside[part], vals[part], np.nan), axis=1)
+    above = prof[: band + 1]
+    above = above[np.isfinite(above)]
+    k = max(1, int(round(params.trough_mm / sy)))
+    under = prof[offs >= u0]
+    if above.size == 0 or under.size < k:
+        return float("nan")
+    layers = np.convolve(under, np.full(k, 1.0 / k), mode="valid")  # NaN where it is out
+    layers = layers[np.isfinite(layers)]
+    if layers.size == 0:
+        return float("nan")
+    return float(layers.min() - above.mean())
 
 
 def bone_free_ends(steps: np.ndarray, params: EndsParams = EndsParams()) -> np.ndarray:  # noqa: B008

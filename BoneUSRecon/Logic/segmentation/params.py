@@ -796,8 +796,10 @@ class EndsParams:
     """The band above starts no shallower than this, mm (the skin line and the probe's near field: ``ShadowPathParams.near_field_mm``)."""
     column_mm: float = 0.5
     """One contour column in this many mm is measured (speed: a median over columns needs no more; the speckle is ~0.3-0.7 mm wide)."""
-    min_ratio: float = 0.5
-    """A frame whose step is below this share of the track's typical step counts as weak (ours: on the tracks of 30 hard sweeps with bone-free ends, 920 frames on the bone and 49 bone-free frames kept, 0.5 cut 48 of the 49 and no frame on the bone, 0.4 cut 35; the real L14 recording's frames step 0.41-1.6 of its median, nothing cut)."""
+    trough_mm: float = 1.0
+    """The band under the contour is read as its darkest layer this thick, mm, on the profile along the contour (the shadow between reverberation copies; 0: the band's mean, as before session 48; :func:`.ends.shadow_step`)."""
+    min_ratio: float = 0.6
+    """A frame whose step is below this share of the track's typical step counts as weak (ours, session 48, with ``trough_mm`` 1: on the tracks of 160 hard sweeps with bone-free ends segmented with the cut off, 64 bone-free frames kept and 5,341 on the bone, 0.6 cut every bone-free frame and none on the bone, 0.5 left 24 bone-free, 0.65 cut one on the bone; the band's mean at 0.5: 1 bone-free left, 3 on the bone cut, and 6 of the grey clavicle s811's last frames under a darker muscle layer; the real L14 recording's frames step 0.70-1.22 of its median, nothing cut)."""
     strong_weight: float = 1.0
     """A frame at or above ``min_ratio`` counts this many times its margin against a cut, a weak one once its margin for it (ours: at 3, which guards a weak stretch of the bone next to a strong end frame better, bone-free frames kept on 96 hard sweeps 4 of 624, at 1 1 of 624, the same frames on the bone; past a bone's end a layer may step 0.6-0.7 of the typical frame in the frames farthest from the bone)."""
     search_past_ends: bool = True
@@ -811,7 +813,13 @@ class EndsParams:
         check_fields(
             self,
             positive=("band_mm", "column_mm", "min_ratio"),
-            non_negative=("under_gap_mm", "above_gap_mm", "near_field_mm", "strong_weight"),
+            non_negative=(
+                "under_gap_mm",
+                "above_gap_mm",
+                "near_field_mm",
+                "strong_weight",
+                "trough_mm",
+            ),
             within={"max_cut_share": "[0, 1]"},
         )
 
