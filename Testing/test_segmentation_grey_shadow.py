@@ -490,12 +490,13 @@ def test_series_top_read_at_its_echo_crest_a_row_under_the_traced_row():
 def test_grey_humerus_series_top_under_a_darker_muscle_layer(sim_factory):
     """The humerus under the grey shadow (seed 709), frames 32 and 33: the bone's echo
     is weak (its own evidence 4.1 against 18-26 for the copies 7-9 mm under it), so
-    only the series makes it the strongest candidate. Frame 33's traced top lay a row
-    over its echo's crest, read as a line between it and its first copy; in frame 32
-    the tissue 1.5-3 mm over the bone is a darker layer (0.78 of the frame's level),
-    read as a shadow over a far cortex, although the troughs between the copies are 3
-    to 200 times darker. Before: the copies were no series, and the track took a fascia
-    leaving the crest in frame 32 (1.96 mm off) and lost frame 31."""
+    only the series makes it the strongest candidate. In both frames the traced top lay
+    a row over its echo's crest (0.86 and 0.93; the crest 0.90 and 1.07), read as a line
+    between it and its first copy (0.52, 0.59); in frame 32 the tissue 1.5-3 mm over the
+    bone is also a darker layer (0.78 of the frame's level), read as a shadow over a far
+    cortex, although the troughs between the copies are 3 to 200 times darker. Before:
+    the copies were no series, and the track took a fascia leaving the crest in frame 32
+    (1.96 mm off) and lost frame 31."""
     from BoneUSRecon.Logic.simulation.scoring import polyline_distance
 
     sim = sim_factory(bone="humerus", seed=709, realism="hard", hard_conditions=("grey_shadow",))
