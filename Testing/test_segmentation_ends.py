@@ -19,6 +19,8 @@ from BoneUSRecon.Logic.segmentation.ends import (
     bone_free_ends,
     cut_ends_and_choose_again,
     shadow_step,
+    shadow_steps,
+    trough_step,
 )
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice
 from BoneUSRecon.Logic.simulation import SimulationParams
@@ -139,10 +141,10 @@ def test_the_track_is_chosen_again_without_the_frames_cut():
     r1 = segment_sweep(sim.sweep)
     s1 = score_simulation(r1, sim)
     med0 = {f.frame: f.median_mm for f in s0.frames}
-    # Measured without the choice again: 2.56 and 1.41 mm (the fascia); frame 30
-    # (bone-free) was kept on the fascia's continuation too until session 48's step
-    # (the darkest layer under the contour, ``EndsParams.trough_mm``) cut it.
+    # Measured without the choice again: 2.56 and 1.41 mm (the fascia), and frame 30
+    # (bone-free) kept on the fascia's continuation.
     assert med0[28] > 1.0 and med0[29] > 1.0
+    assert s0.wrong_share > 0
     # With it: every frame showing bone kept on it (median < 1 mm; measured 0.03-0.5
     # mm), no bone-free frame kept; frames 28-29 keep their own bone candidate.
     assert s1.recall == 1.0 and s1.wrong_share == 0.0
@@ -219,24 +221,28 @@ def test_shadow_step_tells_a_shadow_from_a_layer_over_tissue():
     shade[:, 20:80] *= 0.4
     shade[49:52, 20:80] = 200.0
     img["shade"] = np.clip(shade, 0, 255).astype(np.uint8)
-    # The band's mean (``trough_mm`` 0, before session 48), then the darkest layer
-    # (a plain shadow's darkest millimetre is its level less the speckle's residue).
-    for p, off, tol in ((EndsParams(trough_mm=0.0), 0.0, 0.1), (EndsParams(), -0.1, 0.1)):
-        s_bone = shadow_step(img["bone"], pts, (sp, sp), p)
-        assert s_bone == pytest.approx(np.log(0.4) + off, abs=tol)
-        assert abs(shadow_step(img["layer"], pts, (sp, sp), p)) < 0.2 * abs(s_bone)
+    # The band's mean, then its darkest layer (a plain shadow's darkest millimetre is
+    # its level less the speckle's residue).
+    for step, off in ((shadow_step, 0.0), (trough_step, -0.1)):
+        s_bone = step(img["bone"], pts, (sp, sp))
+        assert s_bone == pytest.approx(np.log(0.4) + off, abs=0.1)
+        assert abs(step(img["layer"], pts, (sp, sp))) < 0.2 * abs(s_bone)
         # A shade cast from above (the whole column darker): no step either.
-        assert abs(shadow_step(img["shade"], pts, (sp, sp), p)) < 0.2 * abs(s_bone)
-    assert np.isnan(shadow_step(img["bone"], np.empty((0, 2)), (sp, sp)))
+        assert abs(step(img["shade"], pts, (sp, sp))) < 0.2 * abs(s_bone)
+        assert np.isnan(step(img["bone"], np.empty((0, 2)), (sp, sp)))
+    both = shadow_steps(img["bone"], pts, (sp, sp))
+    assert both.shape == (2,) and both[0] == shadow_step(img["bone"], pts, (sp, sp))
+    assert np.isnan(trough_step(img["bone"], pts, (sp, sp), EndsParams(trough_mm=0.0)))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_reverberating_shadow_under_darker_muscle_steps_like_the_bone(seed):
     """A shadow at 0.4 of the tissue holding five fading reverberation copies 2.5 mm
     apart, under a muscle layer at 0.8 of the tissue's level: the band's mean steps
-    0.28-0.36 of the same bone's under plain tissue with a plain shadow (weak at the
-    former ``min_ratio`` 0.5: the grey clavicle s811's last six frames were cut so), the
-    darkest layer 0.72-0.80 (kept: at least ``min_ratio``)."""
+    0.28-0.36 of the same bone's under plain tissue with a plain shadow (weak at
+    ``min_ratio`` 0.5: the grey clavicle s811's last six frames were cut so), the
+    darkest layer 0.72-0.80 (not weak at ``trough_ratio`` 0.6), and a frame is only as
+    weak as both readings find it."""
     rng = np.random.default_rng(seed)
     h, w, sp = 160, 100, 0.2
     tissue = rng.rayleigh(60.0, (h, w))
@@ -253,12 +259,15 @@ def test_a_reverberating_shadow_under_darker_muscle_steps_like_the_bone(seed):
         img[20:47, 20:80] *= above
         return np.clip(img, 0, 255).astype(np.uint8)
 
-    def ratio(p: EndsParams) -> float:
-        ref = shadow_step(frame(1.0, False), pts, (sp, sp), p)
-        return shadow_step(frame(0.8, True), pts, (sp, sp), p) / ref
-
-    assert ratio(EndsParams(trough_mm=0.0)) < 0.5
-    assert ratio(EndsParams()) >= EndsParams().min_ratio
+    p = EndsParams()
+    ref = shadow_steps(frame(1.0, False), pts, (sp, sp))
+    got = shadow_steps(frame(0.8, True), pts, (sp, sp))
+    assert got[0] / ref[0] < p.min_ratio
+    assert got[1] / ref[1] >= p.trough_ratio
+    # Twelve frames of the plain bone, the last three like this one: not cut.
+    steps = np.array([ref] * 9 + [got] * 3)
+    assert not bone_free_ends(steps, p).any()
+    assert bone_free_ends(steps[:, 0], p)[-3:].all()  # by the band's mean alone
 
 
 def test_bone_free_ends_cuts_weak_runs_at_the_ends_only():

@@ -75,7 +75,7 @@ from BoneUSRecon.Logic.segmentation.driver import contours_from_track, frame_can
 from BoneUSRecon.Logic.segmentation.ends import (
     candidate_steps,
     cut_ends_and_choose_again,
-    shadow_step,
+    shadow_steps,
 )
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.reach import trim_beyond
@@ -237,9 +237,9 @@ def _guided(
             # Its shadow step (:mod:`~BoneUSRecon.Logic.segmentation.ends`) measured now,
             # while the pixels are at hand: the ends cut may need it at any later refit.
             step = (
-                shadow_step(fr.image, cand.points_px, fr.candidates.spacing, params.ends)
+                shadow_steps(fr.image, cand.points_px, fr.candidates.spacing, params.ends)
                 if cand is not None and params.ends.enabled
-                else float("nan")
+                else np.full(2, np.nan)
             )
             fr.guided = (key, cand, step)
             counts["searched"] += 1
@@ -255,11 +255,11 @@ def _track_steps(frames: list[_Frame], choice: TrackChoice) -> np.ndarray:
     for n in np.flatnonzero(choice.chosen >= 0).tolist():
         fr, c = frames[n], int(choice.chosen[n])
         if c < len(fr.steps):
-            out.append(float(fr.steps[c]))
+            out.append(fr.steps[c])
         else:  # the guided candidate, appended after the frame's own
             assert fr.guided is not None and fr.guided[1] is not None
             out.append(fr.guided[2])
-    return np.array(out, dtype=float)
+    return np.array(out, dtype=float).reshape(-1, 2)
 
 
 def _prior_key(frame: _Frame) -> tuple[tuple[int, int], ...] | None:
@@ -486,12 +486,12 @@ class _Frame:
     #: found it on the first track: a search of the frame (at the next refit, and again
     #: whenever its prior changes) reads them instead of computing them.
     evidence: EvidenceMaps | None = None
-    #: The shadow step under each of its candidates (:mod:`~BoneUSRecon.Logic.
-    #: segmentation.ends`), measured on arrival; NaN with the ends cut off.
-    steps: np.ndarray = field(default_factory=lambda: np.empty(0))
+    #: The shadow steps under each of its candidates, (n, 2) (:func:`~BoneUSRecon.Logic.
+    #: segmentation.ends.shadow_steps`), measured on arrival; NaN with the ends cut off.
+    steps: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
     #: The prior of the frame's last search (:func:`_guided`), what it found and that
-    #: candidate's shadow step.
-    guided: tuple[tuple[tuple[int, int], ...], BoneCandidate | None, float] | None = None
+    #: candidate's shadow steps.
+    guided: tuple[tuple[tuple[int, int], ...], BoneCandidate | None, np.ndarray] | None = None
     #: The names of the frame's track contour and its prior at its last recheck
     #: (:func:`_rechecked`), the contour found to replace it (or None), and whether it
     #: strayed (was searched).

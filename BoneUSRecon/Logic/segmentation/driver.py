@@ -36,7 +36,7 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     frame_candidates_many,
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
-from BoneUSRecon.Logic.segmentation.ends import cut_ends_and_choose_again, shadow_step
+from BoneUSRecon.Logic.segmentation.ends import cut_ends_and_choose_again, shadow_steps
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.reach import trim_beyond
@@ -292,7 +292,7 @@ def segment_sweep(
     # (:func:`.track.tolerance_scale`): the track and every step after it use it.
     track.rescale()
     rejection = track.rejection
-    steps: dict[BoneCandidate, float] = {}  # shadow steps measured (:mod:`.ends`)
+    steps: dict[BoneCandidate, np.ndarray] = {}  # shadow steps measured (:mod:`.ends`)
 
     def track_steps(fcs: list[FrameCandidates], choice: TrackChoice) -> np.ndarray:
         """The shadow step of each track frame's chosen candidate (each measured once)."""
@@ -302,8 +302,8 @@ def segment_sweep(
         images = (image for _, image in sweep.iter_frames(idx[on[todo]]))
         for i, image in zip(todo, images, strict=True):
             sp = fcs[int(on[i])].spacing
-            steps[cands[i]] = shadow_step(image, cands[i].points_px, sp, params.ends)
-        return np.array([steps[c] for c in cands], dtype=float)
+            steps[cands[i]] = shadow_steps(image, cands[i].points_px, sp, params.ends)
+        return np.array([steps[c] for c in cands], dtype=float).reshape(-1, 2)
 
     if recovery_applies(params):
         # Frames off the track searched again inside the band the track allows, then

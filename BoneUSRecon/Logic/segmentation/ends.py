@@ -15,18 +15,21 @@ shadow from the contour down: a few mm under the contour the tissue is darker th
 tissue just above it. A fascia over tissue has tissue beneath it (no step), and the
 shade of a no-contact gap is cast from the skin above, so the column is dark above
 the contour as well as under it (little step). :func:`shadow_step` measures that step
-per frame, in bands ``band_mm`` thick starting ``under_gap_mm`` under the contour (past
-the bone's bright band) and ``above_gap_mm`` above it: on the profile along the contour
-(per row offset, the median log grey over its columns), the darkest layer
-``trough_mm`` thick of the band under it less the mean of the band above. The darkest
-layer, not the band's mean: a grey shadow filled with reverberation copies every 2-3 mm
-(the band spans at least one period) is dark between them, and its mean is not much
-darker than a hypoechoic muscle over the bone (the grey clavicle s811, seeds no session
-had run: its last 6 frames, on the bone under a muscle layer at 0.78 of the tissue's
-level, stepped 0.36 to -0.3 of the track's typical frame by the band's mean and were cut,
-gold 1.33 mm; by the darkest layer 0.58-1.03, gold 0.19). The tissue under a layer has
-darker layers too, fainter: judged against the bone's own trough-deep step, with
-``min_ratio`` 0.6 (measured in ``Testing/benchmarks/README.md``, session 48).
+per frame: the median over the contour's columns of ``log(grey under) - log(grey
+above)``, in bands ``band_mm`` thick starting ``under_gap_mm`` under the contour (past
+the bone's bright band) and ``above_gap_mm`` above it. :func:`trough_step` reads the
+same bands on the profile along the contour (per row offset, the median log grey over
+its columns): the darkest ``trough_mm`` layer of the band under it less the band above's
+mean. A grey shadow filled with reverberation copies every 2-3 mm (the band spans at
+least one period) is dark between them, and the band's mean is then not much darker
+than a hypoechoic muscle over the bone: the grey clavicle s811 (seeds no session had
+run) lost its last 6 frames so, on the bone under a muscle layer at 0.78 of the
+tissue's level, stepping 0.36 to -0.3 of the track's typical frame (gold 1.33 mm); its
+darkest layer read 0.58-1.03. The darkest layer has its own blind side: the tissue under
+a layer has darker layers too, and a bone's darkest layer varies with where its copies
+fall (the grey clavicle s919's last frames read 0.49-0.68 of typical by it, 0.37-1.0 by
+the mean). A frame is as weak as both readings find it (:func:`bone_free_ends`; measured
+in ``Testing/benchmarks/README.md``, session 48).
 
 :func:`bone_free_ends` judges the step of each track frame against the track's own
 typical step (the median over its frames): the weakness of a frame is ``min_ratio -
@@ -88,6 +91,8 @@ from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice
 
 __all__ = [
     "shadow_step",
+    "trough_step",
+    "shadow_steps",
     "candidate_steps",
     "bone_free_ends",
     "cut_ends_at_steps",
@@ -165,8 +170,6 @@ def shadow_step(
     pts = points_px[:: max(1, int(round(params.column_mm / max(sx, 1e-6))))]
     i = np.clip(np.round(pts[:, 0]).astype(np.intp), 0, w - 1)
     j = np.asarray(pts[:, 1], dtype=float)
-    if params.trough_mm > 0:
-        return _trough_step(img, i, j, sy, params)
     band = params.band_mm / sy
     under0 = j + params.under_gap_mm / sy
     above1 = j - params.above_gap_mm / sy
@@ -185,13 +188,24 @@ def shadow_step(
     return float(np.median(d)) if d.size else float("nan")
 
 
-def _trough_step(
-    img: np.ndarray, i: np.ndarray, j: np.ndarray, sy: float, params: EndsParams
+def trough_step(
+    image: np.ndarray,
+    points_px: np.ndarray,
+    spacing: tuple[float, float],
+    params: EndsParams = EndsParams(),  # noqa: B008 (frozen dataclass)
 ) -> float:
-    """:func:`shadow_step` with ``trough_mm``: the darkest ``trough_mm`` layer of the band
-    under the contour less the band above, on the profile along the contour (per row
-    offset, the median log grey over its columns)."""
-    h = img.shape[0]
+    """:func:`shadow_step`'s bands read on the profile along the contour (per row offset,
+    the median log grey over its columns, one every ~``column_mm``): the darkest
+    ``trough_mm`` layer of the band under it less the mean of the band above. NaN when
+    ``trough_mm`` is 0 or no layer fits in the image."""
+    img = np.asarray(image)
+    h, w = img.shape
+    sx, sy = float(spacing[0]), float(spacing[1])
+    if points_px.shape[0] == 0 or not params.trough_mm > 0:
+        return float("nan")
+    pts = points_px[:: max(1, int(round(params.column_mm / max(sx, 1e-6))))]
+    i = np.clip(np.round(pts[:, 0]).astype(np.intp), 0, w - 1)
+    j = np.asarray(pts[:, 1], dtype=float)
     a1 = int(round(params.above_gap_mm / sy))
     u0 = int(round(params.under_gap_mm / sy))
     band = max(1, int(round(params.band_mm / sy)))
@@ -223,38 +237,71 @@ def _trough_step(
     return float(layers.min() - above.mean())
 
 
+def shadow_steps(
+    image: np.ndarray,
+    points_px: np.ndarray,
+    spacing: tuple[float, float],
+    params: EndsParams = EndsParams(),  # noqa: B008 (frozen dataclass)
+) -> np.ndarray:
+    """Both readings of a contour's step, ``[shadow_step, trough_step]`` (shape (2,)):
+    what :func:`bone_free_ends` judges a track frame by."""
+    return np.array(
+        [
+            shadow_step(image, points_px, spacing, params),
+            trough_step(image, points_px, spacing, params),
+        ]
+    )
+
+
+def _weakness(steps: np.ndarray, ratio: float) -> np.ndarray | None:
+    """``ratio - step / typical`` per frame (0 where not measured; None: no shadow on the
+    track, or too few frames measured, to judge against)."""
+    ok = np.isfinite(steps)
+    if ok.sum() < 3:
+        return None
+    typical = float(np.median(steps[ok]))
+    if not typical < 0:
+        return None
+    return np.where(ok, ratio - steps / typical, 0.0)
+
+
 def bone_free_ends(steps: np.ndarray, params: EndsParams = EndsParams()) -> np.ndarray:  # noqa: B008
     """Which of a track's frames (in sweep order) to cut at its two ends.
 
     Parameters
     ----------
-    steps : ndarray (T,)
-        :func:`shadow_step` of each track frame, in sweep order (NaN: not measured).
+    steps : ndarray (T,) or (T, 2)
+        Of each track frame, in sweep order (NaN: not measured): :func:`shadow_step`,
+        or both readings (:func:`shadow_steps`).
     params : EndsParams
 
     Returns
     -------
     ndarray of bool (T,)
-        True for the frames cut: at each end, the run whose summed weakness
-        ``min_ratio - step / typical`` is greatest, when that sum is positive and
-        greater than the largest summed weakness of any run of the frames between the
-        two ends' runs (the bone's own weakest stretch); never more than
-        ``max_cut_share`` of the track.
+        True for the frames cut: at each end, the run whose summed weakness is
+        greatest, when that sum is positive and greater than the largest summed
+        weakness of any run of the frames between the two ends' runs (the bone's own
+        weakest stretch); never more than ``max_cut_share`` of the track. A frame's
+        weakness is ``min_ratio - step / typical`` (``typical`` the track's median
+        step); with both readings, the lesser of that and ``trough_ratio -
+        trough / typical trough``: a frame is as weak as both find it.
     """
     steps = np.asarray(steps, dtype=float)
-    t = steps.size
+    t = steps.shape[0]
     cut = np.zeros(t, bool)
-    ok = np.isfinite(steps)
-    if t < 3 or ok.sum() < 3:
+    if t < 3:
         return cut
-    typical = float(np.median(steps[ok]))
-    if not typical < 0:
+    cols = steps.reshape(t, -1)
+    ratios = (params.min_ratio, params.trough_ratio)
+    each = [_weakness(cols[:, k], ratios[k]) for k in range(cols.shape[1])]
+    found = [x for x in each if x is not None]
+    if not found:
         return cut  # the track's own frames cast no shadow: nothing to judge against
     # A frame not measured weighs nothing either way; a frame that looks like the
     # bone weighs ``strong_weight`` times more than a weak one: the bone's own frames
     # vary (a real recording's 0.4-1.6 of its median), a run past its end is weak
     # throughout.
-    weak = np.where(ok, params.min_ratio - steps / typical, 0.0)
+    weak = np.minimum.reduce(found)
     weak = np.where(weak < 0, params.strong_weight * weak, weak)
     most = int(np.floor(params.max_cut_share * t))
     # Each end's candidate run: the one whose summed weakness is greatest.
@@ -293,8 +340,8 @@ def candidate_steps(
     fc: FrameCandidates,
     params: EndsParams = EndsParams(),  # noqa: B008 (frozen dataclass)
 ) -> np.ndarray:
-    """:func:`shadow_step` of each of a frame's candidates the track may choose (NaN for
-    a reverberation copy, and for all with the cut off).
+    """:func:`shadow_steps` of each of a frame's candidates the track may choose, shape
+    ``(n, 2)`` (NaN for a reverberation copy, and for all with the cut off).
 
     A live session measures them as the frame arrives, while it has the pixels: the
     step depends only on the frame and the candidate, and the track may choose any
@@ -303,13 +350,13 @@ def candidate_steps(
     """
     return np.array(
         [
-            shadow_step(image, c.points_px, fc.spacing, params)
+            shadow_steps(image, c.points_px, fc.spacing, params)
             if params.enabled and not c.reverberation
-            else np.nan
+            else np.full(2, np.nan)
             for c in fc.candidates
         ],
         dtype=float,
-    )
+    ).reshape(-1, 2)
 
 
 def cut_ends_at_steps(
@@ -317,8 +364,8 @@ def cut_ends_at_steps(
     steps: np.ndarray,
     params: EndsParams = EndsParams(),  # noqa: B008 (frozen dataclass)
 ) -> TrackChoice:
-    """``choice`` with its bone-free ends taken off, given the :func:`shadow_step` of
-    each track frame's chosen candidate (``steps``, in the order of
+    """``choice`` with its bone-free ends taken off, given the :func:`shadow_steps` (or
+    the :func:`shadow_step`) of each track frame's chosen candidate (``steps``, in the order of
     ``flatnonzero(choice.chosen >= 0)``); see :func:`cut_bone_free_ends`.
     """
     on = np.flatnonzero(choice.chosen >= 0)
@@ -328,14 +375,18 @@ def cut_ends_at_steps(
     cut = bone_free_ends(steps, params)
     if not cut.any():
         return choice
-    typical = float(np.nanmedian(steps))
+    cols = steps.reshape(on.size, -1)
+    with np.errstate(all="ignore"):
+        rel = cols / np.nanmedian(cols, axis=0)
     chosen = choice.chosen.copy()
     conf = choice.confidence.copy()
     reason, detail = list(choice.reason), list(choice.detail)
-    for n, s in zip(on[cut], steps[cut], strict=True):
+    for n, r in zip(on[cut], rel[cut], strict=True):
         chosen[n], conf[n] = -1, 0.0
         reason[n] = REASONS["noshadow"]
-        detail[n] = f"step {s / typical:.2f} of the track's typical"
+        detail[n] = f"step {r[0]:.2f} of the track's typical" + (
+            f" (its darkest layer {r[1]:.2f})" if r.size > 1 and np.isfinite(r[1]) else ""
+        )
     return TrackChoice(chosen, conf, reason, detail)
 
 
@@ -359,7 +410,7 @@ def cut_bone_free_ends(
         return choice
     steps = np.array(
         [
-            shadow_step(
+            shadow_steps(
                 image,
                 frames[n].candidates[int(choice.chosen[n])].points_px,
                 frames[n].spacing,

@@ -797,9 +797,11 @@ class EndsParams:
     column_mm: float = 0.5
     """One contour column in this many mm is measured (speed: a median over columns needs no more; the speckle is ~0.3-0.7 mm wide)."""
     trough_mm: float = 1.0
-    """The band under the contour is read as its darkest layer this thick, mm, on the profile along the contour (the shadow between reverberation copies; 0: the band's mean, as before session 48; :func:`.ends.shadow_step`)."""
-    min_ratio: float = 0.6
-    """A frame whose step is below this share of the track's typical step counts as weak (ours, session 48, with ``trough_mm`` 1: on the tracks of 160 hard sweeps with bone-free ends segmented with the cut off, 64 bone-free frames kept and 5,341 on the bone, 0.6 cut every bone-free frame and none on the bone, 0.5 left 24 bone-free, 0.65 cut one on the bone; the band's mean at 0.5: 1 bone-free left, 3 on the bone cut, and 6 of the grey clavicle s811's last frames under a darker muscle layer; the real L14 recording's frames step 0.70-1.22 of its median, nothing cut)."""
+    """The band under the contour is also read at its darkest layer this thick, mm, on the profile along the contour (the shadow between reverberation copies; :func:`.ends.trough_step`; 0: not read, the band's mean alone as before session 48)."""
+    min_ratio: float = 0.5
+    """A frame whose step (the band's mean) is below this share of the track's typical step counts as weak (ours: on the tracks of 30 hard sweeps with bone-free ends, 920 frames on the bone and 49 bone-free frames kept, 0.5 cut 48 of the 49 and no frame on the bone, 0.4 cut 35; the real L14 recording's frames step 0.41-1.6 of its median, nothing cut)."""
+    trough_ratio: float = 0.6
+    """The same for the darkest layer (``trough_mm``); a frame is as weak as both readings find it, the lesser of the two weaknesses (ours, session 48, offline on tracks segmented with the cut off: 160 hard sweeps with bone-free ends, 64 bone-free frames and 5,341 on the bone, and 24 sweeps of the grey, small and motion groups of six seed pairs, 4,065 on the bone; the band's mean alone left 1 bone-free frame and cut 3 + 6 on the bone, the 6 the grey clavicle s811's last frames under a darker muscle layer; the darkest layer alone at 0.6 left none and cut 0 + 5, at 0.5 left 24; both, 1 and 0 + 1; the real L14 recording's frames read 0.70-1.22 of its median, nothing cut)."""
     strong_weight: float = 1.0
     """A frame at or above ``min_ratio`` counts this many times its margin against a cut, a weak one once its margin for it (ours: at 3, which guards a weak stretch of the bone next to a strong end frame better, bone-free frames kept on 96 hard sweeps 4 of 624, at 1 1 of 624, the same frames on the bone; past a bone's end a layer may step 0.6-0.7 of the typical frame in the frames farthest from the bone)."""
     search_past_ends: bool = True
@@ -812,7 +814,7 @@ class EndsParams:
     def __post_init__(self) -> None:
         check_fields(
             self,
-            positive=("band_mm", "column_mm", "min_ratio"),
+            positive=("band_mm", "column_mm", "min_ratio", "trough_ratio"),
             non_negative=(
                 "under_gap_mm",
                 "above_gap_mm",
