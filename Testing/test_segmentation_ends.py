@@ -340,3 +340,22 @@ def test_cli_simulate_bone_free(tmp_path, capsys):
     saved = json.loads((out / "simulation.json").read_text())
     assert saved["parameters"]["bone_free_frames"] == [2, 3]
     assert saved["frames_with_visible_bone"] == 3
+
+
+def test_bone_free_ends_with_both_readings():
+    """A frame is as weak as both readings find it; a reading not taken (``trough_mm``
+    0: NaN throughout) leaves the other alone; one that finds no shadow on the track
+    leaves nothing to judge against."""
+    p = EndsParams()
+    mean = np.full(20, -0.6)
+    trough = np.full(20, -2.0)
+    mean[-4:] = 0.1 * -0.6  # weak by the band's mean ...
+    both = np.column_stack([mean, trough])
+    assert bone_free_ends(mean, p)[-4:].all()
+    assert not bone_free_ends(both, p).any()  # ... not by its darkest layer
+    both[-4:, 1] = 0.2 * -2.0  # weak by both: cut
+    assert bone_free_ends(both, p)[-4:].all() and bone_free_ends(both, p).sum() == 4
+    unread = np.column_stack([mean, np.full(20, np.nan)])
+    assert (bone_free_ends(unread, p) == bone_free_ends(mean, p)).all()
+    flat = np.column_stack([mean, np.full(20, 0.1)])
+    assert not bone_free_ends(flat, p).any()

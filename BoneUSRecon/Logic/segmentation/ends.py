@@ -151,16 +151,13 @@ def shadow_step(
     Returns
     -------
     float
-        On the profile along the contour (per row offset, the median log grey over the
-        contour's columns, one every ~``column_mm``), the darkest ``trough_mm`` layer
-        of ``[under_gap_mm, under_gap_mm + band_mm]`` under the contour less the mean
-        of ``[above_gap_mm, above_gap_mm + band_mm]`` above it (not above
+        Median over the contour's columns (one every ~``column_mm``) of the mean log
+        grey in ``[under_gap_mm, under_gap_mm + band_mm]`` under the contour less that
+        in ``[above_gap_mm, above_gap_mm + band_mm]`` above it (not above
         ``near_field_mm`` under the imaged field's top: under a black band over the
-        contour's columns, as :func:`.evidence.outside_field`); with ``trough_mm`` 0,
-        the median over the columns of the band under's mean less the band above's.
-        Negative under bone (its shadow starts at the contour), near zero under a
-        layer over tissue or in a shade cast from above. NaN when no band fits in the
-        image.
+        contour's columns, as :func:`.evidence.outside_field`): negative under bone
+        (its shadow starts at the contour), near zero under a layer over tissue or in
+        a shade cast from above. NaN when no band fits in the image.
     """
     img = np.asarray(image)
     h, w = img.shape
@@ -293,10 +290,16 @@ def bone_free_ends(steps: np.ndarray, params: EndsParams = EndsParams()) -> np.n
         return cut
     cols = steps.reshape(t, -1)
     ratios = (params.min_ratio, params.trough_ratio)
-    each = [_weakness(cols[:, k], ratios[k]) for k in range(cols.shape[1])]
-    found = [x for x in each if x is not None]
+    found = []
+    for k in range(cols.shape[1]):
+        if not np.isfinite(cols[:, k]).any():
+            continue  # not read (``trough_mm`` 0)
+        w = _weakness(cols[:, k], ratios[k])
+        if w is None:
+            return cut  # the track's own frames cast no shadow: nothing to judge against
+        found.append(w)
     if not found:
-        return cut  # the track's own frames cast no shadow: nothing to judge against
+        return cut
     # A frame not measured weighs nothing either way; a frame that looks like the
     # bone weighs ``strong_weight`` times more than a weak one: the bone's own frames
     # vary (a real recording's 0.4-1.6 of its median), a run past its end is weak
@@ -376,8 +379,8 @@ def cut_ends_at_steps(
     if not cut.any():
         return choice
     cols = steps.reshape(on.size, -1)
-    with np.errstate(all="ignore"):
-        rel = cols / np.nanmedian(cols, axis=0)
+    typical = [np.median(c[np.isfinite(c)]) if np.isfinite(c).any() else np.nan for c in cols.T]
+    rel = cols / np.asarray(typical)
     chosen = choice.chosen.copy()
     conf = choice.confidence.copy()
     reason, detail = list(choice.reason), list(choice.detail)
