@@ -131,6 +131,18 @@ def _field_top(img: np.ndarray, cols: np.ndarray, sy: float) -> float:
     return float(np.median(np.where(tops < lit.shape[0], tops, 0)))
 
 
+def _columns(
+    image: np.ndarray, points_px: np.ndarray, spacing: tuple[float, float], column_mm: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The image, and the columns ``i`` and rows ``j`` of a contour's points one every
+    ~``column_mm``, and the row spacing (what both readings of the step measure on)."""
+    img = np.asarray(image)
+    sx, sy = float(spacing[0]), float(spacing[1])
+    pts = points_px[:: max(1, int(round(column_mm / max(sx, 1e-6))))]
+    i = np.clip(np.round(pts[:, 0]).astype(np.intp), 0, img.shape[1] - 1)
+    return img, i, np.asarray(pts[:, 1], dtype=float), sy
+
+
 def shadow_step(
     image: np.ndarray,
     points_px: np.ndarray,
@@ -159,14 +171,10 @@ def shadow_step(
         (its shadow starts at the contour), near zero under a layer over tissue or in
         a shade cast from above. NaN when no band fits in the image.
     """
-    img = np.asarray(image)
-    h, w = img.shape
-    sx, sy = float(spacing[0]), float(spacing[1])
     if points_px.shape[0] == 0:
         return float("nan")
-    pts = points_px[:: max(1, int(round(params.column_mm / max(sx, 1e-6))))]
-    i = np.clip(np.round(pts[:, 0]).astype(np.intp), 0, w - 1)
-    j = np.asarray(pts[:, 1], dtype=float)
+    img, i, j, sy = _columns(image, points_px, spacing, params.column_mm)
+    h = img.shape[0]
     band = params.band_mm / sy
     under0 = j + params.under_gap_mm / sy
     above1 = j - params.above_gap_mm / sy
@@ -195,14 +203,10 @@ def trough_step(
     the median log grey over its columns, one every ~``column_mm``): the darkest
     ``trough_mm`` layer of the band under it less the mean of the band above. NaN when
     ``trough_mm`` is 0 or no layer fits in the image."""
-    img = np.asarray(image)
-    h, w = img.shape
-    sx, sy = float(spacing[0]), float(spacing[1])
     if points_px.shape[0] == 0 or not params.trough_mm > 0:
         return float("nan")
-    pts = points_px[:: max(1, int(round(params.column_mm / max(sx, 1e-6))))]
-    i = np.clip(np.round(pts[:, 0]).astype(np.intp), 0, w - 1)
-    j = np.asarray(pts[:, 1], dtype=float)
+    img, i, j, sy = _columns(image, points_px, spacing, params.column_mm)
+    h = img.shape[0]
     a1 = int(round(params.above_gap_mm / sy))
     u0 = int(round(params.under_gap_mm / sy))
     band = max(1, int(round(params.band_mm / sy)))
