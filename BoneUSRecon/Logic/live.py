@@ -76,6 +76,8 @@ from BoneUSRecon.Logic.segmentation.ends import (
     candidate_steps,
     cut_ends_and_choose_again,
     shadow_steps,
+    steps_array,
+    unmeasured,
 )
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.reach import trim_beyond
@@ -239,7 +241,7 @@ def _guided(
             step = (
                 shadow_steps(fr.image, cand.points_px, fr.candidates.spacing, params.ends)
                 if cand is not None and params.ends.enabled
-                else np.full(2, np.nan)
+                else unmeasured()
             )
             fr.guided = (key, cand, step)
             counts["searched"] += 1
@@ -259,7 +261,7 @@ def _track_steps(frames: list[_Frame], choice: TrackChoice) -> np.ndarray:
         else:  # the guided candidate, appended after the frame's own
             assert fr.guided is not None and fr.guided[1] is not None
             out.append(fr.guided[2])
-    return np.array(out, dtype=float).reshape(-1, 2)
+    return steps_array(out)
 
 
 def _prior_key(frame: _Frame) -> tuple[tuple[int, int], ...] | None:
@@ -488,7 +490,7 @@ class _Frame:
     evidence: EvidenceMaps | None = None
     #: The shadow steps under each of its candidates, (n, 2) (:func:`~BoneUSRecon.Logic.
     #: segmentation.ends.shadow_steps`), measured on arrival; NaN with the ends cut off.
-    steps: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+    steps: np.ndarray = field(default_factory=lambda: steps_array(()))
     #: The prior of the frame's last search (:func:`_guided`), what it found and that
     #: candidate's shadow steps.
     guided: tuple[tuple[tuple[int, int], ...], BoneCandidate | None, np.ndarray] | None = None

@@ -36,7 +36,11 @@ from BoneUSRecon.Logic.segmentation.candidates import (
     frame_candidates_many,
 )
 from BoneUSRecon.Logic.segmentation.detection import Detection, empty_detection
-from BoneUSRecon.Logic.segmentation.ends import cut_ends_and_choose_again, shadow_steps
+from BoneUSRecon.Logic.segmentation.ends import (
+    cut_ends_and_choose_again,
+    shadow_steps,
+    steps_array,
+)
 from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.params import SEGMENTER_NAMES, SegmentationParams
 from BoneUSRecon.Logic.segmentation.reach import trim_beyond
@@ -303,7 +307,7 @@ def segment_sweep(
         for i, image in zip(todo, images, strict=True):
             sp = fcs[int(on[i])].spacing
             steps[cands[i]] = shadow_steps(image, cands[i].points_px, sp, params.ends)
-        return np.array([steps[c] for c in cands], dtype=float).reshape(-1, 2)
+        return steps_array(steps[c] for c in cands)
 
     if recovery_applies(params):
         # Frames off the track searched again inside the band the track allows, then

@@ -93,6 +93,9 @@ __all__ = [
     "shadow_step",
     "trough_step",
     "shadow_steps",
+    "steps_array",
+    "unmeasured",
+    "READINGS",
     "candidate_steps",
     "bone_free_ends",
     "cut_ends_at_steps",
@@ -238,6 +241,21 @@ def trough_step(
     return float(layers.min() - above.mean())
 
 
+#: Readings of a contour's shadow step (:func:`shadow_steps`): the band's mean, its
+#: darkest layer.
+READINGS = 2
+
+
+def steps_array(rows: Iterable[np.ndarray]) -> np.ndarray:
+    """Contours' :func:`shadow_steps` as one ``(n, READINGS)`` array (n may be 0)."""
+    return np.array(list(rows), dtype=float).reshape(-1, READINGS)
+
+
+def unmeasured() -> np.ndarray:
+    """The steps of a contour not measured (a copy, or the cut off): NaN each reading."""
+    return np.full(READINGS, np.nan)
+
+
 def shadow_steps(
     image: np.ndarray,
     points_px: np.ndarray,
@@ -355,15 +373,12 @@ def candidate_steps(
     usable candidate at a later refit, when the pixels may be gone (~1 ms per frame of
     480x640 with ~5 candidates, against ~30 ms for making them).
     """
-    return np.array(
-        [
-            shadow_steps(image, c.points_px, fc.spacing, params)
-            if params.enabled and not c.reverberation
-            else np.full(2, np.nan)
-            for c in fc.candidates
-        ],
-        dtype=float,
-    ).reshape(-1, 2)
+    return steps_array(
+        shadow_steps(image, c.points_px, fc.spacing, params)
+        if params.enabled and not c.reverberation
+        else unmeasured()
+        for c in fc.candidates
+    )
 
 
 def cut_ends_at_steps(
@@ -415,16 +430,11 @@ def cut_bone_free_ends(
     on = np.flatnonzero(choice.chosen >= 0)
     if on.size < 3:
         return choice
-    steps = np.array(
-        [
-            shadow_steps(
-                image,
-                frames[n].candidates[int(choice.chosen[n])].points_px,
-                frames[n].spacing,
-                params,
-            )
-            for n, image in zip(on.tolist(), images(on), strict=True)
-        ]
+    steps = steps_array(
+        shadow_steps(
+            image, frames[n].candidates[int(choice.chosen[n])].points_px, frames[n].spacing, params
+        )
+        for n, image in zip(on.tolist(), images(on), strict=True)
     )
     return cut_ends_at_steps(choice, steps, params)
 
