@@ -9,7 +9,7 @@ smoothing, a noise floor of 12 grey levels), the frames
 accepted and how far the contour moved in reference mm from the original's (median,
 95th percentile, share > 2 mm, over the part both contours cover), the share of the
 original contour found again ("cover") and of points found beyond its ends
-("beyond"). Then the reconstruction of the recording and of its hard copies scored
+("beyond"). Then the reconstruction of the recording and of its hard and look-alike copies scored
 against the reference contours of ``Testing/data/L14_reference.csv`` as gold points
 (mapped to 3D by each frame's pose: the only real-sweep reconstruction figure we can
 compute here), with, as an oracle for diagnosis only, the same segmentation completed
@@ -144,6 +144,11 @@ def reconstruction_against_reference(sw: Sweep, r: SegmentationResult) -> None:
         row(f"  oracle: + reference past {label}", sw, fixed)
     copies = {"cadaver": lambda s: augment.harden(s, bone_contours=ref)}
     copies.update(augment.HARD_AUGMENTATIONS)
+    # The look-alikes of issue 10 drawn in (a no-contact gap, a fascia, a vessel), on
+    # the recording and on its cadaver copy.
+    look = augment.LOOKALIKE_AUGMENTATIONS["lookalikes"]
+    copies["look-alikes"] = lambda s: look(s, ref)
+    copies["cadaver+look-alikes"] = lambda s: look(augment.harden(s, bone_contours=ref), ref)
     for name, fn in copies.items():
         aug = fn(sw)
         row(f"{name} copy", aug, segment_sweep(aug))

@@ -21,8 +21,11 @@ each hard condition alone on the tibia; tibia and humerus hard at both geometrie
 the last quarter of the frames bone-free ("end-free": a sweep running past the bone's
 end, ``SimulationParams.bone_free_frames``); the two shared real recordings and their hard
 augmentations (``augment.HARD_AUGMENTATIONS``, and "cadaver": ``augment.harden`` with the
-reference contours, the cadaver's levels exactly), scored against the reference contours
-of ``Testing/data`` (see its README for their precision).
+reference contours, the cadaver's levels exactly), and for L14 the simulator's look-alikes
+drawn into the recording and into its cadaver copy (``augment.LOOKALIKE_AUGMENTATIONS``: a
+no-contact gap at either edge, a fascia off the flank, a vessel 3 mm over the bone, all
+three; and a vessel 1 mm over it), scored against the reference contours of
+``Testing/data`` (see its README for their precision).
 
 Run: ``python Testing/benchmarks/bench_segmentation.py [--frames 60] [--overlay DIR]``
 (``--table-only`` for the frame-level table alone; ``--sim-frames``, ``--no-real``).
@@ -161,6 +164,16 @@ def frame_table(n_frames: int = 40, real: bool = True) -> None:
         # reference contour brought to 0.54 of the tissue above the bone (a recording
         # whose shadow is no darker than the tissue beside it gets none from "hard").
         variants[" cadaver"] = augment.harden(sw, bone_contours=ref)
+        if name == "L14":
+            # The simulator's look-alikes drawn into the forearm recording and into its
+            # cadaver copy (augment.LOOKALIKE_AUGMENTATIONS; a vessel right on the bone,
+            # 1 mm over it, as an extreme). Not for the spine phantom: no long bone.
+            for base in ("", " cadaver"):
+                for k, f in augment.LOOKALIKE_AUGMENTATIONS.items():
+                    variants[f"{base} +{k}"] = f(variants[base], ref)
+                variants[f"{base} +vessel-1mm"] = augment.add_vessel(
+                    variants[base], ref, gap_mm=1.0
+                )
         for suffix, s in variants.items():
             for m in TABLE_METHODS:
                 t = time.perf_counter()

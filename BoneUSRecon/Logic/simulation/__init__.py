@@ -14,7 +14,8 @@ Our ground truth for tests, benchmarks and the demo. Small files, one per stage:
 * :mod:`.levels` -- grey levels round a bone contour (echo, tissue above, shadow,
   tissue beside), to check the preset and the augmentations against the real levels.
 * :mod:`.augment` -- augmentations of a recorded sweep (mirror, gain, speckle,
-  resampling, crop) with consistent poses, to test on real data without new data.
+  resampling, crop, display chains, the cadaver's levels, look-alikes drawn in) with
+  consistent poses, to test on real data without new data.
 
 As on the real L14 recording (``SIMULATOR_VERSION`` 2), the shadow under bone is
 grey (speckle at ~15-40 % of the tissue's grey level, ``shadow_transmission`` 0.22)

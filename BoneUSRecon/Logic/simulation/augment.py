@@ -8,6 +8,13 @@ millimetres. Every function returns a new :class:`~BoneUSRecon.Logic.sweep.Sweep
 ``image_to_reference`` maps the new pixels to the same place as the old ones
 (``M' = M A`` with ``A`` the new-to-old pixel map), so contours found on the augmented
 sweep compare directly, in mm, with those of the original.
+
+Harder copies: :func:`harden` gives a recording the cadaver's levels of issue 10 (a dim
+echo, a grey shadow with reverberation bands), and :func:`no_contact`,
+:func:`add_fascia` and :func:`add_vessel` draw the simulator's look-alikes into it (a
+skin line over a no-contact gap, a fascia off the bone's flank, a vessel over the bone)
+with grey levels taken from the recording itself: the rules against look-alikes tested
+on real texture (``Testing/test_augment_lookalikes.py``).
 """
 
 from __future__ import annotations
@@ -18,6 +25,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
+from BoneUSRecon.Logic.simulation.levels import echo_levels
+from BoneUSRecon.Logic.simulation.motion import smooth_noise
+from BoneUSRecon.Logic.simulation.params import HardParams
 from BoneUSRecon.Logic.sweep import Sweep
 
 if TYPE_CHECKING:
@@ -39,6 +49,10 @@ __all__ = [
     "HARD_AUGMENTATIONS",
     "tissue_level",
     "harden",
+    "no_contact",
+    "add_fascia",
+    "add_vessel",
+    "LOOKALIKE_AUGMENTATIONS",
     "contour_agreement",
 ]
 
@@ -477,6 +491,247 @@ HARD_AUGMENTATIONS: dict[str, Callable[[Sweep], Sweep]] = {
     "low-contrast": lambda s: harden(s, shadow_ratio=None, reverb=0.0),
     "grey-shadow": lambda s: harden(s, echo_ratio=None),
     "hard": lambda s: harden(s),
+}
+
+
+# -- Look-alikes drawn into a recording (issue 10, item 2) -------------------------------
+#
+# The simulator's look-alikes (``realism="hard"``: a skin line over a no-contact gap, a
+# fascia off the crest, a vessel) tested on real texture: each is drawn into a recorded
+# sweep with the simulator's geometry (:class:`~.params.HardParams`) and with grey levels
+# taken from the recording itself (its brightest echo, its bone echo, its darkest
+# imaged grey), never absolute greys. The bone stays where it was, so the reference
+# contours score the copy as they score the recording. Lines are drawn as Gaussian
+# profiles across, with a texture correlated along them (a specular line is not
+# speckle), composited with ``max`` (a bright line hides what lies under it).
+
+_HARD = HardParams()
+
+
+def _frame_echo_grey(img: np.ndarray, contour: np.ndarray, sp: float) -> float:
+    """The bone echo's grey in one frame: :func:`~.levels.echo_levels`' ``echo`` (the
+    brightest grey within 0.15 mm of each contour point, median); NaN if unmeasurable."""
+    return float(echo_levels(img[None], [contour], sp)["echo"])
+
+
+def _line_texture(rng: np.random.Generator, n: int, width: int, sp: float) -> np.ndarray:
+    """(n, width) gain of mean 1 varying along a line over ~1 mm (std 0.25, >= 0.3)."""
+    t = np.stack([smooth_noise(rng, width, max(1.0, 1.0 / sp)) for _ in range(n)])
+    return np.clip(1.0 + 0.25 * t, 0.3, None).astype(np.float32)
+
+
+def _band_profile(rows: np.ndarray, centre: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian profile across a line: ``rows`` (H, 1), ``centre`` (..., W) -> (..., H, W)."""
+    return np.exp(-0.5 * ((rows - centre[..., None, :]) / sigma) ** 2).astype(np.float32)
+
+
+def _sorted_contour(c: np.ndarray) -> np.ndarray:
+    c = np.asarray(c, float).reshape(-1, 2)
+    return c[np.argsort(c[:, 0], kind="stable")]
+
+
+def no_contact(
+    sweep: Sweep,
+    *,
+    side: int = 1,
+    share: float = _HARD.gap_fraction,
+    depth_mm: float = _HARD.gap_depth_mm,
+    copies: int = _HARD.gap_copies,
+    decay: float = _HARD.gap_decay,
+    transmission: float = _HARD.gap_transmission,
+    line_mm: float = 0.4,
+    seed: int = 0,
+) -> Sweep:
+    """The probe loses contact at one lateral edge: issue 10's second cadaver pass, where
+    two thirds of the frames took this skin line for the bone.
+
+    Over the outer ``share`` of the imaged width on ``side`` (+1: the last columns; -1:
+    the first), varying smoothly along the sweep (+-15 %), the skin curves away from the
+    probe face, reaching ``depth_mm`` under it at the edge (``1.2 + depth_mm u**2`` mm,
+    ``u`` 0 -> 1 across the gap). Above the skin the gap returns nothing: the
+    recording's own darkest imaged grey (2nd percentile), textured. The skin line is as
+    bright as the frame's brightest echo (99.9th percentile of its imaged pixels: the
+    level a line must reach to pass for bone, whatever the gain), and ``copies``
+    reverberation copies lie under it at 2, 3, ... times its depth below the probe face
+    (sound bouncing between the face and the skin), each ``decay`` of the previous. The
+    tissue under the skin is dimmed to ``transmission`` of its grey (poor coupling).
+    Geometry and levels are the simulator's ``skin_gap`` (:class:`~.params.HardParams`);
+    the bone is not moved (the skin lifts off it), so reference contours still hold
+    where it is shown.
+    """
+    f = np.asarray(sweep.frames, np.float32)
+    n, h, w = f.shape
+    sp = float(np.mean(sweep.spacing_mm))
+    lit = _lit(f)
+    rows_lit, cols_lit = np.flatnonzero(lit.any(1)), np.flatnonzero(lit.any(0))
+    if rows_lit.size == 0:
+        return sweep
+    top, c0, c1 = float(rows_lit[0]), float(cols_lit[0]), float(cols_lit[-1])
+    rng = np.random.default_rng(seed)
+    width = np.clip(share * (1.0 + 0.15 * smooth_noise(rng, n, max(1.0, n / 6))), 0.05, 0.45)
+    width = width * (c1 - c0)
+    cols = np.arange(w, dtype=np.float32)[None, :]
+    u = (cols - (c1 - width[:, None])) if side > 0 else ((c0 + width[:, None]) - cols)
+    u = np.clip(u / width[:, None], 0.0, 1.0)
+    gap = (u > 0)[:, None, :]
+    skin = top + (1.2 + depth_mm * u**2) / sp  # (n, w) rows
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    above = gap & (rows[None] < skin[:, None, :])
+    floor = np.float32(np.percentile(f[:, lit], 2.0))
+    speckle = rng.gamma(4.0, 0.25, f.shape).astype(np.float32)
+    out = np.where(above, floor * speckle, np.where(gap, f * np.float32(transmission), f))
+    sigma = max(line_mm / sp, 1.0)
+    line = np.zeros_like(f)
+    for m in range(1, copies + 2):
+        prof = _band_profile(rows, top + m * (skin - top), sigma)
+        line = np.maximum(line, np.float32(decay ** (m - 1)) * prof)
+    bright = np.array([np.percentile(f[k][lit], 99.9) for k in range(n)], np.float32)
+    tex = _line_texture(rng, n, w, sp)[:, None, :]
+    out = np.maximum(out, np.where(gap, line * bright[:, None, None] * tex, 0.0))
+    out = np.where(lit[None], out, 0.0)
+    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+
+def add_fascia(
+    sweep: Sweep,
+    bone_contours: Mapping[int, np.ndarray],
+    *,
+    side: int = 1,
+    attach_mm: float = _HARD.fascia_attach_mm,
+    length_mm: float = _HARD.fascia_length_mm,
+    slope: float = _HARD.fascia_slope,
+    strength: float = 1.0,
+    line_mm: float = 0.3,
+    seed: int = 0,
+) -> Sweep:
+    """A bright fascia leaving the bone's flank at the bone's level: issue 10's cadaver,
+    where "bright fascia runs off the crest at the bone's level".
+
+    In each frame with a contour (``(M, 2)`` pixels ``(i, j)``: the reference contours),
+    the fascia leaves the flank on ``side`` (+1: towards larger columns) where it lies
+    ``attach_mm`` under the bone's top and runs ``length_mm`` outward, descending
+    ``slope`` mm per mm (wandering +-0.02 along the sweep), fading in over its first mm
+    and out over its last 3, as the simulator's ``fascia``. Its grey is ``strength``
+    times this frame's own bone echo grey (:func:`_frame_echo_grey`; the cadaver: a
+    fascia as bright as the bone). Beneath it lies what the recording has there: tissue
+    over the flank, the bone's shadow farther in.
+    """
+    f = np.asarray(sweep.frames, np.float32)
+    n, h, w = f.shape
+    sp = float(np.mean(sweep.spacing_mm))
+    lit = _lit(f)
+    rng = np.random.default_rng(seed)
+    wiggle = smooth_noise(rng, n, max(1.0, n / 6))
+    tex = _line_texture(rng, n, w, sp)
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    cols = np.arange(w, dtype=np.float32)
+    out = f.copy()
+    for k, c in bone_contours.items():
+        c = _sorted_contour(c)
+        if not 0 <= k < n or c.shape[0] < 3:
+            continue
+        jtop = float(c[:, 1].min())
+        apex = float(c[np.argmin(c[:, 1]), 0])
+        outward = c[(c[:, 0] - apex) * side > 0][:: 1 if side > 0 else -1]
+        hit = outward[outward[:, 1] >= jtop + attach_mm / sp]
+        grey = _frame_echo_grey(f[k], c, sp)
+        if hit.shape[0] == 0 or not np.isfinite(grey):
+            continue
+        i0, j0 = hit[0]
+        run = (cols - i0) * side  # columns outward from where it leaves the bone
+        on = (run >= 0) & (run * sp <= length_mm)
+        fj = j0 + run * (slope + 0.02 * wiggle[k])
+        fade = np.clip(run * sp, 0.3, 1.0) * np.clip((length_mm - run * sp) / 3.0, 0.0, 1.0)
+        amp = np.where(on, strength * grey * fade * tex[k], 0.0).astype(np.float32)
+        out[k] = np.maximum(out[k], amp[None, :] * _band_profile(rows, fj, max(line_mm / sp, 1.0)))
+    out = np.where(lit[None], out, 0.0)
+    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+
+def add_vessel(
+    sweep: Sweep,
+    bone_contours: Mapping[int, np.ndarray],
+    *,
+    lateral_mm: float = 3.0,
+    gap_mm: float = 3.0,
+    radius_mm: float = _HARD.vessel_radius_mm,
+    wall: float = 0.8,
+    enhancement: float = 1.3,
+    enhancement_mm: float = _HARD.vessel_enhancement_mm,
+    ringdown_mm: float = _HARD.ringdown_mm,
+    copies: int = _HARD.ringdown_copies,
+    decay: float = _HARD.ringdown_decay,
+    seed: int = 0,
+) -> Sweep:
+    """A vessel lying on the bone (the radial artery on the distal radius, the tibial
+    vessels beside the tibia): a dark round lumen with bright walls, posterior
+    enhancement and ring-down under its back wall.
+
+    Per frame with a contour, the lumen (``radius_mm``) lies ``lateral_mm`` from the
+    bone's top towards larger columns (negative: smaller), its back wall ``gap_mm`` over
+    the bone there (3 mm: a thin muscle between, as the pronator quadratus under the
+    radial artery; frames with no room above the bone get none). The lumen returns the recording's
+    own darkest imaged grey (2nd percentile), textured; its front and back walls are
+    specular where the beam meets them square, at ``wall`` times the frame's bone echo
+    grey; the tissue under the lumen (the bone's echo included) is brightened up to
+    ``enhancement`` (grey gain) fading over ``enhancement_mm``; ``copies`` ring-down
+    lines follow the back wall every ``ringdown_mm``, each ``decay`` of the previous.
+    Geometry as the simulator's ``vessel`` (:class:`~.params.HardParams`), placed over
+    the bone rather than beside it (a recording's bone may fill its width).
+    """
+    f = np.asarray(sweep.frames, np.float32)
+    n, h, w = f.shape
+    sp = float(np.mean(sweep.spacing_mm))
+    lit = _lit(f)
+    rows_lit = np.flatnonzero(lit.any(1))
+    if rows_lit.size == 0:
+        return sweep
+    rng = np.random.default_rng(seed)
+    floor = np.float32(np.percentile(f[:, lit], 2.0))
+    r = radius_mm / sp
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    cols = np.arange(w, dtype=np.float32)[None, :]
+    sigma = max(0.3 / sp, 1.0)
+    out = f.copy()
+    for k, c in bone_contours.items():
+        c = _sorted_contour(c)
+        if not 0 <= k < n or c.shape[0] < 3:
+            continue
+        ci = float(c[np.argmin(c[:, 1]), 0]) + lateral_mm / sp
+        if not c[0, 0] <= ci <= c[-1, 0]:
+            continue
+        cj = float(np.interp(ci, c[:, 0], c[:, 1])) - gap_mm / sp - r
+        grey = _frame_echo_grey(f[k], c, sp)
+        if cj - r < rows_lit[0] + 1.0 / sp or not np.isfinite(grey):
+            continue
+        dx, dy = cols - ci, rows - cj
+        inside = dx**2 + dy**2 < r**2
+        half = np.sqrt(np.clip(r**2 - dx**2, 0.0, None))  # (1, w): lumen half-height
+        across = np.clip(1.0 - (dx / r) ** 2, 0.0, 1.0)
+        below = np.clip((dy - half) * sp / enhancement_mm, 0.0, None)
+        gain = 1.0 + (enhancement - 1.0) * across * np.exp(-below) * (dy > half)
+        img = np.where(inside, floor * rng.gamma(4.0, 0.25, (h, w)), f[k] * gain)
+        face = np.where(np.abs(dx) < 0.9 * r, np.sqrt(across), 0.0)[0]  # specular walls
+        lines = [(cj - half[0], 1.0)] + [
+            (cj + half[0] + m * ringdown_mm / sp, decay**m) for m in range(copies + 1)
+        ]
+        for row, a in lines:
+            amp = (wall * grey * a * face).astype(np.float32)
+            img = np.maximum(img, amp[None, :] * _band_profile(rows, row, sigma))
+        out[k] = img
+    out = np.where(lit[None], out, 0.0)
+    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+
+#: The look-alikes of issue 10 drawn into a recording with its reference contours
+#: (``(sweep, contours) -> sweep``), each alone and all three at once; with the cadaver's
+#: levels (:func:`harden`) they make the hardest copy of a recording we can score.
+LOOKALIKE_AUGMENTATIONS: dict[str, Callable[[Sweep, Mapping[int, np.ndarray]], Sweep]] = {
+    "no-contact": lambda s, c: no_contact(s, side=1),
+    "no-contact-left": lambda s, c: no_contact(s, side=-1),
+    "fascia": lambda s, c: add_fascia(s, c, side=1),
+    "vessel": lambda s, c: add_vessel(s, c),
+    "lookalikes": lambda s, c: no_contact(add_vessel(add_fascia(s, c, side=-1), c), side=1),
 }
 
 

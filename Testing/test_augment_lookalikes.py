@@ -1,0 +1,195 @@
+"""Look-alikes drawn into a recording (issue 10, item 2), and the segmenter holding on them.
+
+:func:`augment.no_contact` (a skin line over a no-contact gap at an image edge, with its
+reverberation copies), :func:`augment.add_fascia` (a fascia leaving the bone's flank at
+its level) and :func:`augment.add_vessel` (a vessel with dark lumen, walls, enhancement
+and ring-down over the bone): each is checked on a small simulated sweep (where it is
+drawn, at the grey levels the recording itself gives), then on the shared L14 recording
+and on its cadaver-level copy (:func:`augment.harden` with the reference contours),
+scored against the reference contours of ``Testing/data``: the simulator's look-alikes
+on real texture.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REAL_MHA, REAL_XML
+
+from BoneUSRecon.Logic.segmentation import segment_sweep
+from BoneUSRecon.Logic.simulation import SimulationParams, augment, echo_levels, simulate
+from BoneUSRecon.Logic.simulation.scoring import read_reference_csv, score_reference
+
+DATA = Path(__file__).resolve().parent / "data"
+MARGIN = 8  # black columns each side of the simulated frames
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate(
+        SimulationParams(
+            bone="tibia",
+            n_frames=8,
+            width=160,
+            height=128,
+            spacing_mm=0.3,
+            seed=3,
+            black_margin_px=MARGIN,
+        )
+    )
+
+
+def _contours(sim) -> dict[int, np.ndarray]:
+    return {k: c for k, c in enumerate(sim.true_contours_px) if len(c) >= 3}
+
+
+def _unchanged_geometry(before, after) -> None:
+    assert after.frames.shape == before.frames.shape and after.frames.dtype == np.uint8
+    assert np.array_equal(after.image_to_reference, before.image_to_reference)
+    assert after.frames[:, :, :MARGIN].max() == 0 and after.frames[:, :, -MARGIN:].max() == 0
+
+
+@pytest.mark.parametrize("side", [1, -1])
+def test_no_contact_draws_a_dark_gap_a_bright_skin_line_and_its_copies(sim, side) -> None:
+    before = np.array(sim.sweep.frames)
+    out = augment.no_contact(sim.sweep, side=side, depth_mm=6.0, copies=2, transmission=0.4)
+    assert np.array_equal(sim.sweep.frames, before)  # the input is not touched
+    _unchanged_geometry(sim.sweep, out)
+    sp = 0.3
+    f, g = before.astype(float), out.frames.astype(float)
+    w = f.shape[2]
+    edge = w - 1 - MARGIN if side > 0 else MARGIN  # the outermost imaged column
+    other = slice(MARGIN, MARGIN + 40) if side > 0 else slice(w - MARGIN - 40, w - MARGIN)
+    # In contact (the other side of the image): nothing changes.
+    assert np.array_equal(g[:, :, other], f[:, :, other])
+    skin = (1.2 + 6.0) / sp  # rows under the probe face at the edge column (top row 0)
+    floor = np.percentile(f[:, :, MARGIN:-MARGIN], 2)
+    for k in range(f.shape[0]):
+        bright = np.percentile(f[k][:, MARGIN:-MARGIN], 99.9)
+        col = g[k, :, edge]
+        # The gap returns nothing but the recording's own floor (textured).
+        assert np.median(col[2 : int(skin) - 4]) <= 2 * floor + 1
+        # The skin line, as bright as the frame's brightest echo (texture: +-25 %), and
+        # its first copy at twice its depth, 0.65 of it.
+        near = col[int(skin) - 2 : int(skin) + 3].max()
+        copy = col[int(2 * skin) - 2 : int(2 * skin) + 3].max()
+        assert 0.5 * bright <= near <= 255
+        assert 0.3 * bright <= copy < near + 40
+    # Under the skin, away from its lines, the tissue is dimmed to the transmission.
+    rows = slice(int(skin) + 4, int(2 * skin) - 4)
+    ratio = g[:, rows, edge].mean() / max(f[:, rows, edge].mean(), 1.0)
+    assert 0.3 <= ratio <= 0.55, ratio
+
+
+def test_fascia_leaves_the_flank_at_the_bone_level_as_bright_as_its_echo(sim) -> None:
+    cont = _contours(sim)
+    sp = 0.3
+    out = augment.add_fascia(sim.sweep, cont, side=1, slope=0.08, length_mm=10.0)
+    _unchanged_geometry(sim.sweep, out)
+    f, g = np.asarray(sim.sweep.frames, float), out.frames.astype(float)
+    checked = 0
+    for k, c in cont.items():
+        c = c[np.argsort(c[:, 0])]
+        top, apex = c[:, 1].min(), c[np.argmin(c[:, 1]), 0]
+        outward = c[c[:, 0] > apex]
+        hit = outward[outward[:, 1] >= top + 1.5 / sp]
+        if not len(hit):
+            continue
+        i0, j0 = hit[0]
+        i = int(round(i0 + 4.0 / sp))  # 4 mm along the fascia
+        if i >= f.shape[2] - MARGIN:
+            continue
+        j = j0 + (i - i0) * 0.08
+        grey = echo_levels(f[k][None], [c], sp)["echo"]
+        got = g[k, int(j) - 3 : int(j) + 4, i].max()
+        assert got >= 0.6 * grey, (k, got, grey)
+        # Nothing drawn on the other side of the top.
+        assert np.array_equal(g[k, :, : int(apex) - 2], f[k, :, : int(apex) - 2])
+        checked += 1
+    assert checked >= 4
+
+
+def test_vessel_over_the_bone_dark_lumen_enhancement_and_no_room_no_vessel(sim) -> None:
+    cont = _contours(sim)
+    sp = 0.3
+    out = augment.add_vessel(sim.sweep, cont, lateral_mm=0.0, gap_mm=3.0, radius_mm=2.5)
+    _unchanged_geometry(sim.sweep, out)
+    f, g = np.asarray(sim.sweep.frames, float), out.frames.astype(float)
+    floor = np.percentile(f[:, :, MARGIN:-MARGIN], 2)
+    drawn = 0
+    for k, c in cont.items():
+        c = c[np.argsort(c[:, 0])]
+        ci = c[np.argmin(c[:, 1]), 0]
+        jb = np.interp(ci, c[:, 0], c[:, 1])
+        cj = jb - (3.0 + 2.5) / sp
+        if cj - 2.5 / sp < 1.0 / sp:
+            assert np.array_equal(g[k], f[k])  # no room above this frame's bone
+            continue
+        r = int(1.0 / sp)
+        lumen = g[k, int(cj) - r : int(cj) + r + 1, int(ci) - r : int(ci) + r + 1]
+        assert np.median(lumen) <= 2 * floor + 1
+        # Posterior enhancement: the tissue between the lumen and the bone brightens.
+        rows = slice(int(cj + 2.5 / sp) + 2, int(jb - 1.0 / sp))
+        cols = slice(int(ci) - r, int(ci) + r + 1)
+        assert g[k, rows, cols].mean() > 1.05 * f[k, rows, cols].mean()
+        drawn += 1
+    assert drawn >= 4
+    # A bone right under the probe face leaves no room: that frame is left as it was.
+    shallow = {0: np.column_stack([np.arange(40.0, 120.0), np.full(80, 3.0)])}
+    same = augment.add_vessel(sim.sweep, shallow)
+    assert np.array_equal(same.frames, sim.sweep.frames)
+
+
+# -- The segmenter on the real recording with the look-alikes drawn in ---------------------
+
+
+@pytest.fixture(scope="module")
+def real():
+    from BoneUSRecon.Logic.sequence_io import read_sweep
+
+    sw = read_sweep(REAL_MHA, calibration=REAL_XML)
+    ref = read_reference_csv(DATA / "L14_reference.csv")
+    bases = {
+        "recording": sw,
+        "cadaver": augment.harden(sw, bone_contours=ref),
+        "grey-shadow": augment.HARD_AUGMENTATIONS["grey-shadow"](sw),
+    }
+    return bases, ref
+
+
+SINGLE = [n for n in augment.LOOKALIKE_AUGMENTATIONS if n != "lookalikes"]
+HOLDS = [(n, b) for n in SINGLE for b in ("recording", "cadaver")] + [
+    ("lookalikes", "recording"),
+    ("lookalikes", "grey-shadow"),
+]
+
+
+@pytest.mark.parametrize(("name", "base"), HOLDS)
+def test_segmenter_holds_on_real_texture_with_a_lookalike(real, name, base) -> None:
+    bases, ref = real
+    sw = augment.LOOKALIKE_AUGMENTATIONS[name](bases[base], ref)
+    s = score_reference(segment_sweep(sw), sw, ref).summary()
+    # Measured (session 49): every frame kept and on the bone (recall 1.00, wrong 0) in
+    # all ten cases; kept points' median 0.048-0.054 mm on the recording and its
+    # grey-shadow copy, 0.096-0.121 on the cadaver copy; > 2 mm at most 0.6 % (the
+    # cadaver copy with the gap on the left, where the flank runs under the skin's copies).
+    assert s["recall"] >= 0.95, s
+    assert s["wrong_share"] == 0.0, s
+    assert s["median_mm"] <= 0.2, s
+    assert s["over_2mm"] <= 0.02, s
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="open (session 49): on the cadaver copy the vessel and the no-contact gap "
+    "together let a tissue layer at the vessel's depth, beside it, carry the track "
+    "(recall 0, 15 of 21 frames kept on it, 8 mm over the bone); either alone, or the gap "
+    "with its tissue undimmed, the bone holds; see Testing/benchmarks/README.md, session 49",
+)
+def test_segmenter_on_the_cadaver_copy_with_every_lookalike(real) -> None:
+    bases, ref = real
+    sw = augment.LOOKALIKE_AUGMENTATIONS["lookalikes"](bases["cadaver"], ref)
+    s = score_reference(segment_sweep(sw), sw, ref).summary()
+    assert s["recall"] >= 0.95 and s["wrong_share"] == 0.0, s
