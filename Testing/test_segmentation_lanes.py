@@ -415,7 +415,7 @@ def _line_over(lower: np.ndarray) -> list[bool]:
     under = {"cols": cols, "rows": lower, "grey": 0.9, "shadow": 0.0}
     cands = [line, under]
     _dense_rows(cands)
-    ev = types.SimpleNamespace(dx=0.16, dy=0.16)
+    ev = types.SimpleNamespace(dx=0.16, dy=0.16, field_top=0)
     _mark_echo_beneath(cands, ev, lr, SegmentationParams().shadowpath)
     return [bool(c.get("beneath")) for c in cands]
 

@@ -22,9 +22,9 @@ the last quarter of the frames bone-free ("end-free": a sweep running past the b
 end, ``SimulationParams.bone_free_frames``); the two shared real recordings and their hard
 augmentations (``augment.HARD_AUGMENTATIONS``, and "cadaver": ``augment.harden`` with the
 reference contours, the cadaver's levels exactly), and for L14 the simulator's look-alikes
-drawn into the recording and into its cadaver copy (``augment.LOOKALIKE_AUGMENTATIONS``: a
-no-contact gap at either edge, a fascia off the flank, a vessel 3 mm over the bone, all
-three; and a vessel 1 mm over it), scored against the reference contours of
+drawn into the recording and into its grey-shadow and cadaver copies
+(``augment.LOOKALIKE_AUGMENTATIONS``: a no-contact gap at either edge, a fascia off the
+flank, a vessel 3 mm and 1 mm over the bone, all three), scored against the reference contours of
 ``Testing/data`` (see its README for their precision).
 
 Run: ``python Testing/benchmarks/bench_segmentation.py [--frames 60] [--overlay DIR]``
@@ -166,14 +166,11 @@ def frame_table(n_frames: int = 40, real: bool = True) -> None:
         variants[" cadaver"] = augment.harden(sw, bone_contours=ref)
         if name == "L14":
             # The simulator's look-alikes drawn into the forearm recording and into its
-            # cadaver copy (augment.LOOKALIKE_AUGMENTATIONS; a vessel right on the bone,
-            # 1 mm over it, as an extreme). Not for the spine phantom: no long bone.
-            for base in ("", " cadaver"):
+            # grey-shadow and cadaver copies (augment.LOOKALIKE_AUGMENTATIONS). Not for
+            # the spine phantom: no long bone.
+            for base in ("", " grey-shadow", " cadaver"):
                 for k, f in augment.LOOKALIKE_AUGMENTATIONS.items():
                     variants[f"{base} +{k}"] = f(variants[base], ref)
-                variants[f"{base} +vessel-1mm"] = augment.add_vessel(
-                    variants[base], ref, gap_mm=1.0
-                )
         for suffix, s in variants.items():
             for m in TABLE_METHODS:
                 t = time.perf_counter()

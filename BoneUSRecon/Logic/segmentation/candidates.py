@@ -16,7 +16,10 @@ Look-alikes handled per frame (each with a simulated test in
   z-score is ~0, so its score is ~0 (:mod:`.evidence`).
 * **vessel with ring-down**: the lumen under the anterior wall is dark only for a few
   mm, with enhancement or ring-down under it; the long (shadow-depth) window sees it.
-  The posterior wall has anechoic lumen above it: no cover.
+  The posterior wall has anechoic lumen above it: no cover. Nor is the lumen a shadow
+  for what lies under it: a vessel over the bone does not make the bone a far cortex
+  "in a shadow" (:func:`_without_lumens`; tests in ``Testing/test_augment_lookalikes.py``,
+  the vessel drawn into the real recording).
 * **a line over another echo** (a fascia over the bone): bone stops the sound, so
   anything under it returns much fainter than its echo; a candidate with an echo at
   least ``beneath_ratio`` as bright under most of its columns, and tissue (not
@@ -601,6 +604,82 @@ def _mark_reverberations(cands: list[dict], p: ShadowPathParams) -> None:
                     t["reverb"] = True
             if c.get("reverb"):
                 break
+
+
+def _without_lumens(lr: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> np.ndarray:
+    """``lr`` with every vessel lumen read as tissue (0), for the tests of what lies in a
+    shadow (:func:`_mark_echo_beneath`).
+
+    A lumen returns almost nothing, as a shadow does, but it is no shadow: a round
+    region darker than ``lumen_ratio`` of the tissue at its depth, ``lumen_mm`` high and
+    wide (height and width within a factor 2 of each other, filling half its box), closed
+    on every side (inside the usable columns, under the near field, above the last row),
+    with tissue beside it (1 mm each side at its depths, on median not darker than
+    ``under_ratio``: the level a shadow is told by) and the tissue right under it (1 mm,
+    column by column) brighter than the typical on median: posterior enhancement, the
+    sound that crossed the fluid unattenuated. A shadow has only more shadow under it and
+    beside a dark patch in it, and runs on down to the image's bottom or across a bone's
+    width. Without this, a vessel lying a few mm over the bone read as
+    the shadow the bone "lies in" (the L14 grey-shadow copy with a vessel 1 mm over it:
+    the bone flagged in every frame, the track on a layer 21 mm off).
+
+    Levels are the frame's own (``lr`` is relative to the tissue at each depth); sizes in
+    mm: no grey level enters.
+    """
+    if p.lumen_ratio <= 0:
+        return lr
+    from scipy.ndimage import find_objects, label
+
+    h, w = lr.shape
+    top = ev.field_top + mm_to_px(p.near_field_mm, ev.dy, minimum=0)
+    dark = lr < np.float32(np.log(p.lumen_ratio))
+    dark[:top] = False
+    dark[:, ~ev.usable] = False
+    lab, n = label(dark)
+    if n == 0:
+        return lr
+    lo, hi = p.lumen_mm
+    areas = np.bincount(lab.ravel(), minlength=n + 1)
+    least = 0.5 * (lo / ev.dx) * (lo / ev.dy)
+    under = mm_to_px(1.0, ev.dy)
+    side = mm_to_px(1.0, ev.dx)
+    tissue = float(np.log(p.under_ratio))
+    out = None
+    for k, sl in enumerate(find_objects(lab), start=1):
+        if sl is None or areas[k] < least:
+            continue
+        rs, cs = sl
+        height, width = (rs.stop - rs.start) * ev.dy, (cs.stop - cs.start) * ev.dx
+        if not (lo <= height <= hi and lo <= width <= hi and 0.5 <= height / width <= 2.0):
+            continue
+        if rs.stop + under > h or cs.start == 0 or cs.stop >= w:
+            continue
+        if not (
+            ev.usable[max(cs.start - side, 0) : cs.start].all()
+            and ev.usable[cs.stop : cs.stop + side].all()
+        ):
+            continue  # open to a margin or an uncoupled edge
+        if cs.start < side or cs.stop + side > w:
+            continue
+        # Tissue on both sides at its depths, not a shadow's grey (a dark patch in a
+        # bone's shadow has shadow beside it).
+        flanks = np.concatenate(
+            [lr[rs, cs.start - side : cs.start], lr[rs, cs.stop : cs.stop + side]], axis=1
+        )
+        if median1d(flanks) <= tissue:
+            continue
+        m = lab[sl] == k
+        if areas[k] < 0.5 * m.size:
+            continue  # a ragged region, no lumen
+        cols = np.flatnonzero(m.any(axis=0))
+        last = rs.start + m.shape[0] - 1 - np.argmax(m[::-1, cols], axis=0)
+        rows = last[None, :] + np.arange(1, under + 1)[:, None]
+        if median1d(lr[rows, cs.start + cols[None, :]]) <= 0:
+            continue  # no enhancement under it: a shadow's dark
+        if out is None:
+            out = lr.copy()
+        out[sl][m] = 0.0
+    return lr if out is None else out
 
 
 def _log_ratio(ev: EvidenceMaps) -> np.ndarray:
@@ -1244,7 +1323,8 @@ def _mark_echo_beneath(
     * the region between them (under ``c``, following its shape,
       :func:`_underside_profile`) comes back darker than ``under_ratio`` of the
       frame's typical tissue-to-level ratio, or, unless ``b`` is a dome, of the
-      tissue right over ``c`` where that is brighter (geometric means: bright copies in
+      tissue right over ``c`` where that is brighter (under the near field: gel, skin
+      and lens echoes are no tissue the sound crossed; geometric means: bright copies in
       the shadow do not outweigh it), or ``c`` tops a reverberation series: ``b`` lies in
       ``c``'s shadow and is flagged (the far cortex, a band) if it lies within ``c``'s
       columns (a shadow is as wide as its reflector); either way ``c`` is not flagged
@@ -1271,6 +1351,14 @@ def _mark_echo_beneath(
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
     reach = mm_to_px(p.far_shadow_mm, ev.dy)
     dark = float(np.log(p.under_ratio))
+    # The near field (gel, the skin line, lens echoes: never tissue at a tissue level)
+    # is no cover: rows of the profile over c's median row that lie in it are left out.
+    near = ev.field_top + mm_to_px(p.near_field_mm, ev.dy, minimum=0)
+    offsets = np.arange(-reach, -gap)
+
+    def rows_over(c: dict) -> np.ndarray:
+        return offsets + median1d(c["rows"])
+
     for b in cands:
         if b.get("reverb"):
             continue
@@ -1320,7 +1408,7 @@ def _mark_echo_beneath(
                         # the rows over c along its shape); not for a dome under c (a
                         # bone's top under a fascia, tissue between).
                         cover = prof[: reach - gap]
-                        cover = cover[np.isfinite(cover)]
+                        cover = cover[np.isfinite(cover) & (rows_over(c) >= near)]
                         if cover.size >= gap:
                             shadowed = median1d(seg) < dark + max(0.0, median1d(cover))
                 else:
@@ -1575,7 +1663,13 @@ def _frame_candidates_steps(
     _mark_reverberations(found, p)
     lr = _log_ratio(ev)
     found = _mark_series(found, ev, lr, p)
-    _mark_echo_beneath(found, ev, lr, p)
+    # What lies in a shadow is judged with vessels' lumens read as tissue (profiles
+    # taken again where a lumen was found).
+    lr_beneath = _without_lumens(lr, ev, p)
+    if lr_beneath is not lr:
+        for c in found:
+            c.pop("prof", None)
+    _mark_echo_beneath(found, ev, lr_beneath, p)
     made: list[tuple] = []
     domes: list[tuple] = []  # pieces offered besides their path's best (_separate_domes)
     # Every candidate's sub-pixel rows in one go (the same values as one at a time).

@@ -524,6 +524,10 @@ class ShadowPathParams:
     """Steepest descent at which a series' top made over a copy's columns is followed on past them along its own echo, degrees (:func:`.candidates._extend_top`; a copy spans only the part of the reflector its sound came back from). Past it the flank tracer (:mod:`.flanks`) takes over with its stop rule measured on the frame's speckle. Measured: harness grey group, seeds 173/179, 10 sweeps: without the extension coverage 0.924, gold 0.189 mm; at 45 degrees 0.959, 0.172 mm, p95 of the kept points 0.54 -> 0.44 mm; at 60 the trace ran on down the simulated bone's ring past the imaged flank, p95 1.35 mm."""
     under_ratio: float = 0.8
     """A candidate under another lies in its shadow when the region between them comes back at less than this fraction of the frame's typical tissue-to-level ratio (geometric mean; a ratio: the cadaver's grey shadow is 0.65 of the tissue beside it)."""
+    lumen_ratio: float = 0.5
+    """A vessel's lumen is no shadow: a round region darker than this fraction of the tissue level at its depth, closed on every side, with brighter tissue than the typical right under it (posterior enhancement), is read as tissue by the tests of what lies in a shadow (:func:`.candidates._without_lumens`; 0: off)."""
+    lumen_mm: tuple[float, float] = (1.5, 10.0)
+    """Least and largest height and width of a lumen, mm (a limb's arteries and veins, 2-10 mm)."""
     refine_mm: float = 0.4
     """Half-height of the window searched at full resolution around the path, mm."""
     refine_sigma_mm: float = 0.15
@@ -562,6 +566,7 @@ class ShadowPathParams:
                 "series_trough_ratio",
                 "under_ratio",
                 "copy_echo_ratio",
+                "lumen_mm",
             ),
             non_negative=(
                 "shadow_gap_mm",
@@ -589,6 +594,7 @@ class ShadowPathParams:
                 "gap_margin_mm",
                 "confidence_alpha",
                 "confidence_gamma",
+                "lumen_ratio",
             ),
             within={
                 "tissue_percentile": "(0, 100)",

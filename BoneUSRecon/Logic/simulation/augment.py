@@ -724,13 +724,15 @@ def add_vessel(
 
 
 #: The look-alikes of issue 10 drawn into a recording with its reference contours
-#: (``(sweep, contours) -> sweep``), each alone and all three at once; with the cadaver's
-#: levels (:func:`harden`) they make the hardest copy of a recording we can score.
+#: (``(sweep, contours) -> sweep``), each alone (the vessel also 1 mm over the bone: its
+#: lumen right over it) and all three at once; with the cadaver's levels (:func:`harden`)
+#: they make the hardest copy of a recording we can score.
 LOOKALIKE_AUGMENTATIONS: dict[str, Callable[[Sweep, Mapping[int, np.ndarray]], Sweep]] = {
     "no-contact": lambda s, c: no_contact(s, side=1),
     "no-contact-left": lambda s, c: no_contact(s, side=-1),
     "fascia": lambda s, c: add_fascia(s, c, side=1),
     "vessel": lambda s, c: add_vessel(s, c),
+    "vessel-on-bone": lambda s, c: add_vessel(s, c, gap_mm=1.0),
     "lookalikes": lambda s, c: no_contact(add_vessel(add_fascia(s, c, side=-1), c), side=1),
 }
 
