@@ -261,6 +261,13 @@ def _lit(frames: np.ndarray) -> np.ndarray:
     return rows[:, None] & cols[None, :]
 
 
+def _in_field(sweep: Sweep, out: np.ndarray, lit: np.ndarray) -> Sweep:
+    """``out`` (float greys) rounded to uint8, black outside the imaged area ``lit``
+    (:func:`_lit`): a scan converter's margins stay exactly black."""
+    out = np.where(lit[None], out, 0.0)
+    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+
 def tissue_level(
     frames: np.ndarray, spacing_mm: float, smooth_mm: float = 2.0, upper_half: bool = True
 ) -> np.ndarray:
@@ -451,8 +458,7 @@ def harden(
         # tissue above the bone as displayed (after the echo step), lifted or darkened;
         # its texture kept (a gain, no fill, no bands).
         out = out * _bone_shadow_gain(out, bone_contours, sp, shadow_to_above)
-    out = np.where(lit[None], out, 0.0)
-    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+    return _in_field(sweep, out, lit)
 
 
 #: The augmentations the shared L14 recording (820 x 616 pixels) is checked with, by
@@ -588,8 +594,7 @@ def no_contact(
     bright = np.array([np.percentile(f[k][lit], 99.9) for k in range(n)], np.float32)
     tex = _line_texture(rng, n, w, sp)[:, None, :]
     out = np.maximum(out, np.where(gap, line * bright[:, None, None] * tex, 0.0))
-    out = np.where(lit[None], out, 0.0)
-    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+    return _in_field(sweep, out, lit)
 
 
 def add_fascia(
@@ -644,8 +649,7 @@ def add_fascia(
         fade = np.clip(run * sp, 0.3, 1.0) * np.clip((length_mm - run * sp) / 3.0, 0.0, 1.0)
         amp = np.where(on, strength * grey * fade * tex[k], 0.0).astype(np.float32)
         out[k] = np.maximum(out[k], amp[None, :] * _band_profile(rows, fj, max(line_mm / sp, 1.0)))
-    out = np.where(lit[None], out, 0.0)
-    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+    return _in_field(sweep, out, lit)
 
 
 def add_vessel(
@@ -719,8 +723,7 @@ def add_vessel(
             amp = (wall * grey * a * face).astype(np.float32)
             img = np.maximum(img, amp[None, :] * _band_profile(rows, row, sigma))
         out[k] = img
-    out = np.where(lit[None], out, 0.0)
-    return _with(sweep, np.clip(np.rint(out), 0, 255).astype(np.uint8))
+    return _in_field(sweep, out, lit)
 
 
 #: The look-alikes of issue 10 drawn into a recording with its reference contours
