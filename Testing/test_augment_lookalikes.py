@@ -247,3 +247,10 @@ def test_the_near_field_is_no_cover_over_a_superficial_layer(real) -> None:
         c for c in fc.candidates if np.median(t.query(c.points_px)[0]) * sw.spacing_mm[0] < 1.0
     ]
     assert on_bone and not any(c.echo_beneath for c in on_bone)
+
+
+def test_a_side_other_than_either_edge_is_refused(sim) -> None:
+    with pytest.raises(ValueError, match="side must be 1"):
+        augment.no_contact(sim.sweep, side=0)
+    with pytest.raises(ValueError, match="side must be 1"):
+        augment.add_fascia(sim.sweep, _contours(sim), side=2)

@@ -531,6 +531,11 @@ def _band_profile(rows: np.ndarray, centre: np.ndarray, sigma: float) -> np.ndar
     return np.exp(-0.5 * ((rows - centre[..., None, :]) / sigma) ** 2).astype(np.float32)
 
 
+def _check_side(side: int) -> None:
+    if side not in (1, -1):
+        raise ValueError(f"side must be 1 (the last columns) or -1 (the first), got {side!r}")
+
+
 def _sorted_contour(c: np.ndarray) -> np.ndarray:
     c = np.asarray(c, float).reshape(-1, 2)
     return c[np.argsort(c[:, 0], kind="stable")]
@@ -553,8 +558,8 @@ def no_contact(
 
     Over the outer ``share`` of the imaged width on ``side`` (+1: the last columns; -1:
     the first), varying smoothly along the sweep (+-15 %), the skin curves away from the
-    probe face, reaching ``depth_mm`` under it at the edge (``1.2 + depth_mm u**2`` mm,
-    ``u`` 0 -> 1 across the gap). Above the skin the gap returns nothing: the
+    probe face, ``1.2 + depth_mm u**2`` mm under it (``u`` 0 -> 1 across the gap, 1 at
+    the edge). Above the skin the gap returns nothing: the
     recording's own darkest imaged grey (2nd percentile), textured. The skin line is as
     bright as the frame's brightest echo (99.9th percentile of its imaged pixels: the
     level a line must reach to pass for bone, whatever the gain), and ``copies``
@@ -565,6 +570,7 @@ def no_contact(
     the bone is not moved (the skin lifts off it), so reference contours still hold
     where it is shown.
     """
+    _check_side(side)
     f = np.asarray(sweep.frames, np.float32)
     n, h, w = f.shape
     sp = float(np.mean(sweep.spacing_mm))
@@ -621,6 +627,7 @@ def add_fascia(
     fascia as bright as the bone). Beneath it lies what the recording has there: tissue
     over the flank, the bone's shadow farther in.
     """
+    _check_side(side)
     f = np.asarray(sweep.frames, np.float32)
     n, h, w = f.shape
     sp = float(np.mean(sweep.spacing_mm))
