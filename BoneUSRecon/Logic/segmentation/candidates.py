@@ -1688,12 +1688,14 @@ def _frame_candidates_steps(
     _mark_reverberations(found, p)
     lr = _log_ratio(ev)
     found = _mark_series(found, ev, lr, p)
-    # What lies in a shadow is judged with vessels' lumens read as tissue (profiles
-    # taken again where a lumen was found).
+    # What lies in a shadow is judged with vessels' lumens read as tissue (the profiles
+    # of the candidates over a lumen's columns taken again).
     lr_beneath = _without_lumens(lr, ev, p)
     if lr_beneath is not lr:
+        over = (lr_beneath != lr).any(axis=0)
         for c in found:
-            c.pop("prof", None)
+            if over[c["cols"]].any():
+                c.pop("prof", None)
     _mark_echo_beneath(found, ev, lr_beneath, p)
     made: list[tuple] = []
     domes: list[tuple] = []  # pieces offered besides their path's best (_separate_domes)
