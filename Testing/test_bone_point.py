@@ -184,7 +184,10 @@ def test_a_bone_point_on_the_neighbour_makes_the_track_follow_it(realism, seed):
     assert bone <= 0.3 and nb >= 8.0 and n >= 10
 
 
-@pytest.mark.parametrize("seed", [2, 5])
+# Seeds whose default track takes the radius (seed 5 did until session 50; since the
+# grey over a line alone no longer puts it in a shadow, its default keeps the ulna, 9
+# frames at 0.05 mm, as seed 7's does).
+@pytest.mark.parametrize("seed", [2, 3])
 def test_a_bone_swept_off_centre_is_kept_with_a_point_on_it(seed):
     sim = forearm("hard", seed, width=224)
     sw, shift = off_centre(sim)

@@ -41,7 +41,7 @@ def _past_the_end(sweep, mm: float = 40.0) -> np.ndarray:
     return origin[-1] + mm * ahead * normal[-1]
 
 
-@pytest.mark.parametrize("seed", [2, 5])
+@pytest.mark.parametrize("seed", [2, 3])  # as test_bone_point.py's off-centre seeds
 def test_a_live_session_follows_a_point_on_the_off_centre_bone(seed):
     # The ulna swept near the image's edge, the radius near the middle: without a point
     # the live track takes the radius (as offline), with one on the ulna the ulna, at

@@ -3,9 +3,9 @@
 Each rule of ``candidates`` that keeps the track on the near cortex has a test with
 ground truth: the reverberation series (equally spaced, fading copies over dark troughs
 under the reflector), the first-reflector rule (a line in the shadow of a shallower
-one, or under a region darker than the tissue beside it, is no first interface), and
-the controls that must not fire (parallel fasciae with tissue between them; a fascia
-with tissue beneath over the bone).
+one is no first interface), and the controls that must not fire (parallel fasciae with
+tissue between them; a fascia with tissue beneath over the bone; a dark muscle lying on
+the bone).
 """
 
 from __future__ import annotations
@@ -79,20 +79,30 @@ def test_reverberation_bands_and_far_cortex_lose_to_the_near_cortex(seed):
             assert c.reverberation or c.echo_beneath, (round(dd, 2), c.strength)
 
 
-def test_a_line_in_a_grey_shadow_is_no_first_interface():
-    """The far cortex alone under a faint near cortex (too faint to be a candidate):
-    the region above it is darker than the tissue beside it at the same depths."""
-    h, w = 260, 200
+@pytest.mark.parametrize("ratio", [0.7, 0.55])
+def test_a_bone_under_a_dark_muscle_is_a_first_interface(ratio):
+    """A hypoechoic muscle lying on the bone (``ratio`` of the tissue's grey, tissue of
+    the usual level beside it and over it) is no shadow: no candidate casts it, and the
+    bone under it (a bright line over a grey shadow) is the first interface. A rule
+    that judged a shadow from the region over a line alone, against the frame's
+    typical tissue ("in a shadow whatever cast it", session 50), flagged such a bone:
+    with grey shadows no level tells a dark muscle from a shadow."""
+    h, w = 260, 400
     x = np.arange(w) * S
     y = (np.arange(h) * S)[:, None]
-    on = np.abs(x - 10.0) < 5.0  # the bone fills half the width, tissue beside it
-    surf = np.full(w, 6.0)
+    on = np.abs(x - 20.0) < 5.0  # the bone, tissue beside it
+    surf = 14.0 + 0.03 * (x - 20.0) ** 2
     img = _speckle(h, w, 5)
-    img = np.where(on[None, :] & (y > surf[None, :] + 0.3), 0.45 * img, img)
-    img += np.where(on[None, :], _line(y, surf + 9.0, 150.0), 0.0)
+    over = surf[None, :] - y  # mm over the bone
+    muscle = (np.abs(x - 20.0) < 7.0)[None, :] & (over > 1.0) & (over < 9.0)
+    img = np.where(muscle, ratio * img, img)
+    img = np.where(on[None, :] & (over < -0.3), 0.45 * img, img)  # the bone's grey shadow
+    img += np.where(on[None, :], _line(y, surf, 150.0), 0.0)
     fc = frame_candidates(np.clip(img, 0, 255).astype(np.uint8), (S, S))
-    far = [c for c in fc.candidates if abs(_depth(c) - 15.0) < 0.5]
-    assert far and all(c.echo_beneath or c.reverberation for c in far)
+    bone = [c for c in fc.usable if abs(_depth(c) - 14.2) < 0.5]
+    assert bone and not any(c.echo_beneath for c in bone)
+    best = max(fc.usable, key=_value)
+    assert abs(_depth(best) - 14.2) < 0.5, (_depth(best), best.strength)
 
 
 def test_parallel_fasciae_with_tissue_between_are_no_reverberation_series():
@@ -423,9 +433,12 @@ def test_series_top_made_over_a_copy_reaches_past_its_columns(sim_factory, monke
     the dome (its shadow beneath is darker than the reflector's), which spans only the
     middle of the bone, so the series' top made over its columns stopped short of the
     flanks (``candidates._extend_top`` off: coverage of the true contour 0.906 and
-    0.876). Followed on along its own echo with the series' trough under it, it
-    reaches them (0.999 and 0.937) without leaving the bone (p95 of the kept points
-    0.10 and 0.09 mm)."""
+    0.854). Followed on along its own echo with the series' trough under it, it
+    reaches them (0.999 and 0.914) without leaving the bone (p95 of the kept points
+    0.10 and 0.09 mm). Seed 7 was 0.937 until session 50: in its frame 10 a piece over
+    the bone's left half (x 58-88 of 55-126) is the strongest candidate, and the rule
+    that judged a shadow from the grey over a line alone flagged that piece, on the
+    bone, as lying in one; without it the track keeps the piece there."""
     from BoneUSRecon.Logic.segmentation import candidates
 
     sim = sim_factory(
@@ -433,7 +446,7 @@ def test_series_top_made_over_a_copy_reaches_past_its_columns(sim_factory, monke
     )
     s = score_simulation(segment_sweep(sim.sweep), sim).summary()
     assert s["recall"] >= 0.95 and s["wrong_share"] == 0
-    assert s["coverage"] >= 0.93
+    assert s["coverage"] >= 0.9
     assert s["p95_mm"] <= 0.2
     monkeypatch.setattr(candidates, "_extend_top", lambda ev, lr, cols, rows, *a: (cols, rows))
     assert score_simulation(segment_sweep(sim.sweep), sim).summary()["coverage"] <= 0.91

@@ -199,8 +199,9 @@ def _guided(
     (:func:`~BoneUSRecon.Logic.segmentation.recovery.recover_frame`).
 
     A frame's guided candidate depends on its pixels and on its prior: the nearest
-    track frames on either side and their chosen candidates. It is cached per frame
-    with that prior's identity and searched again only when the prior changed. A frame
+    track frames on either side, their chosen candidates and the link tolerance (the
+    band searched; rescaled as frames arrive). It is cached per frame with that prior's
+    identity and searched again only when the prior changed. A frame
     whose pixels were dropped (it was on the track at an earlier refit) and whose prior
     changed cannot be searched: the one way a live refit may differ from offline,
     counted in ``counts["no_pixels"]``.
@@ -216,7 +217,9 @@ def _guided(
         if near is None:
             continue
         fr = frames[f]
-        key = tuple((frames[g].uid, int(choice.chosen[g])) for g in near)
+        # The band searched is the link tolerance, scaled to the frames' deviation:
+        # part of the prior (a search made before a rescale is not reused after it).
+        key = (_tolerance(params), *((frames[g].uid, int(choice.chosen[g])) for g in near))
         if fr.guided is not None and fr.guided[0] == key:
             cand = fr.guided[1]
             counts["reused"] += 1
@@ -264,7 +267,13 @@ def _track_steps(frames: list[_Frame], choice: TrackChoice) -> np.ndarray:
     return steps_array(out)
 
 
-def _prior_key(frame: _Frame) -> tuple[tuple[int, int], ...] | None:
+def _tolerance(params: SegmentationParams) -> tuple[float, float]:
+    """The link tolerance a search is made with (:func:`~BoneUSRecon.Logic.segmentation.
+    track.scaled_tolerance` changes it as frames arrive)."""
+    return (params.rejection.tolerance_mm, params.rejection.tolerance_per_mm)
+
+
+def _prior_key(frame: _Frame) -> tuple[Any, ...] | None:
     """The prior of the frame's guided candidate (it names the candidate)."""
     return frame.guided[0] if frame.guided is not None else None
 
@@ -289,7 +298,7 @@ def _rechecked(
     frames whose pixels a later refit may need.
 
     A frame's verdict depends on its pixels, its track contour and its prior (the
-    nearest track frames on both sides and their contours): it is cached with their
+    nearest track frames on both sides and their contours, and the link tolerance): it is cached with their
     names and made again only when one of them changed. A straying frame keeps its
     pixels (its prior may change), as does a track frame without a track frame on
     each side yet (it may stray once it has them). A straying frame whose pixels were
@@ -310,7 +319,10 @@ def _rechecked(
             keep.add(f)
             continue
         c = int(choice.chosen[f])
-        key = tuple(_candidate_key(frames[g], int(choice.chosen[g])) for g in (f, *near))
+        key = (
+            _tolerance(params),
+            *(_candidate_key(frames[g], int(choice.chosen[g])) for g in (f, *near)),
+        )
         if fr.recheck is None or fr.recheck[0] != key:
             got = recheck_prior(fcs, choice, poses, f, params.rejection, rec)
             if got is None:

@@ -52,6 +52,7 @@ __all__ = [
     "no_contact",
     "add_fascia",
     "add_vessel",
+    "add_muscle",
     "LOOKALIKE_AUGMENTATIONS",
     "contour_agreement",
 ]
@@ -733,10 +734,70 @@ def add_vessel(
     return _in_field(sweep, out, lit)
 
 
+def add_muscle(
+    sweep: Sweep,
+    bone_contours: Mapping[int, np.ndarray],
+    *,
+    ratio: float = 0.7,
+    gap_mm: float = 1.0,
+    thickness_mm: float = 9.0,
+    beyond_mm: float = 5.0,
+    edge_mm: float = 1.0,
+    fascia: float = 0.0,
+    line_mm: float = 0.3,
+    seed: int = 0,
+) -> Sweep:
+    """A hypoechoic muscle lying on the bone (the pronator quadratus on the distal radius
+    and ulna, the brachialis on the humerus, the supinator on the radius): a band of
+    tissue over the bone darker than the rest of the frame's soft tissue.
+
+    Per frame with a contour, the band runs from ``gap_mm`` to ``gap_mm + thickness_mm``
+    over the bone, following its outline (level with the contour's ends past them) and
+    ``beyond_mm`` past its ends; its grey is the recording's own times ``ratio`` (its
+    texture kept: a muscle is speckle at a lower level, not a shadow's floor), the
+    edges softened over ``edge_mm``. ``fascia`` > 0 also draws the muscle's fascia along
+    the band's top at that share of the frame's bone echo grey (:func:`_frame_echo_grey`):
+    a bright line over a darker band, the shape of a bone's echo over its shadow.
+    Beside the band, at the same depths, the tissue keeps the recording's level.
+    """
+    f = np.asarray(sweep.frames, np.float32)
+    n, h, w = f.shape
+    sp = float(np.mean(sweep.spacing_mm))
+    lit = _lit(f)
+    rng = np.random.default_rng(seed)
+    tex = _line_texture(rng, n, w, sp)
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    cols = np.arange(w, dtype=np.float32)
+    out = f.copy()
+    for k, c in bone_contours.items():
+        c = _sorted_contour(c)
+        if not 0 <= k < n or c.shape[0] < 3:
+            continue
+        bone = np.interp(cols, c[:, 0], c[:, 1]).astype(np.float32)  # level past the ends
+        # mm over the bone at each pixel, and laterally outside the contour's ends.
+        over = (bone[None, :] - rows) * sp
+        past = np.maximum(c[0, 0] - cols, cols - c[-1, 0]) * sp - beyond_mm
+        inside = (
+            np.clip((over - gap_mm) / edge_mm + 0.5, 0.0, 1.0)
+            * np.clip((gap_mm + thickness_mm - over) / edge_mm + 0.5, 0.0, 1.0)
+            * np.clip(0.5 - past / edge_mm, 0.0, 1.0)[None, :]
+        )
+        img = f[k] * (1.0 - (1.0 - ratio) * inside)
+        grey = _frame_echo_grey(f[k], c, sp)
+        if fascia > 0 and np.isfinite(grey):
+            top = bone - (gap_mm + thickness_mm) / sp
+            amp = fascia * grey * tex[k] * np.clip(0.5 - past / edge_mm, 0.0, 1.0)
+            img = np.maximum(img, amp[None, :] * _band_profile(rows, top, max(line_mm / sp, 1.0)))
+        out[k] = img
+    return _in_field(sweep, out, lit)
+
+
 #: The look-alikes of issue 10 drawn into a recording with its reference contours
 #: (``(sweep, contours) -> sweep``), each alone (the vessel also 1 mm over the bone: its
-#: lumen right over it) and all three at once; with the cadaver's levels (:func:`harden`)
-#: they make the hardest copy of a recording we can score.
+#: lumen right over it) and the first three at once; with the cadaver's levels
+#: (:func:`harden`) they make the hardest copy of a recording we can score. Also a
+#: hypoechoic muscle on the bone (0.7 of the tissue's grey), and darker (0.6) under its
+#: own fascia as bright as the bone: a bright line over a darker band, over the bone.
 LOOKALIKE_AUGMENTATIONS: dict[str, Callable[[Sweep, Mapping[int, np.ndarray]], Sweep]] = {
     "no-contact": lambda s, c: no_contact(s, side=1),
     "no-contact-left": lambda s, c: no_contact(s, side=-1),
@@ -744,6 +805,8 @@ LOOKALIKE_AUGMENTATIONS: dict[str, Callable[[Sweep, Mapping[int, np.ndarray]], S
     "vessel": lambda s, c: add_vessel(s, c),
     "vessel-on-bone": lambda s, c: add_vessel(s, c, gap_mm=1.0),
     "lookalikes": lambda s, c: no_contact(add_vessel(add_fascia(s, c, side=-1), c), side=1),
+    "muscle": lambda s, c: add_muscle(s, c),
+    "muscle-fascia": lambda s, c: add_muscle(s, c, ratio=0.6, fascia=1.0),
 }
 
 
