@@ -19,7 +19,7 @@ on real texture (``Testing/test_augment_lookalikes.py``).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -542,6 +542,17 @@ def _sorted_contour(c: np.ndarray) -> np.ndarray:
     return c[np.argsort(c[:, 0], kind="stable")]
 
 
+def _drawn_frames(
+    bone_contours: Mapping[int, np.ndarray], n: int
+) -> Iterator[tuple[int, np.ndarray]]:
+    """The frames of a sweep of ``n`` frames that a look-alike is drawn in: those with a
+    contour of 3 points or more, each with its contour sorted by column."""
+    for k, c in bone_contours.items():
+        c = _sorted_contour(c)
+        if 0 <= k < n and c.shape[0] >= 3:
+            yield k, c
+
+
 def no_contact(
     sweep: Sweep,
     *,
@@ -639,10 +650,7 @@ def add_fascia(
     rows = np.arange(h, dtype=np.float32)[:, None]
     cols = np.arange(w, dtype=np.float32)
     out = f.copy()
-    for k, c in bone_contours.items():
-        c = _sorted_contour(c)
-        if not 0 <= k < n or c.shape[0] < 3:
-            continue
+    for k, c in _drawn_frames(bone_contours, n):
         jtop = float(c[:, 1].min())
         apex = float(c[np.argmin(c[:, 1]), 0])
         outward = c[(c[:, 0] - apex) * side > 0][:: 1 if side > 0 else -1]
@@ -705,10 +713,7 @@ def add_vessel(
     cols = np.arange(w, dtype=np.float32)[None, :]
     sigma = max(0.3 / sp, 1.0)
     out = f.copy()
-    for k, c in bone_contours.items():
-        c = _sorted_contour(c)
-        if not 0 <= k < n or c.shape[0] < 3:
-            continue
+    for k, c in _drawn_frames(bone_contours, n):
         ci = float(c[np.argmin(c[:, 1]), 0]) + lateral_mm / sp
         if not c[0, 0] <= ci <= c[-1, 0]:
             continue
@@ -769,10 +774,7 @@ def add_muscle(
     rows = np.arange(h, dtype=np.float32)[:, None]
     cols = np.arange(w, dtype=np.float32)
     out = f.copy()
-    for k, c in bone_contours.items():
-        c = _sorted_contour(c)
-        if not 0 <= k < n or c.shape[0] < 3:
-            continue
+    for k, c in _drawn_frames(bone_contours, n):
         bone = np.interp(cols, c[:, 0], c[:, 1]).astype(np.float32)  # level past the ends
         # mm over the bone at each pixel, and laterally outside the contour's ends.
         over = (bone[None, :] - rows) * sp
