@@ -83,6 +83,7 @@ from BoneUSRecon.Logic.segmentation.evidence import EvidenceMaps, bone_evidence
 from BoneUSRecon.Logic.segmentation.reach import trim_beyond
 from BoneUSRecon.Logic.segmentation.recovery import applies as recovery_applies
 from BoneUSRecon.Logic.segmentation.recovery import (
+    off_skin,
     prior_frames,
     recheck_candidate,
     recheck_prior,
@@ -199,12 +200,13 @@ def _guided(
     (:func:`~BoneUSRecon.Logic.segmentation.recovery.recover_frame`).
 
     A frame's guided candidate depends on its pixels and on its prior: the nearest
-    track frames on either side, their chosen candidates and the link tolerance (the
-    band searched; rescaled as frames arrive). It is cached per frame with that prior's
-    identity and searched again only when the prior changed. A frame
-    whose pixels were dropped (it was on the track at an earlier refit) and whose prior
-    changed cannot be searched: the one way a live refit may differ from offline,
-    counted in ``counts["no_pixels"]``.
+    track frames on either side, their chosen candidates, the link tolerance (the
+    band searched; rescaled as frames arrive) and whether the frame is in contact (its
+    level against the frames' so far). It is cached per frame with that prior's
+    identity and searched again only when the prior changed. A frame whose pixels were
+    dropped (it was on the track at an earlier refit) and whose prior changed cannot be
+    searched: the one way a live refit may differ from offline, counted in
+    ``counts["no_pixels"]``.
     """
     out: dict[int, BoneCandidate] = {}
     rec = recovery_settings(params)  # one-sided past the track's ends, as offline
@@ -217,9 +219,16 @@ def _guided(
         if near is None:
             continue
         fr = frames[f]
-        # The band searched is the link tolerance, scaled to the frames' deviation:
-        # part of the prior (a search made before a rescale is not reused after it).
-        key = (_tolerance(params), *((frames[g].uid, int(choice.chosen[g])) for g in near))
+        # The band searched is the link tolerance, scaled to the frames' deviation, and
+        # the frame is searched only if in contact by the level of the frames so far:
+        # both part of the prior (a search made before a rescale, or before the sweep's
+        # level moved the verdict, is not reused after it).
+        contact = not off_skin(fr.candidates, median_level, rec.contact_level)
+        key = (
+            _tolerance(params),
+            contact,
+            *((frames[g].uid, int(choice.chosen[g])) for g in near),
+        )
         if fr.guided is not None and fr.guided[0] == key:
             cand = fr.guided[1]
             counts["reused"] += 1
@@ -298,12 +307,12 @@ def _rechecked(
     frames whose pixels a later refit may need.
 
     A frame's verdict depends on its pixels, its track contour and its prior (the
-    nearest track frames on both sides and their contours, and the link tolerance): it is cached with their
-    names and made again only when one of them changed. A straying frame keeps its
-    pixels (its prior may change), as does a track frame without a track frame on
-    each side yet (it may stray once it has them). A straying frame whose pixels were
-    dropped (it did not stray when a refit last judged it) is not searched: counted
-    in ``counts["no_pixels"]``, as for recovery.
+    nearest track frames on both sides and their contours, and the link tolerance): it
+    is cached with their names and made again only when one of them changed. A
+    straying frame keeps its pixels (its prior may change), as does a track frame
+    without a track frame on each side yet (it may stray once it has them). A straying
+    frame whose pixels were dropped (it did not stray when a refit last judged it) is
+    not searched: counted in ``counts["no_pixels"]``, as for recovery.
     """
     out: dict[int, BoneCandidate] = {}
     keep: set[int] = set()

@@ -1380,11 +1380,11 @@ def _mark_echo_beneath(
     ``under_ratio`` of the frame's typical tissue ("in a shadow whatever cast it")
     flagged the bone itself in most frames of the hard simulated sweeps (76 of 120 on
     three of seed 173) and, on the L14 grey-shadow copy with a muscle of 0.7 of the
-    tissue's grey over the bone (:func:`.simulation.augment.add_muscle`), in 20 of 21
-    frames: the track took a layer 9-22 mm over the bone (recall 0). Without it the
+    tissue's grey over the bone (:func:`.simulation.augment.add_muscle`), the bone in
+    most frames: the track took a layer 9 mm over it (recall 0). Without it the
     harness's 352 sweeps (seeds 173-919) keep the same recall and wrong share but for
-    one frame at a sweep's end (R humerus hard s701 and its corrupted twin), gold
-    0.2072 against 0.2073 mm (Testing/benchmarks/README.md, session 50).
+    the last frame of one sweep and its corrupted twin (R humerus hard s701), the gold
+    of each seed pair within 0.0005 mm (Testing/benchmarks/README.md, session 50).
     """
     gap = mm_to_px(p.shadow_gap_mm, ev.dy, minimum=1)
     reach = mm_to_px(p.far_shadow_mm, ev.dy)
