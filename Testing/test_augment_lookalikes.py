@@ -2,8 +2,9 @@
 
 :func:`augment.no_contact` (a skin line over a no-contact gap at an image edge, with its
 reverberation copies), :func:`augment.add_fascia` (a fascia leaving the bone's flank at
-its level) and :func:`augment.add_vessel` (a vessel with dark lumen, walls, enhancement
-and ring-down over the bone): each is checked on a small simulated sweep (where it is
+its level), :func:`augment.add_vessel` (a vessel with dark lumen, walls, enhancement
+and ring-down over the bone) and :func:`augment.add_muscle` (a hypoechoic muscle lying on
+the bone, under its fascia or not): each is checked on a small simulated sweep (where it is
 drawn, at the grey levels the recording itself gives), then on the shared L14 recording
 and on its cadaver-level copy (:func:`augment.harden` with the reference contours),
 scored against the reference contours of ``Testing/data``: the simulator's look-alikes

@@ -24,7 +24,8 @@ augmentations (``augment.HARD_AUGMENTATIONS``, and "cadaver": ``augment.harden``
 reference contours, the cadaver's levels exactly), and for L14 the simulator's look-alikes
 drawn into the recording and into its grey-shadow and cadaver copies
 (``augment.LOOKALIKE_AUGMENTATIONS``: a no-contact gap at either edge, a fascia off the
-flank, a vessel 3 mm and 1 mm over the bone, all three), scored against the reference contours of
+flank, a vessel 3 mm and 1 mm over the bone, all three; a dark muscle on the bone, alone
+and under its fascia), scored against the reference contours of
 ``Testing/data`` (see its README for their precision).
 
 Run: ``python Testing/benchmarks/bench_segmentation.py [--frames 60] [--overlay DIR]``
