@@ -779,16 +779,17 @@ def add_muscle(
         # mm over the bone at each pixel, and laterally outside the contour's ends.
         over = (bone[None, :] - rows) * sp
         past = np.maximum(c[0, 0] - cols, cols - c[-1, 0]) * sp - beyond_mm
+        lateral = np.clip(0.5 - past / edge_mm, 0.0, 1.0)
         inside = (
             np.clip((over - gap_mm) / edge_mm + 0.5, 0.0, 1.0)
             * np.clip((gap_mm + thickness_mm - over) / edge_mm + 0.5, 0.0, 1.0)
-            * np.clip(0.5 - past / edge_mm, 0.0, 1.0)[None, :]
+            * lateral[None, :]
         )
         img = f[k] * (1.0 - (1.0 - ratio) * inside)
-        grey = _frame_echo_grey(f[k], c, sp)
-        if fascia > 0 and np.isfinite(grey):
+        grey = _frame_echo_grey(f[k], c, sp) if fascia > 0 else np.nan
+        if np.isfinite(grey):
             top = bone - (gap_mm + thickness_mm) / sp
-            amp = fascia * grey * tex[k] * np.clip(0.5 - past / edge_mm, 0.0, 1.0)
+            amp = fascia * grey * tex[k] * lateral
             img = np.maximum(img, amp[None, :] * _band_profile(rows, top, max(line_mm / sp, 1.0)))
         out[k] = img
     return _in_field(sweep, out, lit)
