@@ -52,14 +52,20 @@ def _unchanged_geometry(before, after) -> None:
     assert after.frames[:, :, :MARGIN].max() == 0 and after.frames[:, :, -MARGIN:].max() == 0
 
 
-@pytest.mark.parametrize("side", [1, -1])
-def test_no_contact_draws_a_dark_gap_a_bright_skin_line_and_its_copies(sim, side) -> None:
+def _drawn(sim, draw, *args, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+    """``draw(sim.sweep, *args, **kwargs)`` with its input untouched and the geometry
+    unchanged; the frames' greys before and after, as floats."""
     before = np.array(sim.sweep.frames)
-    out = augment.no_contact(sim.sweep, side=side, depth_mm=6.0, copies=2, transmission=0.4)
+    out = draw(sim.sweep, *args, **kwargs)
     assert np.array_equal(sim.sweep.frames, before)  # the input is not touched
     _unchanged_geometry(sim.sweep, out)
+    return before.astype(float), out.frames.astype(float)
+
+
+@pytest.mark.parametrize("side", [1, -1])
+def test_no_contact_draws_a_dark_gap_a_bright_skin_line_and_its_copies(sim, side) -> None:
+    f, g = _drawn(sim, augment.no_contact, side=side, depth_mm=6.0, copies=2, transmission=0.4)
     sp = 0.3
-    f, g = before.astype(float), out.frames.astype(float)
     w = f.shape[2]
     edge = w - 1 - MARGIN if side > 0 else MARGIN  # the outermost imaged column
     other = slice(MARGIN, MARGIN + 40) if side > 0 else slice(w - MARGIN - 40, w - MARGIN)
@@ -87,9 +93,7 @@ def test_no_contact_draws_a_dark_gap_a_bright_skin_line_and_its_copies(sim, side
 def test_fascia_leaves_the_flank_at_the_bone_level_as_bright_as_its_echo(sim) -> None:
     cont = _contours(sim)
     sp = 0.3
-    out = augment.add_fascia(sim.sweep, cont, side=1, slope=0.08, length_mm=10.0)
-    _unchanged_geometry(sim.sweep, out)
-    f, g = np.asarray(sim.sweep.frames, float), out.frames.astype(float)
+    f, g = _drawn(sim, augment.add_fascia, cont, side=1, slope=0.08, length_mm=10.0)
     checked = 0
     for k, c in cont.items():
         c = c[np.argsort(c[:, 0])]
@@ -115,9 +119,7 @@ def test_fascia_leaves_the_flank_at_the_bone_level_as_bright_as_its_echo(sim) ->
 def test_vessel_over_the_bone_dark_lumen_enhancement_and_no_room_no_vessel(sim) -> None:
     cont = _contours(sim)
     sp = 0.3
-    out = augment.add_vessel(sim.sweep, cont, lateral_mm=0.0, gap_mm=3.0, radius_mm=2.5)
-    _unchanged_geometry(sim.sweep, out)
-    f, g = np.asarray(sim.sweep.frames, float), out.frames.astype(float)
+    f, g = _drawn(sim, augment.add_vessel, cont, lateral_mm=0.0, gap_mm=3.0, radius_mm=2.5)
     floor = np.percentile(f[:, :, MARGIN:-MARGIN], 2)
     drawn = 0
     for k, c in cont.items():
@@ -146,11 +148,7 @@ def test_vessel_over_the_bone_dark_lumen_enhancement_and_no_room_no_vessel(sim) 
 def test_muscle_darkens_a_band_over_the_bone_and_nothing_beside_it(sim) -> None:
     cont = _contours(sim)
     sp = 0.3
-    before = np.array(sim.sweep.frames)
-    out = augment.add_muscle(sim.sweep, cont, ratio=0.6, gap_mm=1.0, thickness_mm=6.0)
-    assert np.array_equal(sim.sweep.frames, before)  # the input is not touched
-    _unchanged_geometry(sim.sweep, out)
-    f, g = before.astype(float), out.frames.astype(float)
+    f, g = _drawn(sim, augment.add_muscle, cont, ratio=0.6, gap_mm=1.0, thickness_mm=6.0)
     w = f.shape[2]
     checked = 0
     for k, c in cont.items():
