@@ -69,7 +69,7 @@ its own evidence and the strongest kept; pieces lying over one shadow (a line fl
 from __future__ import annotations
 
 import dataclasses
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
@@ -816,13 +816,18 @@ def _series(
     vl = v.tolist()
 
     def step_from(k: int, d: float, sign: int) -> int | None:
+        # The nearest peak to ``want``, the shallower of two as near, within the
+        # tolerance: ``plist`` is ascending, so only the peaks either side of ``want``
+        # can be nearest (bisection: the profile's ~20 peaks are not all read at each
+        # of the ~8,000 steps a sweep takes).
         want = k + sign * d
-        lim = tol * d + 1.0
-        best, err = None, lim + 1e-9
-        for q in plist:  # the nearest, the shallower of two as near
-            e = abs(q - want)
-            if e < err:
-                best, err = q, e
+        err = tol * d + 1.0 + 1e-9
+        i = bisect_left(plist, want)
+        best = None
+        if i > 0 and abs(plist[i - 1] - want) < err:
+            best, err = plist[i - 1], abs(plist[i - 1] - want)
+        if i < len(plist) and abs(plist[i] - want) < err:
+            best = plist[i]
         return best if best is not None and (best - k) * sign >= min_px else None
 
     def chain(start: int, d: float, signs: tuple[int, ...]) -> list[int]:

@@ -200,9 +200,17 @@ class IncrementalTrack:
         self._next_uid += 1
         self._frames.append(fr)
         g = len(self._frames) - 1
-        if g:
-            self._measure(self._frames[g - 1], fr)
         self._link(self._frames[max(0, g - self.params.max_skip - 1) : g], fr)
+        if g:
+            a = self._frames[g - 1]
+            if self._p is self.params:
+                # Linked with the base tolerances: the least deviation to the frame
+                # before is among the links just made (the same edges :meth:`_measure`
+                # makes; one search, not two).
+                devs = [dev for _, _, dev in fr.links[a.uid]]
+                fr.near = (a.uid, min(devs) if devs else np.inf)
+            else:
+                self._measure(a, fr)
 
     def _measure(self, a: _TrackFrame, b: _TrackFrame) -> None:
         """Frame b's least deviation to a, the frame before it (base tolerances)."""
