@@ -192,6 +192,18 @@ def test_muscle_darkens_a_band_over_the_bone_and_nothing_beside_it(sim) -> None:
             continue
         grey = echo_levels(f[k][None], [c], sp)["echo"]
         assert g[k, int(top) - 2 : int(top) + 3, i].max() >= 0.5 * grey
+    # Over one end of the sweep only: the frames past it as they were, those in it as
+    # over the whole sweep (the texture is drawn for every frame alike).
+    n = sim.sweep.n_frames
+    whole = augment.add_muscle(sim.sweep, cont, ratio=0.6)
+    end = augment.add_muscle(sim.sweep, cont, ratio=0.6, along=(0.0, 0.4))
+    drawn = [k for k in cont if k < 0.4 * n]
+    assert drawn and any(k >= 0.4 * n for k in cont)
+    for k in range(n):
+        want = whole.frames[k] if k < 0.4 * n else sim.sweep.frames[k]
+        assert np.array_equal(end.frames[k], want)
+    with pytest.raises(ValueError, match="along"):
+        augment.add_muscle(sim.sweep, cont, along=(0.5, 0.5))
 
 
 def test_a_lumen_is_read_as_tissue_a_shadow_is_not() -> None:

@@ -270,6 +270,51 @@ def test_a_reverberating_shadow_under_darker_muscle_steps_like_the_bone(seed):
     assert bone_free_ends(steps[:, 0], p)[-3:].all()  # by the band's mean alone
 
 
+def test_a_muscle_on_the_bone_is_looked_past_a_thin_line_is_not():
+    """The band's mean reads the shadow against the brightest 5 mm band up to
+    ``cover_reach_mm`` over the contour (medians along it): a muscle at 0.6 of the
+    tissue's amplitude filling 1-10 mm over the bone leaves the step the plain bone's
+    (read against the band right over it alone, a third of it: weak at ``min_ratio``);
+    a layer over tissue with a thin bright line 12 mm over it, or under a plain cover,
+    still steps nothing."""
+    rng = np.random.default_rng(3)
+    h, w, sp = 200, 100, 0.2
+    tissue = rng.rayleigh(60.0, (h, w))
+    j0 = 120  # the contour's row: 24 mm deep, the bands reach 16 mm over it
+    pts = np.column_stack([np.arange(20, 80, dtype=float), np.full(60, float(j0))])
+
+    def frame(muscle: float, shadow: bool, line: bool = False) -> np.ndarray:
+        img = tissue.copy()
+        if shadow:
+            img[j0 + 2 :, 20:80] *= 0.4
+        img[j0 - 1 : j0 + 2, 20:80] = 200.0
+        img[j0 - 50 : j0 - 5, 20:80] *= muscle  # 1-10 mm over the contour
+        if line:
+            img[j0 - 61 : j0 - 59, 20:80] = 220.0  # a fascia 12 mm up: 0.4 mm thick
+        return np.clip(img, 0, 255).astype(np.uint8)
+
+    p = EndsParams()
+    plain = shadow_step(frame(1.0, True), pts, (sp, sp))
+    assert plain == pytest.approx(np.log(0.4), abs=0.1)
+    under_muscle = shadow_step(frame(0.6, True), pts, (sp, sp))
+    assert under_muscle / plain >= 0.8
+    alone = shadow_step(frame(0.6, True), pts, (sp, sp), EndsParams(cover_reach_mm=0.0))
+    assert alone / plain < p.min_ratio  # the band right over it only: weak
+    # The trough reading is not lifted (a frame is spared when either reading is not
+    # weak: one lifted reading is enough for the muscle, and keeps the cut's other eye).
+    assert trough_step(frame(0.6, True), pts, (sp, sp)) == trough_step(
+        frame(0.6, True), pts, (sp, sp), EndsParams(cover_reach_mm=0.0)
+    )
+    for img in (frame(1.0, False, line=True), frame(1.0, False)):
+        assert abs(shadow_step(img, pts, (sp, sp))) < 0.2 * abs(plain)
+    # Too near the image's top for the bands over it: the band right over it alone.
+    high = np.column_stack([pts[:, 0], np.full(60, 40.0)])
+    img = frame(1.0, True)
+    assert shadow_step(img, high, (sp, sp)) == shadow_step(
+        img, high, (sp, sp), EndsParams(cover_reach_mm=0.0)
+    )
+
+
 def test_bone_free_ends_cuts_weak_runs_at_the_ends_only():
     p = EndsParams()
     w = p.min_ratio

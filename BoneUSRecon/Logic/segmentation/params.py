@@ -800,6 +800,8 @@ class EndsParams:
     """Thickness of the bands under and above the contour, mm (the shadow's reverberation bands are 2.5-3 mm apart: a band spans at least one period)."""
     near_field_mm: float = 2.0
     """The band above starts no shallower than this, mm (the skin line and the probe's near field: ``ShadowPathParams.near_field_mm``)."""
+    cover_reach_mm: float = 16.0
+    """The band's mean is read against the brightest ``band_mm`` band up to this far over the contour (medians along the contour), not only the band right over it: a muscle lying on the bone (1-10 mm over it: the pronator quadratus on the distal radius and ulna) darkens that band, and where it covers only one end of the sweep the frames there read weak against the track's typical frame (ours, session 51: the L14 recording and its copies with a muscle at 0.5-0.7 over the first 40 % or the last half of the sweep, recall 0.48-0.90 -> 1.00; 0 or under ``above_gap_mm + 2 band_mm``: the band above only, as before; see :func:`.ends.shadow_step`)."""
     column_mm: float = 0.5
     """One contour column in this many mm is measured (speed: a median over columns needs no more; the speckle is ~0.3-0.7 mm wide)."""
     trough_mm: float = 1.0
@@ -825,6 +827,7 @@ class EndsParams:
                 "under_gap_mm",
                 "above_gap_mm",
                 "near_field_mm",
+                "cover_reach_mm",
                 "strong_weight",
                 "trough_mm",
             ),

@@ -750,6 +750,7 @@ def add_muscle(
     edge_mm: float = 1.0,
     fascia: float = 0.0,
     line_mm: float = 0.3,
+    along: tuple[float, float] = (0.0, 1.0),
     seed: int = 0,
 ) -> Sweep:
     """A hypoechoic muscle lying on the bone (the pronator quadratus on the distal radius
@@ -764,7 +765,12 @@ def add_muscle(
     the band's top at that share of the frame's bone echo grey (:func:`_frame_echo_grey`):
     a bright line over a darker band, the shape of a bone's echo over its shadow.
     Beside the band, at the same depths, the tissue keeps the recording's level.
+    ``along``: the stretch of the sweep the muscle covers, as shares of its frames
+    (``(0, 0.4)``: the first 40 %, as the pronator quadratus covers the distal 4-6 cm
+    of a forearm sweep); the frames outside it are left as they are.
     """
+    if not 0.0 <= along[0] < along[1] <= 1.0:
+        raise ValueError(f"along must be 0 <= start < end <= 1, got {along}")
     f = np.asarray(sweep.frames, np.float32)
     n, h, w = f.shape
     sp = float(np.mean(sweep.spacing_mm))
@@ -775,6 +781,8 @@ def add_muscle(
     cols = np.arange(w, dtype=np.float32)
     out = f.copy()
     for k, c in _drawn_frames(bone_contours, n):
+        if not along[0] * n <= k < along[1] * n:
+            continue
         bone = np.interp(cols, c[:, 0], c[:, 1]).astype(np.float32)  # level past the ends
         # mm over the bone at each pixel, and laterally outside the contour's ends.
         over = (bone[None, :] - rows) * sp
@@ -800,7 +808,11 @@ def add_muscle(
 #: lumen right over it) and the first three at once; with the cadaver's levels
 #: (:func:`harden`) they make the hardest copy of a recording we can score. Also a
 #: hypoechoic muscle on the bone (0.7 of the tissue's grey), and darker (0.6) under its
-#: own fascia as bright as the bone: a bright line over a darker band, over the bone.
+#: own fascia as bright as the bone: a bright line over a darker band, over the bone;
+#: each also over one end of the sweep only (``-end``: the first 40 %, as the pronator
+#: quadratus over a forearm's distal end; with the fascia, the last half, the fascia
+#: 1.5 times as bright as the bone), where the frames with the muscle differ from the
+#: sweep's typical frame and the bone is carried by the frames without it.
 LOOKALIKE_AUGMENTATIONS: dict[str, Callable[[Sweep, Mapping[int, np.ndarray]], Sweep]] = {
     "no-contact": lambda s, c: no_contact(s, side=1),
     "no-contact-left": lambda s, c: no_contact(s, side=-1),
@@ -810,6 +822,8 @@ LOOKALIKE_AUGMENTATIONS: dict[str, Callable[[Sweep, Mapping[int, np.ndarray]], S
     "lookalikes": lambda s, c: no_contact(add_vessel(add_fascia(s, c, side=-1), c), side=1),
     "muscle": lambda s, c: add_muscle(s, c),
     "muscle-fascia": lambda s, c: add_muscle(s, c, ratio=0.6, fascia=1.0),
+    "muscle-end": lambda s, c: add_muscle(s, c, along=(0.0, 0.4)),
+    "muscle-fascia-end": lambda s, c: add_muscle(s, c, ratio=0.6, fascia=1.5, along=(0.5, 1.0)),
 }
 
 
