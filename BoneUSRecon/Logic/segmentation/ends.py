@@ -172,7 +172,8 @@ def _cover_lift(
     band above is not wholly in the field. Medians: a thin bright line (a fascia, the
     skin's copies) in a band moves them little, a darker muscle filling it does."""
     band = max(1, int(round(params.band_mm / sy)))
-    n = int(round((params.cover_reach_mm - params.above_gap_mm) / params.band_mm))
+    # The bands wholly within the reach (16 mm: three, 1-16 mm over the contour).
+    n = int(np.floor((params.cover_reach_mm - params.above_gap_mm) / params.band_mm + 1e-9))
     if n < 2:
         return 0.0
     a1 = int(round(params.above_gap_mm / sy))
