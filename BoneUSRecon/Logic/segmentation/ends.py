@@ -324,20 +324,12 @@ def shadow_steps(
 
 def _weakness(steps: np.ndarray, ratio: float) -> np.ndarray | None:
     """``ratio - step / typical`` per frame (0 where not measured; None: no shadow on the
-    track, or too few frames measured, to judge against).
-
-    The track casts a shadow when its typical step is negative by more than half the
-    spread of its frames' steps about it (their median absolute deviation): a typical
-    step near zero, frames stepping up as often as down, is no level to judge a frame
-    against (divided by it, every frame stepping up reads as far weaker than the
-    track; the paper's snake's short pieces on the L14 recording with a vessel over the
-    bone, typical -0.005, spread 0.19)."""
+    track, or too few frames measured, to judge against)."""
     ok = np.isfinite(steps)
     if ok.sum() < 3:
         return None
     typical = float(np.median(steps[ok]))
-    spread = float(np.median(np.abs(steps[ok] - typical)))
-    if not typical < -0.5 * spread:
+    if not typical < 0:
         return None
     return np.where(ok, ratio - steps / typical, 0.0)
 
