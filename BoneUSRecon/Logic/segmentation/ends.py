@@ -161,31 +161,52 @@ def _columns(
     return img, i, np.asarray(pts[:, 1], dtype=float), sy
 
 
+def _row_medians(
+    img: np.ndarray, i: np.ndarray, j: np.ndarray, offs: np.ndarray, top: float, partial: bool
+) -> np.ndarray:
+    """The profile along a contour: per row offset ``offs`` from its rows ``j`` (over its
+    columns ``i``), the median log grey over the columns. NaN where the row lies outside
+    the field (above ``top``, or past the image) over any column, or with ``partial``
+    over more than half of them (then the median of the columns inside)."""
+    h = img.shape[0]
+    rows = np.round(j[None, :] + offs[:, None]).astype(np.intp)
+    inside = (rows >= top) & (rows < h)
+    vals = _LOG[img[np.clip(rows, 0, h - 1), i[None, :]]]
+    # np.median where the row lies inside over all the columns, the usual row
+    # (nanmedian is ~10x slower).
+    prof = np.full(offs.size, np.nan)
+    n_in = np.count_nonzero(inside, axis=1)
+    whole = n_in == i.size
+    if whole.any():
+        prof[whole] = np.median(vals[whole], axis=1)
+    if partial:
+        part = ~whole & (n_in >= 0.5 * i.size)
+        if part.any():
+            prof[part] = np.nanmedian(np.where(inside[part], vals[part], np.nan), axis=1)
+    return prof
+
+
 def _cover_lift(
     img: np.ndarray, i: np.ndarray, j: np.ndarray, sy: float, top: float, params: EndsParams
 ) -> float:
     """How much brighter (log grey) the tissue higher over a contour is than the band
     right over it (:attr:`EndsParams.cover_reach_mm`): on the profile along the contour
-    (per row, the median over its columns), the greatest median of a ``band_mm`` band
-    stacked over the band above, up to ``cover_reach_mm`` over the contour and wholly
-    under the near field, less the band above's median; 0 when none is brighter or the
-    band above is not wholly in the field. Medians: a thin bright line (a fascia, the
-    skin's copies) in a band moves them little, a darker muscle filling it does."""
+    (:func:`_row_medians`), the greatest median of a ``band_mm`` band stacked over the
+    band above, up to ``cover_reach_mm`` over the contour and wholly under the near
+    field, less the band above's median; 0 when none is brighter or the band above is
+    not wholly in the field. Medians: a thin bright line (a fascia, the skin's copies)
+    in a band moves them little, a darker muscle filling it does."""
     band = max(1, int(round(params.band_mm / sy)))
     # The bands wholly within the reach (16 mm: three, 1-16 mm over the contour).
     n = int(np.floor((params.cover_reach_mm - params.above_gap_mm) / params.band_mm + 1e-9))
     if n < 2:
         return 0.0
     a1 = int(round(params.above_gap_mm / sy))
-    offs = np.arange(-(a1 + n * band), -a1)
-    rows = np.round(j[None, :] + offs[:, None]).astype(np.intp)
-    whole = np.count_nonzero((rows >= top) & (rows < img.shape[0]), axis=1) == i.size
-    if not whole[-band:].all():
-        return 0.0
-    prof = np.full(offs.size, np.nan)
-    prof[whole] = np.median(_LOG[img[rows[whole], i[None, :]]], axis=1)
+    prof = _row_medians(img, i, j, np.arange(-(a1 + n * band), -a1), top, partial=False)
     # Band k (0: the band above) is the k-th block of rows counted up from the contour.
-    meds = [prof[offs.size - (k + 1) * band : offs.size - k * band] for k in range(n)]
+    meds = [prof[prof.size - (k + 1) * band : prof.size - k * band] for k in range(n)]
+    if not np.isfinite(meds[0]).all():
+        return 0.0
     base = float(np.median(meds[0]))
     higher = [float(np.median(m)) - base for m in meds[1:] if np.isfinite(m).all()]
     return max([0.0, *higher])
@@ -259,25 +280,13 @@ def trough_step(
     if points_px.shape[0] == 0 or not params.trough_mm > 0:
         return float("nan")
     img, i, j, sy = _columns(image, points_px, spacing, params.column_mm)
-    h = img.shape[0]
     a1 = int(round(params.above_gap_mm / sy))
     u0 = int(round(params.under_gap_mm / sy))
     band = max(1, int(round(params.band_mm / sy)))
     offs = np.arange(-(a1 + band), u0 + band + 1)
-    rows = np.round(j[None, :] + offs[:, None]).astype(np.intp)
     top = _field_top(img, i, sy) + params.near_field_mm / sy
-    inside = (rows >= top) & (rows < h)
-    vals = _LOG[img[np.clip(rows, 0, h - 1), i[None, :]]]
-    # A row offset counts where it lies in the image over at least half the columns
-    # (np.median where over all of them, the usual row; nanmedian is ~10x slower).
-    prof = np.full(offs.size, np.nan)
-    n_in = np.count_nonzero(inside, axis=1)
-    whole = n_in == i.size
-    part = ~whole & (n_in >= 0.5 * i.size)
-    if whole.any():
-        prof[whole] = np.median(vals[whole], axis=1)
-    if part.any():
-        prof[part] = np.nanmedian(np.where(inside[part], vals[part], np.nan), axis=1)
+    # A row offset counts where it lies in the image over at least half the columns.
+    prof = _row_medians(img, i, j, offs, top, partial=True)
     above = prof[: band + 1]
     above = above[np.isfinite(above)]
     k = max(1, int(round(params.trough_mm / sy)))
