@@ -752,6 +752,15 @@ def _underside_profile(
     return prof
 
 
+def _own_profile(c: dict, lr: np.ndarray, reach: int) -> np.ndarray:
+    """:func:`_underside_profile` of a candidate along its own shape over all its
+    columns, made once and kept in ``c["prof"]`` (the series and the shadow tests read
+    it; dropped where the map it was read on changes)."""
+    if "prof" not in c:
+        c["prof"] = _underside_profile(lr, c, reach)
+    return c["prof"]
+
+
 def _profile_peaks(prof: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]:
     """``prof`` with NaN as -10, and the offsets of its local maxima brighter than tissue."""
     # np.nan_to_num's values (its wrapper costs ~5x the work on a profile's ~100 values;
@@ -1167,9 +1176,7 @@ def _mark_series(
     added: list[dict] = []
 
     def confirmed(t: dict) -> bool:
-        if "prof" not in t:
-            t["prof"] = _underside_profile(lr, t, reach)
-        prof = t["prof"]
+        prof = _own_profile(t, lr, reach)
         if "peaks" not in t:
             t["peaks"] = _profile_peaks(prof, reach)
         # The near-field test first (cheap; the same answer in either order).
@@ -1266,10 +1273,8 @@ def _mark_series(
     for c in list(cands):
         if c.get("reverb"):
             continue
-        if "prof" not in c:
-            c["prof"] = _underside_profile(lr, c, reach)
         bowl = _curves_down(c["rows"])
-        top_itself = confirmed(c)
+        top_itself = confirmed(c)  # (makes c's own profile)
         if top_itself and not bowl:
             c["series_top"] = True
             continue
@@ -1426,9 +1431,7 @@ def _mark_echo_beneath(
                     if common.size < c["cols"].size:
                         prof = _underside_profile(lr, c, reach, common)
                     else:
-                        if "prof" not in c:
-                            c["prof"] = _underside_profile(lr, c, reach)
-                        prof = c["prof"]
+                        prof = _own_profile(c, lr, reach)
                     seg = prof[reach + gap : reach + min(reach, int(off) - gap) + 1]
                     seg = seg[np.isfinite(seg)]
                     shadowed = seg.size > 0 and median1d(seg) < dark
