@@ -1357,13 +1357,16 @@ def _mark_echo_beneath(
 
     * the region between them (under ``c``, following its shape,
       :func:`_underside_profile`) comes back darker than ``under_ratio`` of the
-      frame's typical tissue-to-level ratio, or, unless ``b`` is a dome, of the
-      tissue right over ``c`` where that is brighter (under the near field: gel, skin
-      and lens echoes are no tissue the sound crossed; geometric means: bright copies in
-      the shadow do not outweigh it), or ``c`` tops a reverberation series: ``b`` lies in
-      ``c``'s shadow and is flagged (the far cortex, a band) if it lies within ``c``'s
-      columns (a shadow is as wide as its reflector); either way ``c`` is not flagged
-      for it;
+      frame's typical tissue-to-level ratio, or of the tissue right over ``c`` where
+      that is brighter (under the near field: gel, skin and lens echoes are no tissue
+      the sound crossed; geometric means: bright copies in the shadow do not outweigh
+      it), and ``b`` is no dome (below), or ``c`` tops a reverberation series: ``b``
+      lies in ``c``'s shadow and is flagged (the far cortex, a band) if it lies within
+      ``c``'s columns (a shadow is as wide as its reflector); either way ``c`` is not
+      flagged for it;
+    * a dome ``b`` at least two shadow gaps under ``c`` (and no copy: those are skipped)
+      is no far cortex: the sound reached it through ``c``, whatever the grey between
+      them, and ``b`` is not in ``c``'s shadow (below);
     * otherwise, with tissue between them, an echo ``b`` at least ``beneath_ratio`` as
       bright as ``c`` means the sound went through ``c``: ``c`` is soft tissue (a fascia
       over the bone) and is flagged.
@@ -1375,13 +1378,30 @@ def _mark_echo_beneath(
     18 mm beside it read its interior, reverberation bands and all, at 0.81-0.82 of
     the typical tissue (``under_ratio`` 0.8) but 0.73-0.77 of the brighter tissue over
     it, so the far cortex under it went unflagged and carried the track in all 12
-    frames (wrong share 1.0 -> 0). A far cortex is a bowl (the back wall of a convex
-    bone); a dome under ``c`` is a bone's top under a fascia, with tissue between that
-    reads the same (a fascia over the ulna, the radius 14 mm beside: 0.83 of the
-    typical tissue, 0.74 of the tissue over the fascia), so a dome
-    (:func:`_is_dome`) is judged against the frame's level alone. Candidates
-    closer than two shadow gaps are judged on ``c``'s own shadow z-score instead (no
-    room between them to measure).
+    frames (wrong share 1.0 -> 0).
+
+    What lies in a bone's shadow is its far cortex, a bowl (the back wall of a convex
+    bone), and reverberation copies, flagged before this runs (:func:`_mark_reverberations`,
+    :func:`_mark_series`: they are skipped here, and so is all under a series' top). A
+    dome (:func:`_is_dome`) under ``c`` that is neither is an interface the sound
+    reached through ``c``: the region between them is tissue however dark it reads (a
+    muscle lying on the bone), and ``b`` is not in ``c``'s shadow; ``c`` is flagged for
+    it only by the echo rule above. Measured with a muscle at 0.6 of the tissue's grey
+    under a fascia 1.5 times the bone's echo (:func:`.simulation.augment.add_muscle`):
+    the bone under the fascia's arch was flagged as lying in its shadow and the fascia
+    carried the track (the L14 recording and its grey-shadow copy, recall 0; hard
+    simulated sweeps of five bones at 0.3 mm, seeds 3 and 7, muscle 6 mm: recall
+    0-0.15 in all 10); with domes out of the shadow test, the L14 copies hold (recall
+    1.00) and 8 of the 10 (the tibia's bone and fascia both unflagged, the fascia the
+    stronger), the harness unchanged (Testing/benchmarks/README.md, session 52).
+    Flagging ``c`` for such a dome too (it let the sound through) held all 10, but
+    cost hard ulnae with the radius beside all their frames (a dome of the other bone
+    under a contour spanning both; seeds 701, 1013, 1019), with or without asking that
+    ``b`` lie within ``c``'s columns: not done. Where a far cortex lies under the bone
+    at the fascia's spacing over it, the three read as an equally spaced series and
+    the bone as a copy (hard radius and clavicle at 0.108 mm, muscle 9 mm): open.
+    Candidates closer than two shadow gaps are judged on ``c``'s own shadow z-score
+    instead (no room between them to measure).
 
     A shadow is judged under a candidate that could have cast it, never from the grey
     over ``b`` alone: a muscle lying on the bone (pronator quadratus, brachialis) is
@@ -1426,6 +1446,12 @@ def _mark_echo_beneath(
             if b["grey"] < c["grey"] or c.get("series_top"):
                 if c.get("series_top"):
                     shadowed = True
+                elif off >= 2 * gap + 1 and _is_dome(
+                    b["cols"] * ev.dx, b["rows"] * ev.dy, p.dome_mm
+                ):
+                    # Neither far cortex (a bowl) nor copy (skipped above): the sound
+                    # reached it through c, and what lies between is tissue.
+                    shadowed = False
                 elif off >= 2 * gap + 1:
                     # Under c over the columns b lies under, following c's shape.
                     if common.size < c["cols"].size:
@@ -1435,15 +1461,10 @@ def _mark_echo_beneath(
                     seg = prof[reach + gap : reach + min(reach, int(off) - gap) + 1]
                     seg = seg[np.isfinite(seg)]
                     shadowed = seg.size > 0 and median1d(seg) < dark
-                    if (
-                        seg.size
-                        and not shadowed
-                        and not _is_dome(b["cols"] * ev.dx, b["rows"] * ev.dy, p.dome_mm)
-                    ):
+                    if seg.size and not shadowed:
                         # Darker than the tissue the sound came through to c, where
                         # that is brighter than the frame's typical tissue (its cover,
-                        # the rows over c along its shape); not for a dome under c (a
-                        # bone's top under a fascia, tissue between).
+                        # the rows over c along its shape).
                         cover = prof[: reach - gap]
                         cover = cover[np.isfinite(cover) & (rows_over(c) >= near)]
                         if cover.size >= gap:

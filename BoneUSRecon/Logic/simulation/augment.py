@@ -812,7 +812,9 @@ def add_muscle(
 #: each also over one end of the sweep only (``-end``: the first 40 %, as the pronator
 #: quadratus over a forearm's distal end; with the fascia, the last half, the fascia
 #: 1.5 times as bright as the bone), where the frames with the muscle differ from the
-#: sweep's typical frame and the bone is carried by the frames without it.
+#: sweep's typical frame and the bone is carried by the frames without it; and that
+#: fascia over the whole sweep (``muscle-bright-fascia``: a bright arch over a dark
+#: band in every frame, the bone under it dimmer than the arch).
 LOOKALIKE_AUGMENTATIONS: dict[str, Callable[[Sweep, Mapping[int, np.ndarray]], Sweep]] = {
     "no-contact": lambda s, c: no_contact(s, side=1),
     "no-contact-left": lambda s, c: no_contact(s, side=-1),
@@ -824,6 +826,7 @@ LOOKALIKE_AUGMENTATIONS: dict[str, Callable[[Sweep, Mapping[int, np.ndarray]], S
     "muscle-fascia": lambda s, c: add_muscle(s, c, ratio=0.6, fascia=1.0),
     "muscle-end": lambda s, c: add_muscle(s, c, along=(0.0, 0.4)),
     "muscle-fascia-end": lambda s, c: add_muscle(s, c, ratio=0.6, fascia=1.5, along=(0.5, 1.0)),
+    "muscle-bright-fascia": lambda s, c: add_muscle(s, c, ratio=0.6, fascia=1.5),
 }
 
 
