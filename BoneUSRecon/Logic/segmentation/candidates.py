@@ -1366,7 +1366,8 @@ def _mark_echo_beneath(
       flagged for it;
     * a dome ``b`` at least two shadow gaps under ``c`` (and no copy: those are skipped)
       is no far cortex: the sound reached it through ``c``, whatever the grey between
-      them, and ``b`` is not in ``c``'s shadow (below);
+      them, and ``b`` is not in ``c``'s shadow; ``c`` is judged by the echo rule below
+      if ``b`` lies within its columns, else not for ``b`` at all (below);
     * otherwise, with tissue between them, an echo ``b`` at least ``beneath_ratio`` as
       bright as ``c`` means the sound went through ``c``: ``c`` is soft tissue (a fascia
       over the bone) and is flagged.
@@ -1385,19 +1386,21 @@ def _mark_echo_beneath(
     :func:`_mark_series`: they are skipped here, and so is all under a series' top). A
     dome (:func:`_is_dome`) under ``c`` that is neither is an interface the sound
     reached through ``c``: the region between them is tissue however dark it reads (a
-    muscle lying on the bone), and ``b`` is not in ``c``'s shadow; ``c`` is flagged for
-    it only by the echo rule above. Measured with a muscle at 0.6 of the tissue's grey
-    under a fascia 1.5 times the bone's echo (:func:`.simulation.augment.add_muscle`):
-    the bone under the fascia's arch was flagged as lying in its shadow and the fascia
-    carried the track (the L14 recording and its grey-shadow copy, recall 0; hard
-    simulated sweeps of five bones at 0.3 mm, seeds 3 and 7, muscle 6 mm: recall
-    0-0.15 in all 10); with domes out of the shadow test, the L14 copies hold (recall
-    1.00) and 8 of the 10 (the tibia's bone and fascia both unflagged, the fascia the
-    stronger), the harness unchanged (Testing/benchmarks/README.md, session 52).
-    Flagging ``c`` for such a dome too (it let the sound through) held all 10, but
-    cost hard ulnae with the radius beside all their frames (a dome of the other bone
-    under a contour spanning both; seeds 701, 1013, 1019), with or without asking that
-    ``b`` lie within ``c``'s columns: not done. Where a far cortex lies under the bone
+    muscle lying on the bone), and ``b`` is not in ``c``'s shadow. ``c`` is then judged
+    by the echo rule only where ``b`` lies within its columns (0.8 of ``b``'s, the
+    share the shadow rule asks): a dome partly beside ``c`` may be another bone, deeper
+    (a hard ulna with the radius 14 mm beside, seed 1019: judged on any overlap, the
+    ulna was flagged in 16 of 40 frames and the track took a layer 9 mm off in all 40).
+    Measured with a muscle at 0.6 of the tissue's grey under a fascia 1.5 times the
+    bone's echo (:func:`.simulation.augment.add_muscle`): the bone under the fascia's
+    arch was flagged as lying in its shadow and the fascia carried the track (the L14
+    recording and its grey-shadow copy, recall 0; hard simulated sweeps of five bones
+    at 0.3 mm, seeds 3 and 7, muscle 6 mm: recall 0-0.15 in all 10); with domes out of
+    the shadow test, the L14 copies hold (recall 1.00) and 8 of the 10 (the tibia's
+    bone and fascia both unflagged, the fascia the stronger), the harness unchanged
+    (Testing/benchmarks/README.md, session 52). Flagging ``c`` for any such dome within
+    its columns (it let the sound through), whatever their echoes, held all 10 but lost
+    the same ulna (seeds 1013, 1019): not done. Where a far cortex lies under the bone
     at the fascia's spacing over it, the three read as an equally spaced series and
     the bone as a copy (hard radius and clavicle at 0.108 mm, muscle 9 mm): open.
     Candidates closer than two shadow gaps are judged on ``c``'s own shadow z-score
@@ -1450,7 +1453,10 @@ def _mark_echo_beneath(
                     b["cols"] * ev.dx, b["rows"] * ev.dy, p.dome_mm
                 ):
                     # Neither far cortex (a bowl) nor copy (skipped above): the sound
-                    # reached it through c, and what lies between is tissue.
+                    # reached it through c, and what lies between is tissue. Partly
+                    # beside c, it may be another bone: no sign either way.
+                    if common.size < 0.8 * b["cols"].size:
+                        continue
                     shadowed = False
                 elif off >= 2 * gap + 1:
                     # Under c over the columns b lies under, following c's shape.
