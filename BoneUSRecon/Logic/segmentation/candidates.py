@@ -1397,8 +1397,9 @@ def _mark_echo_beneath(
     recording and its grey-shadow copy, recall 0; hard simulated sweeps of five bones
     at 0.3 mm, seeds 3 and 7, muscle 6 mm: recall 0-0.15 in all 10); with domes out of
     the shadow test, the L14 copies hold (recall 1.00) and 8 of the 10 (the tibia's
-    bone and fascia both unflagged, the fascia the stronger), the harness unchanged
-    (Testing/benchmarks/README.md, session 52). Flagging ``c`` for any such dome within
+    bone and fascia both unflagged, the fascia the stronger); the harness's means
+    unchanged on five seed pairs, one of 80 bone-free-end sweeps two frames short at
+    the bone's end (Testing/benchmarks/README.md, session 52). Flagging ``c`` for any such dome within
     its columns (it let the sound through), whatever their echoes, held all 10 but lost
     the same ulna (seeds 1013, 1019): not done. Where a far cortex lies under the bone
     at the fascia's spacing over it, the three read as an equally spaced series and
