@@ -1346,6 +1346,12 @@ def _mark_series(
     return cands + added
 
 
+#: Share of a lower candidate's columns that must lie under an upper one for the upper
+#: to speak for it (:func:`_mark_echo_beneath`): to cast its shadow over it (a shadow is
+#: as wide as its reflector), or to have let the sound through to a dome under it.
+_WITHIN = 0.8
+
+
 def _mark_echo_beneath(
     cands: list[dict], ev: EvidenceMaps, lr: np.ndarray, p: ShadowPathParams
 ) -> None:
@@ -1456,7 +1462,7 @@ def _mark_echo_beneath(
                     # Neither far cortex (a bowl) nor copy (skipped above): the sound
                     # reached it through c, and what lies between is tissue. Partly
                     # beside c, it may be another bone: no sign either way.
-                    if common.size < 0.8 * b["cols"].size:
+                    if common.size < _WITHIN * b["cols"].size:
                         continue
                     shadowed = False
                 elif off >= 2 * gap + 1:
@@ -1487,7 +1493,7 @@ def _mark_echo_beneath(
                     # option) such far cortices flagged the series' top over them
                     # (grey-shadow clavicle seed 5: near cortex offered in 30 frames,
                     # 34 with this rule; Testing/benchmarks/README.md, branch tgrey).
-                    if common.size >= 0.8 * b["cols"].size:
+                    if common.size >= _WITHIN * b["cols"].size:
                         b["beneath"] = True
                     continue
             if b["grey"] >= p.beneath_ratio * c["grey"]:
