@@ -24,7 +24,12 @@ from BoneUSRecon.Logic.errors import BoneUSReconError
 from BoneUSRecon.Logic.segmentation import SegmentationParams, segment_sweep
 from BoneUSRecon.Logic.segmentation.evidence import bone_evidence
 from BoneUSRecon.Logic.segmentation.params import RimParams, ShadowPathParams
-from BoneUSRecon.Logic.segmentation.rim import _radius_paths, follow_rims, kasa_circle
+from BoneUSRecon.Logic.segmentation.rim import (
+    _first_stop,
+    _radius_paths,
+    follow_rims,
+    kasa_circle,
+)
 
 SPACING = 0.1  # mm per pixel
 RADIUS, DEPTH = 7.0, 12.0  # a circle of 7 mm radius, centre 12 mm deep
@@ -32,12 +37,18 @@ H, W = 260, 320
 
 
 def phantom_frame(
-    seed: int, echo_to_deg: float = 90.0, shadow: float = 1.0, echo: float = 4.0
+    seed: int,
+    echo_to_deg: float = 90.0,
+    shadow: float = 1.0,
+    echo: float = 4.0,
+    dim: tuple[float, float, float, float] | None = None,
 ) -> np.ndarray:
     """A round bone: its outline echoes ``echo`` (peak, over the tissue's mean 1) from the
     top to ``echo_to_deg`` each side (angle from the beam's up direction); under it,
     along the beam, the tissue times ``shadow`` (1: a bone that passes sound; the
-    cadaver's grey shadow 0.65)."""
+    cadaver's grey shadow 0.65). ``dim``: ``(from_deg, to_deg, echo, tissue)``, the
+    outline's echo times ``echo`` between those angles each side and the tissue within
+    1 mm of it there times ``tissue``."""
     rng = np.random.default_rng(seed)
     z, x = np.mgrid[0:H, 0:W] * SPACING
     cx = W * SPACING / 2
@@ -47,7 +58,12 @@ def phantom_frame(
     top = DEPTH - np.sqrt(np.clip(RADIUS**2 - (x - cx) ** 2, 0.0, None))
     amp *= np.where((np.abs(x - cx) < RADIUS) & (z > top), shadow, 1.0)
     ang = np.degrees(np.arctan2(np.abs(x - cx), DEPTH - z))
-    amp += echo * np.exp(-0.5 * ((d - RADIUS) / 0.12) ** 2) * (ang <= echo_to_deg)
+    line = echo * np.exp(-0.5 * ((d - RADIUS) / 0.12) ** 2) * (ang <= echo_to_deg)
+    if dim is not None:
+        there = (ang >= dim[0]) & (ang <= dim[1])
+        amp *= np.where(there & (np.abs(d - RADIUS) < 1.0), dim[3], 1.0)
+        line *= np.where(there, dim[2], 1.0)
+    amp += line
     db = 20 * np.log10(amp + 1e-3)
     return np.clip(255 * (db + 30) / 50, 0, 255).astype(np.uint8)
 
@@ -144,6 +160,67 @@ def test_a_faded_flank_is_followed_on_the_shadow_edge(seed):
     # the trace stops where the echo ends.
     bright = traced(phantom_frame(seed, echo_to_deg=40.0, shadow=0.65), top_contour(20.0))
     assert np.abs(angles_and_offsets(bright)[0]).max() <= 47.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_a_shoulder_where_the_echo_dims_is_bridged(seed):
+    # The outline's echo dims to 0.08 of itself from 30 to 50 degrees (2.4 mm of arc,
+    # as the L14 forearm's right shoulder) and returns past it: the trace goes on over
+    # the dim stretch (its echo over the null all along) down the flank, on it. Without
+    # the bridge (fade_mm 0) it stops where the echo dims.
+    img = phantom_frame(seed, dim=(30.0, 50.0, 0.08, 1.0))
+    ang, dev = angles_and_offsets(traced(img, top_contour(20.0)))
+    assert ang.min() <= -70 and ang.max() >= 70, (ang.min(), ang.max())
+    assert dev.max() <= 0.2, dev.max()
+    ang0, _ = angles_and_offsets(traced(img, top_contour(20.0), RimParams(fade_mm=0.0)))
+    assert np.abs(ang0).max() <= 36.0, np.abs(ang0).max()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_a_dark_gap_in_the_outline_is_not_bridged(seed):
+    # The same stretch with no echo and the tissue around it at 0.3 (the dark valley
+    # between two bones side by side): the line ended there, whatever lies past it.
+    img = phantom_frame(seed, dim=(30.0, 50.0, 0.0, 0.3))
+    ang, _ = angles_and_offsets(traced(img, top_contour(20.0)))
+    assert np.abs(ang).max() <= 36.0, np.abs(ang).max()
+
+
+def _first_stop_loop(good, faded, gap, fade):
+    """``rim._first_stop`` as plain loops over each trace's steps."""
+    out = []
+    for g, f in zip(good, faded, strict=True):
+        n, k, stop = len(g), 0, len(g)
+        while k < n:
+            if g[k]:
+                k += 1
+                continue
+            a = k
+            while k < n and not g[k]:
+                k += 1
+            b = k
+            while b < n and g[b]:
+                b += 1
+            if k < n and (k - a < gap or (k - a <= fade and f[a:k].all() and b - k >= k - a)):
+                continue
+            stop = a
+            break
+        out.append(stop)
+    return np.array(out)
+
+
+def test_first_stop_matches_plain_loops_and_the_short_gap_rule():
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        n_t, n, gap, fade = (int(v) for v in rng.integers((1, 1, 1, 0), (6, 40, 6, 14)))
+        good = rng.random((n_t, n)) < rng.random()
+        faded = rng.random((n_t, n)) < 0.8
+        assert np.array_equal(
+            _first_stop(good, faded, gap, fade), _first_stop_loop(good, faded, gap, fade)
+        )
+        # fade 0: the first dropout of ``gap`` steps or more, or one running to the end.
+        pad = np.concatenate([~good, np.ones((n_t, gap), bool)], axis=1)
+        win = np.lib.stride_tricks.sliding_window_view(pad, gap, axis=1).all(axis=2)
+        assert np.array_equal(_first_stop(good, faded, gap, 0), win.argmax(axis=1))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -257,6 +257,8 @@ class RimParams:
     """The trace continues while its echo is at least this share of the contour's own (log ratios; ours: on the L14 forearm the flank's echo is 0.5-1.0 of the top's)."""
     gap_mm: float = 1.2
     """A shorter dropout under the level is bridged, mm (``FlankParams.gap_mm`` is 0.9; ours: where the path stopped on a faded stretch the trace's first steps are that stretch: on the L14 recording's cadaver-level copy, frame 18, the right end's first 0.9 mm was under the level and 10 mm of flank over it followed; at 1.2 mm the recording's reconstruction went from 0.352 to 0.333 mm from its reference, the hard simulated sweeps' unchanged within 0.01 mm)."""
+    fade_mm: float = 3.6
+    """A longer stretch under ``keep`` is bridged too, up to this length, mm, where the echo only faded there (every step of it above the null level: still a line, fainter than speckle's best) and returns after it, held at least as long as the stretch (0: no such bridge). A real bone's echo dims where its outline turns (the L14 forearm's right shoulder: 2.1 mm at 0.27-0.29 of the contour's own echo, then 0.8 down the flank, in frames 9-11 and 15) and the flank past it was lost. Ours: 2.4 bridges the recording's shoulder, 3.6 also the cadaver copy's; the reconstruction 0.270 -> 0.246 mm from the reference, the cadaver copy 1.202 -> 1.030, the look-alikes copy 0.299 -> 0.288; on 520 simulated sweeps (``bench_sweeps.py`` groups, five seed pairs, and bone-free ends) every set's gold mean within 0.0007 mm, recall and wrong share unchanged. A stretch with a step at speckle level is a line that ended: between two bones side by side the trace crossed the gap onto the other's flank when only the length was asked (hard radius 14 mm, seed 179: the surface 0.224 -> 0.308 mm)."""
     null_mm: float = 8.0
     """The null band: the same search this far out along the rays (past the band and its outside windows), in the tissue beside the bone, mm."""
     stop_z: float = 0.0
@@ -295,6 +297,7 @@ class RimParams:
                 "keep",
                 "edge_mm",
                 "gap_mm",
+                "fade_mm",
                 "candidates",
                 "min_points",
                 "min_steps",

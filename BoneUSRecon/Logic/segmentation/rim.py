@@ -64,8 +64,12 @@ inside it):
    own (measured the same way along its own rays: this bone's echo in this frame) and
    above what the same search gives in the tissue ``null_mm`` further out (median of the
    frame's null paths, plus ``stop_z`` robust spreads), and ends at its last such step
-   before ``gap_mm`` under it, at an unusable column (outside the field of view or
-   without contact) or at the image's edge. Near that edge a sample whose windows
+   before ``gap_mm`` under it (or before up to ``fade_mm`` under ``keep`` but every step
+   over the null, where the echo returns after it for at least as long: a real bone's
+   echo dims where its outline turns, as on the L14 forearm's right shoulder, and a
+   line that dimmed is no line that ended; a step at the null's level is one), at an
+   unusable column (outside the field of view or without contact) or at the image's
+   edge. Near that edge a sample whose windows
    cross it is measured on their part inside (``part_window_share`` of each at least;
    :func:`_partial_windows`), so a flank that runs into the edge is followed to about
    a millimetre of it, not ``outside_mm[1]`` short of it (the L14 recording's left
@@ -341,6 +345,42 @@ def _outline_prefix(
     steep = (deg > p.max_slope_deg) | (edge & (deg > p.edge_slope_deg))
     bad = np.flatnonzero(ok[tail.shape[0] :] & steep)
     return int(bad[0]) if bad.size else piece.shape[0]
+
+
+def _first_stop(good: np.ndarray, faded: np.ndarray, gap: int, fade: int) -> np.ndarray:
+    """Per trace, the first step of its first dropout that is not bridged (its length if none).
+
+    A dropout is a run of steps not ``good``. It is bridged when shorter than ``gap``
+    steps, or when at most ``fade`` steps long, ``faded`` at every step (over the null:
+    the echo dimmed, it did not end) and followed by at least as many good steps (the
+    line returns). One that runs to the trace's last step never is.
+
+    Parameters
+    ----------
+    good, faded : ndarray of bool, shape (T, S)
+    gap, fade : int
+        Steps.
+
+    Returns
+    -------
+    ndarray of int, shape (T,)
+    """
+    n_t, n = good.shape
+    pad = np.zeros((n_t, 1), np.int8)
+    d = np.diff(np.concatenate([pad, (~good).view(np.int8), pad], axis=1), axis=1)
+    t, a = np.nonzero(d == 1)  # dropouts' first steps, by trace then step
+    b = np.nonzero(d == -1)[1]  # and their ends (exclusive), in the same order
+    length = b - a
+    nxt = np.where(np.r_[t[1:] == t[:-1], False], np.r_[a[1:], n], n)
+    cs = np.zeros((n_t, n + 1), np.intp)
+    np.cumsum(~faded, axis=1, out=cs[:, 1:])
+    vanished = cs[t, b] - cs[t, a]  # steps of the dropout at or under the null level
+    bridged = (b < n) & (
+        (length < gap) | ((length <= fade) & (vanished == 0) & (nxt - b >= length))
+    )
+    first = np.full(n_t, n, np.intp)
+    np.minimum.at(first, t[~bridged], a[~bridged])
+    return first
 
 
 def kasa_circle(x: np.ndarray, z: np.ndarray) -> tuple[float, float, float]:
@@ -818,10 +858,9 @@ def follow_rims_steps(
     good = ridge >= max(p.keep, floor)
     good &= ridge > 0.5 * _BAD
     gap = max(1, int(round(p.gap_mm / p.step_mm)))
-    cb = np.zeros((n_t, n_step + gap + 1), np.intp)
-    np.cumsum(~good, axis=1, out=cb[:, 1 : n_step + 1])
-    cb[:, n_step + 1 :] = cb[:, n_step : n_step + 1] + np.arange(1, gap + 1)
-    first = (cb[:, gap:] - cb[:, :-gap] == gap).argmax(axis=1)
+    # A longer dropout whose every step stays over the null floor (the echo faded, it
+    # did not end) is bridged where the line returns after it (``fade_mm``).
+    first = _first_stop(good, ridge > floor, gap, int(round(p.fade_mm / p.step_mm)))
     steps = np.arange(n_step)
     # The average along the trace carries a ridge ``run_mm / 2`` past its end: the trace
     # ends at its last step whose own value holds too.
