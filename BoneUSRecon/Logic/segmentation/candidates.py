@@ -74,7 +74,7 @@ from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
+from numpy.lib.stride_tricks import as_strided
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, minimum_filter1d
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
@@ -194,6 +194,12 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     column takes one reduction over the shifts laid out as (shift, row) rows, and no
     back-pointers are stored; the backtrack recomputes the one step it needs per column
     from the stored scores (same arithmetic, so the same path).
+
+    Most calls are the small bands of :func:`_trace_band` (~20 x 20, a switch cost no
+    path pays), where the fixed costs per call and per column dominate: the window view
+    is made directly (``sliding_window_view``'s checks cost as much as ten columns),
+    the no-bone bookkeeping is skipped where the no-bone score provably never rises,
+    and the backtrack runs on Python floats.
     """
     h, w = gain.shape
     n = shift_cost.size
@@ -201,8 +207,10 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     # score[c, d + j]: best path ending at row j of column c (padded by -inf for the window).
     score = np.full((w, h + 2 * d), -np.inf)
     score[:, d : d + h] = gain.T
-    # win[c] = (shift, row) view of column c's padded scores; inner[c] = its unpadded scores.
-    win = sliding_window_view(score, n, axis=1).transpose(0, 2, 1)
+    # win[c] = (shift, row) view of column c's padded scores (win[c, s, j] = score[c, j +
+    # s]: sliding_window_view's view); inner[c] = its unpadded scores.
+    step = score.itemsize
+    win = as_strided(score, (w, n, h), (score.strides[0], step, step), writeable=False)
     inner = score[:, d : d + h]
     null_before = [0.0] * w  # Python floats: a list store per column is cheapest
     null_back = np.full(w, -1, dtype=np.intp)
@@ -219,7 +227,22 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     from_null.fill(null - switch)  # refilled only when the no-bone score changes
     free = bool((shift_cost >= 0).all())  # no shift scores above its source row
     subtract, reduce_max = np.subtract, np.maximum.reduce
-    for c, wprev, prev, cur in zip(range(1, w), win[:-1], inner[:-1], inner[1:], strict=True):
+    # With costs >= 0 no score exceeds the sum of the columns' best gains (positive
+    # part) so far: where that sum stays under half the switch cost (rounding is far
+    # smaller), the no-bone score never rises from 0 and the column's maximum is never
+    # needed (the shortcut it allows gives the full step's values). The same scores.
+    if free and float(np.maximum(gain.max(axis=0), 0.0).sum()) <= 0.5 * switch:
+        for wprev, cur in zip(win[:-1], inner[1:], strict=True):
+            shifts[...] = wprev
+            subtract(shifts, cost, out=shifts)
+            reduce_max(cand, axis=0, out=best)
+            cur += best
+        w_loop = 1  # the general loop below has no column left
+    else:
+        w_loop = w
+    for c, wprev, prev, cur in zip(
+        range(1, w_loop), win[: w_loop - 1], inner[: w_loop - 1], inner[1:w_loop], strict=True
+    ):
         null_before[c] = null
         jb = int(prev.argmax())
         top = prev.item(jb)
@@ -236,25 +259,31 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
             null = top - switch
             null_back[c] = jb
             from_null.fill(null - switch)
-    path = np.full(w, -1, dtype=np.intp)
     last = score[w - 1, d : d + h]
     jb = int(last.argmax())
     state = jb if last[jb] > null else -1
     # Python scalars for the per-column lookups (the same double arithmetic).
     leave = [x - switch for x in null_before]
     back = null_back.tolist()
-    v = np.empty(n)
-    for c in range(w - 1, -1, -1):
+    cl = np.asarray(shift_cost, dtype=float).tolist()
+    path = [-1] * w
+    for c in range(w - 1, 0, -1):
         path[c] = state
-        if c == 0:
-            break
         if state >= 0:
-            np.subtract(score[c - 1, state : state + n], shift_cost, out=v)
-            k = int(v.argmax())
-            state = -1 if leave[c] > v.item(k) else state + k - d
+            # The best predecessor on Python floats (the same double subtractions; the
+            # first of equal values, as argmax): cheaper than three numpy calls on a
+            # handful of values (as in _optimal_paths).
+            row = score[c - 1, state : state + n].tolist()
+            k, peak = 0, row[0] - cl[0]
+            for q in range(1, n):
+                val = row[q] - cl[q]
+                if val > peak:
+                    k, peak = q, val
+            state = -1 if leave[c] > peak else state + k - d
         else:
             state = back[c]
-    return path
+    path[0] = state
+    return np.array(path, dtype=np.intp)
 
 
 def _optimal_paths(
@@ -977,17 +1006,34 @@ def _trace_band(
     """
     h = ev.echo_z.shape[0]
     r0, r1 = max(0, int(base.min()) - rw), min(h, int(base.max()) + rw + 1)
-    gain = np.maximum(ev.echo_z[r0:r1, cols], 0).astype(float) * ev.dx + 1e-3
+    # (In place on fresh arrays, a few tens of rows by columns: the per-call cost of the
+    # temporaries dominates; the same float32 then float64 operations.)
+    g = ev.echo_z[r0:r1].take(cols, axis=1)
+    np.maximum(g, 0, out=g)
+    gain = g.astype(float)
+    gain *= ev.dx
+    gain += 1e-3
     rr = np.arange(r0, r1)[:, None]
-    t = _clip_rows(rr + half, 1, h - 2)
-    # The trough rows ``t`` are consecutive (clipped at the ends): ``lr``'s columns are
-    # gathered once over their span, then rows taken from that block (the same values).
-    t0 = int(t[0, 0]) - 1
-    blk = lr[t0 : int(t[-1, 0]) + 2][:, cols]
-    ti = t[:, 0] - t0
-    trough = (blk[ti - 1] + blk[ti] + blk[ti + 1]) / 3.0
-    gain *= np.where(trough < dark, 1.0, 0.2)
-    gain[np.abs(rr - base[None, :]) > rw] = -1e3  # outside the band
+    if r0 + half >= 1 and r1 + half <= h - 1:
+        # The trough rows r + half lie inside (the usual case): three row slices of
+        # ``lr``'s block, summed in float32 in the same order as below.
+        k = r1 - r0
+        blk = lr[r0 + half - 1 : r1 + half + 1].take(cols, axis=1)
+        trough = blk[:k] + blk[1 : k + 1]
+        trough += blk[2:]
+        trough /= 3.0
+    else:
+        t = _clip_rows(rr + half, 1, h - 2)
+        # The trough rows ``t`` are consecutive (clipped at the ends): ``lr``'s columns
+        # are gathered once over their span, then rows taken from that block (the same
+        # values).
+        t0 = int(t[0, 0]) - 1
+        blk = lr[t0 : int(t[-1, 0]) + 2][:, cols]
+        ti = t[:, 0] - t0
+        trough = (blk[ti - 1] + blk[ti] + blk[ti + 1]) / 3.0
+    # A fifth where the trough is not dark (x 1.0 elsewhere: the value itself).
+    np.multiply(gain, 0.2, out=gain, where=~(trough < dark))
+    gain[np.abs(rr - base) > rw] = -1e3  # outside the band
     n = cols.size
     if n >= 8:
         # Every other column (the better row of each pair, slope costs doubled; rows
@@ -996,9 +1042,9 @@ def _trace_band(
         m = n // 2
         pair = np.maximum(gain[:, 0 : 2 * m : 2], gain[:, 1 : 2 * m : 2])
         path = _optimal_path(pair, shift_cost * 2.0, 1e6)
-        x = np.arange(m) * 2 + 0.5
         ok = path >= 0
         if ok.sum() >= 2:
+            x = np.arange(m) * 2 + 0.5
             rows = np.rint(np.interp(np.arange(n), x[ok], path[ok] + r0)).astype(np.intp)
             inb = np.abs(rows - base) <= rw
             return np.where(inb, rows, _clip_rows(base, 0, h - 1))
