@@ -769,11 +769,19 @@ def _underside_profile(
         step = int(np.ceil(cols.size / 48))
         cols, rows = cols[::step], rows[::step]
     k = np.arange(-reach, reach + 1)
+    mid = cols.size // 2
+    w = lr.shape[1]
+    if int(rows.min()) >= reach and int(rows.max()) + reach < h:
+        # Every shifted row inside the image (the usual case): no clipping, no NaN, and
+        # the flat indices as the contour's own plus a row's length per shift (the same
+        # indices; a few numpy calls fewer on ~100 x 48 values).
+        lw = np.ravel(lr).take((rows * w + cols)[None, :] + (k * w)[:, None])
+        lw.partition(mid, axis=1)
+        return lw[:, mid].astype(float)
     rr = rows[None, :] + k[:, None]
     # Rows past the image repeat its edge; the median is NaN where most of them are.
     # (Gathered by flat index: half the time of the 2-D fancy index, the same values.)
-    lw = np.ravel(lr).take(_clip_rows(rr, 0, h - 1) * lr.shape[1] + cols)
-    mid = cols.size // 2
+    lw = np.ravel(lr).take(_clip_rows(rr, 0, h - 1) * w + cols)
     lw.partition(mid, axis=1)  # a fresh gather: partitioned in place (no wrapper, no copy)
     prof = lw[:, mid].astype(float)
     # "Under half of the columns inside", counted in integers (mean < 0.5 exactly).
@@ -1122,24 +1130,33 @@ def _trace_top_end(
     step = max(0, int(round((r - r_in) / 3.0)))  # the descent per column at the start
     got: list[tuple[int, int]] = []
     misses = skipped = 0
+    usable, echo = ev.usable, ev.echo_z
     while misses < 2 and skipped <= skip:
         c += side
         if c < 0 or c >= w:
             break
-        if not ev.usable[c]:
+        if not usable[c]:
             skipped += 1
             continue
         skipped = 0
-        cand = r + np.arange(max(0, step - 1), down + 1)
-        cand = cand[cand + half + 1 < h]
-        if cand.size == 0:
+        # The candidate rows (a handful) one by one on numpy float32 scalars: the same
+        # float32 sums and comparisons as on arrays, without a dozen numpy calls per
+        # column. The first of equal echoes wins, as argmax (a NaN first of all).
+        last = min(r + down, h - half - 2)  # the trough's rows inside the image
+        if r + max(0, step - 1) > last:
             break
-        t = cand + half
-        trough = (lr[t - 1, c] + lr[t, c] + lr[t + 1, c]) / 3.0
-        e = np.where(trough < dark, ev.echo_z[cand, c], -np.inf)
-        k = int(np.argmax(e))
-        if e[k] > 0:
-            step, r = int(cand[k]) - r, int(cand[k])
+        at, best = -1, -np.inf
+        for q in range(r + max(0, step - 1), last + 1):
+            t = q + half
+            trough = (lr[t - 1, c] + lr[t, c] + lr[t + 1, c]) / 3.0
+            e = echo[q, c] if trough < dark else -np.inf
+            if e != e:  # NaN: argmax's pick, and no echo > 0
+                at, best = q, e
+                break
+            if at < 0 or e > best:
+                at, best = q, e
+        if best > 0:
+            step, r = at - r, at
             got.append((c, r))
             misses = 0
         else:
