@@ -1187,6 +1187,23 @@ def _mirrored(c: dict) -> dict:
     return {"cols": c["cols"], "rows": rows, "dense": dense}
 
 
+def _kept_top(t: dict, ev: EvidenceMaps, p: ShadowPathParams) -> dict:
+    """A series' top made by :func:`_mark_series` (``cols``, ``rows``, ``echo``, ``dense``
+    and what its tests kept) with its strength, shadow and grey, keys in the order the
+    pass candidates have."""
+    rows, cols = t["rows"], t["cols"]
+    sc = ev.score[rows, cols]
+    out = {
+        "cols": cols,
+        "rows": rows,
+        "strength": float((sc - p.null_z).sum() * ev.dx),
+        "shadow": median1d(ev.shadow_z[rows, cols]),
+        "grey": median1d(ev.work[rows, cols]),
+    }
+    out.update(t)  # echo, dense, then the profile and peaks confirmed() kept
+    return out
+
+
 def _mark_series(
     cands: list[dict], ev: EvidenceMaps, lr: np.ndarray, p: ShadowPathParams
 ) -> list[dict]:
@@ -1279,11 +1296,21 @@ def _mark_series(
         for t in cands + added:
             if t is c or t.get("reverb"):
                 continue
-            cm = _common(t, c)
-            if cm.size >= 0.5 * c["cols"].size:
-                if abs(median1d(t["dense"][cm] - shape["dense"][cm]) - top) <= rw:
-                    best = t
-                    break
+            # t's offset from the shape hangs on neither the top nor the spacing: made
+            # once per shape while c is read (``offsets``, emptied for each c; nothing it
+            # reads changes meanwhile), not again for each member tried.
+            key = (id(t), id(shape))
+            if key not in offsets:
+                cm = _common(t, c)
+                offsets[key] = (
+                    median1d(t["dense"][cm] - shape["dense"][cm])
+                    if cm.size >= 0.5 * c["cols"].size
+                    else None
+                )
+            off = offsets[key]
+            if off is not None and abs(off - top) <= rw:
+                best = t
+                break
         new = best is None
         if new:
             base = shape["rows"] + top
@@ -1298,18 +1325,12 @@ def _mark_series(
                 # over a far cortex, a bowl whose mirror is only a shape hypothesis, the
                 # top is not followed: the trough rule holds anywhere in the shadow.)
                 cols, rows = _extend_top(ev, lr, cols, rows, half, dark, p)
-            sc = ev.score[rows, cols]
             dense = np.full(c["dense"].size, np.nan)
             dense[cols] = rows
-            best = {
-                "cols": cols,
-                "rows": rows,
-                "strength": float((sc - p.null_z).sum() * ev.dx),
-                "shadow": median1d(ev.shadow_z[rows, cols]),
-                "grey": median1d(ev.work[rows, cols]),
-                "echo": median1d(ev.echo_z[rows, cols]),
-                "dense": dense,
-            }
+            # Its strength, shadow and grey are made once it is kept (:func:`_kept_top`):
+            # most tops made here fail the tests below.
+            best = {"cols": cols, "rows": rows, "echo": median1d(ev.echo_z[rows, cols])}
+            best["dense"] = dense
             # Traced onto a line a pass found already, over half of its columns
             # (within the band the passes suppress around a line: one line), the top
             # is that line, not a second version of it that strays off it elsewhere
@@ -1331,11 +1352,13 @@ def _mark_series(
         # 1.4-1.7 in a dark shadow, the near cortex's under 1 over its tissue).
         if (copy and c["echo"] > p.copy_echo_ratio * max(best["echo"], 0.0)) or not confirmed(best):
             return None
-        return best, new
+        return (_kept_top(best, ev, p) if new else best), new
 
+    offsets: dict[tuple[int, int], float | None] = {}  # top_at's, while one c is read
     for c in list(cands):
         if c.get("reverb"):
             continue
+        offsets.clear()
         bowl = _curves_down(c["rows"])
         top_itself = confirmed(c)  # (makes c's own profile)
         if top_itself and not bowl:
@@ -1356,13 +1379,25 @@ def _mark_series(
         # series, spacing 2.5 mm, shows only so); the whole width first, as a chain
         # read over the middle alone may climb one spacing higher onto a layer over
         # the bone (S clavicle s101, frames 20-21: a layer 2.45 mm over the bone).
+        if bowl:
+            # One mirror image for both of its reads (its profile and peaks are each
+            # read's own), and the depth it is read up to.
+            mirror, up_to = _mirrored(c), max(reach, int(median1d(c["rows"])) - nf)
         for read in ("mirror", "mirror middle", "own") if bowl else ("own",):
             at, shape = reach, c
             if read != "own":
-                at, shape = max(reach, int(median1d(c["rows"])) - nf), _mirrored(c)
-                q = c["cols"].size // 4
-                only = c["cols"][q : c["cols"].size - q] if read == "mirror middle" else None
-                shape["prof"] = _underside_profile(lr, shape, at, only)
+                at, shape = up_to, mirror
+                n_cols = c["cols"].size
+                q = n_cols // 4
+                # Over the middle half: the profile of the mirror's columns q .. n - q - 1
+                # (its columns are distinct: the columns ``only`` would keep).
+                middle = {
+                    "cols": mirror["cols"][q : n_cols - q],
+                    "rows": mirror["rows"][q : n_cols - q],
+                }
+                shape["prof"] = _underside_profile(
+                    lr, middle if read == "mirror middle" else shape, at
+                )
                 shape["peaks"] = _profile_peaks(shape["prof"], at)
             members = _series(shape["peaks"], at, min_px, dark, p.reverb_tolerance, strict=False)
             v = shape["peaks"][0]
