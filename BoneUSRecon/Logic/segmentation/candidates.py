@@ -1345,14 +1345,21 @@ def _mark_series(
             # and, followed on along the echo, lies over it (tibia with a vessel, seed
             # 5, frame 14: a top on the bone's left half and 1-4 mm over its right
             # half put the bone in its shadow, coverage 1.00 -> 0.62).
-            for t in cands + added:
-                if t is c or t.get("reverb"):
-                    continue
-                cm = _common(t, best)
-                on_t = np.abs(t["dense"][cm] - best["dense"][cm]) <= sup
-                if np.count_nonzero(on_t) >= 0.5 * cols.size:
-                    best, new = t, False
-                    break
+            # (All the lines at once, as rows of their dense rows, made once per c:
+            # where either is absent the difference is NaN, never within ``sup``, so
+            # each count is its count over the columns in common; the first line over
+            # half is the one the loop over them took.)
+            if not others:
+                pool = [t for t in cands + added if t is not c and not t.get("reverb")]
+                width = c["dense"].size
+                others.append(
+                    (pool, np.array([t["dense"] for t in pool]).reshape(len(pool), width))
+                )
+            pool, stacked = others[0]
+            on = np.count_nonzero(np.abs(stacked - dense) <= sup, axis=1)
+            hit = np.flatnonzero(on >= 0.5 * cols.size)
+            if hit.size:
+                best, new = pool[int(hit[0])], False
         # A copy returns less than its reflector; over the shadow it may stand out
         # more, but a line with much more echo contrast than the top was not made by it.
         # A line under the series (a far cortex) is no copy: it says nothing of the
@@ -1362,11 +1369,15 @@ def _mark_series(
             return None
         return (_kept_top(best, ev, p) if new else best), new
 
-    offsets: dict[tuple[int, int], float | None] = {}  # top_at's, while one c is read
+    # top_at's, while one c is read: the lines' offsets from the shape, and the lines
+    # (not c, no copy) with their dense rows stacked.
+    offsets: dict[tuple[int, int], float | None] = {}
+    others: list[tuple[list[dict], np.ndarray]] = []
     for c in list(cands):
         if c.get("reverb"):
             continue
         offsets.clear()
+        others.clear()
         bowl = _curves_down(c["rows"])
         top_itself = confirmed(c)  # (makes c's own profile)
         if top_itself and not bowl:
