@@ -74,7 +74,7 @@ from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
+from numpy.lib.stride_tricks import as_strided
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, minimum_filter1d
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
@@ -194,6 +194,12 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     column takes one reduction over the shifts laid out as (shift, row) rows, and no
     back-pointers are stored; the backtrack recomputes the one step it needs per column
     from the stored scores (same arithmetic, so the same path).
+
+    Most calls are the small bands of :func:`_trace_band` (~20 x 20, a switch cost no
+    path pays), where the fixed costs per call and per column dominate: the window view
+    is made directly (``sliding_window_view``'s checks cost as much as ten columns),
+    the no-bone bookkeeping is skipped where the no-bone score provably never rises,
+    and the backtrack runs on Python floats.
     """
     h, w = gain.shape
     n = shift_cost.size
@@ -201,8 +207,10 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     # score[c, d + j]: best path ending at row j of column c (padded by -inf for the window).
     score = np.full((w, h + 2 * d), -np.inf)
     score[:, d : d + h] = gain.T
-    # win[c] = (shift, row) view of column c's padded scores; inner[c] = its unpadded scores.
-    win = sliding_window_view(score, n, axis=1).transpose(0, 2, 1)
+    # win[c] = (shift, row) view of column c's padded scores (win[c, s, j] = score[c, j +
+    # s]: sliding_window_view's view); inner[c] = its unpadded scores.
+    step = score.itemsize
+    win = as_strided(score, (w, n, h), (score.strides[0], step, step), writeable=False)
     inner = score[:, d : d + h]
     null_before = [0.0] * w  # Python floats: a list store per column is cheapest
     null_back = np.full(w, -1, dtype=np.intp)
@@ -219,7 +227,22 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     from_null.fill(null - switch)  # refilled only when the no-bone score changes
     free = bool((shift_cost >= 0).all())  # no shift scores above its source row
     subtract, reduce_max = np.subtract, np.maximum.reduce
-    for c, wprev, prev, cur in zip(range(1, w), win[:-1], inner[:-1], inner[1:], strict=True):
+    # With costs >= 0 no score exceeds the sum of the columns' best gains (positive
+    # part) so far: where that sum stays under half the switch cost (rounding is far
+    # smaller), the no-bone score never rises from 0 and the column's maximum is never
+    # needed (the shortcut it allows gives the full step's values). The same scores.
+    if free and float(np.maximum(gain.max(axis=0), 0.0).sum()) <= 0.5 * switch:
+        for wprev, cur in zip(win[:-1], inner[1:], strict=True):
+            shifts[...] = wprev
+            subtract(shifts, cost, out=shifts)
+            reduce_max(cand, axis=0, out=best)
+            cur += best
+        w_loop = 1  # the general loop below has no column left
+    else:
+        w_loop = w
+    for c, wprev, prev, cur in zip(
+        range(1, w_loop), win[: w_loop - 1], inner[: w_loop - 1], inner[1:w_loop], strict=True
+    ):
         null_before[c] = null
         jb = int(prev.argmax())
         top = prev.item(jb)
@@ -236,25 +259,31 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
             null = top - switch
             null_back[c] = jb
             from_null.fill(null - switch)
-    path = np.full(w, -1, dtype=np.intp)
     last = score[w - 1, d : d + h]
     jb = int(last.argmax())
     state = jb if last[jb] > null else -1
     # Python scalars for the per-column lookups (the same double arithmetic).
     leave = [x - switch for x in null_before]
     back = null_back.tolist()
-    v = np.empty(n)
-    for c in range(w - 1, -1, -1):
+    cl = np.asarray(shift_cost, dtype=float).tolist()
+    path = [-1] * w
+    for c in range(w - 1, 0, -1):
         path[c] = state
-        if c == 0:
-            break
         if state >= 0:
-            np.subtract(score[c - 1, state : state + n], shift_cost, out=v)
-            k = int(v.argmax())
-            state = -1 if leave[c] > v.item(k) else state + k - d
+            # The best predecessor on Python floats (the same double subtractions; the
+            # first of equal values, as argmax): cheaper than three numpy calls on a
+            # handful of values (as in _optimal_paths).
+            row = score[c - 1, state : state + n].tolist()
+            k, peak = 0, row[0] - cl[0]
+            for q in range(1, n):
+                val = row[q] - cl[q]
+                if val > peak:
+                    k, peak = q, val
+            state = -1 if leave[c] > peak else state + k - d
         else:
             state = back[c]
-    return path
+    path[0] = state
+    return np.array(path, dtype=np.intp)
 
 
 def _optimal_paths(
@@ -542,6 +571,14 @@ def _clip_rows(rows: np.ndarray, lo: int, hi: int) -> np.ndarray:
     return np.minimum(np.maximum(rows, lo), hi)
 
 
+def _runs(idx: np.ndarray) -> list[np.ndarray]:
+    """``np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)`` of ascending indices: the
+    runs of consecutive ones, as views of ``idx`` (the same arrays), without
+    ``np.split``'s ~30 us of Python per call (a few tens of calls per frame)."""
+    cut = (np.flatnonzero(np.diff(idx) > 1) + 1).tolist()
+    return [idx[a:b] for a, b in zip([0, *cut], [*cut, idx.size], strict=True)]
+
+
 def _dense_rows(cands: list[dict], width: int | None = None) -> None:
     """Give each candidate ``dense``: its row per working column, NaN where it is absent
     (``width`` columns; None: up to the last column any candidate reaches)."""
@@ -629,7 +666,7 @@ def _without_lumens(lr: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> np
     """
     if p.lumen_ratio <= 0:
         return lr
-    from scipy.ndimage import label
+    from scipy.ndimage import find_objects, label
 
     h, w = lr.shape
     top = ev.field_top + mm_to_px(p.near_field_mm, ev.dy, minimum=0)
@@ -650,19 +687,18 @@ def _without_lumens(lr: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> np
     if big.size == 0:
         return lr
     # Speckle makes thousands of small dark patches per frame, tens of a lumen's least
-    # area: their boxes are taken from their pixels on arrays (scipy's find_objects
-    # builds a slice for every patch: ~2 ms a frame), their shape and place tested on
+    # area: only those are numbered 1 .. len(big) (the rest 0) for scipy's find_objects
+    # (on every patch it builds a slice each: ~2 ms a frame; on these, ~0.2 ms, half
+    # the time of taking the boxes from their pixels), their shape and place tested on
     # arrays, and the few left looked at one by one.
-    sel = np.zeros(n + 1, bool)
-    sel[big] = True
-    rr, cc = np.nonzero(sel[lab])
-    ll = lab[rr, cc]
-    order = np.argsort(ll, kind="stable")
-    ll, rr, cc = ll[order], rr[order], cc[order]
-    first = np.flatnonzero(np.r_[True, ll[1:] != ll[:-1]])
-    big = ll[first]
-    r0, r1 = np.minimum.reduceat(rr, first), np.maximum.reduceat(rr, first) + 1
-    c0, c1 = np.minimum.reduceat(cc, first), np.maximum.reduceat(cc, first) + 1
+    renum = np.zeros(n + 1, lab.dtype)
+    renum[big] = np.arange(1, big.size + 1)
+    boxes = find_objects(renum[lab], big.size)  # each has pixels: no None
+    big = big.astype(lab.dtype)
+    r0, r1, c0, c1 = (
+        np.array([b[axis].start if end else b[axis].stop for b in boxes], np.intp)
+        for axis, end in ((0, True), (0, False), (1, True), (1, False))
+    )
     height, width = (r1 - r0) * ev.dy, (c1 - c0) * ev.dx
     unusable = np.concatenate([[0], np.cumsum(~ev.usable)])
     ok = (
@@ -740,11 +776,19 @@ def _underside_profile(
         step = int(np.ceil(cols.size / 48))
         cols, rows = cols[::step], rows[::step]
     k = np.arange(-reach, reach + 1)
+    mid = cols.size // 2
+    w = lr.shape[1]
+    if int(rows.min()) >= reach and int(rows.max()) + reach < h:
+        # Every shifted row inside the image (the usual case): no clipping, no NaN, and
+        # the flat indices as the contour's own plus a row's length per shift (the same
+        # indices; a few numpy calls fewer on ~100 x 48 values).
+        lw = np.ravel(lr).take((rows * w + cols)[None, :] + (k * w)[:, None])
+        lw.partition(mid, axis=1)
+        return lw[:, mid].astype(float)
     rr = rows[None, :] + k[:, None]
     # Rows past the image repeat its edge; the median is NaN where most of them are.
     # (Gathered by flat index: half the time of the 2-D fancy index, the same values.)
-    lw = np.ravel(lr).take(_clip_rows(rr, 0, h - 1) * lr.shape[1] + cols)
-    mid = cols.size // 2
+    lw = np.ravel(lr).take(_clip_rows(rr, 0, h - 1) * w + cols)
     lw.partition(mid, axis=1)  # a fresh gather: partitioned in place (no wrapper, no copy)
     prof = lw[:, mid].astype(float)
     # "Under half of the columns inside", counted in integers (mean < 0.5 exactly).
@@ -977,17 +1021,34 @@ def _trace_band(
     """
     h = ev.echo_z.shape[0]
     r0, r1 = max(0, int(base.min()) - rw), min(h, int(base.max()) + rw + 1)
-    gain = np.maximum(ev.echo_z[r0:r1, cols], 0).astype(float) * ev.dx + 1e-3
+    # (In place on fresh arrays, a few tens of rows by columns: the per-call cost of the
+    # temporaries dominates; the same float32 then float64 operations.)
+    g = ev.echo_z[r0:r1].take(cols, axis=1)
+    np.maximum(g, 0, out=g)
+    gain = g.astype(float)
+    gain *= ev.dx
+    gain += 1e-3
     rr = np.arange(r0, r1)[:, None]
-    t = _clip_rows(rr + half, 1, h - 2)
-    # The trough rows ``t`` are consecutive (clipped at the ends): ``lr``'s columns are
-    # gathered once over their span, then rows taken from that block (the same values).
-    t0 = int(t[0, 0]) - 1
-    blk = lr[t0 : int(t[-1, 0]) + 2][:, cols]
-    ti = t[:, 0] - t0
-    trough = (blk[ti - 1] + blk[ti] + blk[ti + 1]) / 3.0
-    gain *= np.where(trough < dark, 1.0, 0.2)
-    gain[np.abs(rr - base[None, :]) > rw] = -1e3  # outside the band
+    if r0 + half >= 1 and r1 + half <= h - 1:
+        # The trough rows r + half lie inside (the usual case): three row slices of
+        # ``lr``'s block, summed in float32 in the same order as below.
+        k = r1 - r0
+        blk = lr[r0 + half - 1 : r1 + half + 1].take(cols, axis=1)
+        trough = blk[:k] + blk[1 : k + 1]
+        trough += blk[2:]
+        trough /= 3.0
+    else:
+        t = _clip_rows(rr + half, 1, h - 2)
+        # The trough rows ``t`` are consecutive (clipped at the ends): ``lr``'s columns
+        # are gathered once over their span, then rows taken from that block (the same
+        # values).
+        t0 = int(t[0, 0]) - 1
+        blk = lr[t0 : int(t[-1, 0]) + 2][:, cols]
+        ti = t[:, 0] - t0
+        trough = (blk[ti - 1] + blk[ti] + blk[ti + 1]) / 3.0
+    # A fifth where the trough is not dark (x 1.0 elsewhere: the value itself).
+    np.multiply(gain, 0.2, out=gain, where=~(trough < dark))
+    gain[np.abs(rr - base) > rw] = -1e3  # outside the band
     n = cols.size
     if n >= 8:
         # Every other column (the better row of each pair, slope costs doubled; rows
@@ -996,9 +1057,9 @@ def _trace_band(
         m = n // 2
         pair = np.maximum(gain[:, 0 : 2 * m : 2], gain[:, 1 : 2 * m : 2])
         path = _optimal_path(pair, shift_cost * 2.0, 1e6)
-        x = np.arange(m) * 2 + 0.5
         ok = path >= 0
         if ok.sum() >= 2:
+            x = np.arange(m) * 2 + 0.5
             rows = np.rint(np.interp(np.arange(n), x[ok], path[ok] + r0)).astype(np.intp)
             inb = np.abs(rows - base) <= rw
             return np.where(inb, rows, _clip_rows(base, 0, h - 1))
@@ -1076,24 +1137,33 @@ def _trace_top_end(
     step = max(0, int(round((r - r_in) / 3.0)))  # the descent per column at the start
     got: list[tuple[int, int]] = []
     misses = skipped = 0
+    usable, echo = ev.usable, ev.echo_z
     while misses < 2 and skipped <= skip:
         c += side
         if c < 0 or c >= w:
             break
-        if not ev.usable[c]:
+        if not usable[c]:
             skipped += 1
             continue
         skipped = 0
-        cand = r + np.arange(max(0, step - 1), down + 1)
-        cand = cand[cand + half + 1 < h]
-        if cand.size == 0:
+        # The candidate rows (a handful) one by one on numpy float32 scalars: the same
+        # float32 sums and comparisons as on arrays, without a dozen numpy calls per
+        # column. The first of equal echoes wins, as argmax (a NaN first of all).
+        last = min(r + down, h - half - 2)  # the trough's rows inside the image
+        if r + max(0, step - 1) > last:
             break
-        t = cand + half
-        trough = (lr[t - 1, c] + lr[t, c] + lr[t + 1, c]) / 3.0
-        e = np.where(trough < dark, ev.echo_z[cand, c], -np.inf)
-        k = int(np.argmax(e))
-        if e[k] > 0:
-            step, r = int(cand[k]) - r, int(cand[k])
+        at, best = -1, -np.inf
+        for q in range(r + max(0, step - 1), last + 1):
+            t = q + half
+            trough = (lr[t - 1, c] + lr[t, c] + lr[t + 1, c]) / 3.0
+            e = echo[q, c] if trough < dark else -np.inf
+            if e != e:  # NaN: argmax's pick, and no echo > 0
+                at, best = q, e
+                break
+            if at < 0 or e > best:
+                at, best = q, e
+        if best > 0:
+            step, r = at - r, at
             got.append((c, r))
             misses = 0
         else:
@@ -1122,6 +1192,23 @@ def _mirrored(c: dict) -> dict:
     dense = np.full(c["dense"].size, np.nan)
     dense[c["cols"]] = rows
     return {"cols": c["cols"], "rows": rows, "dense": dense}
+
+
+def _kept_top(t: dict, ev: EvidenceMaps, p: ShadowPathParams) -> dict:
+    """A series' top made by :func:`_mark_series` (``cols``, ``rows``, ``echo``, ``dense``
+    and what its tests kept) with its strength, shadow and grey, keys in the order the
+    pass candidates have."""
+    rows, cols = t["rows"], t["cols"]
+    sc = ev.score[rows, cols]
+    out = {
+        "cols": cols,
+        "rows": rows,
+        "strength": float((sc - p.null_z).sum() * ev.dx),
+        "shadow": median1d(ev.shadow_z[rows, cols]),
+        "grey": median1d(ev.work[rows, cols]),
+    }
+    out.update(t)  # echo, dense, then the profile and peaks confirmed() kept
+    return out
 
 
 def _mark_series(
@@ -1216,11 +1303,21 @@ def _mark_series(
         for t in cands + added:
             if t is c or t.get("reverb"):
                 continue
-            cm = _common(t, c)
-            if cm.size >= 0.5 * c["cols"].size:
-                if abs(median1d(t["dense"][cm] - shape["dense"][cm]) - top) <= rw:
-                    best = t
-                    break
+            # t's offset from the shape hangs on neither the top nor the spacing: made
+            # once per shape while c is read (``offsets``, emptied for each c; nothing it
+            # reads changes meanwhile), not again for each member tried.
+            key = (id(t), id(shape))
+            if key not in offsets:
+                cm = _common(t, c)
+                offsets[key] = (
+                    median1d(t["dense"][cm] - shape["dense"][cm])
+                    if cm.size >= 0.5 * c["cols"].size
+                    else None
+                )
+            off = offsets[key]
+            if off is not None and abs(off - top) <= rw:
+                best = t
+                break
         new = best is None
         if new:
             base = shape["rows"] + top
@@ -1235,32 +1332,33 @@ def _mark_series(
                 # over a far cortex, a bowl whose mirror is only a shape hypothesis, the
                 # top is not followed: the trough rule holds anywhere in the shadow.)
                 cols, rows = _extend_top(ev, lr, cols, rows, half, dark, p)
-            sc = ev.score[rows, cols]
             dense = np.full(c["dense"].size, np.nan)
             dense[cols] = rows
-            best = {
-                "cols": cols,
-                "rows": rows,
-                "strength": float((sc - p.null_z).sum() * ev.dx),
-                "shadow": median1d(ev.shadow_z[rows, cols]),
-                "grey": median1d(ev.work[rows, cols]),
-                "echo": median1d(ev.echo_z[rows, cols]),
-                "dense": dense,
-            }
+            # Its strength, shadow and grey are made once it is kept (:func:`_kept_top`):
+            # most tops made here fail the tests below.
+            best = {"cols": cols, "rows": rows, "echo": median1d(ev.echo_z[rows, cols])}
+            best["dense"] = dense
             # Traced onto a line a pass found already, over half of its columns
             # (within the band the passes suppress around a line: one line), the top
             # is that line, not a second version of it that strays off it elsewhere
             # and, followed on along the echo, lies over it (tibia with a vessel, seed
             # 5, frame 14: a top on the bone's left half and 1-4 mm over its right
             # half put the bone in its shadow, coverage 1.00 -> 0.62).
-            for t in cands + added:
-                if t is c or t.get("reverb"):
-                    continue
-                cm = _common(t, best)
-                on_t = np.abs(t["dense"][cm] - best["dense"][cm]) <= sup
-                if np.count_nonzero(on_t) >= 0.5 * cols.size:
-                    best, new = t, False
-                    break
+            # (All the lines at once, as rows of their dense rows, made once per c:
+            # where either is absent the difference is NaN, never within ``sup``, so
+            # each count is its count over the columns in common; the first line over
+            # half is the one the loop over them took.)
+            if not others:
+                pool = [t for t in cands + added if t is not c and not t.get("reverb")]
+                width = c["dense"].size
+                others.append(
+                    (pool, np.array([t["dense"] for t in pool]).reshape(len(pool), width))
+                )
+            pool, stacked = others[0]
+            on = np.count_nonzero(np.abs(stacked - dense) <= sup, axis=1)
+            hit = np.flatnonzero(on >= 0.5 * cols.size)
+            if hit.size:
+                best, new = pool[int(hit[0])], False
         # A copy returns less than its reflector; over the shadow it may stand out
         # more, but a line with much more echo contrast than the top was not made by it.
         # A line under the series (a far cortex) is no copy: it says nothing of the
@@ -1268,11 +1366,17 @@ def _mark_series(
         # 1.4-1.7 in a dark shadow, the near cortex's under 1 over its tissue).
         if (copy and c["echo"] > p.copy_echo_ratio * max(best["echo"], 0.0)) or not confirmed(best):
             return None
-        return best, new
+        return (_kept_top(best, ev, p) if new else best), new
 
+    # top_at's, while one c is read: the lines' offsets from the shape, and the lines
+    # (not c, no copy) with their dense rows stacked.
+    offsets: dict[tuple[int, int], float | None] = {}
+    others: list[tuple[list[dict], np.ndarray]] = []
     for c in list(cands):
         if c.get("reverb"):
             continue
+        offsets.clear()
+        others.clear()
         bowl = _curves_down(c["rows"])
         top_itself = confirmed(c)  # (makes c's own profile)
         if top_itself and not bowl:
@@ -1293,13 +1397,25 @@ def _mark_series(
         # series, spacing 2.5 mm, shows only so); the whole width first, as a chain
         # read over the middle alone may climb one spacing higher onto a layer over
         # the bone (S clavicle s101, frames 20-21: a layer 2.45 mm over the bone).
+        if bowl:
+            # One mirror image for both of its reads (its profile and peaks are each
+            # read's own), and the depth it is read up to.
+            mirror, up_to = _mirrored(c), max(reach, int(median1d(c["rows"])) - nf)
         for read in ("mirror", "mirror middle", "own") if bowl else ("own",):
             at, shape = reach, c
             if read != "own":
-                at, shape = max(reach, int(median1d(c["rows"])) - nf), _mirrored(c)
-                q = c["cols"].size // 4
-                only = c["cols"][q : c["cols"].size - q] if read == "mirror middle" else None
-                shape["prof"] = _underside_profile(lr, shape, at, only)
+                at, shape = up_to, mirror
+                n_cols = c["cols"].size
+                q = n_cols // 4
+                # Over the middle half: the profile of the mirror's columns q .. n - q - 1
+                # (its columns are distinct: the columns ``only`` would keep).
+                middle = {
+                    "cols": mirror["cols"][q : n_cols - q],
+                    "rows": mirror["rows"][q : n_cols - q],
+                }
+                shape["prof"] = _underside_profile(
+                    lr, middle if read == "mirror middle" else shape, at
+                )
                 shape["peaks"] = _profile_peaks(shape["prof"], at)
             members = _series(shape["peaks"], at, min_px, dark, p.reverb_tolerance, strict=False)
             v = shape["peaks"][0]
@@ -1726,8 +1842,11 @@ def _frame_candidates_steps(
                 )
             # Suppress a band around what was found (bone, fascia or copy alike).
             band = rows[None, :] + np.arange(-sup, sup + 1)[:, None]
-            ok = (band >= 0) & (band < h)
-            gain[band[ok], np.broadcast_to(cols, band.shape)[ok]] = -1.0
+            if int(rows.min()) >= sup and int(rows.max()) + sup < h:
+                gain[band, cols] = -1.0  # the whole band inside: no mask to apply
+            else:
+                ok = (band >= 0) & (band < h)
+                gain[band[ok], np.broadcast_to(cols, band.shape)[ok]] = -1.0
     if not found:
         return FrameCandidates((), sp, "no bone found", level=ev.frame_level())
     _dense_rows(found, w)
@@ -2437,7 +2556,7 @@ def _valley_runs(
     if deep.size == 0:
         return [np.arange(n)]
     cuts = []
-    for r in np.split(deep, np.flatnonzero(np.diff(deep) > 1) + 1):
+    for r in _runs(deep):
         k = int(r[np.argmax(dip[r])])
         a, b = median1d(shadow[: k + 1]), median1d(shadow[k:])
         if min(a, b) < max(a, b) / 3.0:
@@ -2485,7 +2604,7 @@ def _convex_pieces(
         pieces.append(keep)
         rest = part[~keep[part]]
         if rest.size >= min_cols:
-            for run in np.split(rest, np.flatnonzero(np.diff(rest) > 1) + 1):
+            for run in _runs(rest):
                 if run.size >= min_cols:
                     sub = run[convex_part(pts[run], spacing, p)]
                     if sub.size >= min_cols:

@@ -101,6 +101,7 @@ import numpy as np
 
 from BoneUSRecon.Logic.segmentation.candidates import FrameCandidates
 from BoneUSRecon.Logic.segmentation.evidence import field_tops
+from BoneUSRecon.Logic.segmentation.features import median1d
 from BoneUSRecon.Logic.segmentation.params import EndsParams, ShadowPathParams
 from BoneUSRecon.Logic.segmentation.track import REASONS, TrackChoice
 
@@ -181,8 +182,10 @@ def _row_medians(
         prof[whole] = np.median(vals[whole], axis=1)
     if partial:
         part = ~whole & (n_in >= 0.5 * i.size)
-        if part.any():
-            prof[part] = np.nanmedian(np.where(inside[part], vals[part], np.nan), axis=1)
+        # The median of each such row's columns inside: np.nanmedian's values (its
+        # masked-array path costs ~0.3 ms a call on these few tens of rows).
+        for r in np.flatnonzero(part).tolist():
+            prof[r] = median1d(vals[r][inside[r]])
     return prof
 
 

