@@ -111,6 +111,28 @@ def test_optimal_path_matches_plain_loop() -> None:
     assert with_bone >= 100  # the trials exercise paths that enter and leave bone
 
 
+def test_optimal_path_no_bone_shortcut_matches_plain_loop() -> None:
+    # Where the columns' best gains sum to at most half the switch cost the no-bone
+    # score never rises and _optimal_path skips its bookkeeping (the band traces of the
+    # series' tops, switch 1e6): the same paths as the plain loop, at the shortcut's
+    # edge too (sums just under and over half the switch).
+    rng = np.random.default_rng(4)
+    steps = np.arange(-2, 3)
+    taken = 0
+    for trial in range(300):
+        h, w = int(rng.integers(2, 30)), int(rng.integers(2, 40))
+        gain = (np.round(rng.normal(0.0, 1.0, (h, w)) * 4) / 4).astype(np.float32)
+        cost = 0.05 * steps.astype(float) ** 2
+        best = float(np.maximum(gain.max(axis=0), 0.0).sum())
+        switch = 1e6 if trial % 3 == 0 else 2.0 * best * float(rng.choice([0.9, 1.0, 1.1]))
+        switch = max(switch, 1e-3)
+        taken += best <= 0.5 * switch
+        fast = _optimal_path(gain.copy(), cost, switch)
+        plain = _plain_optimal_path(gain.copy(), cost, switch)
+        assert np.array_equal(fast, plain), trial
+    assert 100 <= taken < 300  # both sides of the shortcut exercised
+
+
 def test_optimal_paths_batch_matches_plain_loop() -> None:
     # Several gains of different sizes solved together: each path as if alone.
     rng = np.random.default_rng(9)
