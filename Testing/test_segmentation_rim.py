@@ -475,6 +475,8 @@ def test_a_contour_reaching_below_its_circles_centre_is_followed(seed):
         ({"edge_mm": 2.0}, "edge_mm must not exceed outside_mm"),
         ({"part_window_share": 0.0}, "RimParams.part_window_share must lie in"),
         ({"part_window_share": 1.5}, "RimParams.part_window_share must lie in"),
+        ({"band_mm": 6.0}, "RimParams.null_mm must be >= 2 band_mm"),
+        ({"null_mm": 9.0}, "RimParams.null_mm must be >= 2 band_mm"),
     ],
 )
 def test_bad_rim_params_refused(changes, says):

@@ -235,8 +235,8 @@ class RimParams:
     """Radii of the fitted circle accepted, mm (a clavicle's 5 mm to a tibia's broad face; a flatter fit is a layer)."""
     step_mm: float = 0.3
     """Arc-length step at the end's radius, mm (about a working pixel)."""
-    band_mm: float = 3.0
-    """Half-width of the radial band searched about the end's radius, mm (a crest departs from its fitted circle by a few mm)."""
+    band_mm: float = 5.0
+    """Half-width of the radial band searched about the end's radius, mm (a crest departs from its fitted circle by a few mm; a broad bone's flank more: the circle fitted to a contour that stops at its shoulder follows the bone's other, tighter side, and the L14 forearm's right flank lies up to 4.4 mm outside it (frame 9); ours, session 53: at 3 the trace met the band's edge and turned back in frames 9, 12, 15 and 19, at 5 it follows the flank; reconstruction from the reference: recording 0.246 -> 0.247 mm, grey-shadow copy 0.265 -> 0.252, cadaver copy 1.030 -> 0.767, look-alikes copy 0.288 -> 0.261; the simulated harness's gold means (five seed pairs, bone-free ends) within 0.0006 mm, recall and wrong share unchanged)."""
     offset_mm: float = 0.1
     """Spacing of the radial samples, mm."""
     max_step_mm: float = 0.2
@@ -259,8 +259,8 @@ class RimParams:
     """A shorter dropout under the level is bridged, mm (``FlankParams.gap_mm`` is 0.9; ours: where the path stopped on a faded stretch the trace's first steps are that stretch: on the L14 recording's cadaver-level copy, frame 18, the right end's first 0.9 mm was under the level and 10 mm of flank over it followed; at 1.2 mm the recording's reconstruction went from 0.352 to 0.333 mm from its reference, the hard simulated sweeps' unchanged within 0.01 mm)."""
     fade_mm: float = 3.6
     """A longer stretch under ``keep`` is bridged too, up to this length, mm, where the echo only faded there (every step of it above the null level: still a line, fainter than speckle's best) and returns after it, held at least as long as the stretch (0: no such bridge). A real bone's echo dims where its outline turns (the L14 forearm's right shoulder: 2.1 mm at 0.27-0.29 of the contour's own echo, then 0.8 down the flank, in frames 9-11 and 15) and the flank past it was lost. Ours: 2.4 bridges the recording's shoulder, 3.6 also the cadaver copy's; the reconstruction 0.270 -> 0.246 mm from the reference, the cadaver copy 1.202 -> 1.030, the look-alikes copy 0.299 -> 0.288; on 520 simulated sweeps (``bench_sweeps.py`` groups, five seed pairs, and bone-free ends) every set's gold mean within 0.0007 mm, recall and wrong share unchanged. A stretch with a step at speckle level is a line that ended: between two bones side by side the trace crossed the gap onto the other's flank when only the length was asked (hard radius 14 mm, seed 179: the surface 0.224 -> 0.308 mm)."""
-    null_mm: float = 8.0
-    """The null band: the same search this far out along the rays (past the band and its outside windows), in the tissue beside the bone, mm."""
+    null_mm: float = 10.0
+    """The null band: the same search this far out along the rays, in the tissue beside the bone, mm; at least ``2 band_mm``, so the null band starts where the search band ends (the bone's own flank is no null; farther out more of it leaves a small image: at 12 the 26 mm tall phantom of ``test_segmentation_rim.py`` kept under ten null steps and no trace)."""
     stop_z: float = 0.0
     """The trace's echo must also beat the null's median by this many of its robust spreads (pooled over the frame's traces: what speckle and the tissue's layers give with the same search)."""
     max_mm: float = 15.0
@@ -320,6 +320,11 @@ class RimParams:
             raise BoneUSReconError(
                 f"RimParams.edge_mm must not exceed outside_mm[1] ({self.outside_mm[1]}), "
                 f"got {self.edge_mm!r}"
+            )
+        if self.null_mm < 2 * self.band_mm:
+            raise BoneUSReconError(
+                f"RimParams.null_mm must be >= 2 band_mm ({2 * self.band_mm:g}: the null band "
+                f"clear of the search band), got {self.null_mm!r}"
             )
 
 
