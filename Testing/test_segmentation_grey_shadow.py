@@ -332,7 +332,9 @@ def test_pieces_over_one_shadow_are_one_near_cortex(sim_factory, monkeypatch):
     over frames 20-39 the widest candidate on the bone spans 80 % with the rule, 70 %
     without (frames 20, 21, 24, 30 gain 0.4-0.7; frame 25 loses 0.19) with the nulls
     over tissue (``null_dark_fraction`` 0.25); with the default nulls 76 % and 68 %,
-    frame 24 the same.
+    frame 24 the same. Since the rim searches +-5 mm about its circle (session 53) it
+    recovers part of the flank either way: over frames 20-39 0.84 with the rule, 0.77
+    without; frame 24 1.00 and 0.33.
     """
     from BoneUSRecon.Logic.segmentation import candidates
 
@@ -344,7 +346,7 @@ def test_pieces_over_one_shadow_are_one_near_cortex(sim_factory, monkeypatch):
     assert with_rule >= 0.9
     monkeypatch.setattr(candidates, "_shadowed_span", lambda c, cands: None)  # the rule off
     assert _dome_covered(sim, [24]) <= with_rule - 0.5
-    assert _dome_covered(sim, frames) <= with_all - 0.07
+    assert _dome_covered(sim, frames) <= with_all - 0.05
 
 
 def test_shadow_centre_is_the_tissue_s_when_shadow_fills_most_of_the_frame() -> None:
@@ -438,7 +440,9 @@ def test_series_top_made_over_a_copy_reaches_past_its_columns(sim_factory, monke
     0.10 and 0.09 mm). Seed 7 was 0.937 until session 50: in its frame 10 a piece over
     the bone's left half (x 58-88 of 55-126) is the strongest candidate, and the rule
     that judged a shadow from the grey over a line alone flagged that piece, on the
-    bone, as lying in one; without it the track keeps the piece there."""
+    bone, as lying in one; without it the track keeps the piece there. Since the rim
+    searches +-5 mm about its circle (session 53) it takes part of the flanks either
+    way: without the extension 0.911 and 0.854, with it 0.999 and 0.917."""
     from BoneUSRecon.Logic.segmentation import candidates
 
     sim = sim_factory(
@@ -449,7 +453,8 @@ def test_series_top_made_over_a_copy_reaches_past_its_columns(sim_factory, monke
     assert s["coverage"] >= 0.9
     assert s["p95_mm"] <= 0.2
     monkeypatch.setattr(candidates, "_extend_top", lambda ev, lr, cols, rows, *a: (cols, rows))
-    assert score_simulation(segment_sweep(sim.sweep), sim).summary()["coverage"] <= 0.91
+    without = score_simulation(segment_sweep(sim.sweep), sim).summary()["coverage"]
+    assert without <= s["coverage"] - 0.05, (without, s["coverage"])
 
 
 def test_a_top_traced_onto_a_line_found_already_is_that_line(sim_factory):
