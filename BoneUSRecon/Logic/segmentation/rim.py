@@ -69,12 +69,11 @@ inside it):
    echo dims where its outline turns, as on the L14 forearm's right shoulder, and a
    line that dimmed is no line that ended; a step at the null's level is one), at an
    unusable column (outside the field of view or without contact) or at the image's
-   edge. Near that edge a sample whose windows
-   cross it is measured on their part inside (``part_window_share`` of each at least;
-   :func:`_partial_windows`), so a flank that runs into the edge is followed to about
-   a millimetre of it, not ``outside_mm[1]`` short of it (the L14 recording's left
-   flank: every contour ended 1.7 mm inside the field; its reconstruction 0.305 ->
-   0.286 mm from the reference). The null stays on whole windows. Both levels are
+   edge. Near that edge a sample whose windows cross it is measured on their part
+   inside (``part_window_share`` of each at least; :func:`_partial_windows`), so a
+   flank that runs into the edge is followed to about a millimetre of it, not
+   ``outside_mm[1]`` short of it (the L14 recording's left flank: every contour ended
+   1.7 mm inside the field; its reconstruction 0.305 -> 0.286 mm from the reference). The null stays on whole windows. Both levels are
    ratios of grey levels of the same frame: no grey level, none fitted to one data
    source. The null alone is not the rule (as it is in :mod:`.flanks`): the tissue
    beside a real bone holds fasciae as bright as a flank's echo (on the L14
