@@ -74,7 +74,6 @@ from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, minimum_filter1d
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
@@ -210,7 +209,8 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     # win[c] = (shift, row) view of column c's padded scores (win[c, s, j] = score[c, j +
     # s]: sliding_window_view's view); inner[c] = its unpadded scores.
     step = score.itemsize
-    win = as_strided(score, (w, n, h), (score.strides[0], step, step), writeable=False)
+    # (An ndarray made on score's buffer: as_strided's view, without its ~4 us of Python.)
+    win = np.ndarray((w, n, h), score.dtype, score, 0, (score.strides[0], step, step))
     inner = score[:, d : d + h]
     null_before = [0.0] * w  # Python floats: a list store per column is cheapest
     null_back = np.full(w, -1, dtype=np.intp)
@@ -459,9 +459,10 @@ def _groups(path: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> list[np.
     cols = np.flatnonzero(path >= 0)
     if cols.size == 0:
         return []
-    breaks = np.flatnonzero(np.diff(cols) > 1)
-    starts = np.r_[0, breaks + 1]
-    ends = np.r_[breaks, cols.size - 1]
+    breaks = (cols[1:] - cols[:-1] > 1).nonzero()[0]
+    # (np.r_'s values, by np.concatenate: np.r_ costs ~5 us of Python per call.)
+    starts = np.concatenate(([0], breaks + 1))
+    ends = np.concatenate((breaks, [cols.size - 1]))
     groups: list[list[int]] = [[0]]
     for r in range(1, starts.size):
         a, b = cols[ends[r - 1]], cols[starts[r]]
@@ -867,6 +868,7 @@ def _series(
     elif sum(q <= -min_px for q in plist) < 3:
         return [0]
     vl = v.tolist()
+    lids: list[float | None] = []  # valid()'s tissue level over the top, once made
 
     def step_from(k: int, d: float, sign: int) -> int | None:
         # The nearest peak to ``want``, the shallower of two as near, within the
@@ -912,11 +914,15 @@ def _series(
             return True
         # The troughs are shadow: darker than the tissue over the reflector, every one
         # (soft-tissue layers have the same tissue between them as above them).
-        cover = v[max(0, reach - reach // 2) : max(1, reach - min_px)]
-        cover = cover[cover > -10.0]
-        if cover.size == 0:
+        # (The tissue's level is the profile's alone: made once per profile, not again
+        # for each chain tried.)
+        if not lids:
+            cover = v[max(0, reach - reach // 2) : max(1, reach - min_px)]
+            cover = cover[cover > -10.0]
+            lids.append(median1d(cover) if cover.size else None)
+        lid = lids[0]
+        if lid is None:
             return False
-        lid = median1d(cover)
         if mean_trough >= lid + dark or max(troughs) >= lid:
             return False
         if troughs[0] >= dark:
@@ -992,7 +998,8 @@ def _series(
             continue
         d = float(q - nxt_up[0])
         members = chain(q, d, (-1, 1))
-        if valid(members) and len(members) > len(best):
+        # (Only a longer series can win: valid() is a pure test, asked only then.)
+        if len(members) > len(best) and valid(members):
             best = members
     return best
 
@@ -2537,7 +2544,11 @@ def _fill_excursions(
     # The whole excursion goes, down to the contour's jitter (a fifth of valley_mm):
     # its feet too, or the stump left on the dome is taken for its apex.
     out = lift > 0.2 * p.valley_mm
-    edges = np.flatnonzero(np.diff(np.r_[False, out, False]))
+    # Where the padded mask changes: np.diff of np.r_[False, out, False] (not_equal of
+    # neighbours, for booleans) without np.r_'s and np.diff's Python layers.
+    pad = np.zeros(out.size + 2, bool)
+    pad[1:-1] = out
+    edges = (pad[1:] != pad[:-1]).nonzero()[0]
     for a, b in zip(edges[::2], edges[1::2], strict=True):
         if lift[a:b].max() >= p.valley_mm:
             keep[a:b] = False
