@@ -115,3 +115,31 @@ def test_convex_part_is_the_per_side_loop():
         assert np.array_equal(got, want), trial
         cut += int(not want.all())
     assert cut >= 100  # turns found, on both sides
+
+
+def test_array_idioms_are_the_numpy_functions():
+    # The hot paths' stand-ins (session 53, second round): a 1-D mask's nonzero for
+    # np.flatnonzero, the array methods for np.argmin / np.argmax / np.searchsorted,
+    # slices for np.diff, np.concatenate for np.r_, and the padded mask's changes for
+    # np.diff of np.r_[False, mask, False] (_fill_excursions' excursions).
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        n = int(rng.integers(0, 50))
+        mask = rng.random(n) < rng.random()
+        idx = np.flatnonzero(rng.random(n + 1) < 0.6)
+        x = np.round(rng.normal(size=n) * 4) / 4  # ties
+        assert np.array_equal(mask.nonzero()[0], np.flatnonzero(mask))
+        assert np.array_equal(idx[1:] - idx[:-1], np.diff(idx))
+        pad = np.zeros(n + 2, bool)
+        pad[1:-1] = mask
+        want = np.flatnonzero(np.diff(np.r_[False, mask, False]))
+        assert np.array_equal((pad[1:] != pad[:-1]).nonzero()[0], want)
+        got = np.concatenate(([0], idx + 1)), np.concatenate((idx, [n]))
+        for a, b in zip(got, (np.r_[0, idx + 1], np.r_[idx, n]), strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        if n:
+            assert x.argmin() == np.argmin(x) and x.argmax() == np.argmax(x)
+            xs = np.sort(x)
+            for side in ("left", "right"):
+                v = xs + rng.choice([-0.25, 0.0, 0.25], n)
+                assert np.array_equal(xs.searchsorted(v, side), np.searchsorted(xs, v, side))

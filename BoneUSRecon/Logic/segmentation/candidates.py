@@ -2118,14 +2118,19 @@ def _mark_branches(
         return out
     same = mm_to_px(p.suppress_mm, spacing[1])
     res = list(out)
+    # Each b's points in lateral order, made once (not again for every a: the same array).
+    ordered: dict[int, np.ndarray] = {}
     for i, (a, pa) in enumerate(zip(out, shapes, strict=True)):
         if a.reverberation or a.echo_beneath or pa.shape[0] < 2:
             continue
+        lo, hi = pa[:, 0].min(), pa[:, 0].max()
         for j, b in enumerate(out):
             if j == i or b.reverberation or b.echo_beneath:
                 continue
-            pb = b.points_px[np.argsort(b.points_px[:, 0], kind="stable")]
-            if pa[:, 0].min() < pb[0, 0] - ev.fx or pa[:, 0].max() > pb[-1, 0] + ev.fx:
+            if j not in ordered:
+                ordered[j] = b.points_px[b.points_px[:, 0].argsort(kind="stable")]
+            pb = ordered[j]
+            if lo < pb[0, 0] - ev.fx or hi > pb[-1, 0] + ev.fx:
                 continue  # not within b's columns (to a working column)
             off = np.interp(pa[:, 0], pb[:, 0], pb[:, 1]) - pa[:, 1]  # +: b under a
             if abs(off[0]) <= same:
