@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import minimum_filter1d
 
-from BoneUSRecon.Logic.segmentation.candidates import _runs
+from BoneUSRecon.Logic.segmentation.candidates import _apex, _outward_slopes, _runs, convex_part
 from BoneUSRecon.Logic.segmentation.evidence import field_tops
 from BoneUSRecon.Logic.segmentation.features import row_minimum_filter
+from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int16])
@@ -57,3 +58,88 @@ def test_field_tops_of_a_boolean_mask_are_the_cumulative_sums():
         mask = rng.random((h, w)) < rng.uniform(0.3, 1.0)
         got, want = field_tops(mask, dy), field_tops(mask.astype(np.uint8), dy)
         assert (got is None and want is None) or np.array_equal(got, want), (h, w, dy)
+
+
+def _plain_convex_part(points_px, spacing, p):  # type: ignore[no-untyped-def]
+    """``convex_part`` as it was written before session 53's second round: each side of
+    the apex on its own, through ``_outward_slopes``."""
+    n = points_px.shape[0]
+    keep = np.ones(n, bool)
+    if n < 6:
+        return keep
+    x = points_px[:, 0] * float(spacing[0])
+    z = points_px[:, 1] * float(spacing[1])
+    x0, x1 = x.min(), x.max()
+    span = x1 - x0
+    mid = (x >= x0 + 0.2 * span) & (x <= x1 - 0.2 * span)
+    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+    assert top == _apex(x, z)
+    win = p.kink_mm
+    for side in (-1, 1):
+        xs, zs = (x[top::-1], z[top::-1]) if side < 0 else (x[top:], z[top:])
+        if xs.size < 4:
+            continue
+        xo = np.abs(xs - x[top])
+        k, lo, s_in, s_out, ok = _outward_slopes(xo, zs, win, win)
+        ok &= (xo[k] - xo[lo] >= 0.5 * win) | (zs[k] - zs[lo] >= p.valley_mm)
+        cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
+        if cut.size:
+            j = int(k[cut[0]]) + 1
+            if side < 0:
+                keep[: top - j + 1] = False
+            else:
+                keep[top + j :] = False
+    return keep
+
+
+def test_convex_part_is_the_per_side_loop():
+    # Both sides measured on one concatenation against each side on its own: domes,
+    # crests with layers running off them, flat runs, ties on a pixel grid, edge sizes.
+    rng = np.random.default_rng(4)
+    p = ShadowPathParams()
+    cut = 0
+    for trial in range(600):
+        n = int(rng.integers(1, 160))
+        sx, sy = (float(v) for v in rng.uniform(0.05, 0.4, 2))
+        cols = np.sort(rng.choice(np.arange(4 * n + 8), n, replace=False)).astype(float)
+        t = np.linspace(-1.0, 1.0, n)
+        rows = rng.uniform(5, 60) * t**2 * rng.choice([-1.0, 1.0, 0.0]) + rng.normal(0, 1, n)
+        if trial % 3 == 0:  # a layer leaving the dome at one side: a turn to cut
+            k = int(rng.integers(0, n)) if n else 0
+            rows[k:] = rows[k] if n else rows[k:]
+        if trial % 4 == 0:
+            rows = np.round(rows)  # ties on the pixel grid
+        pts = np.column_stack([cols, rows + 100.0])
+        want = _plain_convex_part(pts, (sx, sy), p)
+        got = convex_part(pts, (sx, sy), p)
+        assert np.array_equal(got, want), trial
+        cut += int(not want.all())
+    assert cut >= 100  # turns found, on both sides
+
+
+def test_array_idioms_are_the_numpy_functions():
+    # The hot paths' stand-ins (session 53, second round): a 1-D mask's nonzero for
+    # np.flatnonzero, the array methods for np.argmin / np.argmax / np.searchsorted,
+    # slices for np.diff, np.concatenate for np.r_, and the padded mask's changes for
+    # np.diff of np.r_[False, mask, False] (_fill_excursions' excursions).
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        n = int(rng.integers(0, 50))
+        mask = rng.random(n) < rng.random()
+        idx = np.flatnonzero(rng.random(n + 1) < 0.6)
+        x = np.round(rng.normal(size=n) * 4) / 4  # ties
+        assert np.array_equal(mask.nonzero()[0], np.flatnonzero(mask))
+        assert np.array_equal(idx[1:] - idx[:-1], np.diff(idx))
+        pad = np.zeros(n + 2, bool)
+        pad[1:-1] = mask
+        want = np.flatnonzero(np.diff(np.r_[False, mask, False]))
+        assert np.array_equal((pad[1:] != pad[:-1]).nonzero()[0], want)
+        got = np.concatenate(([0], idx + 1)), np.concatenate((idx, [n]))
+        for a, b in zip(got, (np.r_[0, idx + 1], np.r_[idx, n]), strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        if n:
+            assert x.argmin() == np.argmin(x) and x.argmax() == np.argmax(x)
+            xs = np.sort(x)
+            for side in ("left", "right"):
+                v = xs + rng.choice([-0.25, 0.0, 0.25], n)
+                assert np.array_equal(xs.searchsorted(v, side), np.searchsorted(xs, v, side))

@@ -74,7 +74,6 @@ from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d, median_filter, minimum_filter1d
 
 from BoneUSRecon.Logic.segmentation.detection import sample_bilinear
@@ -210,7 +209,8 @@ def _optimal_path(gain: np.ndarray, shift_cost: np.ndarray, switch: float) -> np
     # win[c] = (shift, row) view of column c's padded scores (win[c, s, j] = score[c, j +
     # s]: sliding_window_view's view); inner[c] = its unpadded scores.
     step = score.itemsize
-    win = as_strided(score, (w, n, h), (score.strides[0], step, step), writeable=False)
+    # (An ndarray made on score's buffer: as_strided's view, without its ~4 us of Python.)
+    win = np.ndarray((w, n, h), score.dtype, score, 0, (score.strides[0], step, step))
     inner = score[:, d : d + h]
     null_before = [0.0] * w  # Python floats: a list store per column is cheapest
     null_back = np.full(w, -1, dtype=np.intp)
@@ -459,9 +459,10 @@ def _groups(path: np.ndarray, ev: EvidenceMaps, p: ShadowPathParams) -> list[np.
     cols = np.flatnonzero(path >= 0)
     if cols.size == 0:
         return []
-    breaks = np.flatnonzero(np.diff(cols) > 1)
-    starts = np.r_[0, breaks + 1]
-    ends = np.r_[breaks, cols.size - 1]
+    breaks = (cols[1:] - cols[:-1] > 1).nonzero()[0]
+    # (np.r_'s values, by np.concatenate: np.r_ costs ~5 us of Python per call.)
+    starts = np.concatenate(([0], breaks + 1))
+    ends = np.concatenate((breaks, [cols.size - 1]))
     groups: list[list[int]] = [[0]]
     for r in range(1, starts.size):
         a, b = cols[ends[r - 1]], cols[starts[r]]
@@ -575,7 +576,7 @@ def _runs(idx: np.ndarray) -> list[np.ndarray]:
     """``np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)`` of ascending indices: the
     runs of consecutive ones, as views of ``idx`` (the same arrays), without
     ``np.split``'s ~30 us of Python per call (a few tens of calls per frame)."""
-    cut = (np.flatnonzero(np.diff(idx) > 1) + 1).tolist()
+    cut = ((idx[1:] - idx[:-1] > 1).nonzero()[0] + 1).tolist()
     return [idx[a:b] for a, b in zip([0, *cut], [*cut, idx.size], strict=True)]
 
 
@@ -814,7 +815,7 @@ def _profile_peaks(prof: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray
         v = np.nan_to_num(prof, nan=-10.0)
     is_peak = np.zeros(v.size, bool)
     is_peak[1:-1] = (v[1:-1] >= v[:-2]) & (v[1:-1] > v[2:]) & (v[1:-1] > 0)
-    return v, np.flatnonzero(is_peak) - reach
+    return v, is_peak.nonzero()[0] - reach
 
 
 def _series(
@@ -867,6 +868,7 @@ def _series(
     elif sum(q <= -min_px for q in plist) < 3:
         return [0]
     vl = v.tolist()
+    lids: list[float | None] = []  # valid()'s tissue level over the top, once made
 
     def step_from(k: int, d: float, sign: int) -> int | None:
         # The nearest peak to ``want``, the shallower of two as near, within the
@@ -912,11 +914,15 @@ def _series(
             return True
         # The troughs are shadow: darker than the tissue over the reflector, every one
         # (soft-tissue layers have the same tissue between them as above them).
-        cover = v[max(0, reach - reach // 2) : max(1, reach - min_px)]
-        cover = cover[cover > -10.0]
-        if cover.size == 0:
+        # (The tissue's level is the profile's alone: made once per profile, not again
+        # for each chain tried.)
+        if not lids:
+            cover = v[max(0, reach - reach // 2) : max(1, reach - min_px)]
+            cover = cover[cover > -10.0]
+            lids.append(median1d(cover) if cover.size else None)
+        lid = lids[0]
+        if lid is None:
             return False
-        lid = median1d(cover)
         if mean_trough >= lid + dark or max(troughs) >= lid:
             return False
         if troughs[0] >= dark:
@@ -992,7 +998,8 @@ def _series(
             continue
         d = float(q - nxt_up[0])
         members = chain(q, d, (-1, 1))
-        if valid(members) and len(members) > len(best):
+        # (Only a longer series can win: valid() is a pure test, asked only then.)
+        if len(members) > len(best) and valid(members):
             best = members
     return best
 
@@ -1356,7 +1363,7 @@ def _mark_series(
                 )
             pool, stacked = others[0]
             on = np.count_nonzero(np.abs(stacked - dense) <= sup, axis=1)
-            hit = np.flatnonzero(on >= 0.5 * cols.size)
+            hit = (on >= 0.5 * cols.size).nonzero()[0]
             if hit.size:
                 best, new = pool[int(hit[0])], False
         # A copy returns less than its reflector; over the shadow it may stand out
@@ -1623,7 +1630,10 @@ def _apex(x: np.ndarray, z: np.ndarray) -> int:
     x0, x1 = x.min(), x.max()
     span = x1 - x0
     mid = (x >= x0 + 0.2 * span) & (x <= x1 - 0.2 * span)
-    return int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
+    # Array methods, not numpy's functions: ~40 calls per frame on tens of values, where
+    # the functions' wrappers cost more than the work (the same indices).
+    idx = mid.nonzero()[0]
+    return int(idx[z[idx].argmin()]) if idx.size else int(z.argmin())
 
 
 def _outward_slopes(
@@ -1640,8 +1650,9 @@ def _outward_slopes(
     """
     k = np.arange(1, xo.size - 1)
     xk, zk = xo[1:-1], zo[1:-1]  # xo[k], zo[k] (slices: fewer numpy calls per contour)
-    lo = np.searchsorted(xo, xk - w_in, side="left")
-    hi = np.searchsorted(xo, xk + w_out, side="right")
+    # (The array's method: np.searchsorted's wrapper costs as much as the search here.)
+    lo = xo.searchsorted(xk - w_in, side="left")
+    hi = xo.searchsorted(xk + w_out, side="right")
     hi -= 1
     d_out = xo[hi] - xk
     s_in = (zk - zo[lo]) / np.maximum(xk - xo[lo], 1e-6)
@@ -1672,27 +1683,55 @@ def convex_part(
     z = points_px[:, 1] * float(spacing[1])
     top = _apex(x, z)
     win = p.kink_mm
-    for side in (-1, 1):
-        # The side's points outward from the apex (slices: no index arrays).
-        xs, zs = (x[top::-1], z[top::-1]) if side < 0 else (x[top:], z[top:])
-        if xs.size < 4:
-            continue
-        xo = np.abs(xs - x[top])
-        k, lo, s_in, s_out, ok = _outward_slopes(xo, zs, win, win)
-        # The descent inward of the turn measured over at least half of kink_mm, as the
-        # outward one is, or a drop of valley_mm (a hop's, as _fill_excursions reads
-        # one): a grain a few tenths of a mm over the top is neither, and taken for a
-        # flank it cut a 20 mm dome down to 3 mm (hard simulated tibia, seed 113, frame
-        # 15; on the tibia with the fibula, seed 131, 0.40 -> 0.29 mm from gold).
-        ok &= (xo[k] - xo[lo] >= 0.5 * win) | (zs[k] - zs[lo] >= p.valley_mm)
-        cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
-        if cut.size:
+    # Each side's points outward from the apex (views, lateral distance from it), then
+    # both sides measured by one set of numpy calls on their concatenation (numpy's
+    # per-call cost dominates on a contour's tens of points; each side's windows are
+    # searched in its own points, so the same indices and the same values as
+    # :func:`_outward_slopes` per side).
+    xa = np.abs(x - x[top])
+    sides = [
+        (side, xo, zs)
+        for side, xo, zs in ((-1, xa[top::-1], z[top::-1]), (1, xa[top:], z[top:]))
+        if xo.size >= 4
+    ]
+    if not sides:
+        return keep
+    xs, zs, ks, los, his = [], [], [], [], []
+    start = 0  # the side's first point in the concatenation
+    for _, xo, zo in sides:
+        xk = xo[1:-1]
+        ks.append(np.arange(start + 1, start + xo.size - 1))
+        los.append(xo.searchsorted(xk - win, side="left") + start)
+        his.append(xo.searchsorted(xk + win, side="right") + (start - 1))
+        xs.append(xo)
+        zs.append(zo)
+        start += xo.size
+    xo, zo = np.concatenate(xs), np.concatenate(zs)
+    k, lo, hi = np.concatenate(ks), np.concatenate(los), np.concatenate(his)
+    xk, zk, xl, zl = xo[k], zo[k], xo[lo], zo[lo]
+    d_in, d_out = xk - xl, xo[hi] - xk
+    s_in = (zk - zl) / np.maximum(d_in, 1e-6)
+    s_out = (zo[hi] - zk) / np.maximum(d_out, 1e-6)
+    # (_outward_slopes' ``ok``.) The descent inward of the turn measured over at least
+    # half of kink_mm, as the outward one is, or a drop of valley_mm (a hop's, as
+    # _fill_excursions reads one): a grain a few tenths of a mm over the top is neither,
+    # and taken for a flank it cut a 20 mm dome down to 3 mm (hard simulated tibia, seed
+    # 113, frame 15; on the tibia with the fibula, seed 131, 0.40 -> 0.29 mm from gold).
+    ok = (k - lo >= 1) & (hi - k >= 1) & (d_out >= 0.5 * win)
+    ok &= (d_in >= 0.5 * win) | (zk - zl >= p.valley_mm)
+    cut = k[ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0)].tolist()
+    start = 0
+    for side, xo_side, _ in sides:
+        end = start + xo_side.size
+        first = next((q for q in cut if start <= q < end), None)
+        if first is not None:
             # The points past the turn: side index k + 1 on, i.e. top -+ (k + 1) on.
-            j = int(k[cut[0]]) + 1
+            j = first - start + 1
             if side < 0:
                 keep[: top - j + 1] = False
             else:
                 keep[top + j :] = False
+        start = end
     return keep
 
 
@@ -2018,10 +2057,10 @@ def _cut_climbing_ends(
     for side in (-1, 1):
         zs = z[top::-1] if side < 0 else z[top:]
         deepest = np.maximum.accumulate(zs)
-        up = np.flatnonzero(deepest - zs > climb)
+        up = (deepest - zs > climb).nonzero()[0]
         if up.size == 0:
             continue
-        j = int(np.argmax(zs[: up[0]]))  # the deepest point before the climb
+        j = int(zs[: up[0]].argmax())  # the deepest point before the climb
         drop = zs[j] - zs[0]
         if drop < 2 * climb or np.diff(zs[: j + 1]).max() > 0.5 * drop:
             continue  # no flank followed down before it (none, or a jump between lines)
@@ -2079,14 +2118,19 @@ def _mark_branches(
         return out
     same = mm_to_px(p.suppress_mm, spacing[1])
     res = list(out)
+    # Each b's points in lateral order, made once (not again for every a: the same array).
+    ordered: dict[int, np.ndarray] = {}
     for i, (a, pa) in enumerate(zip(out, shapes, strict=True)):
         if a.reverberation or a.echo_beneath or pa.shape[0] < 2:
             continue
+        lo, hi = pa[:, 0].min(), pa[:, 0].max()
         for j, b in enumerate(out):
             if j == i or b.reverberation or b.echo_beneath:
                 continue
-            pb = b.points_px[np.argsort(b.points_px[:, 0], kind="stable")]
-            if pa[:, 0].min() < pb[0, 0] - ev.fx or pa[:, 0].max() > pb[-1, 0] + ev.fx:
+            if j not in ordered:
+                ordered[j] = b.points_px[b.points_px[:, 0].argsort(kind="stable")]
+            pb = ordered[j]
+            if lo < pb[0, 0] - ev.fx or hi > pb[-1, 0] + ev.fx:
                 continue  # not within b's columns (to a working column)
             off = np.interp(pa[:, 0], pb[:, 0], pb[:, 1]) - pa[:, 1]  # +: b under a
             if abs(off[0]) <= same:
@@ -2505,7 +2549,11 @@ def _fill_excursions(
     # The whole excursion goes, down to the contour's jitter (a fifth of valley_mm):
     # its feet too, or the stump left on the dome is taken for its apex.
     out = lift > 0.2 * p.valley_mm
-    edges = np.flatnonzero(np.diff(np.r_[False, out, False]))
+    # Where the padded mask changes: np.diff of np.r_[False, out, False] (not_equal of
+    # neighbours, for booleans) without np.r_'s and np.diff's Python layers.
+    pad = np.zeros(out.size + 2, bool)
+    pad[1:-1] = out
+    edges = (pad[1:] != pad[:-1]).nonzero()[0]
     for a, b in zip(edges[::2], edges[1::2], strict=True):
         if lift[a:b].max() >= p.valley_mm:
             keep[a:b] = False
@@ -2552,7 +2600,7 @@ def _valley_runs(
     left = np.minimum.accumulate(z)
     right = np.minimum.accumulate(z[::-1])[::-1]
     dip = np.minimum(z - left, z - right)
-    deep = np.flatnonzero(dip >= valley_mm)
+    deep = (dip >= valley_mm).nonzero()[0]
     if deep.size == 0:
         return [np.arange(n)]
     cuts = []
