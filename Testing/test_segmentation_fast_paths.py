@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.ndimage import minimum_filter1d
+from test_segmentation_speed_paths import _plain_convex_part
 
-from BoneUSRecon.Logic.segmentation.candidates import _apex, _outward_slopes, _runs, convex_part
+from BoneUSRecon.Logic.segmentation.candidates import _runs, convex_part
 from BoneUSRecon.Logic.segmentation.evidence import field_tops
 from BoneUSRecon.Logic.segmentation.features import row_minimum_filter
 from BoneUSRecon.Logic.segmentation.params import ShadowPathParams
@@ -60,41 +61,10 @@ def test_field_tops_of_a_boolean_mask_are_the_cumulative_sums():
         assert (got is None and want is None) or np.array_equal(got, want), (h, w, dy)
 
 
-def _plain_convex_part(points_px, spacing, p):  # type: ignore[no-untyped-def]
-    """``convex_part`` as it was written before session 53's second round: each side of
-    the apex on its own, through ``_outward_slopes``."""
-    n = points_px.shape[0]
-    keep = np.ones(n, bool)
-    if n < 6:
-        return keep
-    x = points_px[:, 0] * float(spacing[0])
-    z = points_px[:, 1] * float(spacing[1])
-    x0, x1 = x.min(), x.max()
-    span = x1 - x0
-    mid = (x >= x0 + 0.2 * span) & (x <= x1 - 0.2 * span)
-    top = int(np.flatnonzero(mid)[np.argmin(z[mid])]) if mid.any() else int(np.argmin(z))
-    assert top == _apex(x, z)
-    win = p.kink_mm
-    for side in (-1, 1):
-        xs, zs = (x[top::-1], z[top::-1]) if side < 0 else (x[top:], z[top:])
-        if xs.size < 4:
-            continue
-        xo = np.abs(xs - x[top])
-        k, lo, s_in, s_out, ok = _outward_slopes(xo, zs, win, win)
-        ok &= (xo[k] - xo[lo] >= 0.5 * win) | (zs[k] - zs[lo] >= p.valley_mm)
-        cut = np.flatnonzero(ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0))
-        if cut.size:
-            j = int(k[cut[0]]) + 1
-            if side < 0:
-                keep[: top - j + 1] = False
-            else:
-                keep[top + j :] = False
-    return keep
-
-
 def test_convex_part_is_the_per_side_loop():
-    # Both sides measured on one concatenation against each side on its own: domes,
-    # crests with layers running off them, flat runs, ties on a pixel grid, edge sizes.
+    # Both sides measured on one concatenation against each side on its own (the plain
+    # index-array version of test_segmentation_speed_paths): domes, crests with layers
+    # running off them, flat runs, ties on a pixel grid, edge sizes.
     rng = np.random.default_rng(4)
     p = ShadowPathParams()
     cut = 0
