@@ -1649,16 +1649,26 @@ def _outward_slopes(
     outer one spans at least half of ``w_out``.
     """
     k = np.arange(1, xo.size - 1)
-    xk, zk = xo[1:-1], zo[1:-1]  # xo[k], zo[k] (slices: fewer numpy calls per contour)
+    xk = xo[1:-1]  # xo[k] (a slice: fewer numpy calls per contour)
     # (The array's method: np.searchsorted's wrapper costs as much as the search here.)
     lo = xo.searchsorted(xk - w_in, side="left")
     hi = xo.searchsorted(xk + w_out, side="right")
     hi -= 1
+    return (k, lo, *_window_slopes(xo, zo, k, lo, hi, w_out))
+
+
+def _window_slopes(
+    xo: np.ndarray, zo: np.ndarray, k: np.ndarray, lo: np.ndarray, hi: np.ndarray, w_out: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``s_in, s_out, ok`` of :func:`_outward_slopes` for given windows ``[lo, k]`` and
+    ``[k, hi]`` (index arrays into ``xo``, ``zo``): shared with :func:`convex_part`,
+    which measures both sides of an apex on their concatenation."""
+    xk, zk = xo[k], zo[k]
     d_out = xo[hi] - xk
     s_in = (zk - zo[lo]) / np.maximum(xk - xo[lo], 1e-6)
     s_out = (zo[hi] - zk) / np.maximum(d_out, 1e-6)
     ok = (k - lo >= 1) & (hi - k >= 1) & (d_out >= 0.5 * w_out)
-    return k, lo, s_in, s_out, ok
+    return s_in, s_out, ok
 
 
 def convex_part(
@@ -1708,17 +1718,13 @@ def convex_part(
         start += xo.size
     xo, zo = np.concatenate(xs), np.concatenate(zs)
     k, lo, hi = np.concatenate(ks), np.concatenate(los), np.concatenate(his)
-    xk, zk, xl, zl = xo[k], zo[k], xo[lo], zo[lo]
-    d_in, d_out = xk - xl, xo[hi] - xk
-    s_in = (zk - zl) / np.maximum(d_in, 1e-6)
-    s_out = (zo[hi] - zk) / np.maximum(d_out, 1e-6)
-    # (_outward_slopes' ``ok``.) The descent inward of the turn measured over at least
-    # half of kink_mm, as the outward one is, or a drop of valley_mm (a hop's, as
-    # _fill_excursions reads one): a grain a few tenths of a mm over the top is neither,
-    # and taken for a flank it cut a 20 mm dome down to 3 mm (hard simulated tibia, seed
-    # 113, frame 15; on the tibia with the fibula, seed 131, 0.40 -> 0.29 mm from gold).
-    ok = (k - lo >= 1) & (hi - k >= 1) & (d_out >= 0.5 * win)
-    ok &= (d_in >= 0.5 * win) | (zk - zl >= p.valley_mm)
+    s_in, s_out, ok = _window_slopes(xo, zo, k, lo, hi, win)
+    # The descent inward of the turn measured over at least half of kink_mm, as the
+    # outward one is, or a drop of valley_mm (a hop's, as _fill_excursions reads one): a
+    # grain a few tenths of a mm over the top is neither, and taken for a flank it cut a
+    # 20 mm dome down to 3 mm (hard simulated tibia, seed 113, frame 15; on the tibia
+    # with the fibula, seed 131, 0.40 -> 0.29 mm from gold).
+    ok &= (xo[k] - xo[lo] >= 0.5 * win) | (zo[k] - zo[lo] >= p.valley_mm)
     cut = k[ok & (s_in >= p.kink_slope) & (s_out < s_in / 3.0)].tolist()
     start = 0
     for side, xo_side, _ in sides:
